@@ -1,0 +1,528 @@
+"""The raw trial format: one HDF5 file holds many trials, one group per trial.
+
+This is the single reader/writer/validator of raw e-Skin trials; the simulator, the
+serial recorder, preprocessing and the DataModule all go through it. Layout (see
+``docs/data_format.md``)::
+
+    /                       attrs: format="embodied-tactile-raw", format_version=1
+    /trials/<name>/         attrs: see REQUIRED_ATTRS / OPTIONAL_ATTRS
+        tactile/t           (N,)            float64  s, strictly increasing
+        tactile/acc         (N, 4, 4, 3)    float32  g, grid order (row-major 4x4), axes x,y,z
+        tactile/fsr         (N, 2, 16, 16)  uint16   ADC counts 0..4095, layer 0 top, 1 bottom
+        pose/t              (M,)            float64  s, same clock as tactile/t
+        pose/ee             (M, K>=6)       float32  x, y, z (m), roll, pitch, yaw (rad), extras
+        baseline/{t,acc,fsr}                optional no-contact baseline, same dtypes
+
+Every problem is reported as a :class:`TrialFormatError` naming file, trial and field.
+A bad trial is skipped with a warning (``strict=True`` makes it fatal); it never takes the
+other trials of the file down.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Mapping, Sequence
+
+import h5py
+import numpy as np
+
+from embodied_tactile import constants as C
+
+log = logging.getLogger(__name__)
+
+FORMAT_NAME = "embodied-tactile-raw"
+FORMAT_VERSION = 1
+
+#: Field name -> dataset path inside a trial group.
+FIELDS: Mapping[str, str] = {
+    "t": "tactile/t",
+    "acc": "tactile/acc",
+    "fsr": "tactile/fsr",
+    "pose_t": "pose/t",
+    "pose": "pose/ee",
+    "baseline_t": "baseline/t",
+    "baseline_acc": "baseline/acc",
+    "baseline_fsr": "baseline/fsr",
+}
+TACTILE_FIELDS = ("t", "acc", "fsr")
+POSE_FIELDS = ("pose_t", "pose")
+ALL_REQUIRED_FIELDS = ("t", "acc", "fsr", "pose_t", "pose")
+
+#: attr -> python type it must convert to. Factors are NaN where unknown (recordings of
+#: objects outside the catalogue).
+REQUIRED_ATTRS: Mapping[str, type] = {
+    "object_id": int,
+    "skin": str,
+    "primitive": str,
+    "action_index": int,
+    "action_params": np.ndarray,
+    "action_param_names": str,  # JSON list
+    "repetition": int,
+    "spatial_frequency": float,
+    "amplitude": float,
+    "stiffness": float,
+    "heterogeneity": float,
+    "source": str,
+    "fs_tactile": float,
+    "fs_pose": float,
+    "seed": int,
+}
+OPTIONAL_ATTRS: Mapping[str, type] = {
+    "complete": bool,  # recorder: False while recording / after an interrupted trial
+    "lost_packets": int,
+    "device": str,
+    "notes": str,
+}
+
+_DTYPES: Mapping[str, tuple[np.dtype, ...]] = {
+    "t": (np.dtype("float64"),),
+    "acc": (np.dtype("float32"), np.dtype("float64")),
+    "fsr": (np.dtype("uint16"),),
+    "pose_t": (np.dtype("float64"),),
+    "pose": (np.dtype("float32"), np.dtype("float64")),
+    "baseline_t": (np.dtype("float64"),),
+    "baseline_acc": (np.dtype("float32"), np.dtype("float64")),
+    "baseline_fsr": (np.dtype("uint16"),),
+}
+_TAIL_SHAPES: Mapping[str, tuple[int, ...] | None] = {
+    "t": (),
+    "acc": (*C.ACC_GRID, C.ACC_AXES),
+    "fsr": (C.FSR_LAYERS, *C.FSR_GRID),
+    "pose_t": (),
+    "pose": None,  # (M, K>=6)
+    "baseline_t": (),
+    "baseline_acc": (*C.ACC_GRID, C.ACC_AXES),
+    "baseline_fsr": (C.FSR_LAYERS, *C.FSR_GRID),
+}
+
+
+class TrialFormatError(ValueError):
+    """A raw trial that does not meet the format. Names file, trial and field."""
+
+    def __init__(self, file: str | os.PathLike, trial: str, field: str, problem: str):
+        self.file = str(file)
+        self.trial = trial
+        self.field = field
+        self.problem = problem
+        super().__init__(f"{self.file}: trial '{trial}', field '{field}': {problem}")
+
+
+@dataclass
+class RawTrial:
+    """One trial in memory. Arrays as stored; ``attrs`` holds every REQUIRED_ATTRS key."""
+
+    t: np.ndarray
+    acc: np.ndarray
+    fsr: np.ndarray
+    pose_t: np.ndarray
+    pose: np.ndarray
+    attrs: dict[str, Any]
+    baseline_t: np.ndarray | None = None
+    baseline_acc: np.ndarray | None = None
+    baseline_fsr: np.ndarray | None = None
+
+    @property
+    def name(self) -> str:
+        return trial_name(self.attrs)
+
+    @property
+    def factors(self) -> np.ndarray:
+        return np.array([float(self.attrs[k]) for k in C.FACTOR_NAMES], dtype=np.float64)
+
+
+def trial_name(attrs: Mapping[str, Any]) -> str:
+    """Canonical group name, e.g. ``obj07_soft_sliding_a03_r00``."""
+    return (
+        f"obj{int(attrs['object_id']):02d}_{attrs['skin']}_{attrs['primitive']}"
+        f"_a{int(attrs['action_index']):02d}_r{int(attrs['repetition']):02d}"
+    )
+
+
+def make_attrs(
+    *,
+    object_id: int,
+    skin: str,
+    primitive: str,
+    action_index: int,
+    repetition: int,
+    source: str,
+    seed: int,
+    factors: Sequence[float] | None = None,
+    fs_tactile: float = C.FS_TACTILE,
+    fs_pose: float = C.FS_POSE,
+    **extra: Any,
+) -> dict[str, Any]:
+    """Attributes of a trial of catalogue object ``object_id`` (factors from the catalogue
+    unless given; pass NaNs for an unknown object)."""
+    action = C.get_action(primitive, action_index)
+    if factors is None:
+        factors = C.get_object(object_id).factors()
+    attrs: dict[str, Any] = {
+        "object_id": int(object_id),
+        "skin": str(skin),
+        "primitive": str(primitive),
+        "action_index": int(action_index),
+        "action_params": action.as_array(),
+        "action_param_names": json.dumps(list(C.ACTION_PARAM_NAMES[primitive])),
+        "repetition": int(repetition),
+        "source": str(source),
+        "fs_tactile": float(fs_tactile),
+        "fs_pose": float(fs_pose),
+        "seed": int(seed),
+    }
+    attrs.update({k: float(v) for k, v in zip(C.FACTOR_NAMES, factors)})
+    attrs.update(extra)
+    return attrs
+
+
+# --------------------------------------------------------------------------- writing
+_COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
+
+
+def _ensure_root(f: h5py.File) -> h5py.Group:
+    if "format" not in f.attrs:
+        f.attrs["format"] = FORMAT_NAME
+        f.attrs["format_version"] = FORMAT_VERSION
+    return f.require_group("trials")
+
+
+def _set_attrs(g: h5py.Group, attrs: Mapping[str, Any]) -> None:
+    for k, v in attrs.items():
+        g.attrs[k] = np.asarray(v, dtype=np.float64) if k == "action_params" else v
+
+
+def write_trial(target: str | os.PathLike | h5py.File, trial: RawTrial, *, overwrite: bool = False) -> str:
+    """Write ``trial`` as a group of ``target`` (a path, opened in append mode, or an open
+    file). Returns the group name. The trial is validated before anything is written."""
+    if not isinstance(target, h5py.File):
+        with h5py.File(target, "a") as f:
+            return write_trial(f, trial, overwrite=overwrite)
+    validate_arrays(target.filename, trial.name, trial)
+    trials = _ensure_root(target)
+    name = trial.name
+    if name in trials:
+        if not overwrite:
+            raise FileExistsError(f"{target.filename}: trial '{name}' exists (overwrite=False)")
+        del trials[name]
+    g = trials.create_group(name)
+    for fld, path in FIELDS.items():
+        arr = getattr(trial, fld)
+        if arr is None:
+            continue
+        opts = _COMPRESSION if arr.ndim > 1 else {}
+        g.create_dataset(path, data=arr, chunks=True if opts else None, **opts)
+    _set_attrs(g, trial.attrs)
+    return name
+
+
+class IncrementalTrialWriter:
+    """Append tactile and pose samples to a trial group as they arrive (for recorders).
+
+    Datasets are chunked and resizable; :meth:`flush` makes everything appended so far
+    durable. The trial carries ``complete=False`` until :meth:`close` with ``complete=True``,
+    so an interrupted recording stays readable and is marked as such.
+    """
+
+    def __init__(self, path: str | os.PathLike, attrs: Mapping[str, Any], *, chunk: int = 700, pose_columns: int = 6):
+        self.path = Path(path)
+        self.file = h5py.File(self.path, "a", libver="latest")
+        trials = _ensure_root(self.file)
+        self.name = trial_name(attrs)
+        if self.name in trials:
+            raise FileExistsError(f"{self.path}: trial '{self.name}' exists")
+        self.group = trials.create_group(self.name)
+        _set_attrs(self.group, {**attrs, "complete": False})
+        self._ds: dict[str, h5py.Dataset] = {}
+        for fld in ("t", "acc", "fsr", "pose_t", "pose", "baseline_t", "baseline_acc", "baseline_fsr"):
+            tail = _TAIL_SHAPES[fld] if fld != "pose" else (pose_columns,)
+            self._ds[fld] = self.group.create_dataset(
+                FIELDS[fld], shape=(0, *tail), maxshape=(None, *tail), dtype=_DTYPES[fld][0], chunks=(chunk, *tail)
+            )
+        self.file.flush()
+
+    def append(self, fld: str, values: np.ndarray) -> None:
+        ds = self._ds[fld]
+        values = np.asarray(values, dtype=ds.dtype)
+        if values.shape[1:] != ds.shape[1:]:
+            values = values.reshape(-1, *ds.shape[1:])
+        n = ds.shape[0]
+        ds.resize(n + values.shape[0], axis=0)
+        ds[n:] = values
+
+    def count(self, fld: str) -> int:
+        return int(self._ds[fld].shape[0])
+
+    def set_attrs(self, **attrs: Any) -> None:
+        _set_attrs(self.group, attrs)
+
+    def flush(self) -> None:
+        self.file.flush()
+
+    def close(self, *, complete: bool) -> None:
+        if not self.file.id.valid:
+            return
+        for fld in ("baseline_t", "baseline_acc", "baseline_fsr"):
+            if self._ds[fld].shape[0] == 0:
+                del self.group[FIELDS[fld]]
+        self.group.attrs["complete"] = bool(complete)
+        self.file.flush()
+        self.file.close()
+
+
+# --------------------------------------------------------------------------- validation
+def _check_attrs(file: str, name: str, attrs: Mapping[str, Any]) -> None:
+    for key, typ in REQUIRED_ATTRS.items():
+        if key not in attrs:
+            raise TrialFormatError(file, name, f"attrs/{key}", "required attribute is missing")
+        val = attrs[key]
+        try:
+            if typ is np.ndarray:
+                arr = np.asarray(val, dtype=np.float64)
+                if arr.ndim != 1 or not np.all(np.isfinite(arr)):
+                    raise ValueError("must be a finite 1-D float array")
+            elif typ is str:
+                if not isinstance(val, (str, bytes)):
+                    raise ValueError(f"must be a string, got {type(val).__name__}")
+            elif typ is int:
+                if float(val) != int(val):
+                    raise ValueError("must be an integer")
+            else:
+                float(val)
+        except (TypeError, ValueError) as exc:
+            raise TrialFormatError(file, name, f"attrs/{key}", f"bad value {val!r}: {exc}") from None
+    if _s(attrs["skin"]) not in C.SKINS:
+        raise TrialFormatError(file, name, "attrs/skin", f"must be one of {C.SKINS}, got {_s(attrs['skin'])!r}")
+    if _s(attrs["primitive"]) not in C.PRIMITIVES:
+        raise TrialFormatError(file, name, "attrs/primitive", f"must be one of {C.PRIMITIVES}, got {_s(attrs['primitive'])!r}")
+    if _s(attrs["source"]) not in C.SOURCES:
+        raise TrialFormatError(file, name, "attrs/source", f"must be one of {C.SOURCES}, got {_s(attrs['source'])!r}")
+    if not 0 <= int(attrs["action_index"]) < C.N_ACTIONS:
+        raise TrialFormatError(file, name, "attrs/action_index", f"must be in 0..{C.N_ACTIONS - 1}")
+    for key in ("fs_tactile", "fs_pose"):
+        if not float(attrs[key]) > 0:
+            raise TrialFormatError(file, name, f"attrs/{key}", "sampling rate must be positive")
+
+
+def _s(v: Any) -> str:
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+def _check_array(file: str, name: str, fld: str, arr: np.ndarray | h5py.Dataset, n: int | None) -> None:
+    path = FIELDS[fld]
+    if arr.dtype not in _DTYPES[fld]:
+        raise TrialFormatError(file, name, path, f"dtype {arr.dtype} not in {[str(d) for d in _DTYPES[fld]]}")
+    tail = _TAIL_SHAPES[fld]
+    if tail is None:  # pose: (M, K>=6)
+        if arr.ndim != 2 or arr.shape[1] < 6:
+            raise TrialFormatError(file, name, path, f"shape {arr.shape}, expected (M, K>=6)")
+    elif arr.ndim != 1 + len(tail) or tuple(arr.shape[1:]) != tail:
+        raise TrialFormatError(file, name, path, f"shape {arr.shape}, expected (N, {', '.join(map(str, tail))})".replace(", )", ")"))
+    if n is not None and arr.shape[0] != n:
+        raise TrialFormatError(file, name, path, f"has {arr.shape[0]} samples, its timestamps have {n} (truncated?)")
+
+
+def _check_values(file: str, name: str, fld: str, data: np.ndarray) -> None:
+    path = FIELDS[fld]
+    if data.shape[0] < 2 and fld in ("t", "pose_t"):
+        raise TrialFormatError(file, name, path, f"needs at least 2 samples, has {data.shape[0]}")
+    if data.dtype.kind == "f":
+        bad = ~np.isfinite(data)
+        if bad.any():
+            idx = np.argwhere(bad)[0]
+            raise TrialFormatError(file, name, path, f"{int(bad.sum())} non-finite value(s), first at index {tuple(int(i) for i in idx)}")
+    if fld.endswith("t") and fld in ("t", "pose_t", "baseline_t"):
+        d = np.diff(data)
+        if (d <= 0).any():
+            i = int(np.argmax(d <= 0))
+            raise TrialFormatError(file, name, path, f"timestamps not strictly increasing at sample {i + 1} ({data[i]!r} -> {data[i + 1]!r})")
+    if fld.endswith("fsr") and data.size and int(data.max()) > C.FSR_MAX_COUNT:
+        raise TrialFormatError(file, name, path, f"count {int(data.max())} exceeds the 12-bit range 0..{C.FSR_MAX_COUNT}")
+    if fld.endswith("acc") and data.size and float(np.abs(data).max()) > C.ACC_RANGE_G * 1.0001:
+        raise TrialFormatError(file, name, path, f"|acc| {float(np.abs(data).max()):.3g} g exceeds the +-{C.ACC_RANGE_G} g range")
+
+
+def _fields_needed(fields: Iterable[str]) -> list[str]:
+    need = set(fields)
+    if need & {"acc", "fsr"}:
+        need.add("t")
+    if "pose" in need:
+        need.add("pose_t")
+    return [f for f in FIELDS if f in need]
+
+
+def validate_arrays(file: str | os.PathLike, name: str, trial: RawTrial, fields: Iterable[str] = ALL_REQUIRED_FIELDS) -> None:
+    """Validate an in-memory trial (used before writing)."""
+    file = str(file)
+    _check_attrs(file, name, trial.attrs)
+    counts = {"t": None, "pose_t": None, "baseline_t": None}
+    for fld in _fields_needed(fields):
+        arr = getattr(trial, fld)
+        if arr is None:
+            if fld.startswith("baseline"):
+                continue
+            raise TrialFormatError(file, name, FIELDS[fld], "required dataset is missing")
+        arr = np.asarray(arr)
+        clock = "pose_t" if fld.startswith("pose") else "baseline_t" if fld.startswith("baseline") else "t"
+        _check_array(file, name, fld, arr, counts[clock] if fld != clock else None)
+        if fld == clock:
+            counts[clock] = arr.shape[0]
+        _check_values(file, name, fld, arr)
+
+
+def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], check: bool = True) -> dict[str, np.ndarray]:
+    """Read (and validate) the named fields of one trial group; opens only those datasets."""
+    out: dict[str, np.ndarray] = {}
+    counts: dict[str, int | None] = {"t": None, "pose_t": None, "baseline_t": None}
+    for fld in _fields_needed(fields):
+        path = FIELDS[fld]
+        try:
+            if path not in g:
+                if fld.startswith("baseline"):
+                    continue
+                raise TrialFormatError(file, name, path, "required dataset is missing")
+            ds = g[path]
+            if not isinstance(ds, h5py.Dataset):
+                raise TrialFormatError(file, name, path, "is not a dataset")
+            clock = "pose_t" if fld.startswith("pose") else "baseline_t" if fld.startswith("baseline") else "t"
+            if check:
+                _check_array(file, name, fld, ds, counts[clock] if fld != clock else None)
+            data = ds[()]
+        except TrialFormatError:
+            raise
+        except (OSError, KeyError, RuntimeError, ValueError) as exc:  # corrupt chunks, truncated file
+            raise TrialFormatError(file, name, path, f"unreadable ({type(exc).__name__}: {exc})") from None
+        if fld == clock:
+            counts[clock] = data.shape[0]
+        if check:
+            _check_values(file, name, fld, data)
+        out[fld] = data
+    return out
+
+
+def read_attrs(g: h5py.Group) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in g.attrs.items():
+        if isinstance(v, bytes):
+            v = v.decode()
+        elif isinstance(v, np.generic):
+            v = v.item()
+        out[k] = v
+    return out
+
+
+# --------------------------------------------------------------------------- reading
+@dataclass
+class TrialInfo:
+    """A validated trial's address and attributes (no sensor data loaded)."""
+
+    file: str
+    name: str
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def factors(self) -> np.ndarray:
+        return np.array([float(self.attrs[k]) for k in C.FACTOR_NAMES], dtype=np.float64)
+
+
+def open_raw(path: str | os.PathLike) -> h5py.File:
+    """Open a raw file read-only, turning any failure into a TrialFormatError naming the file."""
+    path = str(path)
+    try:
+        f = h5py.File(path, "r")
+    except (OSError, ValueError) as exc:
+        raise TrialFormatError(path, "*", "file", f"cannot open HDF5 file ({exc})") from None
+    if "trials" not in f:
+        f.close()
+        raise TrialFormatError(path, "*", "trials", "no /trials group: not a raw trial file")
+    return f
+
+
+def scan_raw(
+    paths: str | os.PathLike | Sequence[str | os.PathLike],
+    *,
+    fields: Iterable[str] = ALL_REQUIRED_FIELDS,
+    strict: bool = False,
+    validate_data: bool = True,
+) -> tuple[list[TrialInfo], list[TrialFormatError]]:
+    """Validate every trial in ``paths`` for the given fields.
+
+    Returns ``(good, errors)``. Bad trials are logged and skipped unless ``strict``, in
+    which case the first error is raised. Only the datasets behind ``fields`` are opened.
+    """
+    if isinstance(paths, (str, os.PathLike)):
+        paths = [paths]
+    good: list[TrialInfo] = []
+    errors: list[TrialFormatError] = []
+
+    def fail(err: TrialFormatError) -> None:
+        if strict:
+            raise err
+        log.warning("skipping bad trial: %s", err)
+        errors.append(err)
+
+    for p in paths:
+        try:
+            f = open_raw(p)
+        except TrialFormatError as err:
+            fail(err)
+            continue
+        with f:
+            try:
+                names = list(f["trials"].keys())
+            except (OSError, RuntimeError, KeyError) as exc:
+                fail(TrialFormatError(p, "*", "trials", f"unreadable trial index ({exc})"))
+                continue
+            for name in names:
+                try:
+                    try:
+                        g = f["trials"][name]
+                        attrs = read_attrs(g)
+                    except (OSError, RuntimeError, KeyError) as exc:
+                        raise TrialFormatError(p, name, "group", f"unreadable ({exc})") from None
+                    _check_attrs(str(p), name, attrs)
+                    if validate_data:
+                        _read_group(str(p), name, g, fields)
+                    good.append(TrialInfo(str(p), name, attrs))
+                except TrialFormatError as err:
+                    fail(err)
+    return good, errors
+
+
+def read_trial(path: str | os.PathLike, name: str, fields: Iterable[str] = ALL_REQUIRED_FIELDS, *, check: bool = True) -> RawTrial:
+    """Read one trial (only ``fields``; the others are left as empty arrays)."""
+    with open_raw(path) as f:
+        if name not in f["trials"]:
+            raise TrialFormatError(path, name, "group", "no such trial")
+        g = f["trials"][name]
+        attrs = read_attrs(g)
+        if check:
+            _check_attrs(str(path), name, attrs)
+        data = _read_group(str(path), name, g, fields, check=check)
+    empty = np.zeros((0,))
+    return RawTrial(
+        t=data.get("t", empty),
+        acc=data.get("acc", empty),
+        fsr=data.get("fsr", empty),
+        pose_t=data.get("pose_t", empty),
+        pose=data.get("pose", empty),
+        attrs=attrs,
+        baseline_t=data.get("baseline_t"),
+        baseline_acc=data.get("baseline_acc"),
+        baseline_fsr=data.get("baseline_fsr"),
+    )
+
+
+def iter_trials(path: str | os.PathLike, fields: Iterable[str] = ALL_REQUIRED_FIELDS, strict: bool = False) -> Iterator[RawTrial]:
+    """Yield every valid trial of one file (bad ones logged and skipped unless strict)."""
+    good, _ = scan_raw(path, fields=fields, strict=strict, validate_data=False)
+    for info in good:
+        try:
+            yield read_trial(info.file, info.name, fields)
+        except TrialFormatError as err:
+            if strict:
+                raise
+            log.warning("skipping bad trial: %s", err)
