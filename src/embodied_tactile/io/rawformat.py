@@ -229,7 +229,7 @@ class IncrementalTrialWriter:
 
     def __init__(self, path: str | os.PathLike, attrs: Mapping[str, Any], *, chunk: int = 700, pose_columns: int = 6):
         self.path = Path(path)
-        self.file = h5py.File(self.path, "a", libver="latest")
+        self.file = h5py.File(self.path, "a")  # default libver: no SWMR status flags, so a crash leaves a file that opens
         trials = _ensure_root(self.file)
         self.name = trial_name(attrs)
         if self.name in trials:

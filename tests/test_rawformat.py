@@ -1,0 +1,164 @@
+"""The raw trial format: round trip, and every validation error names file, trial and field."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+from embodied_tactile import constants as C
+from embodied_tactile.io import rawformat as rf
+
+
+def make_trial(object_id=3, action_index=5, repetition=0, n=700, m=100, seed=0) -> rf.RawTrial:
+    rng = np.random.default_rng(seed)
+    attrs = rf.make_attrs(
+        object_id=object_id, skin="soft", primitive="sliding", action_index=action_index,
+        repetition=repetition, source="simulated", seed=seed,
+    )
+    acc = rng.normal(0, 0.01, (n, 4, 4, 3)).astype(np.float32)
+    acc[..., 2] += 1.0
+    return rf.RawTrial(
+        t=np.arange(n) / C.FS_TACTILE,
+        acc=acc,
+        fsr=rng.integers(0, 4096, (n, 2, 16, 16)).astype(np.uint16),
+        pose_t=np.arange(m) / C.FS_POSE,
+        pose=rng.normal(0, 1e-3, (m, 6)).astype(np.float32),
+        attrs=attrs,
+    )
+
+
+@pytest.fixture()
+def three_trials(tmp_path):
+    path = tmp_path / "raw.h5"
+    trials = [make_trial(object_id=k, seed=k) for k in (0, 1, 2)]
+    for tr in trials:
+        rf.write_trial(path, tr)
+    return path, trials
+
+
+def test_round_trip(three_trials):
+    path, trials = three_trials
+    good, errors = rf.scan_raw(path)
+    assert errors == [] and len(good) == 3
+    for tr in trials:
+        back = rf.read_trial(path, tr.name)
+        for fld in ("t", "acc", "fsr", "pose_t", "pose"):
+            np.testing.assert_array_equal(getattr(back, fld), getattr(tr, fld))
+            assert getattr(back, fld).dtype == getattr(tr, fld).dtype
+        assert back.attrs["object_id"] == tr.attrs["object_id"]
+        assert back.attrs["skin"] == "soft" and back.attrs["source"] == "simulated"
+        np.testing.assert_array_equal(back.attrs["action_params"], C.ACTIONS["sliding"][5].as_array())
+        assert json.loads(back.attrs["action_param_names"]) == list(C.ACTION_PARAM_NAMES["sliding"])
+        np.testing.assert_array_equal(back.factors, C.OBJECTS[tr.attrs["object_id"]].factors())
+    with h5py.File(path) as f:
+        assert f.attrs["format"] == rf.FORMAT_NAME
+
+
+def test_read_only_requested_fields(three_trials):
+    path, trials = three_trials
+    back = rf.read_trial(path, trials[0].name, fields=["acc"])
+    assert back.acc.shape == (700, 4, 4, 3) and back.fsr.size == 0 and back.pose.size == 0
+    assert back.t.shape == (700,)  # the tactile clock comes with acc
+
+
+def _corrupt(path, name, fn):
+    with h5py.File(path, "a") as f:
+        fn(f["trials"][name])
+
+
+CORRUPTIONS = {
+    "nan": (lambda g: g["tactile/acc"].__setitem__((5, 0, 0, 0), np.nan), "tactile/acc", "non-finite"),
+    "wrong_shape": (
+        lambda g: (g.__delitem__("tactile/fsr"), g.create_dataset("tactile/fsr", data=np.zeros((700, 2, 16, 15), np.uint16))),
+        "tactile/fsr",
+        "shape",
+    ),
+    "missing_attr": (lambda g: g.attrs.__delitem__("primitive"), "attrs/primitive", "missing"),
+    "non_monotonic": (lambda g: g["tactile/t"].__setitem__(10, 0.0), "tactile/t", "strictly increasing"),
+    "truncated_dataset": (
+        lambda g: (g.__delitem__("tactile/acc"), g.create_dataset("tactile/acc", data=np.zeros((500, 4, 4, 3), np.float32))),
+        "tactile/acc",
+        "truncated",
+    ),
+    "missing_dataset": (lambda g: g.__delitem__("pose/ee"), "pose/ee", "missing"),
+    "wrong_dtype": (
+        lambda g: (g.__delitem__("tactile/fsr"), g.create_dataset("tactile/fsr", data=np.zeros((700, 2, 16, 16), np.int32))),
+        "tactile/fsr",
+        "dtype",
+    ),
+    "bad_primitive": (lambda g: g.attrs.__setitem__("primitive", "poking"), "attrs/primitive", "must be one of"),
+    "out_of_range_fsr": (lambda g: g["tactile/fsr"].__setitem__((0, 0, 0, 0), 5000), "tactile/fsr", "12-bit"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(CORRUPTIONS))
+def test_validation_error_names_file_trial_field_and_others_load(three_trials, kind, caplog):
+    path, trials = three_trials
+    fn, field, words = CORRUPTIONS[kind]
+    bad = trials[1].name
+    _corrupt(path, bad, fn)
+    good, errors = rf.scan_raw(path)
+    assert sorted(i.name for i in good) == sorted([trials[0].name, trials[2].name])
+    assert len(errors) == 1
+    err = errors[0]
+    assert (err.file, err.trial, err.field) == (str(path), bad, field)
+    msg = str(err)
+    assert str(path) in msg and bad in msg and field in msg and words in msg
+    assert bad in caplog.text  # reported, not silent
+    with pytest.raises(rf.TrialFormatError, match=field.replace("/", "/")):
+        rf.scan_raw(path, strict=True)
+
+
+def test_modality_subset_validation_ignores_other_fields(three_trials):
+    """An acc-only reader validates (and opens) only acc: a corrupt FSR does not exclude the trial."""
+    path, trials = three_trials
+    _corrupt(path, trials[1].name, lambda g: g["tactile/fsr"].__setitem__((0, 0, 0, 0), 5000))
+    good, errors = rf.scan_raw(path, fields=["acc"])
+    assert len(good) == 3 and errors == []
+
+
+def test_truncated_file_is_reported_and_other_files_load(three_trials, tmp_path):
+    path, trials = three_trials
+    other = tmp_path / "other.h5"
+    shutil.copy(path, other)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 3])
+    good, errors = rf.scan_raw([path, other])
+    assert len(good) == 3 and all(i.file == str(other) for i in good)
+    assert len(errors) >= 1 and errors[0].file == str(path)
+    assert str(path) in str(errors[0])
+
+
+def test_write_refuses_invalid_trial(tmp_path):
+    tr = make_trial()
+    tr.acc[0, 0, 0, 0] = np.inf
+    with pytest.raises(rf.TrialFormatError, match="tactile/acc"):
+        rf.write_trial(tmp_path / "x.h5", tr)
+    assert not (tmp_path / "x.h5").exists() or rf.scan_raw(tmp_path / "x.h5")[0] == []
+
+
+def test_incremental_writer_interrupted_stays_readable(tmp_path):
+    path = tmp_path / "rec.h5"
+    tr = make_trial()
+    attrs = dict(tr.attrs, source="recorded")
+    w = rf.IncrementalTrialWriter(path, attrs)
+    for k in range(0, 350, 50):
+        w.append("t", tr.t[k : k + 50])
+        w.append("acc", tr.acc[k : k + 50])
+        w.append("fsr", tr.fsr[k : k + 50])
+    w.append("pose_t", tr.pose_t[:50])
+    w.append("pose", tr.pose[:50])
+    w.flush()
+    # Simulate a crash: the handle is never closed; a reader opens the file meanwhile.
+    good, errors = rf.scan_raw(path)
+    assert errors == [] and len(good) == 1
+    assert good[0].attrs["complete"] is False or good[0].attrs["complete"] == 0
+    back = rf.read_trial(path, good[0].name)
+    assert back.acc.shape[0] == 350
+    np.testing.assert_array_equal(back.fsr, tr.fsr[:350])
+    w.close(complete=True)
+    assert rf.scan_raw(path)[0][0].attrs["complete"]
