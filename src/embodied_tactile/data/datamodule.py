@@ -1,0 +1,407 @@
+"""LightningDataModule over preprocessed HDF5 trajectories: the one place that knows both
+the files (raw + cache) and torch.
+
+Flow: ``prepare_data`` makes sure the raw trials exist (simulates the missing ones when
+the source is the simulator) and that the per-field preprocessing cache is built; ``setup``
+lists the cached trials of the configured skin / primitive / objects / actions and splits
+them 75/25, stratified by object and stable for a seed. A modality reads only its own
+fields: ``acc`` never opens FSR data, raw or cached.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import h5py
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from embodied_tactile import constants as C
+
+log = logging.getLogger(__name__)
+
+#: channel name -> (cached field, index into that field's channel axis or None)
+CHANNELS: Mapping[str, tuple[str, int | None]] = {
+    "acc": ("acc", None),
+    "fsr_t": ("fsr", 0),
+    "fsr_b": ("fsr", 1),
+}
+
+
+def fields_for_channels(channels: Sequence[str]) -> list[str]:
+    """Cached fields a list of observation channels needs (always with ``actions``)."""
+    unknown = [c for c in channels if c not in CHANNELS]
+    if unknown:
+        raise ValueError(f"unknown observation channel(s) {unknown}; known: {sorted(CHANNELS)}")
+    fields = []
+    for c in channels:
+        f = CHANNELS[c][0]
+        if f not in fields:
+            fields.append(f)
+    return [*fields, "actions"]
+
+
+@dataclass(frozen=True)
+class TrialRef:
+    name: str
+    object_id: int
+    action_index: int
+    skin: str
+    primitive: str
+    factors: tuple[float, float, float, float]
+
+
+def stratified_split(trials: Sequence[TrialRef], val_fraction: float, seed: int) -> tuple[list[TrialRef], list[TrialRef]]:
+    """75/25-style split, per object, independent of listing order and stable for a seed.
+
+    Every object with at least two trials appears on both sides. The order inside an
+    object is a hash of (seed, trial name), so adding trials of other objects, or other
+    trials, does not reshuffle an object's assignment more than necessary.
+    """
+    if not 0.0 < val_fraction < 1.0:
+        raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
+    by_obj: dict[int, list[TrialRef]] = {}
+    for tr in trials:
+        by_obj.setdefault(tr.object_id, []).append(tr)
+    train: list[TrialRef] = []
+    val: list[TrialRef] = []
+    for obj in sorted(by_obj):
+        items = sorted(by_obj[obj], key=lambda t: hashlib.blake2b(f"{seed}/{t.name}".encode(), digest_size=8).digest())
+        n = len(items)
+        n_val = int(round(val_fraction * n))
+        if n >= 2:
+            n_val = min(max(n_val, 1), n - 1)
+        else:
+            n_val = 0
+            log.warning("object %d has a single trial: it is used for training only", obj)
+        val.extend(items[:n_val])
+        train.extend(items[n_val:])
+    return sorted(train, key=lambda t: t.name), sorted(val, key=lambda t: t.name)
+
+
+class TactileSequenceDataset(Dataset):
+    """Preprocessed sequences of one split. Opens its HDF5 caches lazily in each worker
+    and pickles without the handles."""
+
+    def __init__(self, cache_files: Mapping[str, str], trials: Sequence[TrialRef], channels: Sequence[str], seq_len: int | None = None):
+        self.cache_files = dict(cache_files)
+        self.trials = list(trials)
+        self.channels = list(channels)
+        self.fields = fields_for_channels(self.channels)
+        missing = [f for f in self.fields if f not in self.cache_files]
+        if missing:
+            raise ValueError(f"no cache file for field(s) {missing}")
+        self.seq_len = seq_len
+        self._handles: dict[str, h5py.File] | None = None
+
+    def __len__(self) -> int:
+        return len(self.trials)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_handles"] = None
+        return state
+
+    def _open(self) -> dict[str, h5py.File]:
+        if self._handles is None:
+            self._handles = {f: h5py.File(self.cache_files[f], "r") for f in self.fields}
+        return self._handles
+
+    def close(self) -> None:
+        if self._handles:
+            for h in self._handles.values():
+                h.close()
+        self._handles = None
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        tr = self.trials[i]
+        h = self._open()
+        sl = slice(None, self.seq_len)
+        cache: dict[str, np.ndarray] = {}
+        planes = []
+        for c in self.channels:
+            fld, idx = CHANNELS[c]
+            if fld not in cache:
+                cache[fld] = h[fld]["trials"][tr.name][fld][sl]
+            arr = cache[fld]
+            planes.append(arr if idx is None else arr[:, idx])
+        obs = np.stack(planes, axis=1).astype(np.float32, copy=False)
+        actions = h["actions"]["trials"][tr.name]["actions"][sl].astype(np.float32, copy=False)
+        return {
+            "obs": torch.from_numpy(np.ascontiguousarray(obs)),
+            "actions": torch.from_numpy(np.ascontiguousarray(actions)),
+            "object_id": torch.tensor(tr.object_id, dtype=torch.long),
+            "factors": torch.tensor(tr.factors, dtype=torch.float32),
+            "action_index": torch.tensor(tr.action_index, dtype=torch.long),
+        }
+
+
+class TactileDataModule(L.LightningDataModule):
+    """Serves batches ``obs (B,T,C,28,28)``, ``actions (B,T,6)``, ``object_id``, ``factors``,
+    ``action_index`` for one skin x primitive x modality scene.
+
+    Args:
+        source: ``"simulated"`` (raw file ``<data_dir>/raw/<skin>_<primitive>.h5``, missing
+            trials simulated in ``prepare_data``) or ``"recorded"`` (``raw_files``, never
+            generated).
+        channels: observation channels of the modality, e.g. ``["acc", "fsr_t", "fsr_b"]``.
+        objects / actions: subsets of object ids / action indices (None = all).
+        preprocess: keyword arguments of ``PreprocessConfig``.
+        split_file: where the split is saved (JSON); reused if it exists and matches.
+    """
+
+    def __init__(
+        self,
+        *,
+        data_dir: str = "data",
+        source: str = "simulated",
+        raw_files: Sequence[str] | None = None,
+        skin: str = "soft",
+        primitive: str = "pressing",
+        channels: Sequence[str] = ("acc", "fsr_t", "fsr_b"),
+        objects: Sequence[int] | None = None,
+        actions: Sequence[int] | None = None,
+        repetitions: int = 1,
+        sim_seed: int = 0,
+        sim_workers: int = 2,
+        preprocess: Mapping[str, Any] | None = None,
+        preprocess_workers: int = 2,
+        val_fraction: float = 0.25,
+        split_seed: int = 0,
+        split_file: str | None = None,
+        batch_size: int = 48,
+        num_workers: int = 0,
+        seq_len: int | None = None,
+        strict: bool = False,
+        pin_memory: bool = False,
+    ):
+        super().__init__()
+        if source not in C.SOURCES:
+            raise ValueError(f"source must be one of {C.SOURCES}, got {source!r}")
+        if skin not in C.SKINS:
+            raise ValueError(f"skin must be one of {C.SKINS}, got {skin!r}")
+        if primitive not in C.PRIMITIVES:
+            raise ValueError(f"primitive must be one of {C.PRIMITIVES}, got {primitive!r}")
+        if source == "recorded" and not raw_files:
+            raise ValueError("source='recorded' needs raw_files (paths or glob patterns of recorded HDF5 files)")
+        self.data_dir = Path(data_dir)
+        self.source = source
+        self.raw_files_cfg = list(raw_files or [])
+        self.skin = skin
+        self.primitive = primitive
+        self.channels = list(channels)
+        self.fields = fields_for_channels(self.channels)
+        self.objects = None if objects is None else sorted(int(o) for o in objects)
+        self.actions = None if actions is None else sorted(int(a) for a in actions)
+        self.repetitions = int(repetitions)
+        self.sim_seed = int(sim_seed)
+        self.sim_workers = int(sim_workers)
+        self.preprocess_kwargs = dict(preprocess or {})
+        self.preprocess_workers = int(preprocess_workers)
+        self.val_fraction = float(val_fraction)
+        self.split_seed = int(split_seed)
+        self.split_file = split_file
+        self.batch_size = int(batch_size)
+        self.num_workers = int(num_workers)
+        self.seq_len = seq_len
+        self.strict = bool(strict)
+        self.pin_memory = bool(pin_memory)
+        self.cache_files: dict[str, str] = {}
+        self.train_set: TactileSequenceDataset | None = None
+        self.val_set: TactileSequenceDataset | None = None
+        self.skipped: list[str] = []
+
+    # ------------------------------------------------------------------ files
+    @property
+    def raw_paths(self) -> list[Path]:
+        if self.source == "simulated":
+            return [self.data_dir / "raw" / f"{self.skin}_{self.primitive}.h5"]
+        paths: list[Path] = []
+        for pattern in self.raw_files_cfg:
+            matches = sorted(Path().glob(pattern)) if any(ch in pattern for ch in "*?[") else [Path(pattern)]
+            paths.extend(matches)
+        if not paths:
+            raise FileNotFoundError(f"no recorded raw files match {self.raw_files_cfg}")
+        return paths
+
+    @property
+    def cache_dir(self) -> Path:
+        return self.data_dir / "cache"
+
+    def _preprocess_config(self):
+        from embodied_tactile.data.preprocess import PreprocessConfig
+
+        cfg = PreprocessConfig(**self.preprocess_kwargs)
+        cfg.validate()
+        return cfg
+
+    def prepare_data(self) -> None:
+        """Simulate missing trials (simulator source) and build the per-field caches."""
+        if self.source == "simulated":
+            from embodied_tactile.sim import generate_dataset
+
+            raw = self.raw_paths[0]
+            raw.parent.mkdir(parents=True, exist_ok=True)
+            generate_dataset(
+                raw,
+                skin=self.skin,
+                primitive=self.primitive,
+                objects=self.objects if self.objects is not None else range(C.N_OBJECTS),
+                actions=self.actions if self.actions is not None else range(C.N_ACTIONS),
+                repetitions=self.repetitions,
+                seed=self.sim_seed,
+                workers=self.sim_workers,
+            )
+        else:
+            for p in self.raw_paths:
+                if not p.exists():
+                    raise FileNotFoundError(f"recorded raw file not found: {p}")
+        self._build_cache()
+
+    def _build_cache(self) -> dict[str, str]:
+        from embodied_tactile.data.cache import build_cache
+
+        files = build_cache(
+            [str(p) for p in self.raw_paths], self.cache_dir, self._preprocess_config(),
+            fields=tuple(self.fields), workers=self.preprocess_workers, strict=self.strict,
+        )
+        self.cache_files = {k: str(v) for k, v in files.items()}
+        return self.cache_files
+
+    # ------------------------------------------------------------------ trials
+    def _list_trials(self) -> list[TrialRef]:
+        """Trials present in every needed cache and matching the scene."""
+        per_field: list[dict[str, dict[str, Any]]] = []
+        for fld in self.fields:
+            with h5py.File(self.cache_files[fld], "r") as f:
+                entries = {}
+                for name, g in f["trials"].items():
+                    entries[name] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in g.attrs.items()}
+                per_field.append(entries)
+                skipped = f.attrs.get("skipped", "[]")
+                try:
+                    self.skipped.extend(json.loads(skipped))
+                except (TypeError, ValueError):
+                    pass
+        names = set(per_field[0]).intersection(*per_field[1:])
+        refs = []
+        for name in sorted(names):
+            a = per_field[0][name]
+            if str(a["skin"]) != self.skin or str(a["primitive"]) != self.primitive:
+                continue
+            if self.objects is not None and int(a["object_id"]) not in self.objects:
+                continue
+            if self.actions is not None and int(a["action_index"]) not in self.actions:
+                continue
+            if self.source == "simulated" and int(a.get("repetition", 0)) >= self.repetitions:
+                continue
+            refs.append(
+                TrialRef(
+                    name=name,
+                    object_id=int(a["object_id"]),
+                    action_index=int(a["action_index"]),
+                    skin=str(a["skin"]),
+                    primitive=str(a["primitive"]),
+                    factors=tuple(float(a[k]) for k in C.FACTOR_NAMES),
+                )
+            )
+        if not refs:
+            raise RuntimeError(
+                f"no usable trials for skin={self.skin} primitive={self.primitive} objects={self.objects} "
+                f"actions={self.actions} in {self.cache_files} (skipped: {self.skipped[:5]})"
+            )
+        return refs
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        if not self.cache_files:
+            # prepare_data ran in another process (DDP rank 0): the cache keys are
+            # deterministic, so rebuilding finds the existing files without recomputing.
+            self._build_cache()
+        refs = self._list_trials()
+        train, val = stratified_split(refs, self.val_fraction, self.split_seed)
+        if self.split_file:
+            self._save_split(train, val)
+        self.train_set = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len)
+        self.val_set = TactileSequenceDataset(self.cache_files, val, self.channels, self.seq_len)
+        log.info("data: %d train / %d held-out sequences, channels %s, skipped %d bad trial(s)",
+                 len(train), len(val), self.channels, len(self.skipped))
+
+    def _save_split(self, train: Sequence[TrialRef], val: Sequence[TrialRef]) -> None:
+        path = Path(self.split_file)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        payload = {
+            "seed": self.split_seed,
+            "val_fraction": self.val_fraction,
+            "source": self.source,
+            "raw_files": [str(p) for p in self.raw_paths],
+            "train": [t.name for t in train],
+            "val": [t.name for t in val],
+            "skipped": self.skipped,
+        }
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(payload, indent=1))
+        os.replace(tmp, path)
+
+    # ------------------------------------------------------------------ loaders
+    def _loader(self, ds: Dataset, shuffle: bool, batch_size: int | None = None) -> DataLoader:
+        return DataLoader(
+            ds,
+            batch_size=batch_size or self.batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=self.num_workers > 0,
+            drop_last=False,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        assert self.train_set is not None, "call setup() first"
+        return self._loader(self.train_set, shuffle=True)
+
+    def train_eval_dataloader(self) -> DataLoader:
+        """Training split, fixed order (for latent alignment / evaluation)."""
+        assert self.train_set is not None, "call setup() first"
+        return self._loader(self.train_set, shuffle=False)
+
+    def val_dataloader(self) -> DataLoader:
+        assert self.val_set is not None, "call setup() first"
+        return self._loader(self.val_set, shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self.val_dataloader()
+
+    def teardown(self, stage: str | None = None) -> None:
+        for ds in (self.train_set, self.val_set):
+            if ds is not None:
+                ds.close()
+
+    def describe(self) -> dict[str, Any]:
+        """Summary of the scene (printed by the main job, saved with runs)."""
+        info: dict[str, Any] = {
+            "source": self.source,
+            "skin": self.skin,
+            "primitive": self.primitive,
+            "channels": self.channels,
+            "raw_files": [str(p) for p in self.raw_paths],
+            "cache_files": self.cache_files,
+            "skipped": len(self.skipped),
+        }
+        if self.train_set is not None and self.val_set is not None:
+            info["n_train"] = len(self.train_set)
+            info["n_val"] = len(self.val_set)
+            info["objects"] = sorted({t.object_id for t in self.train_set.trials + self.val_set.trials})
+            info["actions"] = sorted({t.action_index for t in self.train_set.trials + self.val_set.trials})
+            sample = self.train_set[0]
+            info["obs_shape"] = list(sample["obs"].shape)
+            info["actions_shape"] = list(sample["actions"].shape)
+        return info

@@ -1,0 +1,96 @@
+"""Train a Latent Filter on one scene (modality x skin x primitive).
+
+    python train.py                                            # embedded default (simulator)
+    python train.py modality=multi_l skin=soft primitive=sliding
+    python train.py -m sweep=ablation                          # the paper's 24 models
+    python train.py experiment=paper                           # the paper's lr / batch / epochs
+
+Each run folder (logs/train/runs/<time> or the multirun sub-folder named after its
+overrides) holds the resolved config, checkpoints/last.ckpt and the best checkpoint,
+metrics.json, split.json and provenance.json (git commit, package versions).
+Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+import hydra
+import lightning as L
+import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from embodied_tactile import runtime
+
+log = logging.getLogger("train")
+
+
+@hydra.main(version_base="1.3", config_path="configs", config_name="train")
+def main(cfg: DictConfig) -> float | None:
+    run_dir = HydraConfig.get().runtime.output_dir
+    runtime.save_provenance(cfg, run_dir)
+    L.seed_everything(cfg.seed, workers=True)
+    torch.set_float32_matmul_precision("high")
+
+    datamodule: L.LightningDataModule = instantiate(cfg.data)
+    model: L.LightningModule = instantiate(cfg.model)
+
+    callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+    loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
+    plain = runtime.use_plain_progress(cfg.plain_progress)
+    if plain:
+        callbacks.append(runtime.PlainProgress())
+    elif cfg.trainer.get("enable_progress_bar", True):
+        from lightning.pytorch.callbacks import RichProgressBar
+
+        callbacks.append(RichProgressBar())
+    trainer: L.Trainer = instantiate(
+        cfg.trainer, callbacks=callbacks, logger=loggers or False,
+        enable_progress_bar=bool(cfg.trainer.get("enable_progress_bar", True)) and not plain,
+    )
+
+    ckpt_path = runtime.find_resume_checkpoint(run_dir) if cfg.resume else None
+    if ckpt_path:
+        log.info("resuming from %s", ckpt_path)
+
+    metrics: dict = {"status": "running", "run_dir": run_dir, "resumed_from": str(ckpt_path) if ckpt_path else None}
+    t0 = time.perf_counter()
+    try:
+        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    except FloatingPointError as err:  # the model's non-finite-loss guard: name step and term
+        metrics.update(status="failed", error=str(err), train_wall_s=time.perf_counter() - t0)
+        runtime.write_json(f"{run_dir}/metrics.json", metrics)
+        log.error("training stopped: %s (last good checkpoint kept in %s/checkpoints)", err, run_dir)
+        raise
+    metrics["train_wall_s"] = time.perf_counter() - t0
+    metrics["fit_metrics"] = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
+
+    if cfg.validate_at_end and not cfg.trainer.get("fast_dev_run"):
+        val = trainer.validate(model, datamodule=datamodule, verbose=False)
+        metrics["final_val"] = {k: float(v) for k, v in (val[0] if val else {}).items()}
+        log.info("held-out ELBO per sequence (final weights): %.4g", metrics["final_val"].get("val/elbo", float("nan")))
+    ckpt_cb = trainer.checkpoint_callback
+    if ckpt_cb is not None:
+        metrics["best_checkpoint"] = ckpt_cb.best_model_path or None
+        metrics["last_checkpoint"] = ckpt_cb.last_model_path or None
+    metrics["data"] = datamodule.describe() if hasattr(datamodule, "describe") else {}
+    metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
+    metrics["status"] = "finished"
+    if trainer.global_rank == 0:
+        runtime.write_json(f"{run_dir}/metrics.json", metrics)
+        log.info("run folder: %s", run_dir)
+
+    for lg in loggers:  # one wandb run per multirun job
+        if lg.__class__.__name__ == "WandbLogger":
+            import wandb
+
+            wandb.finish()
+    return metrics.get("final_val", {}).get("val/elbo")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
