@@ -1,0 +1,44 @@
+"""Shared fixtures: a tiny simulated scene built once per session, CPU-only, no network."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+# Never reach the network from tests; keep numba's cache out of read-only site-packages.
+os.environ.setdefault("WANDB_MODE", "disabled")
+os.environ.setdefault("WANDB_OFFLINE", "true")
+os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("TMPDIR", "/tmp")) / "embodied_tactile_numba"))
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: The tiny scene: 4 objects (soft, hard, PLA-high-frequency, heterogeneous) x 2 actions x 2 reps.
+TINY_OBJECTS = [0, 8, 17, 27]
+TINY_ACTIONS = [0, 10]
+
+
+@pytest.fixture(scope="session")
+def tiny_data_dir(tmp_path_factory) -> Path:
+    """A data dir holding raw soft/pressing trials of the tiny scene (simulated once)."""
+    from embodied_tactile.sim import generate_dataset
+
+    d = tmp_path_factory.mktemp("data")
+    generate_dataset(
+        d / "raw" / "soft_pressing.h5", skin="soft", primitive="pressing",
+        objects=TINY_OBJECTS, actions=TINY_ACTIONS, repetitions=2, seed=0, workers=2,
+    )
+    return d
+
+
+def tiny_datamodule(data_dir: Path, channels, **kw):
+    from embodied_tactile.data.datamodule import TactileDataModule
+
+    args = dict(
+        data_dir=str(data_dir), source="simulated", skin="soft", primitive="pressing", channels=list(channels),
+        objects=TINY_OBJECTS, actions=TINY_ACTIONS, repetitions=2, sim_workers=1, preprocess_workers=1,
+        batch_size=4, num_workers=0,
+    )
+    args.update(kw)
+    return TactileDataModule(**args)
