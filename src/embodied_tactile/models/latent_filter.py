@@ -1,0 +1,320 @@
+"""The Latent Filter (paper, section "Deep State-Space Model: Latent Filter") as a plain
+``nn.Module``; the Lightning wrapper lives in :mod:`embodied_tactile.models.module`.
+
+Time indexing (t = 1..T in the docs, 0-based in code):
+
+* y_t ~ q(y_t | z_{t-1}, y_{t-1}, a_{t-1}): LSTMCell fed [z_{t-1}, a_{t-1}], y_{t-1} via the
+  hidden state. At t = 1 the LSTM gets zeros from a zero state (a learned constant).
+* p(z_t | z_{t-1}, y_t, a_t): residual MLP, N(z_{t-1} + f_mu, softplus(f_v) + floor).
+* q_filt(z_t) = q(z_t | o_t) x p(z_t | z_{t-1}, y_t, a_t), normalised (variance form).
+  z_1 comes from the encoder alone.
+* Encoders and decoders run over all B*T frames in one call; only the LSTM/transition
+  recursion is a Python loop. ``filter_step`` runs the same recursion one frame at a time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, Optional
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from .networks import (
+    ConvDecoder,
+    ConvEncoder,
+    HierarchicalPrior,
+    TransitionNet,
+    YPosterior,
+    float32_region,
+    fuse_gaussians,
+    gaussian_entropy,
+    gaussian_nll,
+    kl_diag_gaussians,
+)
+
+FUSIONS = ("single", "early", "late")
+
+#: The project's modalities (docs/architecture.md); channel order = order in ``obs``.
+MODALITY_PRESETS: dict[str, dict[str, Any]] = {
+    "acc": {"name": "acc", "channels": ["acc"], "fusion": "single"},
+    "fsr_t": {"name": "fsr_t", "channels": ["fsr_t"], "fusion": "single"},
+    "fsr_b": {"name": "fsr_b", "channels": ["fsr_b"], "fusion": "single"},
+    "fsr_tb": {"name": "fsr_tb", "channels": ["fsr_t", "fsr_b"], "fusion": "single"},
+    "multi_e": {"name": "multi_e", "channels": ["acc", "fsr_t", "fsr_b"], "fusion": "early"},
+    "multi_l": {"name": "multi_l", "channels": ["acc", "fsr_t", "fsr_b"], "fusion": "late"},
+}
+
+
+def to_plain(cfg: Any) -> Any:
+    """DictConfig / ListConfig / Mapping -> plain dict / list (checkpoint-safe primitives)."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(cfg, (DictConfig, ListConfig)):
+            return OmegaConf.to_container(cfg, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(cfg, Mapping):
+        return {str(k): to_plain(v) for k, v in cfg.items()}
+    if isinstance(cfg, (list, tuple)):
+        return [to_plain(v) for v in cfg]
+    return cfg
+
+
+def resolve_modality(modality: Any) -> dict[str, Any]:
+    """Validate a modality config and derive its encoder pathways.
+
+    ``modality``: a preset name (``"multi_l"``) or a mapping with ``name``, ``channels``
+    (list of channel names, the order of ``obs``' C axis) and ``fusion``
+    (``single`` | ``early`` | ``late``). ``single``/``early``: one pathway over all
+    channels. ``late``: one pathway per sensor type, by default ``vibration`` = channels
+    whose name starts with ``acc`` and ``force`` = the others; an optional ``pathways``
+    mapping (pathway name -> list of channel names) overrides the grouping.
+    Returns a plain dict with an added ``pathways`` list of ``[name, [channel indices]]``.
+    """
+    if isinstance(modality, str):
+        if modality not in MODALITY_PRESETS:
+            raise ValueError(f"unknown modality {modality!r}; presets: {sorted(MODALITY_PRESETS)}")
+        modality = MODALITY_PRESETS[modality]
+    cfg = to_plain(modality)
+    if not isinstance(cfg, dict):
+        raise TypeError(f"modality must be a name or a mapping, got {type(modality).__name__}")
+    missing = [k for k in ("name", "channels", "fusion") if k not in cfg]
+    if missing:
+        raise ValueError(f"modality config is missing {missing}: {cfg}")
+    channels = [str(c) for c in cfg["channels"]]
+    if not channels or len(set(channels)) != len(channels):
+        raise ValueError(f"modality {cfg['name']!r}: channels must be non-empty and unique, got {channels}")
+    fusion = str(cfg["fusion"])
+    if fusion not in FUSIONS:
+        raise ValueError(f"modality {cfg['name']!r}: fusion must be one of {FUSIONS}, got {fusion!r}")
+    if fusion in ("single", "early"):
+        if fusion == "single" and cfg.get("pathways"):
+            raise ValueError("pathways are only meaningful for fusion='late'")
+        pathways = [["main", list(range(len(channels)))]]
+    else:
+        groups = cfg.get("pathways")
+        if groups:
+            groups = {str(k): [str(c) for c in v] for k, v in dict(groups).items()}
+        else:
+            vib = [c for c in channels if c.startswith("acc")]
+            force = [c for c in channels if not c.startswith("acc")]
+            groups = {k: v for k, v in (("vibration", vib), ("force", force)) if v}
+        used = [c for g in groups.values() for c in g]
+        if sorted(used) != sorted(channels) or len(used) != len(set(used)):
+            raise ValueError(f"modality {cfg['name']!r}: pathways {groups} must partition channels {channels}")
+        if len(groups) < 2:
+            raise ValueError(f"modality {cfg['name']!r}: late fusion needs >= 2 pathways, got {groups}")
+        pathways = [[name, [channels.index(c) for c in chans]] for name, chans in groups.items()]
+    out = {"name": str(cfg["name"]), "channels": channels, "fusion": fusion, "pathways": pathways}
+    if cfg.get("pathways"):
+        out["pathway_channels"] = {n: [channels[i] for i in idx] for n, idx in pathways}
+    return out
+
+
+def _state_to(z: Tensor, a: Tensor, h: Tensor, c: Tensor) -> dict[str, Tensor]:
+    return {"z": z, "a": a, "h": h, "c": c}
+
+
+class LatentFilter(nn.Module):
+    """Action-conditioned deep state-space model with z (directly) and y (indirectly
+    observable) latents; see the module docstring for the time indexing.
+
+    Args:
+        modality: preset name or mapping (see :func:`resolve_modality`). Only the
+            encoders/decoders of this modality are built.
+        n_z, n_y, n_a: latent and action sizes. n_objects: rows of the prior embedding.
+        encoder: ``{"widths": [w1, w2], "hidden": h}`` for every encoder and its decoder.
+        transition_hidden, lstm_hidden: widths of the transition MLP and LSTM.
+        min_var: variance floor of encoder, transition and q(y) heads.
+        obs_sigma: (initial) observation sigma; ``learn_obs_sigma`` makes it a learnable
+            per-channel parameter sigma_c = obs_sigma_min + softplus(raw_c).
+        prior: kwargs of :class:`HierarchicalPrior` (sigma_init, learn_sigma, var_floor,
+            action_term).
+    """
+
+    def __init__(self, modality: Any, n_z: int = 16, n_y: int = 16, n_a: int = 6,
+                 n_objects: int = 32, encoder: Optional[Mapping] = None,
+                 transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
+                 obs_sigma: float = 1.0, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
+                 prior: Optional[Mapping] = None) -> None:
+        super().__init__()
+        self.modality = resolve_modality(modality)
+        self.n_z, self.n_y, self.n_a = int(n_z), int(n_y), int(n_a)
+        self.n_channels = len(self.modality["channels"])
+        enc = {"widths": [16, 32], "hidden": 128}
+        enc.update(to_plain(encoder) or {})
+        unknown = set(enc) - {"widths", "hidden"}
+        if unknown:
+            raise ValueError(f"unknown encoder options {sorted(unknown)}")
+        self.encoders = nn.ModuleDict()
+        self.decoders = nn.ModuleDict()
+        self._pathway_index: list[tuple[str, list[int]]] = []
+        for name, idx in self.modality["pathways"]:
+            self.encoders[name] = ConvEncoder(len(idx), n_z, enc["widths"], enc["hidden"], min_var)
+            self.decoders[name] = ConvDecoder(len(idx), n_z, enc["widths"], enc["hidden"])
+            self._pathway_index.append((name, list(idx)))
+            self.register_buffer(f"_idx_{name}", torch.tensor(idx, dtype=torch.long), persistent=False)
+        order = [i for _, idx in self._pathway_index for i in idx]
+        self._identity_order = order == list(range(self.n_channels))
+        self.register_buffer("_inv_order", torch.argsort(torch.tensor(order)), persistent=False)
+        self.transition = TransitionNet(n_z, n_y, n_a, transition_hidden, min_var)
+        self.y_posterior = YPosterior(n_z, n_y, n_a, lstm_hidden, min_var)
+        self.prior = HierarchicalPrior(n_y, n_a, n_objects, **(to_plain(prior) or {}))
+        if obs_sigma <= obs_sigma_min:
+            raise ValueError(f"obs_sigma={obs_sigma} must exceed obs_sigma_min={obs_sigma_min}")
+        self.obs_sigma_min = float(obs_sigma_min)
+        raw = torch.full((self.n_channels,), float(torch.log(torch.expm1(torch.tensor(obs_sigma - obs_sigma_min)))))
+        if learn_obs_sigma:
+            self.obs_sigma_raw = nn.Parameter(raw)
+        else:
+            self.register_buffer("obs_sigma_raw", raw)
+
+    # ------------------------------------------------------------------ pieces
+    def obs_log_sigma(self) -> Tensor:
+        """Per-channel log sigma of the Gaussian likelihood, shape (C,), float32."""
+        return torch.log(F.softplus(self.obs_sigma_raw.float()) + self.obs_sigma_min)
+
+    def _check_obs(self, obs: Tensor) -> None:
+        if obs.shape[-3:] != (self.n_channels, 28, 28):
+            raise ValueError(f"modality {self.modality['name']!r} expects obs (..., {self.n_channels}, 28, 28) "
+                             f"for channels {self.modality['channels']}, got {tuple(obs.shape)}")
+
+    def encode(self, o: Tensor) -> tuple[Tensor, Tensor]:
+        """q(z | o) for frames o (N, C, 28, 28) -> mean, var (N, n_z) in float32.
+
+        Late fusion: each pathway gives its own Gaussian; they are multiplied
+        (precision-weighted, computed in variance form) into one measurement Gaussian.
+        """
+        self._check_obs(o)
+        m = v = None
+        for name, idx in self._pathway_index:
+            x = o if len(self._pathway_index) == 1 else o.index_select(1, getattr(self, f"_idx_{name}"))
+            mi, vi = self.encoders[name](x)
+            m, v = (mi, vi) if m is None else fuse_gaussians(m, v, mi, vi)
+        return m, v
+
+    def decode(self, z: Tensor) -> Tensor:
+        """Observation means for z (N, n_z) -> (N, C, 28, 28), channels in ``obs`` order."""
+        outs = [self.decoders[name](z) for name, _ in self._pathway_index]
+        x = outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)
+        return x if self._identity_order else x.index_select(1, self._inv_order)
+
+    def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, Tensor]:
+        z = torch.zeros(batch, self.n_z, device=device, dtype=dtype)
+        a = torch.zeros(batch, self.n_a, device=device, dtype=dtype)
+        h = torch.zeros(batch, self.y_posterior.hidden, device=device, dtype=dtype)
+        return _state_to(z, a, h, h.clone())
+
+    @staticmethod
+    def _draw(m: Tensor, v: Tensor, sample: bool) -> Tensor:
+        if not sample:
+            return m
+        with float32_region(m):
+            return m + torch.sqrt(v) * torch.randn_like(m)
+
+    def step(self, enc_m: Tensor, enc_v: Tensor, a_t: Tensor, state: Optional[dict[str, Tensor]],
+             sample: bool, prev_action: Optional[Tensor] = None) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+        """One recursion step given the measurement Gaussian of frame t (shared by
+        ``forward`` and ``filter_step``). ``state=None`` marks the first frame."""
+        first = state is None
+        if first:
+            state = self.initial_state(enc_m.shape[0], enc_m.device)
+            a_prev = state["a"]  # zeros: nothing precedes the first frame
+        else:
+            a_prev = state["a"] if prev_action is None else prev_action.float()
+        y_m, y_v, (h, c) = self.y_posterior(state["z"], a_prev, (state["h"], state["c"]))
+        y = self._draw(y_m, y_v, sample)
+        if first:
+            # z_1 from the encoder alone; its prior is N(0, I).
+            zp_m, zp_v = torch.zeros_like(enc_m), torch.ones_like(enc_v)
+            z_m, z_v = enc_m, enc_v
+        else:
+            zp_m, zp_v = self.transition(state["z"], y, a_t)
+            z_m, z_v = fuse_gaussians(zp_m, zp_v, enc_m, enc_v)
+        z = self._draw(z_m, z_v, sample)
+        out = {"z_mean": z_m, "z_var": z_v, "z": z, "y_mean": y_m, "y_var": y_v, "y": y,
+               "zp_mean": zp_m, "zp_var": zp_v}
+        return out, _state_to(z, a_t.float(), h, c)
+
+    # ------------------------------------------------------------------ batched
+    def forward(self, obs: Tensor, actions: Tensor, sample: bool = True) -> dict[str, Tensor]:
+        """obs (B, T, C, 28, 28), actions (B, T, n_a) -> dict of (B, T, ...) tensors:
+        z_mean/z_var (q_filt), z (sample, or mean if not ``sample``), y_mean/y_var/y,
+        zp_mean/zp_var (transition prior; N(0, I) at t = 1), enc_mean/enc_var and
+        recon (B, T, C, 28, 28) decoded from z."""
+        self._check_obs(obs)
+        B, T = obs.shape[:2]
+        if actions.shape != (B, T, self.n_a):
+            raise ValueError(f"actions must be {(B, T, self.n_a)}, got {tuple(actions.shape)}")
+        enc_m, enc_v = self.encode(obs.reshape(B * T, *obs.shape[2:]))
+        enc_m, enc_v = enc_m.view(B, T, -1), enc_v.view(B, T, -1)
+        actions = actions.float()
+        state = None
+        steps: list[dict[str, Tensor]] = []
+        for t in range(T):
+            out, state = self.step(enc_m[:, t], enc_v[:, t], actions[:, t], state, sample)
+            steps.append(out)
+        res = {k: torch.stack([s[k] for s in steps], dim=1) for k in steps[0]}
+        res["enc_mean"], res["enc_var"] = enc_m, enc_v
+        res["recon"] = self.decode(res["z"].reshape(B * T, -1)).view(B, T, *obs.shape[2:])
+        return res
+
+    def elbo_terms(self, batch: Mapping[str, Tensor], sample: bool = True) -> dict[str, Tensor]:
+        """Per-sequence terms averaged over the batch (all float32 scalars):
+
+        nll     = sum_t sum_{c,pixels} -log N(o_t; dec(z_t), sigma_c^2)
+        kl_z    = KL(q(z_1) || N(0, I)) + sum_{t>=2} KL(q_filt(z_t) || p(z_t | z_{t-1}, y_t, a_t))
+        kl_y    = sum_{t>=2} KL(q(y_t | .) || p(y_t | a_t, N))
+        entropy = sum_t H[q_filt(z_t)] + sum_{t>=2} H[q(y_t | .)]
+        n_dims  = T * C * 28 * 28 (observation dimensions per sequence)
+        ELBO = -(nll + kl_z + kl_y). ``out`` holds the forward outputs.
+        """
+        obs, actions = batch["obs"], batch["actions"]
+        out = self.forward(obs, actions, sample=sample)
+        B, T = obs.shape[:2]
+        log_sigma = self.obs_log_sigma().view(1, 1, -1, 1, 1)
+        nll = gaussian_nll(obs, out["recon"], log_sigma).sum(dim=(1, 2, 3, 4)).mean()
+        kl_z = kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"]).sum(1).mean()
+        ent = gaussian_entropy(out["z_var"]).sum(1)
+        if T > 1:
+            py_m, py_v = self.prior(batch["object_id"], actions[:, 1:])
+            kl_y = kl_diag_gaussians(out["y_mean"][:, 1:], out["y_var"][:, 1:], py_m, py_v).sum(1).mean()
+            ent = ent + gaussian_entropy(out["y_var"][:, 1:]).sum(1)
+        else:
+            kl_y = out["y_mean"].new_zeros(()).float()
+        n_dims = torch.tensor(float(T * obs.shape[2] * 28 * 28), device=obs.device)
+        return {"nll": nll, "kl_z": kl_z, "kl_y": kl_y, "entropy": ent.mean(), "n_dims": n_dims, "out": out}
+
+    # ------------------------------------------------------------------ inference
+    @torch.no_grad()
+    def infer_latents(self, batch: Mapping[str, Tensor] | Tensor, actions: Optional[Tensor] = None) -> dict[str, Tensor]:
+        """Filtered latents without sampling (eval mode; no object label needed):
+        z_mean, z_var (B, T, n_z) of q_filt and y_mean, y_var (B, T, n_y) of q(y_t | .)."""
+        if isinstance(batch, Mapping):
+            obs, actions = batch["obs"], batch["actions"]
+        else:
+            obs = batch
+        was_training = self.training
+        self.eval()
+        try:
+            out = self.forward(obs, actions, sample=False)
+        finally:
+            self.train(was_training)
+        return {k: out[k] for k in ("z_mean", "z_var", "y_mean", "y_var")}
+
+    def filter_step(self, obs_t: Tensor, action_t: Tensor, prev_action: Optional[Tensor] = None,
+                    state: Optional[dict[str, Tensor]] = None, sample: bool = False
+                    ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+        """Online filtering: one frame obs_t (B, C, 28, 28) and action a_t (B, n_a) in.
+
+        ``state`` is None for the first frame, else the returned ``new_state``
+        (z_{t-1} mean or sample, a_{t-1}, LSTM h and c). ``prev_action`` (a_{t-1})
+        overrides the action stored in the state. With ``sample=False`` the posterior
+        equals the batched ``forward(..., sample=False)`` at the same t.
+        Returns ({z_mean, z_var, y_mean, y_var, zp_mean, zp_var, z, y}, new_state).
+        """
+        enc_m, enc_v = self.encode(obs_t)
+        return self.step(enc_m, enc_v, action_t.float(), state, sample, prev_action)

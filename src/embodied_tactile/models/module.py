@@ -1,0 +1,177 @@
+"""LightningModules for the Latent Filter (uni-modal, early- and late-fusion)."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping
+from typing import Any, Callable, Optional
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from .annealing import AnnealingSchedule, build_schedule, check_finite
+from .latent_filter import LatentFilter, resolve_modality, to_plain
+
+DEFAULT_OPTIMIZER = {"name": "Adam", "lr": 1e-5}  # the paper's setting
+
+
+def _optimizer_spec(optimizer: Any) -> Optional[dict[str, Any]]:
+    """Checkpoint-safe description of an optimizer factory (None if not describable)."""
+    if optimizer is None:
+        return None
+    if isinstance(optimizer, Mapping):
+        return dict(to_plain(optimizer))
+    if isinstance(optimizer, functools.partial) and getattr(torch.optim, optimizer.func.__name__, None) is optimizer.func:
+        kw = to_plain(dict(optimizer.keywords))
+        if all(isinstance(v, (int, float, bool, str, list, tuple, type(None))) for v in kw.values()) and not optimizer.args:
+            return {"name": optimizer.func.__name__, **kw}
+    return None
+
+
+def _optimizer_factory(optimizer: Any) -> Callable:
+    if optimizer is None:
+        optimizer = DEFAULT_OPTIMIZER
+    if callable(optimizer):
+        return optimizer
+    if isinstance(optimizer, Mapping):
+        spec = dict(to_plain(optimizer))
+        name = spec.pop("name")
+        cls = getattr(torch.optim, name, None)
+        if cls is None:
+            raise ValueError(f"unknown torch.optim optimizer {name!r}")
+        return functools.partial(cls, **spec)
+    raise TypeError(f"optimizer must be a callable (functools.partial) or a mapping, got {type(optimizer).__name__}")
+
+
+class LatentFilterModule(L.LightningModule):
+    """Latent Filter training module for any modality (``fusion`` single|early|late).
+
+    Args (Hydra-instantiable; see docs/model.md):
+        modality: preset name or ``{name, channels, fusion[, pathways]}``.
+        n_z, n_y, n_a, n_objects: sizes (16, 16, 6, 32).
+        encoder: ``{"widths": [16, 32], "hidden": 128}``.
+        transition_hidden, lstm_hidden: 128, 128.
+        min_var: variance floor of all posterior/transition heads (1e-3).
+        obs_sigma, learn_obs_sigma, obs_sigma_min: Gaussian likelihood (1.0, True, 1e-2).
+        prior: kwargs of the hierarchical prior (sigma_init 0.5, learn_sigma True,
+            var_floor 1e-2, action_term True).
+        annealing: an :class:`AnnealingSchedule`, a name, or ``{name, **kwargs}``
+            (None -> plain ELBO). Stored in the hyperparameters as its ``config()``.
+        optimizer: ``functools.partial(torch.optim.X, **kw)`` (Hydra ``_partial_: true``)
+            or ``{name: "Adam", lr: ...}``; None -> Adam(lr=1e-5). Stored as
+            ``{name, **kw}`` when it is a torch.optim partial with plain keywords.
+        check_finite: raise FloatingPointError on a non-finite training loss.
+
+    Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
+    train/elbo, anneal/*; val/loss, val/elbo (per sequence, higher is better),
+    val/nll, val/kl_z, val/kl_y (and test/* likewise).
+    """
+
+    allowed_fusions: tuple[str, ...] = ("single", "early", "late")
+    default_modality: Optional[str] = None
+
+    def __init__(self, modality: Any = None, n_z: int = 16, n_y: int = 16, n_a: int = 6,
+                 n_objects: int = 32, encoder: Optional[Mapping] = None,
+                 transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
+                 obs_sigma: float = 1.0, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
+                 prior: Optional[Mapping] = None, annealing: Any = None, optimizer: Any = None,
+                 check_finite: bool = True) -> None:
+        super().__init__()
+        if modality is None:
+            if self.default_modality is None:
+                raise ValueError(f"{type(self).__name__} needs a modality")
+            modality = self.default_modality
+        modality_cfg = to_plain(modality)
+        resolved = resolve_modality(modality_cfg)
+        if resolved["fusion"] not in self.allowed_fusions:
+            raise ValueError(f"{type(self).__name__} takes fusion in {self.allowed_fusions}, "
+                             f"modality {resolved['name']!r} has fusion={resolved['fusion']!r}")
+        schedule = build_schedule(annealing)
+        self._optimizer = _optimizer_factory(optimizer)
+        self.check_finite = bool(check_finite)
+        hp = {
+            "modality": modality_cfg, "n_z": n_z, "n_y": n_y, "n_a": n_a, "n_objects": n_objects,
+            "encoder": to_plain(encoder), "transition_hidden": transition_hidden, "lstm_hidden": lstm_hidden,
+            "min_var": min_var, "obs_sigma": obs_sigma, "learn_obs_sigma": learn_obs_sigma,
+            "obs_sigma_min": obs_sigma_min, "prior": to_plain(prior),
+            "annealing": schedule.config(), "optimizer": _optimizer_spec(optimizer),
+            "check_finite": check_finite,
+        }
+        self.save_hyperparameters(hp)
+        self.model = LatentFilter(modality_cfg, n_z=n_z, n_y=n_y, n_a=n_a, n_objects=n_objects,
+                                  encoder=encoder, transition_hidden=transition_hidden,
+                                  lstm_hidden=lstm_hidden, min_var=min_var, obs_sigma=obs_sigma,
+                                  learn_obs_sigma=learn_obs_sigma, obs_sigma_min=obs_sigma_min,
+                                  prior=prior)
+        self.annealing: AnnealingSchedule = schedule
+
+    # ------------------------------------------------------------------ API
+    def forward(self, obs: Tensor, actions: Tensor, sample: bool = False) -> dict[str, Tensor]:
+        return self.model(obs, actions, sample=sample)
+
+    def infer_latents(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """z_mean, z_var (B, T, n_z), y_mean, y_var (B, T, n_y): eval mode, no sampling,
+        no object label needed."""
+        return self.model.infer_latents(batch)
+
+    def filter_step(self, obs_t: Tensor, action_t: Tensor, prev_action: Optional[Tensor] = None,
+                    state: Optional[dict[str, Tensor]] = None, sample: bool = False):
+        """See :meth:`LatentFilter.filter_step`."""
+        return self.model.filter_step(obs_t, action_t, prev_action, state, sample)
+
+    # ------------------------------------------------------------------ Lightning
+    def _terms(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        terms = self.model.elbo_terms(batch, sample=True)
+        terms.pop("out")
+        return terms
+
+    def training_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
+        terms = self._terms(batch)
+        loss, logs = self.annealing(self.global_step, terms)
+        if self.check_finite:
+            check_finite(self.global_step, {k: terms[k] for k in ("nll", "kl_z", "kl_y", "entropy")}, loss)
+        bs = batch["obs"].shape[0]
+        self.log("train/loss", loss, prog_bar=True, batch_size=bs)
+        for k in ("nll", "kl_z", "kl_y", "entropy"):
+            self.log(f"train/{k}", terms[k].detach(), batch_size=bs)
+        self.log("train/elbo", -(terms["nll"] + terms["kl_z"] + terms["kl_y"]).detach(), batch_size=bs)
+        for k, v in logs.items():
+            self.log(k, float(v), batch_size=bs)
+        return loss
+
+    def _eval_step(self, batch: Mapping[str, Tensor], prefix: str) -> Tensor:
+        terms = self._terms(batch)
+        loss, _ = self.annealing(self.global_step, terms)  # eval mode: no schedule state change
+        bs = batch["obs"].shape[0]
+        elbo = -(terms["nll"] + terms["kl_z"] + terms["kl_y"])
+        self.log(f"{prefix}/loss", loss, batch_size=bs, sync_dist=True)
+        self.log(f"{prefix}/elbo", elbo, prog_bar=True, batch_size=bs, sync_dist=True)
+        for k in ("nll", "kl_z", "kl_y"):
+            self.log(f"{prefix}/{k}", terms[k], batch_size=bs, sync_dist=True)
+        return loss
+
+    def validation_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
+        return self._eval_step(batch, "val")
+
+    def test_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
+        return self._eval_step(batch, "test")
+
+    def configure_optimizers(self):
+        return self._optimizer(self.parameters())
+
+
+class EarlyFusionLatentFilter(LatentFilterModule):
+    """Latent Filter with ONE encoder over all stacked channels (uni-modal or early fusion;
+    default modality ``multi_e``)."""
+
+    allowed_fusions = ("single", "early")
+    default_modality = "multi_e"
+
+
+class LateFusionLatentFilter(LatentFilterModule):
+    """Latent Filter with one encoder/decoder pathway per sensor type, integrated in latent
+    space by a product of Gaussians (default modality ``multi_l``)."""
+
+    allowed_fusions = ("late",)
+    default_modality = "multi_l"

@@ -1,0 +1,223 @@
+"""Building blocks of the Latent Filter: Gaussian helpers and small networks.
+
+Everything probabilistic (variances, Bayesian integration, KL, entropy) is computed in
+float32 with autocast disabled, whatever precision the surrounding network runs in.
+"""
+
+from __future__ import annotations
+
+import math
+from contextlib import contextmanager
+from typing import Iterator, Sequence
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+@contextmanager
+def float32_region(x: Tensor) -> Iterator[None]:
+    """Disable autocast for the device of ``x`` (callers cast their inputs to float32)."""
+    with torch.autocast(device_type=x.device.type, enabled=False):
+        yield
+
+
+def softplus_var(raw: Tensor, floor: float) -> Tensor:
+    """Variance head: ``softplus(raw) + floor`` in float32 (never below ``floor``)."""
+    with float32_region(raw):
+        return F.softplus(raw.float()) + floor
+
+
+def fuse_gaussians(m1: Tensor, v1: Tensor, m2: Tensor, v2: Tensor) -> tuple[Tensor, Tensor]:
+    """Product of two diagonal Gaussians N(m1, v1) * N(m2, v2), normalised, in variance form.
+
+    mu = (v2 * m1 + v1 * m2) / (v1 + v2),  var = v1 * v2 / (v1 + v2).
+
+    Algebraically identical to the precision form (1/var = 1/v1 + 1/v2) but never divides
+    by a single small variance, so it stays finite where 1/v overflows (float16: 1/1e-5).
+    Always evaluated in float32 with autocast disabled.
+    """
+    with float32_region(m1):
+        m1, v1, m2, v2 = m1.float(), v1.float(), m2.float(), v2.float()
+        s = v1 + v2
+        mu = (v2 * m1 + v1 * m2) / s
+        var = v1 * v2 / s
+    return mu, var
+
+
+def kl_diag_gaussians(mq: Tensor, vq: Tensor, mp: Tensor, vp: Tensor) -> Tensor:
+    """KL(N(mq, vq) || N(mp, vp)) for diagonal Gaussians, summed over the last dim.
+
+    Log-space with expm1 (precise for nearly equal variances): with lq = log vq,
+    lp = log vp, d = lq - lp:  KL = 0.5 * sum(expm1(d) - d + (mq - mp)^2 * exp(-lp)).
+    """
+    with float32_region(mq):
+        lq = torch.log(vq.float())
+        lp = torch.log(vp.float())
+        d = lq - lp
+        diff = mq.float() - mp.float()
+        return 0.5 * (torch.expm1(d) - d + diff * diff * torch.exp(-lp)).sum(-1)
+
+
+def gaussian_entropy(var: Tensor) -> Tensor:
+    """Differential entropy of a diagonal Gaussian, summed over the last dim."""
+    with float32_region(var):
+        return 0.5 * (torch.log(var.float()) + 1.0 + LOG_2PI).sum(-1)
+
+
+def gaussian_nll(x: Tensor, mean: Tensor, log_sigma: Tensor) -> Tensor:
+    """Elementwise -log N(x; mean, sigma^2) in float32 (``log_sigma`` broadcasts)."""
+    with float32_region(x):
+        ls = log_sigma.float()
+        r = (x.float() - mean.float()) * torch.exp(-ls)
+        return 0.5 * r * r + ls + 0.5 * LOG_2PI
+
+
+# --------------------------------------------------------------------------- networks
+
+
+def _check_widths(widths: Sequence[int]) -> tuple[int, int]:
+    widths = tuple(int(w) for w in widths)
+    if len(widths) != 2 or min(widths) < 1:
+        raise ValueError(f"encoder widths must be two positive ints (28->14->7), got {widths}")
+    return widths  # type: ignore[return-value]
+
+
+class ConvEncoder(nn.Module):
+    """Inverse measurement model q(z_t | o_t): two stride-2 convs 28->14->7, MLP head.
+
+    Input (N, C, 28, 28), output mean (N, n_z) and variance (N, n_z) (softplus + floor,
+    float32). Runs over all B*T frames in one call.
+    """
+
+    def __init__(self, in_channels: int, n_z: int, widths: Sequence[int] = (16, 32),
+                 hidden: int = 128, min_var: float = 1e-3) -> None:
+        super().__init__()
+        w1, w2 = _check_widths(widths)
+        self.in_channels = int(in_channels)
+        self.min_var = float(min_var)
+        self.conv = nn.Sequential(
+            nn.Conv2d(in_channels, w1, 4, stride=2, padding=1), nn.ELU(),
+            nn.Conv2d(w1, w2, 4, stride=2, padding=1), nn.ELU(),
+            nn.Flatten(),
+            nn.Linear(w2 * 7 * 7, hidden), nn.ELU(),
+        )
+        self.head = nn.Linear(hidden, 2 * n_z)
+
+    def forward(self, o: Tensor) -> tuple[Tensor, Tensor]:
+        if o.shape[-3:] != (self.in_channels, 28, 28):
+            raise ValueError(f"encoder expects (N, {self.in_channels}, 28, 28), got {tuple(o.shape)}")
+        m, raw = self.head(self.conv(o)).chunk(2, dim=-1)
+        return m.float(), softplus_var(raw, self.min_var)
+
+
+class ConvDecoder(nn.Module):
+    """Observation model mean: mirror of :class:`ConvEncoder` (transposed convs 7->14->28).
+
+    Input z (N, n_z), output (N, C, 28, 28) means; the Gaussian sigma lives in the model.
+    """
+
+    def __init__(self, out_channels: int, n_z: int, widths: Sequence[int] = (16, 32),
+                 hidden: int = 128) -> None:
+        super().__init__()
+        w1, w2 = _check_widths(widths)
+        self.out_channels = int(out_channels)
+        self.w2 = w2
+        self.fc = nn.Sequential(nn.Linear(n_z, hidden), nn.ELU(), nn.Linear(hidden, w2 * 7 * 7), nn.ELU())
+        self.deconv = nn.Sequential(
+            nn.ConvTranspose2d(w2, w1, 4, stride=2, padding=1), nn.ELU(),
+            nn.ConvTranspose2d(w1, out_channels, 4, stride=2, padding=1),
+        )
+
+    def forward(self, z: Tensor) -> Tensor:
+        h = self.fc(z).view(z.shape[0], self.w2, 7, 7)
+        return self.deconv(h)
+
+
+class TransitionNet(nn.Module):
+    """p(z_t | z_{t-1}, y_t, a_t) = N(z_{t-1} + f_mu(.), softplus(f_v(.)) + floor).
+
+    Residual form: the MLP predicts the change of z; the mean head is zero-initialised so
+    the untrained transition is a random walk around z_{t-1}.
+    """
+
+    def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3) -> None:
+        super().__init__()
+        self.min_var = float(min_var)
+        self.body = nn.Sequential(nn.Linear(n_z + n_y + n_a, hidden), nn.ELU(),
+                                  nn.Linear(hidden, hidden), nn.ELU())
+        self.mean = nn.Linear(hidden, n_z)
+        self.var = nn.Linear(hidden, n_z)
+        nn.init.zeros_(self.mean.weight)
+        nn.init.zeros_(self.mean.bias)
+
+    def forward(self, z_prev: Tensor, y: Tensor, a: Tensor) -> tuple[Tensor, Tensor]:
+        h = self.body(torch.cat([z_prev, y, a], dim=-1))
+        return z_prev.float() + self.mean(h).float(), softplus_var(self.var(h), self.min_var)
+
+
+class YPosterior(nn.Module):
+    """q(y_t | z_{t-1}, y_{t-1}, a_{t-1}): LSTMCell fed [z_{t-1}, a_{t-1}], Gaussian head.
+
+    y_{t-1} enters through the LSTM hidden state (as in the authors' earlier code).
+    """
+
+    def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3) -> None:
+        super().__init__()
+        self.hidden = int(hidden)
+        self.min_var = float(min_var)
+        self.cell = nn.LSTMCell(n_z + n_a, hidden)
+        self.head = nn.Linear(hidden, 2 * n_y)
+
+    def forward(self, z_prev: Tensor, a_prev: Tensor, hc: tuple[Tensor, Tensor]
+                ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
+        h, c = self.cell(torch.cat([z_prev, a_prev], dim=-1), hc)
+        m, raw = self.head(h).chunk(2, dim=-1)
+        return m.float(), softplus_var(raw, self.min_var), (h, c)
+
+
+class HierarchicalPrior(nn.Module):
+    """Learnable hierarchical prior p(y_t | a_t, N) = N(tanh(E[N]) + W a_t, var).
+
+    ``E`` is an ``nn.Embedding(n_objects, n_y)`` indexed directly by the object id
+    (collision-free: one row per object). ``W`` is a zero-initialised linear action term
+    (``action_term=False`` drops it, as in the authors' earlier code). The variance is a
+    learnable per-dimension vector ``softplus(raw) + var_floor`` initialised to
+    ``sigma_init**2`` (``learn_sigma=False`` keeps it fixed).
+    """
+
+    def __init__(self, n_y: int, n_a: int, n_objects: int = 32, sigma_init: float = 0.5,
+                 learn_sigma: bool = True, var_floor: float = 1e-2, action_term: bool = True) -> None:
+        super().__init__()
+        if sigma_init ** 2 <= var_floor:
+            raise ValueError(f"prior sigma_init**2={sigma_init ** 2} must exceed var_floor={var_floor}")
+        self.n_objects = int(n_objects)
+        self.var_floor = float(var_floor)
+        self.embedding = nn.Embedding(n_objects, n_y)
+        nn.init.normal_(self.embedding.weight, std=0.5)
+        self.action = nn.Linear(n_a, n_y, bias=False) if action_term else None
+        if self.action is not None:
+            nn.init.zeros_(self.action.weight)
+        v = sigma_init ** 2 - var_floor
+        raw = torch.full((n_y,), math.log(math.expm1(v)))  # softplus^-1
+        if learn_sigma:
+            self.raw_var = nn.Parameter(raw)
+        else:
+            self.register_buffer("raw_var", raw)
+
+    def forward(self, object_id: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
+        """object_id (B,), actions (B, T, n_a) -> mean (B, T, n_y), var (B, T, n_y)."""
+        if object_id.dtype not in (torch.int64, torch.int32):
+            raise TypeError(f"object_id must be an integer tensor, got {object_id.dtype}")
+        if object_id.numel() and (int(object_id.min()) < 0 or int(object_id.max()) >= self.n_objects):
+            raise ValueError(f"object_id out of range [0, {self.n_objects}): "
+                             f"min={int(object_id.min())} max={int(object_id.max())}")
+        with float32_region(actions):
+            mean = torch.tanh(self.embedding(object_id.long())).float()[:, None, :]
+            mean = mean.expand(-1, actions.shape[1], -1)
+            if self.action is not None:
+                mean = mean + self.action(actions.float())
+            var = (F.softplus(self.raw_var.float()) + self.var_floor).expand_as(mean)
+        return mean, var

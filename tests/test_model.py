@@ -1,0 +1,280 @@
+"""Latent Filter: structure per modality, learning, online filtering, numerics, checkpoints."""
+
+import functools
+import math
+
+import lightning as L
+import pytest
+import torch
+from torch import nn
+from torch.utils.data import DataLoader, Dataset
+
+from embodied_tactile.models import (
+    MODALITY_PRESETS,
+    ConstrainedAnnealing,
+    EarlyFusionLatentFilter,
+    LateFusionLatentFilter,
+    LatentFilter,
+    LatentFilterModule,
+)
+from embodied_tactile.models.networks import ConvDecoder, ConvEncoder, fuse_gaussians, kl_diag_gaussians
+
+torch.set_num_threads(2)
+
+TINY = dict(encoder={"widths": [4, 8], "hidden": 32}, transition_hidden=32, lstm_hidden=32)
+N_CH = {"acc": 1, "fsr_t": 1, "fsr_b": 1, "fsr_tb": 2, "multi_e": 3, "multi_l": 3}
+
+
+def make_batch(C, B=4, T=8, seed=0, n_objects=32):
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "obs": torch.rand(B, T, C, 28, 28, generator=g),
+        "actions": torch.randn(B, T, 6, generator=g),
+        "object_id": torch.randint(0, n_objects, (B,), generator=g),
+        "factors": torch.rand(B, 4, generator=g),
+        "action_index": torch.randint(0, 16, (B,), generator=g),
+    }
+
+
+class ListDataset(Dataset):
+    def __init__(self, batch):
+        self.batch = batch
+
+    def __len__(self):
+        return self.batch["obs"].shape[0]
+
+    def __getitem__(self, i):
+        return {k: v[i] for k, v in self.batch.items()}
+
+
+def trainer(tmp_path, **kw):
+    args = dict(default_root_dir=tmp_path, accelerator="cpu", devices=1, logger=False,
+                enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                max_steps=2, limit_val_batches=1, num_sanity_val_steps=0)
+    args.update(kw)
+    return L.Trainer(**args)
+
+
+# ------------------------------------------------------------------ structure
+@pytest.mark.parametrize("name", sorted(MODALITY_PRESETS))
+def test_modality_builds_only_its_pathways(name):
+    m = LatentFilter(name, **TINY)
+    encs = [mod for mod in m.modules() if isinstance(mod, ConvEncoder)]
+    decs = [mod for mod in m.modules() if isinstance(mod, ConvDecoder)]
+    if name == "multi_l":
+        assert set(m.encoders) == {"vibration", "force"}
+        assert sorted(e.in_channels for e in encs) == [1, 2]
+        assert sorted(d.out_channels for d in decs) == [1, 2]
+        assert m.encoders["vibration"].in_channels == 1 and m.decoders["force"].out_channels == 2
+    else:
+        assert len(encs) == len(decs) == 1
+        assert encs[0].in_channels == decs[0].out_channels == N_CH[name]
+        first_conv = next(mod for mod in encs[0].modules() if isinstance(mod, nn.Conv2d))
+        assert first_conv.in_channels == N_CH[name]
+    out = m(make_batch(N_CH[name], B=2, T=3)["obs"], torch.zeros(2, 3, 6))
+    assert out["recon"].shape == (2, 3, N_CH[name], 28, 28)
+
+
+def test_late_fusion_channel_routing():
+    """Channel 0 (acc) only reaches the vibration encoder, 1-2 only the force encoder."""
+    torch.manual_seed(0)
+    m = LatentFilter("multi_l", **TINY).eval()
+    o = torch.rand(2, 3, 28, 28)
+    mv, vv = m.encoders["vibration"](o[:, :1])
+    mf, vf = m.encoders["force"](o[:, 1:])
+    mu, var = m.encode(o)
+    mu_ref = (vf * mv + vv * mf) / (vv + vf)
+    torch.testing.assert_close(mu, mu_ref)
+    torch.testing.assert_close(var, vv * vf / (vv + vf))
+    # decoder output: channel 0 from the vibration decoder, 1-2 from the force decoder
+    z = torch.randn(2, 16)
+    rec = m.decode(z)
+    torch.testing.assert_close(rec[:, :1], m.decoders["vibration"](z))
+    torch.testing.assert_close(rec[:, 1:], m.decoders["force"](z))
+
+
+def test_custom_late_pathways_and_bad_configs():
+    mod = {"name": "x", "channels": ["fsr_t", "acc", "fsr_b"], "fusion": "late",
+           "pathways": {"force": ["fsr_t", "fsr_b"], "vibration": ["acc"]}}
+    m = LatentFilter(mod, **TINY)
+    assert m.modality["pathways"] == [["force", [0, 2]], ["vibration", [1]]]
+    z = torch.randn(2, 16)
+    rec = m.decode(z)
+    torch.testing.assert_close(rec[:, 1:2], m.decoders["vibration"](z))
+    torch.testing.assert_close(rec[:, [0, 2]], m.decoders["force"](z))
+    with pytest.raises(ValueError, match="fusion"):
+        LatentFilter({"name": "x", "channels": ["acc"], "fusion": "mid"})
+    with pytest.raises(ValueError, match="2 pathways"):
+        LatentFilter({"name": "x", "channels": ["fsr_t", "fsr_b"], "fusion": "late"})
+    with pytest.raises(ValueError, match="expects obs"):
+        LatentFilter("acc", **TINY)(torch.zeros(1, 2, 3, 28, 28), torch.zeros(1, 2, 6))
+    with pytest.raises(ValueError, match="EarlyFusionLatentFilter takes fusion"):
+        EarlyFusionLatentFilter("multi_l", **TINY)
+    with pytest.raises(ValueError, match="LateFusionLatentFilter takes fusion"):
+        LateFusionLatentFilter("multi_e", **TINY)
+    assert LateFusionLatentFilter(**TINY).model.modality["name"] == "multi_l"
+    assert EarlyFusionLatentFilter(**TINY).model.modality["name"] == "multi_e"
+
+
+@pytest.mark.parametrize("name", sorted(MODALITY_PRESETS))
+def test_few_steps_decrease_loss(name):
+    torch.manual_seed(0)
+    m = LatentFilter(name, **TINY)
+    batch = make_batch(N_CH[name])
+    opt = torch.optim.Adam(m.parameters(), lr=3e-3)
+
+    def loss_at(seed):
+        torch.manual_seed(seed)
+        t = m.elbo_terms(batch)
+        return t["nll"] + t["kl_z"] + t["kl_y"]
+
+    with torch.no_grad():
+        before = loss_at(123).item()
+    for i in range(15):
+        opt.zero_grad()
+        loss_at(i).backward()
+        opt.step()
+    with torch.no_grad():
+        after = loss_at(123).item()
+    assert after < 0.97 * before, (before, after)
+
+
+# ------------------------------------------------------------------ online filtering
+@pytest.mark.parametrize("name", ["acc", "multi_l"])
+def test_filter_step_equals_batched_forward(name):
+    torch.manual_seed(1)
+    m = LatentFilter(name, **TINY).eval()
+    batch = make_batch(N_CH[name], B=3, T=9)
+    with torch.no_grad():
+        ref = m(batch["obs"], batch["actions"], sample=False)
+        state, prev = None, None
+        for t in range(9):
+            post, state = m.filter_step(batch["obs"][:, t], batch["actions"][:, t], prev, state)
+            prev = batch["actions"][:, t]
+            for k in ("z_mean", "z_var", "y_mean", "y_var"):
+                torch.testing.assert_close(post[k], ref[k][:, t], rtol=1e-5, atol=1e-5)
+    lat = m.infer_latents({"obs": batch["obs"], "actions": batch["actions"]})  # no object_id needed
+    torch.testing.assert_close(lat["z_mean"], ref["z_mean"])
+    assert set(lat) == {"z_mean", "z_var", "y_mean", "y_var"}
+
+
+# ------------------------------------------------------------------ numerics
+def test_kl_matches_torch_distributions():
+    torch.manual_seed(0)
+    mq, mp = torch.randn(5, 7), torch.randn(5, 7)
+    vq, vp = torch.rand(5, 7) + 0.05, torch.rand(5, 7) + 0.05
+    ref = torch.distributions.kl_divergence(
+        torch.distributions.Normal(mq.double(), vq.double().sqrt()),
+        torch.distributions.Normal(mp.double(), vp.double().sqrt())).sum(-1)
+    torch.testing.assert_close(kl_diag_gaussians(mq, vq, mp, vp).double(), ref, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("d", [1e-3, 1e-4, 1e-5])
+def test_kl_precise_for_tiny_log_variance_difference(d):
+    vp = torch.full((1, 16), 0.37)
+    vq = vp * math.exp(d)
+    m = torch.zeros(1, 16)
+    got = kl_diag_gaussians(m, vq, m, vp).item()
+    exact = 16 * 0.5 * (math.expm1(d) - d)  # float64
+    assert got == pytest.approx(exact, rel=2e-2)
+    d32 = torch.log(vq) - torch.log(vp)
+    naive = (0.5 * (torch.exp(d32) - 1 - d32)).sum().item()
+    if d <= 1e-4:  # the naive form is off by orders of magnitude here
+        assert abs(naive - exact) > 10 * abs(got - exact)
+
+
+def test_fusion_variance_form_equals_precision_form_and_survives_float16():
+    torch.manual_seed(0)
+    m1, m2 = torch.randn(100), torch.randn(100)
+    v1, v2 = torch.rand(100) + 1e-2, torch.rand(100) + 1e-2
+    mu, var = fuse_gaussians(m1, v1, m2, v2)
+    p = 1 / v1.double() + 1 / v2.double()
+    torch.testing.assert_close(var.double(), 1 / p, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(mu.double(), (m1.double() / v1.double() + m2.double() / v2.double()) / p,
+                               rtol=1e-5, atol=1e-6)
+    # float16: 1 / 1e-5 = 1e5 > 65504 overflows in the precision form
+    h = lambda x: torch.tensor(x, dtype=torch.float16)  # noqa: E731
+    a_m, a_v, b_m, b_v = h([0.5, 1.0]), h([1e-5, 2e-5]), h([-0.5, 2.0]), h([1e-5, 3e-5])
+    prec = 1 / a_v + 1 / b_v
+    assert not torch.isfinite(prec).all()
+    mu, var = fuse_gaussians(a_m, a_v, b_m, b_v)
+    assert mu.dtype == torch.float32 and torch.isfinite(mu).all() and torch.isfinite(var).all()
+    av, bv = a_v.double(), b_v.double()
+    torch.testing.assert_close(var.double(), av * bv / (av + bv), rtol=1e-4, atol=0)
+    torch.testing.assert_close(mu.double(), (bv * a_m.double() + av * b_m.double()) / (av + bv), rtol=1e-4, atol=1e-6)
+
+
+def test_bf16_autocast_keeps_probabilistic_parts_float32():
+    torch.manual_seed(0)
+    m = LatentFilter("multi_l", **TINY)
+    batch = make_batch(3, B=2, T=4)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        t = m.elbo_terms(batch)
+        loss = t["nll"] + t["kl_z"] + t["kl_y"]
+    for k in ("z_mean", "z_var", "zp_var", "y_var", "enc_var"):
+        assert t["out"][k].dtype == torch.float32, k
+    assert loss.dtype == torch.float32 and torch.isfinite(loss)
+    loss.backward()
+    assert all(torch.isfinite(p.grad).all() for p in m.parameters() if p.grad is not None)
+
+
+@pytest.mark.parametrize("case", ["zeros", "ones", "spikes", "T1", "T1000"])
+def test_extreme_inputs_finite(case):
+    torch.manual_seed(0)
+    tiny = dict(encoder={"widths": [2, 2], "hidden": 8}, transition_hidden=8, lstm_hidden=8)
+    name = "multi_l"
+    B, T = (1, 1000) if case == "T1000" else (2, 1 if case == "T1" else 6)
+    batch = make_batch(3, B=B, T=T)
+    if case == "zeros":
+        batch["obs"].zero_(), batch["actions"].zero_()
+    elif case == "ones":
+        batch["obs"].fill_(1.0), batch["actions"].fill_(1.0)
+    elif case == "spikes":
+        batch["obs"][:, ::2, :, 3:9, 5:7] = 1e4
+        batch["actions"][:, 1] = 1e4
+    m = LatentFilter(name, **tiny)
+    t = m.elbo_terms(batch)
+    loss = t["nll"] + t["kl_z"] + t["kl_y"] - 0.1 * t["entropy"]
+    assert all(torch.isfinite(t[k]) for k in ("nll", "kl_z", "kl_y", "entropy")), t
+    loss.backward()
+    grads = [p.grad for p in m.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    if case == "T1":
+        assert t["kl_y"].item() == 0.0
+
+
+# ------------------------------------------------------------------ Lightning
+def test_checkpoint_roundtrip(tmp_path):
+    torch.manual_seed(0)
+    batch = make_batch(3, B=4, T=5)
+    module = LateFusionLatentFilter(
+        **TINY, annealing=ConstrainedAnnealing(eps=10.0, update_every=1),
+        optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
+    tr = trainer(tmp_path, max_steps=3)
+    dl = DataLoader(ListDataset(batch), batch_size=2)
+    tr.fit(module, dl, dl)
+    assert module.annealing.kl_on and module.annealing.last_update == 2
+    path = tmp_path / "m.ckpt"
+    tr.save_checkpoint(path)
+    loaded = LateFusionLatentFilter.load_from_checkpoint(path)  # torch.load weights_only default
+    assert loaded.hparams["annealing"]["name"] == "constrained"
+    assert loaded.hparams["optimizer"] == {"name": "Adam", "lr": 1e-3}
+    assert isinstance(loaded.annealing, ConstrainedAnnealing)
+    assert loaded.annealing.get_extra_state() == module.annealing.get_extra_state()
+    a, b = module.infer_latents(batch), loaded.infer_latents(batch)
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+    assert "train/loss" in tr.callback_metrics and "val/elbo" in tr.callback_metrics
+    for k in ("train/nll", "train/kl_z", "train/kl_y", "val/loss"):
+        assert k in tr.callback_metrics
+
+
+def test_nonfinite_loss_raises_with_step_and_term(tmp_path):
+    torch.manual_seed(0)
+    batch = make_batch(1, B=2, T=4)
+    module = LatentFilterModule("acc", **TINY, optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
+    with torch.no_grad():
+        module.model.prior.raw_var.fill_(float("nan"))
+    tr = trainer(tmp_path, limit_val_batches=0)
+    with pytest.raises(FloatingPointError, match=r"non-finite loss at step 0: kl_y=nan"):
+        tr.fit(module, DataLoader(ListDataset(batch), batch_size=2))
