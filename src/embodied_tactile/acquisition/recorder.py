@@ -1,0 +1,344 @@
+"""Polled e-Skin recorder: serial port -> plausibility check -> incremental HDF5.
+
+One trial = a no-contact baseline (``baseline_s``) then the palpation (``duration_s``).
+Every packet is stamped on receipt with the host's monotonic clock
+(``time.perf_counter``; ``t = 0`` at the start of the trial, baseline samples have
+``t < 0``; the wall-clock time of ``t = 0`` is stored as attr ``t0_wall``).
+
+Packet handling (see ``docs/acquisition.md``):
+
+* write ``0xD0``, read exactly 1128 bytes; a short read (timeout) is a *lost* packet,
+  never data, and is followed by a drain of ``late_guard_s`` so a late answer cannot
+  shift the request/response pairing;
+* a full read that fails :class:`~.protocol.PlausibilityChecker`, or is followed by
+  extra bytes (a response longer than expected), is *garbage*: drain the input buffer
+  (``reset_input_buffer`` + read until the line is quiet for ``quiet_s``) and resume;
+* a plausible packet is only *committed* once the line is seen quiet before the next
+  request (bytes waiting there mean the pairing was off: the pending packet is dropped,
+  counted lost, and the line drained).
+
+Committed packets are buffered and written in batches through
+:class:`~embodied_tactile.io.rawformat.IncrementalTrialWriter` every ``flush_s`` (<= 1 s),
+each batch followed by a flush, so a crash loses at most the last ``flush_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from embodied_tactile.acquisition.pose import PoseSource
+from embodied_tactile.acquisition.protocol import (
+    COMMAND_BYTE,
+    PACKET_SIZE,
+    DeviceMap,
+    PlausibilityChecker,
+    PlausibilityConfig,
+    decode_packets,
+)
+from embodied_tactile.io.rawformat import IncrementalTrialWriter
+
+log = logging.getLogger(__name__)
+
+EXIT_COMPLETE = 0
+EXIT_CONFIG = 2
+EXIT_INCOMPLETE = 3
+
+
+@dataclass
+class RecorderSettings:
+    port: str = "/dev/ttyACM0"  # device path or pyserial URL (loop://, socket://host:port, rfc2217://...)
+    baud: int = 500000
+    timeout: float = 0.1  # s, per-packet read timeout
+    settle_s: float = 1.0  # wait after opening, then flush both buffers (the board resets on open)
+    baseline_s: float = 2.0
+    duration_s: float = 10.0
+    flush_s: float = 0.5  # <= 1 s
+    quiet_s: float = 0.02  # drain until no byte arrived for this long
+    late_guard_s: float = 0.1  # drain window after a timeout (a late answer must land in it)
+    max_drain_s: float = 2.0  # a line that never goes quiet is treated as a fault
+
+    def __post_init__(self) -> None:
+        if not 0 < self.flush_s <= 1.0:
+            raise ValueError(f"flush_s must be in (0, 1], got {self.flush_s}")
+        if self.timeout <= 0 or self.duration_s <= 0 or self.baseline_s < 0:
+            raise ValueError("timeout and duration_s must be > 0, baseline_s >= 0")
+
+
+@dataclass
+class RecordResult:
+    status: str  # complete | interrupted | unplugged | no_data
+    n_trial: int = 0
+    n_baseline: int = 0
+    n_pose: int = 0
+    lost: int = 0
+    garbage: int = 0
+    elapsed_s: float = 0.0
+    rate_hz: float = 0.0
+    jitter_std_s: float = float("nan")
+    jitter_max_s: float = float("nan")
+    cpu_s: float = 0.0
+    garbage_reasons: dict[str, int] = field(default_factory=dict)
+    path: str = ""
+    trial: str = ""
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_COMPLETE if self.status == "complete" else EXIT_INCOMPLETE
+
+    def summary(self) -> str:
+        return (
+            f"{self.status}: {self.n_trial} packets in {self.elapsed_s:.2f} s -> {self.rate_hz:.1f} packets/s; "
+            f"jitter std {self.jitter_std_s * 1e3:.3f} ms, max interval {self.jitter_max_s * 1e3:.3f} ms; "
+            f"lost {self.lost}, garbage {self.garbage}; baseline {self.n_baseline} packets, pose {self.n_pose} samples; "
+            f"cpu {self.cpu_s:.2f} s; -> {self.path}:{self.trial}"
+        )
+
+
+class _Unplugged(Exception):
+    pass
+
+
+class Recorder:
+    """Record one trial from an open pyserial-like ``port`` into ``writer``."""
+
+    def __init__(
+        self,
+        port: Any,
+        writer: IncrementalTrialWriter,
+        settings: RecorderSettings,
+        *,
+        device: DeviceMap | None = None,
+        plausibility: PlausibilityConfig | None = None,
+        pose: PoseSource | None = None,
+        should_stop: Callable[[], bool] = lambda: False,
+        on_phase: Callable[[str], None] | None = None,
+    ):
+        self.ser = port
+        self.writer = writer
+        self.s = settings
+        self.device = device or DeviceMap()
+        self.checker = PlausibilityChecker(plausibility)
+        self.pose = pose
+        self.should_stop = should_stop
+        self.on_phase = on_phase or (lambda phase: None)
+        self.lost = 0
+        self.garbage = 0
+        self.reasons: dict[str, int] = {}
+        self._bufs: dict[str, tuple[bytearray, list[float]]] = {"baseline": (bytearray(), []), "trial": (bytearray(), [])}
+        self._phase = "baseline"
+        self._trial_t: list[float] = []
+        self._n_base = 0
+        self._n_pose = 0
+        self._t0 = 0.0
+        self._last_t: float | None = None
+
+    # ------------------------------------------------------------------ serial helpers
+    def _in_waiting(self) -> int:
+        try:
+            return int(self.ser.in_waiting)
+        except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
+            raise _Unplugged(str(exc)) from exc
+
+    def _drain(self, quiet_s: float) -> None:
+        """reset_input_buffer, then keep discarding until nothing arrived for ``quiet_s``."""
+        try:
+            self.ser.reset_input_buffer()
+            t_end = time.perf_counter() + self.s.max_drain_s
+            quiet_since = time.perf_counter()
+            while True:
+                now = time.perf_counter()
+                if self.ser.in_waiting:
+                    self.ser.reset_input_buffer()
+                    quiet_since = now
+                elif now - quiet_since >= quiet_s:
+                    return
+                if now > t_end:
+                    log.warning("input never went quiet within %.1f s", self.s.max_drain_s)
+                    return
+                if self.should_stop():
+                    return
+                time.sleep(min(0.002, quiet_s / 4))
+        except (OSError, ValueError) as exc:
+            raise _Unplugged(str(exc)) from exc
+
+    def _poll_once(self) -> tuple[bytes, float] | None:
+        """One request/response. Returns ``(packet, t_host)`` or None (lost / garbage)."""
+        try:
+            self.ser.write(COMMAND_BYTE)
+            pkt = self.ser.read(PACKET_SIZE)
+        except (OSError, ValueError) as exc:
+            raise _Unplugged(str(exc)) from exc
+        t_host = time.perf_counter()
+        if len(pkt) < PACKET_SIZE:  # timeout / short read: lost, never data
+            self.lost += 1
+            self._drain(max(self.s.late_guard_s, self.s.quiet_s))
+            return None
+        reason = self.checker.check(pkt)
+        if reason is None and self._in_waiting():
+            reason = "longer than expected"
+        if reason is not None:
+            self.garbage += 1
+            key = reason.split("=")[0].split(" ")[0]
+            self.reasons[key] = self.reasons.get(key, 0) + 1
+            log.debug("garbage packet (%s): resync", reason)
+            self._drain(self.s.quiet_s)
+            return None
+        return bytes(pkt), t_host
+
+    # ------------------------------------------------------------------ writing
+    def _commit(self, pkt: bytes, t_host: float) -> None:
+        """Buffer a genuine packet; ``t < 0`` (before the trial start) goes to the baseline."""
+        t = t_host - self._t0
+        if self._last_t is not None and t <= self._last_t:  # keep timestamps strictly increasing
+            t = math.nextafter(self._last_t, math.inf)
+        self._last_t = t
+        buf, ts = self._bufs["baseline" if t < 0 else "trial"]
+        buf += pkt
+        ts.append(t)
+
+    def _flush(self) -> None:
+        for phase, (buf, ts) in self._bufs.items():
+            if not ts:
+                continue
+            acc, fsr, _, _ = decode_packets(buf, self.device)
+            pre = "" if phase == "trial" else "baseline_"
+            self.writer.append(pre + "t", np.asarray(ts, dtype=np.float64))
+            self.writer.append(pre + "acc", acc)
+            self.writer.append(pre + "fsr", fsr)
+            if phase == "trial":
+                self._trial_t.extend(ts)
+            else:
+                self._n_base += len(ts)
+            buf.clear()
+            ts.clear()
+        if self.pose is not None and self._phase == "trial":
+            pt, pv = self.pose.poll(time.perf_counter() - self._t0)
+            if len(pt):
+                self.writer.append("pose_t", pt)
+                self.writer.append("pose", pv)
+                self._n_pose += len(pt)
+        self.writer.set_attrs(lost_packets=self.lost, garbage_packets=self.garbage)
+        self.writer.flush()
+
+    # ------------------------------------------------------------------ main loop
+    def _start_trial(self) -> None:
+        self._flush()  # the baseline is on disk before the trial starts
+        self._phase = "trial"
+        wall0 = time.time() - (time.perf_counter() - self._t0)
+        iso = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(wall0)) + f".{int((wall0 % 1) * 1e6):06d}Z"
+        self.writer.set_attrs(t0_wall=wall0, t0_wall_iso=iso)
+        if self.pose is not None:
+            self.pose.start(self._t0, wall0)
+        self.on_phase("trial")
+
+    def _loop(self, t_end: float) -> bool:
+        """Poll until ``t_end`` (perf_counter). Returns False if stopped early."""
+        pending: tuple[bytes, float] | None = None
+        next_flush = time.perf_counter() + self.s.flush_s
+        while True:
+            # commit the previous packet only if nothing is waiting: the pairing held
+            if self._in_waiting():
+                if pending is not None:
+                    self.lost += 1
+                    pending = None
+                self._drain(self.s.quiet_s)
+            elif pending is not None:
+                self._commit(*pending)
+                pending = None
+            now = time.perf_counter()
+            if self._phase == "baseline" and now >= self._t0:
+                self._start_trial()
+            if now >= next_flush:
+                self._flush()
+                next_flush = now + self.s.flush_s
+            if self.should_stop():
+                return False
+            if now >= t_end:
+                return True
+            pending = self._poll_once()
+
+    def run(self) -> RecordResult:
+        s = self.s
+        status = "complete"
+        cpu0 = time.process_time()
+        t_start = time.perf_counter()
+        try:
+            try:
+                if s.settle_s > 0:
+                    time.sleep(s.settle_s)
+                self.ser.reset_output_buffer()
+                self._drain(s.quiet_s)
+            except (OSError, ValueError) as exc:
+                raise _Unplugged(str(exc)) from exc
+            self._t0 = time.perf_counter() + s.baseline_s  # trial clock: t = 0 at the trial start
+            if s.baseline_s > 0:
+                self.on_phase("baseline")
+            if not self._loop(self._t0 + s.duration_s):
+                status = "interrupted"
+        except _Unplugged as exc:
+            log.error("device lost: %s", exc)
+            status = "unplugged"
+        finally:
+            try:
+                self._flush()
+            except Exception:  # noqa: BLE001 - never lose the close that follows
+                log.exception("final flush failed")
+            if self.pose is not None:
+                self.pose.close()
+        trial_t = np.asarray(self._trial_t)
+        elapsed = (float(trial_t[-1] - trial_t[0]) if trial_t.size > 1 else 0.0)
+        d = np.diff(trial_t)
+        if status == "complete" and trial_t.size < 2:
+            status = "no_data"
+        res = RecordResult(
+            status=status,
+            n_trial=int(trial_t.size),
+            n_baseline=self._n_base,
+            n_pose=self._n_pose,
+            lost=self.lost,
+            garbage=self.garbage,
+            elapsed_s=elapsed,
+            rate_hz=(trial_t.size - 1) / elapsed if elapsed > 0 else 0.0,
+            jitter_std_s=float(d.std()) if d.size else float("nan"),
+            jitter_max_s=float(d.max()) if d.size else float("nan"),
+            cpu_s=time.process_time() - cpu0,
+            garbage_reasons=dict(self.reasons),
+            path=str(self.writer.path),
+            trial=self.writer.name,
+        )
+        res.wall_s = time.perf_counter() - t_start  # type: ignore[attr-defined]
+        return res
+
+
+def open_port(url: str, baud: int, timeout: float):
+    """Open a device path or pyserial URL (``loop://``, ``socket://host:port``, a pty path)."""
+    import serial  # noqa: PLC0415
+
+    return serial.serial_for_url(url, baudrate=baud, timeout=timeout, write_timeout=max(1.0, timeout))
+
+
+def finish(writer: IncrementalTrialWriter, res: RecordResult, extra_attrs: dict[str, Any] | None = None) -> None:
+    """Store the run's statistics and close the trial (``complete`` only for a full run)."""
+    writer.set_attrs(
+        lost_packets=res.lost,
+        garbage_packets=res.garbage,
+        stop_reason=res.status,
+        achieved_rate_hz=res.rate_hz,
+        jitter_std_s=res.jitter_std_s,
+        jitter_max_s=res.jitter_max_s,
+        **(extra_attrs or {}),
+    )
+    writer.close(complete=res.status == "complete")
+
+
+def default_out(path: str | Path) -> Path:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return p

@@ -1,0 +1,192 @@
+"""Record one e-Skin trial from a serial port into the raw HDF5 format.
+
+    python -m embodied_tactile.record port=/dev/ttyACM0 out=data/raw/recorded.h5 \\
+        trial.object_id=3 trial.skin=soft trial.primitive=sliding trial.action_index=5 trial.repetition=0
+
+Hydra app, config ``configs/record.yaml`` (+ ``configs/record/device/*.yaml``). The config
+directory is resolved as ``$EMBODIED_TACTILE_CONFIG_DIR`` if set, else the repository's
+``configs/`` next to ``src/`` (works from the repo and from an editable install).
+
+Exit codes: 0 the full trial was recorded (``complete=True``); 3 incomplete (Ctrl-C /
+SIGTERM, device unplugged or no data: everything received so far is stored, readable,
+``complete=False``); 2 configuration or port error (nothing recorded); 1 unexpected error.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from embodied_tactile import constants as C
+
+log = logging.getLogger("embodied_tactile.record")
+
+
+def config_dir() -> str:
+    env = os.environ.get("EMBODIED_TACTILE_CONFIG_DIR")
+    if env:
+        return str(Path(env).resolve())
+    return str(Path(__file__).resolve().parents[2] / "configs")
+
+
+_POSE_BUILTIN_KEYS = ("kind", "file", "time_base", "offset_s", "static_pose", "fs")
+
+
+def make_pose_source(cfg: DictConfig):
+    from embodied_tactile.acquisition.pose import ReplayPoseSource, StaticPoseSource
+
+    p = cfg.pose
+    if p.get("_target_"):
+        node = {k: v for k, v in OmegaConf.to_container(p, resolve=True).items() if k not in _POSE_BUILTIN_KEYS}
+        return hydra.utils.instantiate(node)
+    kind = str(p.kind)
+    if kind == "static":
+        return StaticPoseSource(list(p.static_pose), fs=float(p.fs))
+    if kind == "replay":
+        if not p.file:
+            raise ValueError("pose.kind=replay needs pose.file")
+        return ReplayPoseSource(p.file, time_base=str(p.time_base), offset_s=float(p.offset_s))
+    if kind == "none":
+        return None
+    raise ValueError(f"pose.kind must be static|replay|none (or set pose._target_), got {kind!r}")
+
+
+def make_trial_attrs(cfg: DictConfig, device_desc: str, pose_name: str) -> dict[str, Any]:
+    from embodied_tactile.io.rawformat import make_attrs
+
+    t = cfg.trial
+    oid = int(t.object_id)
+    if t.factors is not None:
+        factors = [math.nan if v is None else float(v) for v in t.factors]
+        if len(factors) != len(C.FACTOR_NAMES):
+            raise ValueError(f"trial.factors needs {len(C.FACTOR_NAMES)} values {C.FACTOR_NAMES}")
+    elif 0 <= oid < C.N_OBJECTS:
+        factors = None  # catalogue
+    else:
+        factors = [math.nan] * len(C.FACTOR_NAMES)
+    return make_attrs(
+        object_id=oid,
+        skin=str(t.skin),
+        primitive=str(t.primitive),
+        action_index=int(t.action_index),
+        repetition=int(t.repetition),
+        source="recorded",
+        seed=int(t.seed),
+        factors=factors,
+        fs_tactile=float(cfg.fs_tactile),
+        fs_pose=float(cfg.fs_pose),
+        device=device_desc,
+        notes=str(t.notes or ""),
+        port=str(cfg.port),
+        pose_source=pose_name,
+        baseline_s=float(cfg.baseline_s),
+        duration_s=float(cfg.duration_s),
+    )
+
+
+def run(cfg: DictConfig) -> int:
+    """Record one trial as configured; returns the exit code."""
+    from embodied_tactile.acquisition.protocol import DeviceMap, PlausibilityConfig
+    from embodied_tactile.acquisition.recorder import (
+        EXIT_CONFIG,
+        Recorder,
+        RecorderSettings,
+        default_out,
+        finish,
+        open_port,
+    )
+    from embodied_tactile.io.rawformat import IncrementalTrialWriter, trial_name
+
+    logging.getLogger("embodied_tactile").setLevel(str(cfg.get("log_level", "INFO")))
+    # ---- configuration (exit 2 on any problem, nothing written)
+    try:
+        settings = RecorderSettings(
+            port=str(cfg.port), baud=int(cfg.baud), timeout=float(cfg.timeout), settle_s=float(cfg.settle_s),
+            baseline_s=float(cfg.baseline_s), duration_s=float(cfg.duration_s), flush_s=float(cfg.flush_s),
+            quiet_s=float(cfg.quiet_s), late_guard_s=float(cfg.late_guard_s),
+        )
+        device = DeviceMap.from_config(OmegaConf.to_container(cfg.device, resolve=True))
+        plaus = PlausibilityConfig.from_config(OmegaConf.to_container(cfg.plausibility, resolve=True))
+        pose = make_pose_source(cfg)
+        attrs = make_trial_attrs(cfg, device.describe(), getattr(pose, "name", "none") if pose is not None else "none")
+        out = default_out(cfg.out)
+    except Exception as exc:  # noqa: BLE001 - any config problem -> exit 2
+        log.error("configuration error: %s", exc)
+        print(f"record: configuration error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_CONFIG
+    # ---- port
+    try:
+        ser = open_port(settings.port, settings.baud, settings.timeout)
+    except Exception as exc:  # noqa: BLE001 - SerialException, ValueError (bad URL), OSError
+        print(f"record: cannot open port {settings.port!r}: {exc}", file=sys.stderr, flush=True)
+        return EXIT_CONFIG
+    try:
+        writer = IncrementalTrialWriter(out, attrs, pose_columns=getattr(pose, "columns", 6) if pose is not None else 6)
+    except (FileExistsError, OSError) as exc:
+        ser.close()
+        print(f"record: cannot write trial {trial_name(attrs)!r} to {out}: {exc}", file=sys.stderr, flush=True)
+        return EXIT_CONFIG
+
+    stop = {"sig": None}
+
+    def on_signal(signum, frame):  # noqa: ARG001
+        stop["sig"] = signum
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def on_phase(phase: str) -> None:
+        print(f"record: {phase} started ({writer.name} -> {out})", flush=True)
+
+    try:
+        rec = Recorder(ser, writer, settings, device=device, plausibility=plaus, pose=pose, should_stop=lambda: stop["sig"] is not None, on_phase=on_phase)
+        res = rec.run()
+        if stop["sig"] is not None and res.status == "complete":
+            res.status = "interrupted"
+        finish(writer, res)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        try:
+            ser.close()
+        except Exception:  # noqa: BLE001 - an unplugged port may fail to close
+            pass
+        writer.close(complete=False)  # no-op if finish() closed it
+    msg = res.summary()
+    if res.garbage_reasons:
+        msg += f"; garbage reasons {res.garbage_reasons}"
+    print(f"record: {msg}", flush=True)
+    log.debug(msg)
+    return res.exit_code
+
+
+_exit_code: int | None = None
+
+
+@hydra.main(version_base="1.3", config_path=config_dir(), config_name="record")
+def _app(cfg: DictConfig) -> None:
+    global _exit_code
+    _exit_code = run(cfg)
+
+
+def main() -> None:
+    global _exit_code
+    _exit_code = None
+    try:
+        _app()
+    except SystemExit as exc:  # Hydra exits 1 on config composition errors
+        if _exit_code is None and exc.code not in (0, None):
+            sys.exit(2)
+        raise
+    sys.exit(2 if _exit_code is None else _exit_code)
+
+
+if __name__ == "__main__":
+    main()

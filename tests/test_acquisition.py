@@ -1,0 +1,313 @@
+"""e-Skin acquisition: protocol, emulator -> recorder -> HDF5 over a real pty, faults, signals.
+
+No torch. Everything runs on real pseudo-terminals; total well under 90 s.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from embodied_tactile import constants as C
+from embodied_tactile.acquisition import protocol as P
+from embodied_tactile.acquisition.emulator import Emulator, Faults, synthetic_trial
+from embodied_tactile.acquisition.pose import ReplayPoseSource, StaticPoseSource, load_pose_log
+from embodied_tactile.acquisition.recorder import Recorder, RecorderSettings, finish, open_port
+from embodied_tactile.io import rawformat as R
+
+LSB = 1.0 / C.ACC_COUNTS_PER_G
+V1 = {"name": "eskin_v1", "acc_repair": [{"sensor": 6, "axis": "z"}], "fsr_repair": [{"layer": 1, "cols": [6, 7]}]}
+
+
+@pytest.fixture(scope="module")
+def trial3s():
+    return synthetic_trial(3.0, seed=1)
+
+
+def _frames(acc, fsr, n):
+    return np.asarray(acc)[:n], np.asarray(fsr)[:n]
+
+
+# --------------------------------------------------------------------------- protocol
+def test_command_and_packet_size():
+    assert P.COMMAND == 0xD0 == (0b11 << 6) | 16
+    assert P.PACKET_SIZE == 1128 and P.PACKET_DTYPE.itemsize == 1128
+
+
+def test_encode_decode_roundtrip_wiring_and_layout():
+    rng = np.random.default_rng(0)
+    wiring = list(rng.permutation(16))
+    dm = P.DeviceMap("custom", tuple(wiring))
+    acc = rng.uniform(-1.9, 1.9, (7, 4, 4, 3))
+    fsr = rng.integers(0, 4096, (7, 2, 16, 16)).astype(np.uint16)
+    buf = P.encode_packets(acc, fsr, 1428, np.arange(7) + 1400, dm)
+    assert len(buf) == 7 * 1128
+    a, f, da, df = P.decode_packets(buf, dm)
+    assert a.shape == (7, 4, 4, 3) and a.dtype == np.float32 and f.shape == (7, 2, 16, 16) and f.dtype == np.uint16
+    assert np.abs(a - acc).max() <= 0.5 * LSB + 1e-7
+    np.testing.assert_array_equal(f, fsr)
+    np.testing.assert_array_equal(da, 1428)
+    np.testing.assert_array_equal(df, np.arange(7) + 1400)
+    # single-packet decode = batched decode
+    a0, f0, da0, df0 = P.decode_packet(buf[1128:2256], dm)
+    np.testing.assert_array_equal(a0, a[1]) and np.testing.assert_array_equal(f0, f[1])
+    assert (da0, df0) == (1428, 1401)
+    # wire layout: wire i carries grid position wiring[i]; FSR laid out (row, layer, col)
+    raw = np.frombuffer(buf[:1128], dtype=P.PACKET_DTYPE)[0]
+    for i, g in enumerate(wiring):
+        np.testing.assert_array_equal(raw["acc"][i], np.rint(acc[0].reshape(16, 3)[g] * 16384))
+    assert raw["fsr"][3, 1, 5] == fsr[0, 1, 3, 5]
+    fsr_words = np.frombuffer(buf[104:1128], dtype="<u2").reshape(16, 2, 16)
+    np.testing.assert_array_equal(fsr_words.transpose(1, 0, 2), fsr[0])
+    # the default (authors') wiring: wire 1 -> grid position 7 (row 1, col 3)
+    d = P.DeviceMap()
+    one = np.zeros((4, 4, 3)); one[1, 3, 0] = 1.0
+    assert np.frombuffer(P.encode_packet(one, np.zeros((2, 16, 16)), 1, 1, d), dtype=P.PACKET_DTYPE)[0]["acc"][1, 0] == 16384
+
+
+def test_dead_channel_repair():
+    dm = P.DeviceMap.from_config(V1)
+    rng = np.random.default_rng(1)
+    acc = np.round(rng.uniform(-1, 1, (3, 4, 4, 3)) * 16384) / 16384
+    fsr = rng.integers(0, 4096, (3, 2, 16, 16))
+    buf = P.encode_packets(acc, fsr, 1428, 1428, dm)
+    a, f, _, _ = P.decode_packets(buf, dm)
+    g = dm.wiring[6]  # wire 6 -> grid 15 = (3, 3): neighbours (2, 3) and (3, 2)
+    r, c = divmod(g, 4)
+    assert (r, c) == (3, 3)
+    np.testing.assert_allclose(a[:, r, c, 2], (acc[:, 2, 3, 2] + acc[:, 3, 2, 2]) / 2, atol=LSB)
+    np.testing.assert_allclose(a[:, r, c, :2], acc[:, r, c, :2], atol=LSB)  # x, y untouched
+    mask = np.ones((4, 4, 3), bool); mask[r, c, 2] = False
+    np.testing.assert_allclose(a[:, mask], acc[:, mask], atol=LSB)
+    expect = np.rint((fsr[:, 1, :, 5] + fsr[:, 1, :, 8]) / 2)
+    np.testing.assert_array_equal(f[:, 1, :, 6], expect)
+    np.testing.assert_array_equal(f[:, 1, :, 7], expect)
+    keep = np.ones((2, 16, 16), bool); keep[1, :, 6:8] = False
+    np.testing.assert_array_equal(f[:, keep], fsr[:, keep])
+    # repair off -> raw data
+    a2, f2, _, _ = P.decode_packets(buf, dm, apply_repair=False)
+    np.testing.assert_array_equal(f2, fsr)
+    with pytest.raises(ValueError):
+        P.DeviceMap("bad", tuple(range(15)) + (0,))
+
+
+def test_plausibility_checker():
+    tr = synthetic_trial(0.1)
+    buf = P.encode_packets(tr.acc, tr.fsr, 1428, 1430)
+    chk = P.PlausibilityChecker()
+    pk = [buf[i * 1128 : (i + 1) * 1128] for i in range(len(tr.t))]
+    assert all(chk.check(p) is None for p in pk[:10])
+    rng = np.random.default_rng(0)
+    assert chk.check(rng.integers(0, 256, 1128, dtype=np.uint8).tobytes()) is not None  # random
+    for k in (1, 2, 3, 8, 17):  # misaligned by k bytes
+        assert chk.check((bytes(rng.integers(0, 256, k, dtype=np.uint8)) + pk[11])[:1128]) is not None
+        assert chk.check(pk[11][k:] + pk[12][:k]) is not None
+    assert chk.check(P.encode_packet(tr.acc[0], tr.fsr[0], 1428, 60000)) == "dt_fsr=60000us inconsistent with recent 1430us"
+    assert "implausible" in chk.check(P.encode_packet(np.zeros((4, 4, 3)), tr.fsr[0], 1428, 1430))
+    assert chk.check(pk[13][:-1]) is not None
+
+
+# --------------------------------------------------------------------------- pose
+def test_pose_sources(tmp_path):
+    t = np.arange(0, 2, 0.01)
+    data = np.column_stack([t, np.sin(t), t * 0, t * 0 + 0.1, t * 0, t * 0, t])
+    csv = tmp_path / "pose.csv"
+    np.savetxt(csv, data, delimiter=",", header="t,x,y,z,roll,pitch,yaw", comments="")
+    np.testing.assert_allclose(load_pose_log(csv), data)
+    np.save(tmp_path / "pose.npy", data)
+    src = ReplayPoseSource(tmp_path / "pose.npy", time_base="trial", offset_s=-0.5)
+    src.start(0.0, 1000.0)
+    pt, pv = src.poll(1.0)
+    assert pt[0] >= 0 and pt[-1] <= 1.0 and np.allclose(pt, t[50:151] - 0.5)
+    np.testing.assert_allclose(pv[:, 0], np.sin(t[50:151]), rtol=1e-6)
+    pt2, _ = src.poll(1.2)
+    assert pt2[0] > pt[-1]
+    wall = ReplayPoseSource(csv, time_base="wall")
+    data2 = data.copy(); data2[:, 0] += 1000.0
+    np.savetxt(tmp_path / "w.csv", data2, delimiter=",")
+    wall = ReplayPoseSource(tmp_path / "w.csv", time_base="wall")
+    wall.start(5.0, 1000.25)
+    assert np.allclose(wall.poll(0.5)[0], t[25:76] - 0.25)
+    st = StaticPoseSource([0, 0, 0.1, 0, 0, 0], fs=100)
+    a, _ = st.poll(0.5)
+    b, bp = st.poll(1.0)
+    assert len(a) == 51 and a[0] == 0 and b[0] > a[-1] and np.allclose(bp[:, 2], 0.1)
+
+
+# --------------------------------------------------------------------------- emulator -> recorder
+def _record(tmp_path, trial, *, faults=None, duration=1.0, baseline=0.0, device=None, pose=None, **kw):
+    emu = Emulator(trial, faults=faults)
+    port = emu.start()
+    settings = RecorderSettings(port=port, timeout=kw.pop("timeout", 0.05), settle_s=0.05, baseline_s=baseline,
+                                duration_s=duration, flush_s=0.25, late_guard_s=kw.pop("late_guard_s", 0.05), **kw)
+    attrs = R.make_attrs(object_id=2, skin="hard", primitive="sliding", action_index=3, repetition=1, source="recorded", seed=0)
+    out = tmp_path / "rec.h5"
+    writer = R.IncrementalTrialWriter(out, attrs)
+    ser = open_port(port, 500000, settings.timeout)
+    try:
+        res = Recorder(ser, writer, settings, device=device, pose=pose or StaticPoseSource()).run()
+        finish(writer, res)
+    finally:
+        ser.close()
+        emu.stop()
+    return res, emu.stats, out, writer.name
+
+
+def _check_genuine(trial, rec):
+    """Every recorded frame is an intact served frame, in order; returns the frame indices."""
+    k = rec.fsr[:, 0, 0, 0].astype(np.int64) + 4096 * rec.fsr[:, 0, 0, 1].astype(np.int64)
+    assert (k < len(trial.t)).all()
+    np.testing.assert_array_equal(rec.fsr, trial.fsr[k])
+    assert np.abs(rec.acc - trial.acc[k]).max() <= LSB
+    assert (np.diff(k) > 0).all(), "frames out of order / duplicated"
+    assert (np.diff(rec.t) > 0).all()
+    return k
+
+
+def test_emulator_recorder_roundtrip(tmp_path):
+    trial = synthetic_trial(1.0, seed=3)
+    res, stats, out, name = _record(tmp_path, trial, duration=1.0, baseline=0.3, device=P.DeviceMap())
+    assert res.status == "complete" and res.exit_code == 0
+    assert res.lost == 0 and res.garbage == 0
+    good, errors = R.scan_raw(out, strict=True)
+    assert [g.name for g in good] == [name] and not errors
+    assert good[0].attrs["source"] == "recorded" and good[0].attrs["complete"] is True
+    rec = R.read_trial(out, name, fields=list(R.FIELDS))
+    # the served stream, baseline then trial, is frame 0, 1, 2, ... of the looped trial
+    n_b = rec.baseline_t.shape[0]
+    n = rec.t.shape[0]
+    assert res.rate_hz > 550 and n >= 0.8 * 700 and n_b > 0.5 * 0.3 * 700
+    idx = np.arange(n_b, n_b + n) % len(trial.t)
+    np.testing.assert_array_equal(rec.fsr, trial.fsr[idx])
+    assert np.abs(rec.acc - trial.acc[idx]).max() <= LSB
+    np.testing.assert_array_equal(rec.baseline_fsr, trial.fsr[np.arange(n_b) % len(trial.t)])
+    assert rec.baseline_t[-1] < 0 <= rec.t[0] and rec.t[-1] <= 1.0 + 0.01
+    assert stats.sent == n_b + n
+    assert rec.pose.shape[1] == 6 and rec.pose_t[0] == 0.0 and rec.pose_t[-1] <= rec.t[-1] + 0.02
+
+
+@pytest.mark.parametrize(
+    "kind, faults",
+    [
+        ("drop", Faults(drop=0.01, seed=1)),
+        ("delay", Faults(delay=0.01, delay_s=0.08, seed=2)),
+        ("truncate", Faults(truncate=0.01, seed=3)),
+        ("garbage_random", Faults(garbage=0.01, garbage_mode="random", seed=4)),
+        ("garbage_shift", Faults(garbage=0.01, garbage_mode="shift", seed=5)),
+    ],
+)
+def test_faults(tmp_path, trial3s, kind, faults):
+    res, st, out, name = _record(tmp_path, trial3s, faults=faults, duration=1.0, device=P.DeviceMap())
+    assert res.status == "complete"
+    good, _ = R.scan_raw(out, strict=True)
+    rec = R.read_trial(out, name)
+    k = _check_genuine(trial3s, rec)
+    assert set(k.tolist()) <= set(st.served), "a faulty packet was written"
+    n_injected = {"drop": st.dropped, "delay": st.delayed, "truncate": st.truncated}.get(kind, st.garbage)
+    assert n_injected > 0
+    if kind.startswith("garbage"):
+        assert res.garbage == n_injected and res.lost == 0
+    else:
+        assert res.lost >= n_injected and res.garbage == 0
+    assert rec.attrs["lost_packets"] == res.lost and rec.attrs["garbage_packets"] == res.garbage
+    # intact packets are only missed while resyncing
+    assert len(k) >= len(st.served) - 2 * n_injected
+
+
+# --------------------------------------------------------------------------- the CLI, signals, unplugging
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _cli(tmp_path, port, *over):
+    cmd = [sys.executable, "-m", "embodied_tactile.record", f"port={port}", f"out={tmp_path / 'cli.h5'}", "settle_s=0.1",
+           "baseline_s=0", f"hydra.run.dir={tmp_path / 'hydra'}", "record/device@device=ideal", "trial.object_id=40", *over]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+
+
+def _wait_line(proc, text, timeout=30.0):
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        line = proc.stdout.readline()
+        if text in line:
+            return line
+        if not line and proc.poll() is not None:
+            break
+    raise AssertionError(f"no '{text}' from recorder: {proc.stderr.read()}")
+
+
+def _read_cli(tmp_path):
+    good, errors = R.scan_raw(tmp_path / "cli.h5", strict=True)
+    assert len(good) == 1 and not errors
+    return R.read_trial(tmp_path / "cli.h5", good[0].name)
+
+
+def test_cli_disconnect_exit_3(tmp_path, trial3s):
+    emu = Emulator(trial3s, faults=Faults(disconnect_after_packets=500))
+    port = emu.start()
+    try:
+        proc = _cli(tmp_path, port, "duration_s=5")
+        out, err = proc.communicate(timeout=30)
+    finally:
+        emu.stop()
+    assert proc.returncode == 3, err
+    assert "unplugged" in out
+    rec = _read_cli(tmp_path)
+    assert rec.attrs["complete"] is False and rec.attrs["stop_reason"] == "unplugged"
+    assert len(rec.t) == 500 and math.isnan(rec.attrs["spatial_frequency"])  # object 40: unknown -> NaN factors
+    _check_genuine(trial3s, rec)
+
+
+def test_cli_sigint_clean_close(tmp_path, trial3s):
+    emu = Emulator(trial3s)
+    port = emu.start()
+    try:
+        proc = _cli(tmp_path, port, "duration_s=20")
+        _wait_line(proc, "trial started")
+        time.sleep(1.5)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=15)
+    finally:
+        emu.stop()
+    assert proc.returncode == 3, err
+    assert "interrupted" in out and "packets/s" in out and "lost 0, garbage 0" in out
+    rec = _read_cli(tmp_path)
+    assert rec.attrs["complete"] is False and rec.attrs["stop_reason"] == "interrupted"
+    assert len(rec.t) >= emu.stats.sent - 2 and len(rec.t) > 700  # everything received was written
+    assert len(rec.pose_t) >= 2
+
+
+def test_cli_sigkill_leaves_readable_file(tmp_path, trial3s):
+    emu = Emulator(trial3s)
+    port = emu.start()
+    try:
+        proc = _cli(tmp_path, port, "duration_s=20")
+        _wait_line(proc, "trial started")
+        time.sleep(2.2)
+        sent = emu.stats.sent
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        emu.stop()
+    rec = _read_cli(tmp_path)
+    assert rec.attrs["complete"] is False
+    n = len(rec.t)
+    assert sent - 700 <= n <= sent + 5, (n, sent)  # all but at most the last second
+    _check_genuine(trial3s, rec)
+
+
+def test_cli_config_and_port_errors(tmp_path):
+    p = _cli(tmp_path, tmp_path / "no-such-port", "duration_s=1")
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 2 and "cannot open port" in err
+    p = _cli(tmp_path, "loop://", "trial.primitive=juggling")
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 2 and "configuration error" in err
+    assert not (tmp_path / "cli.h5").exists()
