@@ -1,0 +1,17 @@
+"""Physically grounded palpation simulator (NumPy/SciPy only; see docs/simulator.md)."""
+
+from embodied_tactile.sim.dataset import generate_dataset
+from embodied_tactile.sim.physics import Mechanics, PhysicsOverrides, contact_pressure, mechanics, qlv_relax
+from embodied_tactile.sim.trial import force_indentation, fsr_counts, simulate_trial
+
+__all__ = [
+    "Mechanics",
+    "PhysicsOverrides",
+    "contact_pressure",
+    "force_indentation",
+    "fsr_counts",
+    "generate_dataset",
+    "mechanics",
+    "qlv_relax",
+    "simulate_trial",
+]

@@ -1,0 +1,74 @@
+"""Wave-object surfaces: band-passed white noise, seeded by object id only."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+from scipy import ndimage
+
+from embodied_tactile import constants as C
+from embodied_tactile.sim import physics as P
+
+_SURFACE_ENTROPY = 0x5EED_0B1E  # fixed: object k is the same object in every trial
+
+
+@lru_cache(maxsize=64)
+def _unit_surface(object_id: int) -> np.ndarray:
+    """Band-passed white noise of object ``object_id`` scaled to peak-to-peak 1 (float64,
+    mean 0 over the block). Read-only, cached."""
+    obj = C.get_object(object_id)
+    rng = np.random.default_rng(np.random.SeedSequence([_SURFACE_ENTROPY, int(object_id)]))
+    n = P.SURFACE_N
+    white = rng.standard_normal((n, n))
+    k = np.fft.fftfreq(n, d=P.SURFACE_DX_M)  # 1/m
+    kr = np.hypot(k[:, None], k[None, :])
+    sigma = max(P.BAND_REL_SIGMA * obj.spatial_frequency, P.BAND_MIN_SIGMA)
+    band = np.exp(-0.5 * ((kr - obj.spatial_frequency) / sigma) ** 2)
+    band[0, 0] = 0.0
+    h = np.fft.ifft2(np.fft.fft2(white) * band).real
+    h -= h.mean()
+    h /= h.max() - h.min()
+    h.setflags(write=False)
+    return h
+
+
+@lru_cache(maxsize=64)
+def surface(object_id: int, amplitude_mm: float | None = None) -> np.ndarray:
+    """Height (m) on the SURFACE_N^2 grid, peak-to-peak = amplitude over the whole block."""
+    amp = C.get_object(object_id).amplitude_mm if amplitude_mm is None else float(amplitude_mm)
+    h = _unit_surface(object_id) * (amp * 1e-3)
+    h.setflags(write=False)
+    return h
+
+
+@lru_cache(maxsize=64)
+def contact_surface(object_id: int, bridging_length_m: float, amplitude_mm: float | None = None) -> np.ndarray:
+    """The surface the skin presses against: for heterogeneous objects the stiff top layer
+    bridges detail shorter than its flexural length (Gaussian smoothing with that sigma)."""
+    h = surface(object_id, amplitude_mm)
+    if bridging_length_m <= 0:
+        return h
+    out = ndimage.gaussian_filter(h, bridging_length_m / P.SURFACE_DX_M, mode="wrap")
+    out.setflags(write=False)
+    return out
+
+
+def sample(h: np.ndarray, x: np.ndarray, y: np.ndarray, order: int = 1) -> np.ndarray:
+    """Heights at object-frame positions (m; block centred on 0), periodic block."""
+    c = (P.SURFACE_N - 1) / 2.0
+    coords = np.stack([np.ravel(x) / P.SURFACE_DX_M + c, np.ravel(y) / P.SURFACE_DX_M + c])
+    out = ndimage.map_coordinates(h, coords, order=order, mode="grid-wrap", prefilter=order > 1)
+    return out.reshape(np.shape(x))
+
+
+def spline_coeffs(h: np.ndarray) -> np.ndarray:
+    """Cubic B-spline coefficients of a heightmap (for smooth order-3 sampling)."""
+    return ndimage.spline_filter(h, order=3, mode="grid-wrap")
+
+
+def sample_spline(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    c = (P.SURFACE_N - 1) / 2.0
+    coords = np.stack([np.ravel(x) / P.SURFACE_DX_M + c, np.ravel(y) / P.SURFACE_DX_M + c])
+    out = ndimage.map_coordinates(coeffs, coords, order=3, mode="grid-wrap", prefilter=False)
+    return out.reshape(np.shape(x))

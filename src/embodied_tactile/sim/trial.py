@@ -1,0 +1,333 @@
+"""One palpation trial: approach to a preload, 10 s of a primitive, sensors -> RawTrial."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import optimize, signal
+
+from embodied_tactile import constants as C
+from embodied_tactile.io.rawformat import RawTrial, make_attrs
+from embodied_tactile.sim import objects as O
+from embodied_tactile.sim import physics as P
+from embodied_tactile.sim.physics import PhysicsOverrides
+
+_STREAMS = ("placement", "tracking", "fsr", "acc", "stickslip", "clock")
+_DEVICE_ENTROPY = 0xE5_C1A1  # per-skin calibration (offsets, gains): the same device every trial
+
+# Skin geometry (tool frame: TCP at the skin backing, z up, skin surface at z = -H).
+_PITCH = C.TAXEL_PITCH_M
+_TAX = (np.arange(C.FSR_GRID[0]) - (C.FSR_GRID[0] - 1) / 2) * _PITCH
+_TY, _TX = np.meshgrid(_TAX, _TAX, indexing="ij")  # row = y, column = x
+_NODE_PITCH = C.FSR_GRID[0] * _PITCH / C.ACC_GRID[0]
+_NAX = (np.arange(C.ACC_GRID[0]) - (C.ACC_GRID[0] - 1) / 2) * _NODE_PITCH
+_NY, _NX = np.meshgrid(_NAX, _NAX, indexing="ij")
+
+
+def _rot(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll), shape (..., 3, 3)."""
+    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    r = np.empty(np.shape(roll) + (3, 3))
+    r[..., 0, 0] = cy * cp
+    r[..., 0, 1] = cy * sp * sr - sy * cr
+    r[..., 0, 2] = cy * sp * cr + sy * sr
+    r[..., 1, 0] = sy * cp
+    r[..., 1, 1] = sy * sp * sr + cy * cr
+    r[..., 1, 2] = sy * sp * cr - cy * sr
+    r[..., 2, 0] = -sp
+    r[..., 2, 1] = cp * sr
+    r[..., 2, 2] = cp * cr
+    return r
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def command(primitive: str, params: dict, t: np.ndarray, duration: float, physics: PhysicsOverrides):
+    """Commanded offsets (x, y, z m; roll, pitch, yaw rad), each (N,), about the preload pose,
+    and the analytic translational acceleration (N, 3) in m/s^2 (paper's equations)."""
+    z6 = np.zeros((6, t.size))
+    acc = np.zeros((t.size, 3))
+    if primitive == "pressing":
+        a, w = params["A_z_mm"] * 1e-3, params["omega_z_hz"]
+    elif primitive == "precession":
+        a, w = np.deg2rad(params["A_alpha_beta_deg"]), params["omega_alpha_beta_hz"]
+    else:
+        a, w = params["A_xy_mm"] * 1e-3, params["omega_xy_gamma_hz"]
+    if physics.primitive_frequency_hz is not None:
+        w = float(physics.primitive_frequency_hz)
+    ph = 2 * np.pi * w * t
+    w2 = (2 * np.pi * w) ** 2
+    if primitive == "pressing":
+        z6[2] = a * np.cos(ph + np.pi)
+        acc[:, 2] = -w2 * z6[2]
+    elif primitive == "precession":
+        z6[3] = a * np.sin(ph + np.pi / 2)
+        z6[4] = a * np.sin(ph)
+    else:
+        z6[0] = z6[1] = a * np.sin(ph)
+        z6[5] = np.deg2rad(params["A_gamma_deg"]) * np.sin(ph)
+        acc[:, 0] = acc[:, 1] = -w2 * z6[0]
+    if physics.lift_off:
+        s = duration / 3
+        ramp = 0.1 * duration
+        z6[2] += P.LIFT_OFF_M * (_smoothstep((t - s) / ramp) - _smoothstep((t - 2 * s + ramp) / ramp))
+    return z6, acc
+
+
+def _tracking_error(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Smooth tracking error (6, n) at the pose rate: low-passed (2 Hz) white noise."""
+    a = np.exp(-2 * np.pi * 2.0 / C.FS_POSE)
+    e = signal.lfilter([1 - a], [1, -a], rng.standard_normal((6, n + 200)), axis=1)[:, 200:]
+    e /= np.sqrt((1 - a) / (1 + a))  # unit std of the stationary AR(1)
+    scale = np.array([P.TRACK_ERR_M] * 3 + [P.TRACK_ERR_RAD] * 3)[:, None]
+    return e * scale
+
+
+def _world_points(pose6: np.ndarray, lx: np.ndarray, ly: np.ndarray, lz: float) -> np.ndarray:
+    """Object-frame positions (N, K, 3) of tool-frame points (K,) for poses (6, N)."""
+    r = _rot(pose6[3], pose6[4], pose6[5])
+    loc = np.stack([lx.ravel(), ly.ravel(), np.full(lx.size, lz)])  # (3, K)
+    return np.matmul(r, loc).transpose(0, 2, 1) + pose6[:3].T[:, None, :]
+
+
+def _shift_kernels(shift_px: np.ndarray, sigma_px: float) -> np.ndarray:
+    """(N, 16, 16) Gaussian kernels K[n, i, j] = g(i - j - shift_n), unit mass per source."""
+    idx = np.arange(C.FSR_GRID[0], dtype=np.float64)
+    d = idx[None, :, None] - idx[None, None, :] - shift_px[:, None, None]
+    return np.exp(-0.5 * (d / sigma_px) ** 2) / (np.sqrt(2 * np.pi) * sigma_px)
+
+
+def _interp_rows(src_t: np.ndarray, src: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Linear interpolation along axis 0 of ``src`` (float32 result)."""
+    dt = src_t[1] - src_t[0]
+    pos = np.clip((t - src_t[0]) / dt, 0, len(src_t) - 1)
+    i0 = np.minimum(pos.astype(np.int64), len(src_t) - 2)
+    f = (pos - i0).astype(np.float32).reshape(-1, *([1] * (src.ndim - 1)))
+    s = src.astype(np.float32, copy=False)
+    return s[i0] * (1 - f) + s[i0 + 1] * f
+
+
+def _preload_depth(mech: P.Mechanics, h_tax: np.ndarray, dz_tax: np.ndarray) -> float:
+    """TCP z (object frame) at which the relaxed contact force equals PRELOAD_N."""
+    top = float(np.max(h_tax - dz_tax))  # TCP z at first touch
+    area = _PITCH**2
+
+    def excess(s: float) -> float:
+        return float(P.contact_pressure(mech, h_tax - (top - s + dz_tax)).sum() * area - P.PRELOAD_N)
+
+    if excess(P.MAX_PRELOAD_DEPTH_M) <= 0:
+        return top - P.MAX_PRELOAD_DEPTH_M
+    s = optimize.brentq(excess, 0.0, P.MAX_PRELOAD_DEPTH_M, xtol=1e-9)
+    return top - s
+
+
+def _streams(seed: int, object_id: int, skin: str, primitive: str, action_index: int, repetition: int):
+    ss = np.random.SeedSequence(
+        entropy=int(seed),
+        spawn_key=(int(object_id), C.SKINS.index(skin), C.PRIMITIVES.index(primitive), int(action_index), int(repetition)),
+    )
+    return dict(zip(_STREAMS, (np.random.default_rng(s) for s in ss.spawn(len(_STREAMS)))))
+
+
+def _device(skin: str):
+    """Per-skin calibration: FSR offsets / gains (2, 16, 16), accelerometer offsets (4, 4, 3)."""
+    rng = np.random.default_rng(np.random.SeedSequence([_DEVICE_ENTROPY, C.SKINS.index(skin)]))
+    fsr_off = rng.uniform(0, P.FSR_OFFSET_COUNTS, (C.FSR_LAYERS, *C.FSR_GRID)).astype(np.float32)
+    fsr_gain = (1 + P.FSR_GAIN_SPREAD * rng.uniform(-1, 1, (C.FSR_LAYERS, *C.FSR_GRID))).astype(np.float32)
+    acc_off = rng.uniform(-P.ACC_OFFSET_G, P.ACC_OFFSET_G, (*C.ACC_GRID, C.ACC_AXES))
+    return fsr_off, fsr_gain, acc_off
+
+
+def fsr_counts(force_n: np.ndarray, gain: np.ndarray | float = 1.0) -> np.ndarray:
+    """Noise-free FSR counts: conductance ~ F^0.7 in a divider into the 12-bit ADC."""
+    x = (np.maximum(force_n, 0) / np.float32(P.FSR_HALF_N)) ** np.float32(P.FSR_EXPONENT)
+    return np.float32(C.FSR_MAX_COUNT) * gain * x / (1 + x)
+
+
+def simulate_trial(
+    object_id: int,
+    skin: str,
+    primitive: str,
+    action_index: int,
+    repetition: int = 0,
+    seed: int = 0,
+    *,
+    duration: float = C.TRIAL_DURATION,
+    physics: PhysicsOverrides | None = None,
+) -> RawTrial:
+    """Simulate one trial. Deterministic per (seed, object, skin, primitive, action, repetition)."""
+    if skin not in C.SKINS:
+        raise ValueError(f"skin must be one of {C.SKINS}, got {skin!r}")
+    physics = physics or PhysicsOverrides()
+    obj = C.get_object(object_id)
+    action = C.get_action(primitive, action_index)
+    mech = P.mechanics(obj, skin, physics)
+    rng = _streams(seed, object_id, skin, primitive, action_index, repetition)
+    fsr_off, fsr_gain, acc_off = _device(skin)
+
+    n_t = max(int(round(C.FS_TACTILE * duration)), 2)
+    n_p = max(int(round(C.FS_POSE * duration)), 2)
+    H = mech.h_skin
+
+    # ---------------------------------------------------------------- clocks
+    jit = rng["clock"]
+    t_tac = np.arange(n_t) / C.FS_TACTILE + jit.uniform(-20e-6, 20e-6, n_t)
+    t_pose = np.arange(n_p) / C.FS_POSE + jit.uniform(-0.5e-3, 0.5e-3, n_p)
+    t_phys = np.arange(n_p) / P.PHYSICS_RATE_HZ  # uniform physics grid (= nominal pose grid)
+    dt = 1.0 / P.PHYSICS_RATE_HZ
+
+    # ---------------------------------------------------------------- surfaces
+    h_raw = O.surface(object_id, physics.amplitude_mm)
+    h_con = O.contact_surface(object_id, round(mech.bridging_length, 9), physics.amplitude_mm)
+    h_spl = O.spline_coeffs(h_raw)
+
+    # ---------------------------------------------------------------- poses
+    x0, y0 = rng["placement"].normal(0.0, P.PLACEMENT_ERR_M, 2)
+    err = _tracking_error(rng["tracking"], n_p)  # (6, n_p) on the physics grid
+    cmd_p, _ = command(primitive, action.params, t_phys, duration, physics)
+    cmd_0, _ = command(primitive, action.params, np.zeros(1), duration, physics)
+    pose0 = cmd_0.copy()
+    pose0[0] += x0
+    pose0[1] += y0
+    pose0[2] = 0.0  # approach at the primitive's start orientation, pressing centred on preload
+    w0 = _world_points(pose0, _TX, _TY, -H)[0]
+    h0 = O.sample(h_con, w0[:, 0], w0[:, 1])
+    z_pre = _preload_depth(mech, h0, w0[:, 2] - pose0[2])
+
+    pose_p = cmd_p + err
+    pose_p[0] += x0
+    pose_p[1] += y0
+    pose_p[2] += z_pre
+
+    # ---------------------------------------------------------------- contact (physics rate)
+    wt = _world_points(pose_p, _TX, _TY, -H)  # (n_p, 256, 3)
+    h_t = O.sample(h_con, wt[..., 0], wt[..., 1])
+    delta = h_t - wt[..., 2]  # penetration, m
+    p_el = P.contact_pressure(mech, delta, physics.force_scale)
+    ws, wo = P.relaxation_weights(mech)
+    p = P.qlv_relax(p_el, dt, [(mech.g_skin * ws, mech.tau_skin), (mech.g_obj * wo, mech.tau_obj)])
+
+    # shear: regularised Coulomb traction -> inter-layer shear displacement (tool frame)
+    vel = np.gradient(wt[..., :2], dt, axis=0)  # skin-surface velocity over the fixed object
+    psum = p.sum(axis=1)
+    incontact = psum > 0
+    wgt = np.where(incontact[:, None], p / np.where(incontact, psum, 1.0)[:, None], 0.0)
+    v = np.einsum("nk,nkc->nc", wgt, vel)
+    speed = np.linalg.norm(v, axis=1)
+    ncont = np.maximum((p > 0).sum(axis=1), 1)
+    p_mean = psum / ncont
+    tau = mech.friction * p_mean * np.tanh(speed / P.SLIP_VELOCITY_M_S)
+    g_inter = mech.e_skin / 3.0
+    h_inter = C.SKIN_SPECS[skin].interlayer_thickness_mm * 1e-3
+    u_lin = tau * h_inter / g_inter
+    u_max = P.MAX_SHEAR_STRAIN * h_inter
+    u = u_max * np.tanh(u_lin / u_max)
+    dirn = -v / np.maximum(speed, 1e-12)[:, None]  # traction on the skin opposes its motion
+    cy, sy = np.cos(pose_p[5]), np.sin(pose_p[5])
+    ux = (cy * dirn[:, 0] + sy * dirn[:, 1]) * u  # into the tool frame
+    uy = (-sy * dirn[:, 0] + cy * dirn[:, 1]) * u
+
+    # ---------------------------------------------------------------- FSR maps
+    pm = p.reshape(n_p, *C.FSR_GRID)
+    zero = np.zeros(n_p)
+    kt = _shift_kernels(zero[:1], P.SPREAD_TOP_M / _PITCH)[0]
+    top = kt @ pm @ kt.T
+    sb = P.SPREAD_BOTTOM_M / _PITCH
+    kby, kbx = _shift_kernels(uy / _PITCH, sb), _shift_kernels(ux / _PITCH, sb)
+    bot = kby @ pm @ kbx.transpose(0, 2, 1)
+    force = np.stack([top, bot], axis=1) * _PITCH**2  # (n_p, 2, 16, 16) N per taxel
+    counts_p = fsr_counts(force.astype(np.float32), fsr_gain) + fsr_off  # linear in time: fold in
+    counts = _interp_rows(t_phys, counts_p, t_tac)
+    counts += rng["fsr"].standard_normal(counts.shape, dtype=np.float32) * np.float32(P.FSR_NOISE_COUNTS)
+    np.rint(counts, out=counts)
+    fsr = np.clip(counts, 0, C.FSR_MAX_COUNT, out=counts).astype(np.uint16)
+
+    # ---------------------------------------------------------------- accelerometers (700 Hz)
+    cmd_t, acc_cmd = command(primitive, action.params, t_tac, duration, physics)
+    err_t = np.stack([np.interp(t_tac, t_phys, e) for e in err])
+    pose_t6 = cmd_t + err_t
+    pose_t6[0] += x0
+    pose_t6[1] += y0
+    pose_t6[2] += z_pre
+    rt = _rot(pose_t6[3], pose_t6[4], pose_t6[5])  # (n_t, 3, 3)
+    # specific force of the rigid skin body: R^T (a / g + z)
+    f_world = acc_cmd / 9.81
+    f_world[:, 2] += 1.0
+    acc = np.matmul(rt.transpose(0, 2, 1), f_world[:, :, None])[:, None, :, 0].repeat(16, axis=1)  # (n_t, 16, 3)
+
+    # local compression of the skin under each node (quasi-static, along the normal)
+    pool = p.reshape(n_p, 4, 4, 4, 4).mean(axis=(2, 4)).reshape(n_p, 16)
+    d_node = np.maximum(delta.reshape(n_p, 4, 4, 4, 4).mean(axis=(2, 4)).reshape(n_p, 16), 0) * ws
+    dd = np.gradient(np.gradient(d_node, dt, axis=0), dt, axis=0) / 9.81
+    acc[..., 2] += _interp_rows(t_phys, dd, t_tac)
+    w_node = _interp_rows(t_phys, pool / (pool + P.CONTACT_REF_PA), t_tac).astype(np.float64)  # contact weight
+
+    # texture: stair steps of the printed layers (crossed at |dh/dt| / dz) and infill lines
+    wn_ = _world_points(pose_t6, _NX, _NY, -H)  # (n_t, 16, 3)
+    h_n = O.sample_spline(h_spl, wn_[..., 0], wn_[..., 1])
+    dtt = 1.0 / C.FS_TACTILE
+    f_step = np.abs(np.gradient(h_n, dtt, axis=0)) / P.LAYER_HEIGHT_M
+    f_inf = np.abs(np.gradient(wn_[..., 0], dtt, axis=0)) / P.INFILL_PITCH_M
+    fn, zeta = P.node_resonance(skin)
+    rough = P.ROUGHNESS[obj.top_layer or obj.bulk]
+    gain = P.TEXTURE_COUPLING * rough * w_node / 9.81
+    amp_step = gain * (2 * np.pi * f_step) ** 2 * (P.LAYER_HEIGHT_M / np.pi)
+    amp_step *= P.skin_transmissibility(f_step, fn, zeta) * P.antialias(f_step)
+    amp_inf = P.INFILL_WEIGHT * gain * (2 * np.pi * f_inf) ** 2 * (P.LAYER_HEIGHT_M / np.pi)
+    amp_inf *= P.skin_transmissibility(f_inf, fn, zeta) * P.antialias(f_inf)
+    phase0 = rng["stickslip"].uniform(0, 2 * np.pi, (2, 16))
+    acc[..., 2] += amp_step * np.sin(2 * np.pi * h_n / P.LAYER_HEIGHT_M + phase0[0])
+    acc[..., 2] += amp_inf * np.sin(2 * np.pi * wn_[..., 0] / P.INFILL_PITCH_M + phase0[1])
+
+    # stick-slip: broadband bursts, rate ~ crossing rate, filtered by the skin
+    slip = np.tanh(np.linalg.norm(np.gradient(wn_[..., :2], dtt, axis=0), axis=-1) / P.SLIP_VELOCITY_M_S)
+    rate = f_step + P.INFILL_WEIGHT * f_inf
+    inten = P.STICKSLIP_G * mech.friction * rough * w_node * slip * np.sqrt(rate / P.STICKSLIP_REF_HZ)
+    b, a = P.skin_filter(fn, zeta)
+    burst = rng["stickslip"].standard_normal((n_t, 16, 3)) * inten[..., None] * np.array([1.0, 1.0, 0.5])
+    acc += signal.lfilter(b, a, burst, axis=0)
+
+    acc = acc.reshape(n_t, *C.ACC_GRID, 3) + acc_off
+    acc += rng["acc"].standard_normal(acc.shape) * P.ACC_NOISE_G
+    lsb = 1.0 / C.ACC_COUNTS_PER_G
+    acc = np.clip(np.rint(acc / lsb), -C.ACC_RANGE_G * C.ACC_COUNTS_PER_G, C.ACC_RANGE_G * C.ACC_COUNTS_PER_G - 1) * lsb
+    acc = acc.astype(np.float32)
+
+    # ---------------------------------------------------------------- recorded pose
+    cmd_r, _ = command(primitive, action.params, t_pose, duration, physics)
+    err_r = np.stack([np.interp(t_pose, t_phys, e) for e in err])
+    pose = cmd_r + err_r
+    pose[0] += x0 + P.WORKSPACE_XY_M[0]
+    pose[1] += y0 + P.WORKSPACE_XY_M[1]
+    pose[2] += z_pre + P.SURFACE_Z_M
+    pose = pose.T.astype(np.float32)
+
+    attrs = make_attrs(
+        object_id=object_id,
+        skin=skin,
+        primitive=primitive,
+        action_index=action_index,
+        repetition=repetition,
+        source="simulated",
+        seed=seed,
+    )
+    return RawTrial(t=t_tac, acc=acc, fsr=fsr, pose_t=t_pose, pose=pose, attrs=attrs)
+
+
+def force_indentation(
+    object_id: int, skin: str, depths_m: np.ndarray, *, physics: PhysicsOverrides | None = None
+) -> np.ndarray:
+    """Quasi-static (relaxed) normal force (N) of the skin pressed flat onto the object's
+    contact surface at the nominal trial position, for indentations ``depths_m`` measured
+    from first touch. The same contact law the trials integrate."""
+    physics = physics or PhysicsOverrides()
+    obj = C.get_object(object_id)
+    mech = P.mechanics(obj, skin, physics)
+    h_con = O.contact_surface(object_id, round(mech.bridging_length, 9), physics.amplitude_mm)
+    w0 = _world_points(np.zeros((6, 1)), _TX, _TY, -mech.h_skin)[0]
+    h0 = O.sample(h_con, w0[:, 0], w0[:, 1])
+    gap = h0.max() - h0  # distance of each taxel to the surface at first touch
+    d = np.asarray(depths_m, dtype=np.float64)[..., None]
+    return P.contact_pressure(mech, d - gap, physics.force_scale).sum(axis=-1) * _PITCH**2
