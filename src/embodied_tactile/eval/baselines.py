@@ -1,0 +1,342 @@
+"""Baselines scored with the same splits, the same alignment and the same :func:`nmse`.
+
+(a) Hand-crafted features -> KRR. Computed from the PREPROCESSED sequences the model sees
+    (``obs`` (n, T, C, 28, 28) + ``actions`` (n, T, 6)), so the comparison is on equal
+    inputs (raw 700 Hz signals would give the baseline information the model never gets).
+    Every feature is *causal*: the value at frame t summarises frames 0..t only (running
+    max / running means from cumulative sums). The feature vector at frame t therefore plays
+    the role of a latent at frame t: the alignment is fitted on the final segment of the
+    training sequences (= whole-sequence features) and applied at every frame of the held-out
+    sequences, exactly like the Latent Filter's latents. Features (those whose channels
+    exist in the modality):
+
+    * force: per-frame force F_t = mean over taxels of the available FSR layers; running peak
+      force, running mean force;
+    * force-indentation slope: least-squares slope of F against depth (-z, action column 2)
+      and against the drive s_t = ||a_t - a_0|| (all six action columns);
+    * hysteresis: signed loop area sum F_t ds_t relative to sum |F_t ds_t| (loading vs
+      unloading; 0 for an elastic contact);
+    * relaxation: mean relative force change dF/F over frames where the action is still
+      (|ds| < 10 % of its running max) and in contact (F > 50 % of its running max);
+    * top/bottom shear proxy (both FSR layers): distance between the pressure centroids of the
+      two layers, and the top-bottom difference energy mean((top - bottom)^2) / mean(top^2 +
+      bottom^2), averaged over contact frames;
+    * contact area fraction (taxels above 10 % of the frame max) and spatial-spectrum centroid
+      of the (top) force image (2-D FFT radial frequency), over contact frames;
+    * vibration (acc channel, 4 x 4 tiles of 7 x 7 log-mel bins in [0, 1] scaled dB):
+      low / mid / high band mean level (mel bins 0-15 / 16-31 / 32-48), spectral centroid
+      (in mel-bin units, power-weighted), running std of the high band.
+
+(b) Supervised GRU regressor (upper bound): small conv frame encoder + GRU over
+    [frame features, action] -> the 4 standardised factors at every step, trained on the
+    train split only (MSE at every frame, NaN factors masked).
+
+(c) Mean predictor: the train mean at every frame (NMSE ~ 1 by construction).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from .krr import assert_disjoint, fit_alignment
+from .results import Results
+
+#: observation channels per modality (order of the C axis of ``obs``; docs/architecture.md)
+MODALITY_CHANNELS: Mapping[str, tuple[str, ...]] = {
+    "acc": ("acc",),
+    "fsr_t": ("fsr_t",),
+    "fsr_b": ("fsr_b",),
+    "fsr_tb": ("fsr_t", "fsr_b"),
+    "multi_e": ("acc", "fsr_t", "fsr_b"),
+    "multi_l": ("acc", "fsr_t", "fsr_b"),
+}
+
+_EPS = 1e-8
+
+
+# =========================================================================== (a) features
+def _cummean(x: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Running (weighted) mean along axis 1; frames with zero total weight so far -> 0."""
+    if w is None:
+        w = np.ones_like(x)
+    num = np.cumsum(x * w, axis=1)
+    den = np.cumsum(w, axis=1)
+    return np.where(den > 0, num / np.maximum(den, _EPS), 0.0)
+
+
+def _centroid(img: np.ndarray) -> np.ndarray:
+    """img (..., H, W) -> pressure centroid (..., 2) in taxel units (positive part)."""
+    p = np.clip(img, 0.0, None)
+    h, w = img.shape[-2:]
+    tot = p.sum((-2, -1)) + _EPS
+    cy = (p.sum(-1) * np.arange(h)).sum(-1) / tot
+    cx = (p.sum(-2) * np.arange(w)).sum(-1) / tot
+    return np.stack([cy, cx], -1)
+
+
+def _spatial_centroid(img: np.ndarray) -> np.ndarray:
+    """Radial spatial-frequency centroid of each image (..., H, W) (DC removed)."""
+    h, w = img.shape[-2:]
+    spec = np.abs(np.fft.rfft2(img - img.mean((-2, -1), keepdims=True)))
+    fy = np.fft.fftfreq(h)[:, None]
+    fx = np.fft.rfftfreq(w)[None, :]
+    r = np.sqrt(fy**2 + fx**2)
+    return (spec * r).sum((-2, -1)) / (spec.sum((-2, -1)) + _EPS)
+
+
+def _acc_bins(acc: np.ndarray, tile=(7, 7), grid=(4, 4)) -> np.ndarray:
+    """acc image (n, T, 28, 28) -> (n, T, 16, 49) mel bins per sensor (inverse of tile_layout)."""
+    n, t = acc.shape[:2]
+    x = acc.reshape(n, t, grid[0], tile[0], grid[1], tile[1])
+    x = np.transpose(x, (0, 1, 2, 4, 3, 5))
+    return x.reshape(n, t, grid[0] * grid[1], tile[0] * tile[1])
+
+
+def handcrafted_features(obs, actions, channels: Sequence[str]) -> tuple[np.ndarray, list[str]]:
+    """Causal hand-crafted features at every frame: -> (features (n, T, k), names).
+
+    ``obs`` (n, T, C, 28, 28) with ``channels`` naming the C axis ('acc', 'fsr_t', 'fsr_b');
+    ``actions`` (n, T, 6). Float64 internally; NaN-free output.
+    """
+    obs = np.asarray(obs, dtype=np.float32)
+    act = np.asarray(actions, dtype=np.float64)
+    channels = list(channels)
+    if obs.ndim != 5 or obs.shape[2] != len(channels):
+        raise ValueError(f"obs must be (n, T, C={len(channels)}, H, W), got {obs.shape}")
+    feats: list[np.ndarray] = []
+    names: list[str] = []
+
+    def add(name, v):
+        names.append(name)
+        feats.append(np.nan_to_num(np.asarray(v, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0))
+
+    fsr_idx = [channels.index(c) for c in ("fsr_t", "fsr_b") if c in channels]
+    s = np.linalg.norm(act - act[:, :1], axis=-1)  # drive (n, T)
+    ds = np.diff(s, axis=1, prepend=s[:, :1])
+    depth = -(act[:, :, 2] - act[:, :1, 2])
+    if fsr_idx:
+        layers = obs[:, :, fsr_idx].astype(np.float64)  # (n, T, L, H, W)
+        force = layers.mean((-3, -2, -1))  # (n, T)
+        runmax = np.maximum.accumulate(force, axis=1)
+        contact = (force > 0.5 * runmax) & (runmax > _EPS)
+        add("peak_force", runmax)
+        add("mean_force", _cummean(force))
+        for nm, drv in (("slope_force_depth", depth), ("slope_force_drive", s)):
+            mx, my = _cummean(drv), _cummean(force)
+            cov = _cummean(drv * force) - mx * my
+            var = _cummean(drv * drv) - mx * mx
+            add(nm, np.where(var > 1e-10, cov / np.maximum(var, 1e-10), 0.0))
+        loop = np.cumsum(force * ds, axis=1)
+        absl = np.cumsum(np.abs(force * ds), axis=1)
+        add("hysteresis", loop / (absl + _EPS))
+        dforce = np.diff(force, axis=1, prepend=force[:, :1]) / (np.abs(force) + _EPS)
+        still = (np.abs(ds) < 0.1 * np.maximum.accumulate(np.abs(ds), axis=1)) & contact
+        add("relaxation", _cummean(np.clip(dforce, -1, 1), still.astype(float)))
+        img = layers[:, :, 0]
+        thr = 0.1 * img.max((-2, -1), keepdims=True)
+        area = ((img > thr) & (thr > 0)).mean((-2, -1))
+        add("contact_area", _cummean(area, contact.astype(float)))
+        add("spatial_freq_centroid", _cummean(_spatial_centroid(img), contact.astype(float)))
+        if len(fsr_idx) == 2:
+            top, bot = layers[:, :, 0], layers[:, :, 1]
+            off = np.linalg.norm(_centroid(top) - _centroid(bot), axis=-1)
+            add("shear_centroid_offset", _cummean(off, contact.astype(float)))
+            energy = ((top - bot) ** 2).mean((-2, -1)) / (((top**2) + (bot**2)).mean((-2, -1)) + _EPS)
+            add("top_bottom_diff_energy", _cummean(energy, contact.astype(float)))
+    if "acc" in channels:
+        bins = _acc_bins(obs[:, :, channels.index("acc")].astype(np.float64))  # (n, T, 16, 49)
+        level = bins.mean(2)  # (n, T, 49) scaled dB averaged over sensors
+        nb = level.shape[-1]
+        edges = np.linspace(0, nb, 4).astype(int)
+        for nm, lo, hi in zip(("acc_low_band", "acc_mid_band", "acc_high_band"), edges[:-1], edges[1:]):
+            band = level[..., lo:hi].mean(-1)
+            add(nm, _cummean(band))
+        power = 10.0 ** (12.0 * (level - level.max(-1, keepdims=True)))  # scaled dB in [0,1] spans 120 dB
+        cent = (power * np.arange(nb)).sum(-1) / (power.sum(-1) + _EPS)
+        add("acc_spectral_centroid", _cummean(cent))
+        high = level[..., edges[2]:].mean(-1)
+        m1, m2 = _cummean(high), _cummean(high**2)
+        add("acc_high_band_std", np.sqrt(np.maximum(m2 - m1**2, 0.0)))
+    if not feats:
+        raise ValueError(f"no hand-crafted feature for channels {channels}")
+    return np.stack(feats, axis=-1), names
+
+
+def evaluate_handcrafted(train: Mapping[str, Any], test: Mapping[str, Any], channels: Sequence[str], *,
+                         alignment: Mapping[str, Any] | None = None, **meta) -> Results:
+    """Hand-crafted features -> the same KRR alignment -> Results (method 'handcrafted_krr').
+
+    ``train`` / ``test``: dicts with ``obs``, ``actions``, ``factors``, ``object_id``,
+    ``action_index`` (and optional ``seq_id``). ``meta``: modality / skin / primitive / source.
+    """
+    assert_disjoint(train.get("seq_id"), test.get("seq_id"))
+    t0 = time.perf_counter()
+    f_tr, names = handcrafted_features(train["obs"], train["actions"], channels)
+    f_te, _ = handcrafted_features(test["obs"], test["actions"], channels)
+    t1 = time.perf_counter()
+    align = fit_alignment(f_tr, train["factors"], ids=train.get("seq_id"), **dict(alignment or {}))
+    t2 = time.perf_counter()
+    pred = align.predict(f_te, ids=test.get("seq_id"))
+    t3 = time.perf_counter()
+    n_te = len(f_te)
+    params = {"alignment": align.params, "features": names, "feature_s": t1 - t0, "krr_fit_s": t2 - t1,
+              "train_time_s": t2 - t0,
+              "inference_s_per_sequence": ((t1 - t0) * n_te / (n_te + len(f_tr)) + (t3 - t2)) / max(1, n_te)}
+    return Results(pred, test["factors"], test["object_id"], test["action_index"], method="handcrafted_krr",
+                   n_train=len(f_tr), latents_last=f_te[:, -1], params=params,
+                   seq_id=test.get("seq_id"), **meta)
+
+
+# =========================================================================== (c) mean
+class MeanPredictor:
+    """Predicts the train mean of every factor at every frame."""
+
+    def fit(self, factors) -> "MeanPredictor":
+        self.mean_ = np.nanmean(np.asarray(factors, dtype=np.float64), axis=0)
+        return self
+
+    def predict(self, n: int, t: int = 1) -> np.ndarray:
+        return np.broadcast_to(self.mean_, (int(n), int(t), len(self.mean_))).copy()
+
+
+def evaluate_mean(train: Mapping[str, Any], test: Mapping[str, Any], n_frames: int = 1, **meta) -> Results:
+    """Mean-predictor Results (method 'mean')."""
+    assert_disjoint(train.get("seq_id"), test.get("seq_id"))
+    m = MeanPredictor().fit(train["factors"])
+    n = len(test["factors"])
+    return Results(m.predict(n, n_frames), test["factors"], test["object_id"], test["action_index"], method="mean",
+                   n_train=len(train["factors"]), params={"train_time_s": 0.0, "inference_s_per_sequence": 0.0},
+                   seq_id=test.get("seq_id"), **meta)
+
+
+# =========================================================================== (b) GRU
+def _batches(data, actions=None, factors=None, *, batch_size: int, shuffle: bool, rng) -> Iterable[dict]:
+    """Arrays -> batch dicts; an iterable of batch dicts (a DataLoader) passes through."""
+    if actions is None:
+        yield from data
+        return
+    n = len(data)
+    order = rng.permutation(n) if shuffle else np.arange(n)
+    for s in range(0, n, batch_size):
+        idx = order[s : s + batch_size]
+        b = {"obs": data[idx], "actions": actions[idx]}
+        if factors is not None:
+            b["factors"] = factors[idx]
+        yield b
+
+
+class GRURegressor:
+    """Supervised upper bound: conv frame encoder + GRU -> standardised factors per frame.
+
+    ``fit(obs, actions, factors)`` with arrays (obs (n, T, C, H, W), actions (n, T, 6),
+    factors (n, 4)), or ``fit(loader)`` with an iterable of batch dicts (``obs``,
+    ``actions``, ``factors``; re-iterated every epoch). ``predict`` returns (n, T, 4) in
+    original units. ``max_batches_per_epoch`` / small ``epochs`` make a tiny test run.
+    """
+
+    def __init__(self, in_channels: int, action_dim: int = 6, hidden: int = 64, feat: int = 64,
+                 epochs: int = 30, lr: float = 1e-3, batch_size: int = 16, weight_decay: float = 0.0,
+                 max_batches_per_epoch: int | None = None, seed: int = 0, device: str = "cpu"):
+        import torch
+        from torch import nn
+
+        self.cfg = dict(in_channels=in_channels, action_dim=action_dim, hidden=hidden, feat=feat, epochs=epochs,
+                        lr=lr, batch_size=batch_size, weight_decay=weight_decay,
+                        max_batches_per_epoch=max_batches_per_epoch, seed=seed, device=device)
+        torch.manual_seed(seed)
+
+        class Net(nn.Module):
+            def __init__(self):
+                super().__init__()
+                self.enc = nn.Sequential(
+                    nn.Conv2d(in_channels, 16, 3, stride=2, padding=1), nn.ReLU(),
+                    nn.Conv2d(16, 32, 3, stride=2, padding=1), nn.ReLU(),
+                    nn.AdaptiveAvgPool2d(4), nn.Flatten(), nn.Linear(32 * 16, feat), nn.ReLU(),
+                )
+                self.gru = nn.GRU(feat + action_dim, hidden, batch_first=True)
+                self.head = nn.Linear(hidden, 4)
+
+            def forward(self, obs, actions):
+                b, t = obs.shape[:2]
+                f = self.enc(obs.reshape(b * t, *obs.shape[2:])).reshape(b, t, -1)
+                h, _ = self.gru(torch.cat([f, actions], -1))
+                return self.head(h)
+
+        self.net = Net().to(device)
+        self.history: list[float] = []
+
+    def _t(self, x):
+        import torch
+
+        return torch.as_tensor(x, dtype=torch.float32, device=self.cfg["device"])
+
+    def fit(self, data, actions=None, factors=None) -> "GRURegressor":
+        import torch
+
+        c = self.cfg
+        if actions is not None:
+            data, actions = np.asarray(data, np.float32), np.asarray(actions, np.float32)
+            fac = np.asarray(factors, np.float64)
+        else:  # loader: one pass for the target statistics
+            fac = np.concatenate([np.asarray(b["factors"], np.float64) for b in data])
+        self.y_mean_ = np.nanmean(fac, 0)
+        sd = np.nanstd(fac, 0)
+        self.y_scale_ = np.where(sd > 1e-12, sd, 1.0)
+        opt = torch.optim.Adam(self.net.parameters(), lr=c["lr"], weight_decay=c["weight_decay"])
+        rng = np.random.default_rng(c["seed"])
+        self.net.train()
+        t0 = time.perf_counter()
+        for _ in range(c["epochs"]):
+            tot, cnt = 0.0, 0
+            for bi, b in enumerate(_batches(data, actions, fac if actions is not None else None,
+                                            batch_size=c["batch_size"], shuffle=True, rng=rng)):
+                if c["max_batches_per_epoch"] is not None and bi >= c["max_batches_per_epoch"]:
+                    break
+                y = (np.asarray(b["factors"], np.float64) - self.y_mean_) / self.y_scale_
+                y = self._t(y)
+                mask = torch.isfinite(y)
+                out = self.net(self._t(b["obs"]), self._t(b["actions"]))
+                target = torch.where(mask, y, torch.zeros_like(y))[:, None, :].expand_as(out)
+                m = mask[:, None, :].expand_as(out).float()
+                loss = (((out - target) ** 2) * m).sum() / m.sum().clamp_min(1.0)
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                tot += float(loss.detach())
+                cnt += 1
+            self.history.append(tot / max(cnt, 1))
+        self.train_time_s_ = time.perf_counter() - t0
+        return self
+
+    def predict(self, data, actions=None, batch_size: int | None = None) -> np.ndarray:
+        import torch
+
+        self.net.eval()
+        outs = []
+        with torch.no_grad():
+            arr = actions is not None
+            it = _batches(np.asarray(data, np.float32) if arr else data,
+                          np.asarray(actions, np.float32) if arr else None, None,
+                          batch_size=batch_size or self.cfg["batch_size"], shuffle=False, rng=None)
+            for b in it:
+                outs.append(self.net(self._t(b["obs"]), self._t(b["actions"])).cpu().numpy().astype(np.float64))
+        return np.concatenate(outs) * self.y_scale_ + self.y_mean_
+
+
+def evaluate_gru(train: Mapping[str, Any], test: Mapping[str, Any], *, gru: Mapping[str, Any] | None = None,
+                 **meta) -> Results:
+    """Train :class:`GRURegressor` on ``train`` only, predict ``test`` -> Results (method 'gru')."""
+    assert_disjoint(train.get("seq_id"), test.get("seq_id"))
+    obs = np.asarray(train["obs"])
+    model = GRURegressor(in_channels=obs.shape[2], action_dim=np.shape(train["actions"])[-1], **dict(gru or {}))
+    model.fit(obs, train["actions"], train["factors"])
+    t0 = time.perf_counter()
+    pred = model.predict(test["obs"], test["actions"])
+    dt = time.perf_counter() - t0
+    params = {"gru": model.cfg, "train_time_s": model.train_time_s_, "loss_history": model.history,
+              "inference_s_per_sequence": dt / max(1, len(pred))}
+    return Results(pred, test["factors"], test["object_id"], test["action_index"], method="gru",
+                   n_train=len(obs), params=params, seq_id=test.get("seq_id"), **meta)

@@ -1,0 +1,209 @@
+"""Lightning callback: KRR alignment of the latents every N training epochs (and at the end).
+
+Each evaluation (i) runs ``pl_module.infer_latents(batch)`` (no grad, eval mode) over the
+datamodule's non-shuffled training loader (``train_eval_dataloader()`` when the datamodule
+has it, else ``train_dataloader()``) up to ``max_train_sequences`` and over
+``val_dataloader()`` (the held-out 25 %); (ii) fits :func:`fit_alignment` on the training
+latents' final segments only; (iii) scores every ``val_frame_stride``-th frame of the
+held-out sequences with :func:`nmse`. It logs ``krr/nmse_<factor>``, ``krr/nmse_overall``
+(whole trajectory, mean over factors), ``krr/nmse_last_overall`` (last frame),
+``krr/train_wall_time_s`` (training wall time since ``on_train_start`` minus this callback's
+own time), ``krr/callback_time_s`` and ``krr/callback_fraction`` (callback time / total
+elapsed) to every logger, and appends one JSON line to ``krr_history.jsonl`` in
+``trainer.log_dir`` (or ``default_root_dir``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..constants import FACTOR_NAMES
+from .krr import assert_disjoint, fit_alignment
+from .metrics import nmse_over_time, overall
+
+try:  # lightning is a dependency of the package, but keep the eval core importable without it
+    from lightning.pytorch.callbacks import Callback
+except ImportError:  # pragma: no cover
+    Callback = object  # type: ignore[misc,assignment]
+
+log = logging.getLogger(__name__)
+
+LATENT_KEYS = {"y": ("y_mean",), "z": ("z_mean",), "both": ("z_mean", "y_mean")}
+
+
+def _to_device(batch, device):
+    import torch
+
+    if isinstance(batch, torch.Tensor):
+        return batch.to(device)
+    if isinstance(batch, Mapping):
+        return {k: _to_device(v, device) for k, v in batch.items()}
+    if isinstance(batch, (list, tuple)):
+        return type(batch)(_to_device(v, device) for v in batch)
+    return batch
+
+
+def collect_latents(pl_module, loader, *, latent: str = "y", max_sequences: int | None = None) -> dict[str, np.ndarray]:
+    """Run ``pl_module.infer_latents`` over ``loader`` -> split dict (latents under ``latent``
+    key 'y' / 'z' / 'both', plus factors, object_id, action_index, seq_id when batches carry it).
+    Usable outside the callback (evaluate.py)."""
+    import torch
+
+    keys = LATENT_KEYS[latent]
+    lat, fac, obj, act, ids = [], [], [], [], []
+    n = 0
+    was_training = pl_module.training
+    pl_module.eval()
+    try:
+        with torch.no_grad():
+            for batch in loader:
+                batch = _to_device(batch, pl_module.device)
+                out = pl_module.infer_latents(batch)
+                z = torch.cat([out[k] for k in keys], dim=-1).float().cpu().numpy()
+                take = len(z) if max_sequences is None else min(len(z), max_sequences - n)
+                lat.append(z[:take])
+                fac.append(batch["factors"][:take].float().cpu().numpy())
+                obj.append(batch["object_id"][:take].cpu().numpy())
+                act.append(batch["action_index"][:take].cpu().numpy())
+                if "seq_id" in batch:
+                    ids.append(np.asarray(batch["seq_id"][:take].cpu() if hasattr(batch["seq_id"], "cpu") else batch["seq_id"][:take]))
+                n += take
+                if max_sequences is not None and n >= max_sequences:
+                    break
+    finally:
+        pl_module.train(was_training)
+    out = {latent: np.concatenate(lat), "factors": np.concatenate(fac), "object_id": np.concatenate(obj),
+           "action_index": np.concatenate(act)}
+    if ids:
+        out["seq_id"] = np.concatenate(ids)
+    return out
+
+
+class KRRAlignmentCallback(Callback):
+    """See module docstring. Defaults aim at <= 10 % of training time: evaluation every
+    ``every_n_epochs`` epochs on at most ``max_train_sequences`` training sequences,
+    ``frames_per_sequence`` final-segment frames each, Nystroem above ``nystroem_threshold``
+    rows, held-out frames subsampled by ``val_frame_stride``."""
+
+    def __init__(self, every_n_epochs: int = 10, latent: str = "y", max_train_sequences: int | None = 512,
+                 max_val_sequences: int | None = None, val_frame_stride: int = 2, final_segment: float | int = 0.1,
+                 frames_per_sequence: int = 2, cv: int = 3, nystroem_threshold: int = 1024, n_components: int = 256,
+                 alphas=(1e-3, 1e-2, 1e-1, 1.0), gammas=(0.3, 1.0, 3.0), run_on_train_end: bool = True,
+                 history_name: str = "krr_history.jsonl", seed: int = 0):
+        if latent not in LATENT_KEYS:
+            raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
+        self.every_n_epochs = int(every_n_epochs)
+        self.latent = latent
+        self.max_train_sequences = max_train_sequences
+        self.max_val_sequences = max_val_sequences
+        self.val_frame_stride = max(1, int(val_frame_stride))
+        self.align_kw = dict(final_segment=final_segment, frames_per_sequence=frames_per_sequence, cv=cv,
+                             nystroem_threshold=nystroem_threshold, n_components=n_components,
+                             alphas=tuple(alphas), gammas=tuple(gammas), seed=seed)
+        self.run_on_train_end = run_on_train_end
+        self.history_name = history_name
+        self._t_start: float | None = None
+        self._cb_time = 0.0
+        self._last_step: int | None = None
+        self.history: list[dict] = []
+
+    # ------------------------------------------------------------------ hooks
+    def on_train_start(self, trainer, pl_module) -> None:
+        self._t_start = time.perf_counter()
+        self._cb_time = 0.0
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        if self.every_n_epochs > 0 and (trainer.current_epoch + 1) % self.every_n_epochs == 0:
+            metrics = self._evaluate(trainer, pl_module)
+            if metrics:
+                for k, v in metrics.items():
+                    pl_module.log(k, v, on_step=False, on_epoch=True, logger=False, prog_bar=(k == "krr/nmse_overall"))
+                self._log_to_loggers(trainer, metrics)
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        if self.run_on_train_end and self._last_step != trainer.global_step:
+            metrics = self._evaluate(trainer, pl_module)
+            if metrics:
+                self._log_to_loggers(trainer, metrics)
+
+    # ------------------------------------------------------------------ work
+    def _loaders(self, trainer):
+        dm = trainer.datamodule
+        if dm is None:
+            raise RuntimeError("KRRAlignmentCallback needs trainer.datamodule (pass datamodule= to fit)")
+        train = dm.train_eval_dataloader() if hasattr(dm, "train_eval_dataloader") else dm.train_dataloader()
+        return train, dm.val_dataloader()
+
+    def _evaluate(self, trainer, pl_module) -> dict[str, float]:
+        t0 = time.perf_counter()
+        if self._t_start is None:
+            self._t_start = t0
+        train_wall = t0 - self._t_start - self._cb_time
+        train_loader, val_loader = self._loaders(trainer)
+        tr = collect_latents(pl_module, train_loader, latent=self.latent, max_sequences=self.max_train_sequences)
+        te = collect_latents(pl_module, val_loader, latent=self.latent, max_sequences=self.max_val_sequences)
+        assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
+        t_inf = time.perf_counter()
+        align = fit_alignment(tr[self.latent], tr["factors"], ids=tr.get("seq_id"), **self.align_kw)
+        x_te = te[self.latent][:, ::-1][:, :: self.val_frame_stride][:, ::-1]  # keep the last frame
+        pred = align.predict(x_te, ids=te.get("seq_id"))
+        curve = nmse_over_time(te["factors"], pred)  # (T', 4)
+        with np.errstate(all="ignore"):
+            per_factor = np.nanmean(curve, axis=0) if np.isfinite(curve).any() else np.full(4, np.nan)
+        cb = time.perf_counter() - t0
+        self._cb_time += cb
+        total = time.perf_counter() - self._t_start
+        self._last_step = trainer.global_step
+        metrics = {f"krr/nmse_{f}": float(v) for f, v in zip(FACTOR_NAMES, per_factor)}
+        metrics.update({
+            "krr/nmse_overall": overall(per_factor),
+            "krr/nmse_last_overall": overall(curve[-1]),
+            "krr/train_wall_time_s": float(train_wall),
+            "krr/callback_time_s": float(cb),
+            "krr/callback_fraction": float(self._cb_time / total) if total > 0 else 0.0,
+        })
+        row = {
+            "epoch": int(trainer.current_epoch), "step": int(trainer.global_step),
+            "train_wall_time_s": float(train_wall), "callback_time_s": float(cb),
+            "callback_infer_s": float(t_inf - t0), "callback_krr_s": float(cb - (t_inf - t0)),
+            "callback_time_total_s": float(self._cb_time), "callback_fraction": metrics["krr/callback_fraction"],
+            "nmse": {f: _fin(v) for f, v in zip(FACTOR_NAMES, per_factor)},
+            "nmse_overall": _fin(metrics["krr/nmse_overall"]), "nmse_last": {f: _fin(v) for f, v in zip(FACTOR_NAMES, curve[-1])},
+            "nmse_last_overall": _fin(metrics["krr/nmse_last_overall"]),
+            "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])), "latent": self.latent,
+            "val_frame_stride": self.val_frame_stride,
+            "alignment": {k: align.params[k] for k in ("method", "alpha", "gamma", "n_train_rows", "fit_time_s")},
+        }
+        self.history.append(row)
+        if trainer.is_global_zero:
+            path = self.history_path(trainer)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "a") as fh:
+                fh.write(json.dumps(row) + "\n")
+        log.info("KRR alignment epoch %d: nmse_overall=%.4f (callback %.2fs, %.1f%% of elapsed)", row["epoch"],
+                 metrics["krr/nmse_overall"], cb, 100 * metrics["krr/callback_fraction"])
+        return metrics
+
+    def history_path(self, trainer) -> Path:
+        root = None
+        try:
+            root = trainer.log_dir
+        except Exception:  # noqa: BLE001 - some loggers raise without a directory
+            root = None
+        return Path(root or trainer.default_root_dir) / self.history_name
+
+    @staticmethod
+    def _log_to_loggers(trainer, metrics: Mapping[str, Any]) -> None:
+        for lg in trainer.loggers:
+            lg.log_metrics(dict(metrics), step=trainer.global_step)
+
+
+def _fin(v) -> float | None:
+    v = float(v)
+    return v if np.isfinite(v) else None

@@ -1,0 +1,253 @@
+"""Latent -> factor alignment: RBF kernel ridge regression, fitted on training sequences only.
+
+Protocol (paper, "Analysis on Multi-Modality"; ``latent-filter-notes.md``, "Evaluation
+protocol"):
+
+* Rows for fitting come from the *final segment* of every *training* sequence
+  (``final_segment``: a fraction of T, or a number of frames). ``reduce="frames"`` (default)
+  takes ``frames_per_sequence`` frames evenly spaced over that segment (the last frame always
+  included), so the regressor is trained on single-frame latents -- the same kind of input it
+  is applied to; ``reduce="mean"`` takes the segment mean (one row per sequence).
+* Inputs are standardised with a scaler fitted on those training rows; targets are
+  standardised too; the regressor is ``KernelRidge(kernel="rbf")`` (sklearn's default kernel
+  is linear -- never used here). ``alpha`` and ``gamma`` are chosen by a grid search (equivalent to ``GridSearchCV``, see ``_grid_cv``) over
+  folds grouped by sequence (``GroupKFold``: the frames of one sequence never sit on both
+  sides of a fold), on training rows only. ``gamma`` grid values are multiples of 1/d.
+* With more than ``nystroem_threshold`` rows, exact KRR (O(n^3)) is replaced by
+  ``Nystroem`` RBF features + ``Ridge`` with the same grid search.
+* The fitted :class:`Alignment` predicts at every frame of (held-out) sequences, in the
+  factors' original units. When sequence ids are given at fit and predict time, predicting
+  on a training id raises :class:`LeakageError`.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+from sklearn.kernel_approximation import Nystroem
+from sklearn.kernel_ridge import KernelRidge
+from sklearn.linear_model import Ridge
+from sklearn.model_selection import GroupKFold
+from sklearn.pipeline import Pipeline
+
+DEFAULT_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
+DEFAULT_GAMMAS = (0.1, 0.3, 1.0, 3.0)  # multiples of 1/d on standardised inputs
+
+
+class LeakageError(AssertionError):
+    """An alignment was asked to score a sequence it was fitted on."""
+
+
+def assert_disjoint(train_ids, test_ids, what: str = "sequence ids") -> None:
+    """Raise :class:`LeakageError` when the two id sets intersect."""
+    if train_ids is None or test_ids is None:
+        return
+    common = set(np.asarray(train_ids).ravel().tolist()) & set(np.asarray(test_ids).ravel().tolist())
+    if common:
+        some = sorted(common)[:5]
+        raise LeakageError(f"{len(common)} {what} are in both the fitting and the scored set (e.g. {some})")
+
+
+def final_segment_rows(
+    latents: np.ndarray,
+    *,
+    final_segment: float | int = 0.1,
+    reduce: str = "frames",
+    frames_per_sequence: int = 4,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows for fitting: latents (n, T, d) -> (rows (m, d), sequence index of each row (m,))."""
+    lat = np.asarray(latents, dtype=np.float64)
+    if lat.ndim == 2:
+        lat = lat[:, None, :]
+    n, t, _ = lat.shape
+    if isinstance(final_segment, (float, np.floating)):
+        if not 0.0 < float(final_segment) <= 1.0:
+            raise ValueError(f"final_segment as a fraction (float) must be in (0, 1], got {final_segment}")
+        seg = max(1, int(round(float(final_segment) * t)))
+    else:
+        seg = int(final_segment)
+        if seg < 1:
+            raise ValueError(f"final_segment as a frame count (int) must be >= 1, got {final_segment}")
+    seg = min(seg, t)
+    tail = lat[:, t - seg :, :]
+    if reduce == "mean":
+        return tail.mean(axis=1), np.arange(n)
+    if reduce != "frames":
+        raise ValueError(f"reduce must be 'frames' or 'mean', got {reduce!r}")
+    k = max(1, min(int(frames_per_sequence), seg))
+    idx = np.unique(np.round(np.linspace(seg - 1, 0, k)).astype(int))
+    rows = tail[:, idx, :].reshape(n * len(idx), -1)
+    return rows, np.repeat(np.arange(n), len(idx))
+
+
+@dataclass
+class Alignment:
+    """A fitted latent -> factor regressor; ``predict`` returns original factor units."""
+
+    model: Any
+    x_mean: np.ndarray
+    x_scale: np.ndarray
+    y_mean: np.ndarray
+    y_scale: np.ndarray
+    params: dict = field(default_factory=dict)
+    train_ids: frozenset | None = None
+
+    def predict(self, latents, ids=None, *, chunk_rows: int = 16384) -> np.ndarray:
+        """latents (n, T, d) or (n, d) -> predictions (n, T, 4) (T = 1 for 2-D input)."""
+        if ids is not None and self.train_ids is not None:
+            assert_disjoint(list(self.train_ids), ids)
+        lat = np.asarray(latents, dtype=np.float64)
+        if lat.ndim == 2:
+            lat = lat[:, None, :]
+        n, t, d = lat.shape
+        if d != self.x_mean.shape[0]:
+            raise ValueError(f"latent dimension {d} != fitted dimension {self.x_mean.shape[0]}")
+        x = ((lat.reshape(n * t, d) - self.x_mean) / self.x_scale).astype(np.float64)
+        out = np.empty((n * t, self.y_mean.shape[0]))
+        for s in range(0, n * t, chunk_rows):
+            p = self.model.predict(x[s : s + chunk_rows])
+            out[s : s + chunk_rows] = np.asarray(p).reshape(len(x[s : s + chunk_rows]), -1)
+        return (out * self.y_scale + self.y_mean).reshape(n, t, -1)
+
+
+def fit_alignment(
+    latents,
+    factors,
+    *,
+    ids: Sequence | None = None,
+    groups: Sequence | None = None,
+    final_segment: float | int = 0.1,
+    reduce: str = "frames",
+    frames_per_sequence: int = 4,
+    cv: int = 5,
+    alphas: Sequence[float] = DEFAULT_ALPHAS,
+    gammas: Sequence[float] = DEFAULT_GAMMAS,
+    nystroem_threshold: int = 2000,
+    n_components: int = 500,
+    seed: int = 0,
+    n_jobs: int | None = None,
+) -> Alignment:
+    """Fit the RBF-KRR alignment on TRAINING sequences only.
+
+    latents (n, T, d) (or (n, d): one latent per sequence, e.g. hand-crafted features),
+    factors (n, K) in original units (NaN = unknown: such rows are dropped). ``ids``: sequence
+    ids (stored; :meth:`Alignment.predict` refuses them). ``groups``: CV group per sequence
+    (default: the sequence itself; pass object ids for object-disjoint folds).
+    """
+    t0 = time.perf_counter()
+    factors = np.asarray(factors, dtype=np.float64)
+    if factors.ndim == 1:
+        factors = factors[:, None]
+    lat = np.asarray(latents, dtype=np.float64)
+    n = lat.shape[0]
+    if factors.shape[0] != n:
+        raise ValueError(f"{n} latent sequences but {factors.shape[0]} factor rows")
+    if ids is not None and len(set(np.asarray(ids).tolist())) != n:
+        raise ValueError("ids must be unique, one per training sequence")
+    rows, seq = final_segment_rows(lat, final_segment=final_segment, reduce=reduce,
+                                   frames_per_sequence=frames_per_sequence)
+    y = factors[seq]
+    ok = np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(rows), axis=1)
+    if not ok.all():
+        warnings.warn(f"fit_alignment: dropping {int((~ok).sum())} rows with NaN factors/latents", stacklevel=2)
+    rows, y, seq = rows[ok], y[ok], seq[ok]
+    if len(rows) < 2:
+        raise ValueError("fit_alignment needs at least 2 training rows with finite factors")
+    grp = seq if groups is None else np.asarray(groups)[seq]
+
+    x_mean = rows.mean(0)
+    x_scale = rows.std(0)
+    x_scale = np.where(x_scale > 1e-12, x_scale, 1.0)
+    y_mean = y.mean(0)
+    y_scale = y.std(0)
+    y_scale = np.where(y_scale > 1e-12, y_scale, 1.0)
+    xs = (rows - x_mean) / x_scale
+    ys = (y - y_mean) / y_scale
+    d = xs.shape[1]
+    gamma_grid = [float(g) / d for g in gammas]
+
+    nystroem = len(xs) > nystroem_threshold
+    m = min(int(n_components), len(xs))
+    n_groups = len(np.unique(grp))
+    n_splits = min(int(cv), n_groups)
+    if n_splits >= 2 and len(gamma_grid) * len(alphas) > 1:
+        folds = list(GroupKFold(n_splits=n_splits, shuffle=True, random_state=seed).split(xs, ys, groups=grp))
+        cv_scores = _grid_cv(xs, ys, folds, gamma_grid, list(alphas), nystroem=nystroem, m=m, seed=seed)
+        gi, ai = np.unravel_index(np.nanargmin(cv_scores), cv_scores.shape)
+        gamma, alpha = gamma_grid[gi], float(alphas[ai])
+        cv_mse = float(cv_scores[gi, ai])
+    else:
+        gamma, alpha = gamma_grid[len(gamma_grid) // 2], float(alphas[len(alphas) // 2])
+        cv_mse = float("nan")
+    if nystroem:
+        model = Pipeline([
+            ("features", Nystroem(kernel="rbf", gamma=gamma, n_components=m, random_state=seed)),
+            ("ridge", Ridge(alpha=alpha)),
+        ]).fit(xs, ys)
+    else:
+        model = KernelRidge(kernel="rbf", gamma=gamma, alpha=alpha).fit(xs, ys)
+    params = {
+        "method": "nystroem_ridge" if nystroem else "exact_krr",
+        "kernel": "rbf",
+        "alpha": float(alpha),
+        "gamma": float(gamma),
+        "gamma_times_d": float(gamma) * d,
+        "cv_folds": int(n_splits),
+        "cv_grid_mse": cv_scores.tolist() if n_splits >= 2 and len(gamma_grid) * len(alphas) > 1 else None,
+        "cv_grouping": "sequence" if groups is None else "given groups",
+        "cv_mse_standardised": cv_mse,
+        "n_train_sequences": int(n),
+        "n_train_rows": int(len(xs)),
+        "final_segment": final_segment,
+        "reduce": reduce,
+        "frames_per_sequence": int(frames_per_sequence) if reduce == "frames" else 1,
+        "n_components": m if nystroem else None,
+        "seed": int(seed),
+        "fit_time_s": time.perf_counter() - t0,
+    }
+    return Alignment(model, x_mean, x_scale, y_mean, y_scale, params,
+                     frozenset(np.asarray(ids).tolist()) if ids is not None else None)
+
+
+def _grid_cv(xs, ys, folds, gammas, alphas, *, nystroem: bool, m: int, seed: int) -> np.ndarray:
+    """Grouped K-fold CV error (mean squared error on standardised targets) per (gamma, alpha).
+
+    Same numbers as ``GridSearchCV(KernelRidge(kernel="rbf") | Nystroem+Ridge, cv=folds,
+    scoring="neg_mean_squared_error")``, but one eigendecomposition (exact) or one SVD
+    (Nystroem) per (fold, gamma) serves every alpha. Only the rows in ``xs`` -- the training
+    rows -- are ever touched.
+    """
+    scores = np.zeros((len(gammas), len(alphas)))
+    counts = 0
+    for tr, te in folds:
+        counts += len(te)
+        for gi, g in enumerate(gammas):
+            if nystroem:
+                feat = Nystroem(kernel="rbf", gamma=g, n_components=min(m, len(tr)), random_state=seed).fit(xs[tr])
+                ftr, fte = feat.transform(xs[tr]), feat.transform(xs[te])
+                mu_f, mu_y = ftr.mean(0), ys[tr].mean(0)  # Ridge fits an intercept
+                u, sv, vt = np.linalg.svd(ftr - mu_f, full_matrices=False)
+                uy = u.T @ (ys[tr] - mu_y)
+                for ai, a in enumerate(alphas):
+                    coef = vt.T @ ((sv / (sv**2 + a))[:, None] * uy)
+                    pred = (fte - mu_f) @ coef + mu_y
+                    scores[gi, ai] += ((pred - ys[te]) ** 2).mean(1).sum()
+            else:
+                k_tr = _rbf(xs[tr], xs[tr], g)
+                k_te = _rbf(xs[te], xs[tr], g)
+                w, v = np.linalg.eigh(k_tr)
+                vy = v.T @ ys[tr]
+                kv = k_te @ v
+                for ai, a in enumerate(alphas):
+                    pred = kv @ (vy / (w + a)[:, None])  # KernelRidge: no intercept
+                    scores[gi, ai] += ((pred - ys[te]) ** 2).mean(1).sum()
+    return scores / counts
+
+
+def _rbf(a: np.ndarray, b: np.ndarray, gamma: float) -> np.ndarray:
+    d2 = (a**2).sum(1)[:, None] + (b**2).sum(1)[None, :] - 2.0 * a @ b.T
+    return np.exp(-gamma * np.maximum(d2, 0.0))

@@ -1,0 +1,97 @@
+"""The one error metric of the project: normalised mean squared error (NMSE).
+
+Every table, figure, callback and baseline calls :func:`nmse` (or the thin wrappers below,
+which call it), so there is exactly one definition::
+
+    NMSE_k = sum_i (y_ik - yhat_ik)^2 / sum_i (y_ik - mean_i(y_ik))^2
+
+per factor ``k`` over held-out samples ``i``. NMSE = 1 is what the train-mean predictor
+scores (up to the train/test mean shift); 0 is perfect. Unknown targets (NaN) are ignored.
+A factor with zero variance among the scored samples has no defined NMSE: it is returned as
+NaN with a :class:`NMSEUndefinedWarning`, never as inf or 0.
+
+For subsets (one action index, one object group) the paper's tables need values even when
+a factor is constant inside the subset (heterogeneity is 1 for every heterogeneous object).
+There the denominator is the *reference variance* of the factor over all held-out sequences
+of the same model: pass ``var_ref``. On the full held-out set of one model both forms agree.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+NMSE_DEFINITION = (
+    "NMSE_k = sum_{i,t} (y_ik - yhat_ikt)^2 / sum_{i,t} (y_ik - mean_i y_ik)^2 per factor k over "
+    "held-out sequences i (and frames t); for a subset (action index, object group) the denominator "
+    "uses the variance of factor k over all held-out sequences of the same model; Overall = mean "
+    "over factors. The alignment regressor is fitted on training sequences only (0 = perfect, "
+    "1 = train-mean predictor)."
+)
+
+
+class NMSEUndefinedWarning(UserWarning):
+    """A factor has zero (or no) variance among the scored targets: its NMSE is NaN."""
+
+
+def nmse(y, y_hat, axis=0, *, var_ref=None) -> np.ndarray:
+    """Per-factor NMSE = sum (y - y_hat)^2 / sum (y - mean(y))^2 along ``axis``.
+
+    ``y`` and ``y_hat`` broadcast against each other (e.g. ``y`` (n, 1, 4) against
+    ``y_hat`` (n, T, 4) with ``axis=(0, 1)``). NaN targets are masked out. ``axis`` may be a
+    tuple. ``var_ref`` (broadcastable to the result): use this variance per factor instead of
+    the variance of the scored ``y`` (subset NMSE, see module docstring).
+    """
+    y = np.asarray(y, dtype=np.float64)
+    y_hat = np.asarray(y_hat, dtype=np.float64)
+    y, y_hat = np.broadcast_arrays(y, y_hat)
+    mask = np.isfinite(y)
+    n = mask.sum(axis=axis)
+    yz = np.where(mask, y, 0.0)
+    err = np.where(mask, (yz - np.where(mask, y_hat, 0.0)) ** 2, 0.0).sum(axis=axis)
+    if var_ref is None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = yz.sum(axis=axis, keepdims=True) / mask.sum(axis=axis, keepdims=True)
+        den = np.where(mask, (yz - mean) ** 2, 0.0).sum(axis=axis)
+    else:
+        den = n * np.asarray(var_ref, dtype=np.float64)
+    den = np.asarray(den, dtype=np.float64)
+    bad = ~(den > 1e-12 * np.maximum(1.0, n)) | (n == 0)
+    if np.any(bad):
+        warnings.warn(
+            f"NMSE undefined (zero target variance or no finite targets) for {int(np.sum(bad))} "
+            "entr(y/ies); returning NaN there",
+            NMSEUndefinedWarning,
+            stacklevel=2,
+        )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(bad, np.nan, np.asarray(err) / np.where(bad, 1.0, den))
+    return out
+
+
+def reference_variance(factors) -> np.ndarray:
+    """Per-factor variance over sequences (NaN-aware) used as ``var_ref`` for subsets."""
+    f = np.asarray(factors, dtype=np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanvar(f, axis=0)
+
+
+def nmse_over_time(factors, pred, *, var_ref=None) -> np.ndarray:
+    """NMSE at every frame: factors (n, 4), pred (n, T, 4) -> (T, 4) (across sequences)."""
+    factors = np.asarray(factors, dtype=np.float64)
+    return nmse(factors[:, None, :], pred, axis=0, var_ref=var_ref)
+
+
+def nmse_trajectory(factors, pred, *, var_ref=None) -> np.ndarray:
+    """NMSE over the whole trajectory (all sequences x all frames): -> (4,)."""
+    factors = np.asarray(factors, dtype=np.float64)
+    return nmse(factors[:, None, :], pred, axis=(0, 1), var_ref=var_ref)
+
+
+def overall(per_factor) -> float:
+    """Mean over factors (NaN factors skipped; NaN if all are NaN)."""
+    v = np.asarray(per_factor, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")

@@ -1,0 +1,117 @@
+"""``write_report``: every table (md / csv / tex), every figure (png) and one JSON with every
+number, from a list of :class:`~embodied_tactile.eval.results.Results`."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .figures import (best_worst_action_curves, class_distances, curves_by, plot_distance_matrix,
+                      plot_error_vs_runtime, plot_nmse_curves, plot_umap)
+from .metrics import NMSE_DEFINITION, overall
+from .results import Results, _jsonable
+from .tables import caption_note, split_sizes, table_actions, table_groups, table_runtime, table_summary
+
+
+def _safe(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", s)
+
+
+def write_report(
+    results: Sequence[Results],
+    out_dir,
+    *,
+    source: str | None = None,
+    split_sizes_: Mapping | None = None,
+    histories: Mapping[str, Sequence[Mapping]] | None = None,
+    method: str = "latent_filter",
+    figures: bool = True,
+    umap: bool = True,
+    distance_mode: str = "pairwise",
+) -> dict:
+    """Write tables, figures and ``results.json`` under ``out_dir``; return {kind: [paths]}.
+
+    ``source``: 'simulated' | 'recorded' (overrides every Results.source when given).
+    ``split_sizes_``: extra split bookkeeping stored in the JSON (the per-run n_train / n_test
+    are always taken from the Results). ``histories``: label -> rows of krr_history.jsonl
+    (error vs run time figure). ``method``: whose rows go into Tables 1 / 2 (None = all).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    results = list(results)
+    if source is not None:
+        for r in results:
+            r.source = source
+    written: dict[str, list[str]] = {"tables": [], "figures": [], "json": []}
+    main = [r for r in results if method is None or r.method == method] or results
+    tables = [table_actions(results, method=method if main is not results else None),
+              table_groups(results, method=method if main is not results else None),
+              table_summary(results), table_runtime(results)]
+    for t in tables:
+        for ext, text in (("md", t.to_markdown()), ("csv", t.to_csv()), ("tex", t.to_latex())):
+            p = out / f"table_{t.name}.{ext}"
+            p.write_text(text)
+            written["tables"].append(str(p))
+    note = caption_note(results)
+    curves: dict[str, dict] = {}
+    if figures and results:
+        figs = out / "figures"
+        sets = {
+            "modality": curves_by([r for r in main if r.skin == "soft"] or main, "modality"),
+            "skin": curves_by(main, "skin"),
+            "method": curves_by(results, "method"),
+            "best_worst_action": best_worst_action_curves(main),
+        }
+        for name, cv in sets.items():
+            if cv:
+                p = plot_nmse_curves(cv, figs / f"nmse_time_by_{name}.png", title=f"NMSE vs interaction time by {name}",
+                                     note=f"held-out NMSE per frame; {note[:160]}...")
+                written["figures"].append(str(p))
+                curves[name] = {k: v for k, v in cv.items()}
+        for r in main:
+            if r.latents_last is None or len(r.latents_last) < 2:
+                continue
+            tag = _safe(r.label)
+            if umap:
+                written["figures"].append(str(plot_umap(r.latents_last, r.object_id, figs / f"umap_{tag}.png",
+                                                        title=f"UMAP last-step latents {r.label}")))
+            cls, dist = class_distances(r.latents_last, r.object_id, mode=distance_mode)
+            written["figures"].append(str(plot_distance_matrix(cls, dist, figs / f"distances_{tag}.png",
+                                                               title=f"class distances ({distance_mode}) {r.label}")))
+            curves.setdefault("distances", {})[r.label] = {"classes": cls, "distance": dist}
+        if histories:
+            base = {f"{r.method}/{r.label}": (float(r.params.get("train_time_s", np.nan)), overall(r.subset_nmse()))
+                    for r in results if r.method != method and np.isfinite(r.params.get("train_time_s", np.nan))}
+            written["figures"].append(str(plot_error_vs_runtime(histories, figs / "error_vs_runtime.png",
+                                                                title="held-out NMSE vs training time",
+                                                                baselines=base)))
+    blob = {
+        "nmse_definition": NMSE_DEFINITION,
+        "caption_note": note,
+        "split_sizes": split_sizes(results),
+        "split_sizes_extra": split_sizes_ or {},
+        "sources": sorted({r.source for r in results}),
+        "runs": [r.summary() for r in results],
+        "curves_per_run": {r.label: r.curve() for r in results},
+        "figure_curves": curves,
+        "tables": [t.to_json() for t in tables],
+        "histories": histories or {},
+    }
+    p = out / "results.json"
+    p.write_text(json.dumps(_nan_to_none(_jsonable(blob)), indent=1, allow_nan=False))
+    written["json"].append(str(p))
+    return written
+
+
+def _nan_to_none(obj):
+    if isinstance(obj, dict):
+        return {k: _nan_to_none(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_nan_to_none(v) for v in obj]
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj

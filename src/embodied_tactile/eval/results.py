@@ -1,0 +1,189 @@
+"""Per-sequence evaluation results and the one-call recipe ``evaluate_latents``.
+
+A :class:`Results` holds, for ONE model (or baseline) of one (modality, skin, primitive)
+run, the predictions at every frame of every held-out sequence plus the metadata the
+tables group by. Tables and figures take a list of them (several runs / methods).
+
+Split dict (``train`` / ``test`` arguments of :func:`evaluate_latents`)::
+
+    {
+      "y": (n, T, d_y) float,           # latents (at least the one named by `latent`)
+      "z": (n, T, d_z) float,           # optional
+      "factors": (n, 4) float,          # ground truth in FACTOR_NAMES order (NaN = unknown)
+      "object_id": (n,) int,            # 0..31
+      "action_index": (n,) int,         # 0..15
+      "seq_id": (n,) hashable,          # optional; when both splits carry it, they must be disjoint
+    }
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..constants import FACTOR_NAMES, get_object
+from .krr import Alignment, assert_disjoint, fit_alignment
+from .metrics import nmse_over_time, nmse_trajectory, overall, reference_variance
+
+
+@dataclass
+class Results:
+    """Held-out predictions of one method on one run. Shapes: n held-out sequences, T frames."""
+
+    pred: np.ndarray  # (n, T, 4) predictions in original factor units
+    factors: np.ndarray  # (n, 4) ground truth
+    object_id: np.ndarray  # (n,)
+    action_index: np.ndarray  # (n,)
+    method: str = "latent_filter"  # e.g. 'latent_filter', 'handcrafted_krr', 'gru', 'mean'
+    modality: str = "unknown"
+    skin: str = "unknown"
+    primitive: str = "unknown"
+    source: str = "simulated"  # 'simulated' | 'recorded'
+    n_train: int = 0
+    latents_last: np.ndarray | None = None  # (n, d) last-step held-out latents (UMAP / distances)
+    seq_id: np.ndarray | None = None
+    params: dict = field(default_factory=dict)  # alignment params, timings, ...
+    var_ref: np.ndarray | None = None  # (4,) reference variance (default: of `factors`)
+
+    def __post_init__(self) -> None:
+        self.pred = np.asarray(self.pred, dtype=np.float64)
+        if self.pred.ndim == 2:
+            self.pred = self.pred[:, None, :]
+        self.factors = np.asarray(self.factors, dtype=np.float64)
+        self.object_id = np.asarray(self.object_id, dtype=np.int64)
+        self.action_index = np.asarray(self.action_index, dtype=np.int64)
+        n = self.pred.shape[0]
+        for name in ("factors", "object_id", "action_index"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"Results.{name} has {len(getattr(self, name))} rows, pred has {n}")
+        if self.var_ref is None:
+            self.var_ref = reference_variance(self.factors)
+
+    @property
+    def n_test(self) -> int:
+        return int(self.pred.shape[0])
+
+    @property
+    def group(self) -> np.ndarray:
+        """Table-2 object group per held-out sequence: 'soft' | 'hard' | 'heterogeneous'."""
+        return np.array([get_object(int(o)).group for o in self.object_id])
+
+    @property
+    def label(self) -> str:
+        return f"{self.method}/{self.modality}/{self.skin}/{self.primitive}"
+
+    def subset_nmse(self, mask=None) -> np.ndarray:
+        """Whole-trajectory NMSE per factor over the masked sequences (reference variance)."""
+        m = np.ones(self.n_test, bool) if mask is None else np.asarray(mask, bool)
+        return nmse_trajectory(self.factors[m], self.pred[m], var_ref=self.var_ref)
+
+    def curve(self, mask=None) -> np.ndarray:
+        """NMSE vs interaction time (T, 4) over the masked sequences (reference variance)."""
+        m = np.ones(self.n_test, bool) if mask is None else np.asarray(mask, bool)
+        return nmse_over_time(self.factors[m], self.pred[m], var_ref=self.var_ref)
+
+    def summary(self) -> dict:
+        """The headline numbers (JSON-ready)."""
+        traj = self.subset_nmse()
+        last = self.curve()[-1]
+        return {
+            "label": self.label,
+            "method": self.method,
+            "modality": self.modality,
+            "skin": self.skin,
+            "primitive": self.primitive,
+            "source": self.source,
+            "n_train": int(self.n_train),
+            "n_test": self.n_test,
+            "nmse_trajectory": dict(zip(FACTOR_NAMES, _f(traj))),
+            "nmse_trajectory_overall": overall(traj),
+            "nmse_last_step": dict(zip(FACTOR_NAMES, _f(last))),
+            "nmse_last_step_overall": overall(last),
+            "params": _jsonable(self.params),
+        }
+
+
+def select_latents(split: Mapping[str, Any], latent: str = "y") -> np.ndarray:
+    """'y' | 'z' | 'both' (concatenated z then y on the last axis) -> (n, T, d)."""
+    if latent == "both":
+        return np.concatenate([np.asarray(split["z"]), np.asarray(split["y"])], axis=-1)
+    if latent not in ("y", "z"):
+        raise ValueError(f"latent must be 'y', 'z' or 'both', got {latent!r}")
+    return np.asarray(split[latent])
+
+
+def evaluate_latents(
+    train: Mapping[str, Any],
+    test: Mapping[str, Any],
+    *,
+    latent: str = "y",
+    method: str = "latent_filter",
+    modality: str = "unknown",
+    skin: str = "unknown",
+    primitive: str = "unknown",
+    source: str = "simulated",
+    alignment: Mapping[str, Any] | None = None,
+    params: Mapping[str, Any] | None = None,
+) -> tuple[Results, Alignment]:
+    """Fit the KRR alignment on ``train`` (final segments), predict every frame of ``test``.
+
+    ``alignment``: keyword arguments for :func:`fit_alignment` (final_segment, cv, grids,
+    nystroem_threshold, seed, groups='object' to group CV folds by object). Raises
+    :class:`~embodied_tactile.eval.krr.LeakageError` when both splits carry ``seq_id`` and
+    they intersect.
+    """
+    kw = dict(alignment or {})
+    assert_disjoint(train.get("seq_id"), test.get("seq_id"))
+    x_tr = select_latents(train, latent)
+    x_te = select_latents(test, latent)
+    if kw.get("groups") == "object":
+        kw["groups"] = np.asarray(train["object_id"])
+    t0 = time.perf_counter()
+    align = fit_alignment(x_tr, train["factors"], ids=train.get("seq_id"), **kw)
+    t1 = time.perf_counter()
+    pred = align.predict(x_te, ids=test.get("seq_id"))
+    t2 = time.perf_counter()
+    p = {"alignment": align.params, "latent": latent, "krr_fit_s": t1 - t0, "krr_predict_s": t2 - t1,
+         "krr_predict_s_per_sequence": (t2 - t1) / max(1, len(x_te))}
+    p.update(params or {})
+    res = Results(
+        pred=pred,
+        factors=test["factors"],
+        object_id=test["object_id"],
+        action_index=test["action_index"],
+        method=method,
+        modality=modality,
+        skin=skin,
+        primitive=primitive,
+        source=source,
+        n_train=len(x_tr),
+        latents_last=np.asarray(x_te)[:, -1, :] if np.ndim(x_te) == 3 else np.asarray(x_te),
+        seq_id=None if test.get("seq_id") is None else np.asarray(test["seq_id"]),
+        params=p,
+    )
+    return res, align
+
+
+def _f(v) -> list:
+    return [float(x) for x in np.asarray(v, dtype=np.float64).ravel()]
+
+
+def _jsonable(obj):
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return float(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    return str(obj)
