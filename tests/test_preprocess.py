@@ -1,0 +1,330 @@
+"""Tests of data.preprocess and data.cache on small synthetic raw trials."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import h5py
+import numpy as np
+import pytest
+import scipy.signal
+
+from embodied_tactile import constants as C
+from embodied_tactile.data import cache as cache_mod
+from embodied_tactile.data import preprocess as P
+from embodied_tactile.data.cache import build_cache, cache_info, list_cached, load_cached
+from embodied_tactile.data.preprocess import PreprocessConfig, preprocess_trial, preprocess_trials
+from embodied_tactile.io import rawformat
+from embodied_tactile.io.rawformat import RawTrial, TrialFormatError, make_attrs, write_trial
+
+T = 300
+
+
+def make_trial(rep: int = 0, *, seed: int = 0, t0: float = 50.0, vib=None, fsr_level=None, pose_fn=None) -> RawTrial:
+    """10 s trial. ``vib``: {(i, j): (freq Hz, amplitude g)} sine vibrations along z on top
+    of gravity (default: every sensor, distinct frequencies); FSR a Gaussian blob moving
+    along x; pose a slow pressing cosine unless ``pose_fn(t) -> (M, 6)``."""
+    rng = np.random.default_rng(seed + rep)
+    n, m = C.N_TACTILE, C.N_POSE
+    t = t0 + np.arange(n) / C.FS_TACTILE
+    if vib is None:
+        vib = {(i, j): (10.0 + 15 * (4 * i + j), 0.05 + 0.01 * j) for i in range(4) for j in range(4)}
+    acc = np.zeros((n, 4, 4, 3))
+    acc[..., 2] = 1.0
+    for (i, j), (f, a) in vib.items():
+        acc[:, i, j, 2] += a * np.sin(2 * np.pi * f * (t - t0))
+    acc += rng.normal(0, 1e-3, acc.shape)
+    yy, xx = np.mgrid[0:16, 0:16]
+    if fsr_level is None:
+        cx = 8 + 3 * np.sin(2 * np.pi * 0.3 * (t - t0))
+        blob = np.exp(-((xx[None] - cx[:, None, None]) ** 2 + (yy[None] - 7) ** 2) / 6.0)
+        fsr = np.stack([3000 * blob, 1200 * blob], axis=1) + rng.integers(0, 10, (n, 2, 16, 16))
+    else:
+        fsr = np.full((n, 2, 16, 16), fsr_level)
+    pose_t = t0 + np.arange(m) / C.FS_POSE
+    if pose_fn is None:
+        pose = np.zeros((m, 6))
+        pose[:, 2] = 0.1 + 0.004 * np.cos(2 * np.pi * 0.4 * (pose_t - t0) + np.pi)
+    else:
+        pose = pose_fn(pose_t - t0)
+    attrs = make_attrs(object_id=rep % 32, skin="soft", primitive="pressing", action_index=rep % 16,
+                       repetition=rep, source="simulated", seed=seed + rep)
+    return RawTrial(t=t, acc=acc.astype(np.float32), fsr=np.clip(fsr, 0, 4095).astype(np.uint16),
+                    pose_t=pose_t, pose=pose.astype(np.float32), attrs=attrs)
+
+
+@pytest.fixture(scope="module")
+def cfg() -> PreprocessConfig:
+    return PreprocessConfig().validate()
+
+
+@pytest.fixture(scope="module")
+def trial() -> RawTrial:
+    return make_trial(0)
+
+
+@pytest.fixture(scope="module")
+def processed(trial, cfg):
+    return preprocess_trial(trial, cfg)
+
+
+# ============================================================================ preprocess
+def test_shapes_and_dtypes(processed):
+    assert processed["acc"].shape == (T, 28, 28) and processed["acc"].dtype == np.float32
+    assert processed["fsr"].shape == (T, 2, 28, 28) and processed["fsr"].dtype == np.float32
+    assert processed["actions"].shape == (T, 6) and processed["actions"].dtype == np.float32
+    for v in processed.values():
+        assert np.isfinite(v).all()
+    assert 0.0 <= processed["acc"].min() and processed["acc"].max() <= 1.2
+    assert 0.0 <= processed["fsr"].min() and processed["fsr"].max() <= 1.0
+
+
+def test_fields_computed_only_from_their_inputs(trial, cfg):
+    empty = np.zeros((0,))
+    acc_only = RawTrial(t=trial.t, acc=trial.acc, fsr=empty, pose_t=empty, pose=empty, attrs=trial.attrs)
+    out = preprocess_trial(acc_only, cfg, fields=("acc",))
+    assert set(out) == {"acc"}
+    pose_only = RawTrial(t=empty, acc=empty, fsr=empty, pose_t=trial.pose_t, pose=trial.pose, attrs=trial.attrs)
+    assert set(preprocess_trial(pose_only, cfg, fields=("actions",))) == {"actions"}
+    with pytest.raises(ValueError, match="unknown fields"):
+        preprocess_trial(trial, cfg, fields=("gyro",))
+
+
+def test_batched_equals_single(trial, cfg, processed):
+    other = make_trial(1)
+    batch = preprocess_trials([other, trial], cfg)
+    for k, v in processed.items():
+        np.testing.assert_allclose(batch[k][1], v, atol=1e-6)
+
+
+def _direct_librosa(acc_ij: np.ndarray) -> np.ndarray:
+    """One sensor by hand with the default parameters: (T, 49) scaled log-mel."""
+    import librosa
+
+    mag = np.sqrt((acc_ij.astype(np.float64) ** 2).sum(axis=-1))
+    mag = (mag - mag.mean()) / 2.0  # static part removed, / 2 g
+    y = scipy.signal.resample_poly(mag, 6, 7)
+    assert y.shape == (6000,)
+    yp = np.pad(y, (54, 54))  # 54 = 128/2 - 20/2: frame k is centred on sample 20k + 10
+    s = librosa.feature.melspectrogram(y=yp, sr=600, n_fft=128, hop_length=20, win_length=128, window="hann",
+                                       center=False, power=2.0, n_mels=49, fmin=0.0, fmax=300.0)
+    assert s.shape == (49, T)
+    db = librosa.power_to_db(s, ref=1.0, amin=1e-10, top_db=None)
+    return ((db + 100.0) / 120.0).T
+
+
+@pytest.mark.parametrize("backend", ["numpy", "librosa"])
+def test_acc_channel_equals_direct_librosa(trial, backend):
+    out = preprocess_trial(trial, PreprocessConfig(stft_backend=backend), fields=("acc",))["acc"]
+    i, j = 1, 2
+    tile = out[:, 7 * i : 7 * i + 7, 7 * j : 7 * j + 7].reshape(T, 49)
+    np.testing.assert_allclose(tile, _direct_librosa(trial.acc[:, i, j]), atol=1e-5, rtol=0)
+
+
+def test_vectorised_equals_naive_loop(trial, cfg, processed):
+    np.testing.assert_allclose(processed["acc"], P.acc_logmel_naive(trial.acc, cfg), atol=1e-5, rtol=0)
+
+
+def test_tile_layout_places_sensor_bins():
+    mel = np.zeros((3, 49, 4, 4))
+    for i in range(4):
+        for j in range(4):
+            mel[:, :, i, j] = 1000 * i + 100 * j + np.arange(49)
+    img = P.tile_layout(mel, (7, 7))
+    assert img.shape == (3, 28, 28)
+    for i in range(4):
+        for j in range(4):
+            expect = (1000 * i + 100 * j + np.arange(49)).reshape(7, 7)
+            np.testing.assert_array_equal(img[1, 7 * i : 7 * i + 7, 7 * j : 7 * j + 7], expect)
+
+
+def test_single_vibrating_sensor_lights_its_tile(cfg):
+    tr = make_trial(0, vib={(2, 3): (120.0, 0.3)})
+    acc = preprocess_trial(tr, cfg, fields=("acc",))["acc"].mean(axis=0)
+    tiles = acc.reshape(4, 7, 4, 7).max(axis=(1, 3))
+    assert np.unravel_index(np.argmax(tiles), tiles.shape) == (2, 3)
+    # a bigger vibration gives a bigger value: the fixed scale keeps amplitude information
+    louder = preprocess_trial(make_trial(0, vib={(2, 3): (120.0, 0.6)}), cfg, fields=("acc",))["acc"].mean(axis=0)
+    assert louder[14:21, 21:28].max() > acc[14:21, 21:28].max() + 0.03
+
+
+@pytest.mark.parametrize("shape_in,shape_out", [((16, 16), (28, 28)), ((7, 5), (13, 11)), ((16, 16), (10, 6))])
+def test_bilinear_resize_matches_torch(shape_in, shape_out):
+    torch = pytest.importorskip("torch")
+    x = np.random.default_rng(0).random((3, 2, *shape_in), dtype=np.float32)
+    ref = torch.nn.functional.interpolate(torch.from_numpy(x), size=shape_out, mode="bilinear", align_corners=False)
+    np.testing.assert_allclose(P.bilinear_resize(x, shape_out), ref.numpy(), atol=1e-6, rtol=0)
+
+
+def test_win_length_longer_than_n_fft_raises():
+    with pytest.raises(ValueError, match=r"win_length \(800\) > n_fft \(128\)"):
+        PreprocessConfig(win_length=800, n_fft=128).validate()
+    with pytest.raises(ValueError, match=r"n_mels \(70\)"):
+        PreprocessConfig(n_mels=70, tile_shape=(7, 10)).validate()
+    with pytest.raises(ValueError, match="too many"):  # 49 mels over 0-100 Hz, FFT bins 4.7 Hz apart
+        PreprocessConfig(fmax=100.0).validate()
+    with pytest.raises(ValueError, match="tile_shape"):  # 48 bins cannot fill a 7 x 7 tile
+        PreprocessConfig(n_mels=48).validate()
+    with pytest.raises(ValueError, match="resize_hw"):  # 6 x 8 tiles -> 24 x 32 acc image != 28 x 28 FSR
+        PreprocessConfig(n_mels=48, tile_shape=(6, 8)).validate()
+    with pytest.raises(ValueError, match="hop_length"):
+        PreprocessConfig(hop_length=25).validate()
+    PreprocessConfig(n_fft=800, win_length=800).validate()  # the paper's window, as n_fft
+    PreprocessConfig(n_fft=256, win_length=128).validate()
+
+
+def test_actions_follow_pose_ramp(cfg):
+    rate = np.array([0.002, -0.001, 0.0005, 0.05, -0.02, 0.4])  # m/s and rad/s
+
+    def ramp(tp):
+        p = 0.3 + tp[:, None] * rate[None, :]
+        p[:, 5] = np.angle(np.exp(1j * p[:, 5]))  # yaw wraps at +-pi during the trial
+        return p
+
+    act = preprocess_trial(make_trial(0, pose_fn=ramp), cfg, fields=("actions",))["actions"]
+    tc = (np.arange(T) + 0.5) / 30.0
+    expect = tc[:, None] * rate[None, :]
+    expect[:, :3] *= 1000.0 / 10.0  # mm / 10
+    expect[:, 3:] *= 180.0 / np.pi / 10.0  # deg / 10
+    np.testing.assert_allclose(act, expect, atol=1e-4)
+
+
+def test_fsr_block_mean_scale_and_baseline(cfg):
+    tr = make_trial(0, fsr_level=100)
+    tr.fsr[len(tr.fsr) // 2 :] = 2148  # step at t0 + 5 s = frame 150 boundary
+    out = preprocess_trial(tr, cfg, fields=("fsr",))["fsr"]
+    np.testing.assert_allclose(out[:150], 100 / 4095, atol=1e-6)
+    np.testing.assert_allclose(out[150:], 2148 / 4095, atol=1e-6)
+    tr.baseline_t = tr.t[:700] - 20.0
+    tr.baseline_fsr = np.full((700, 2, 16, 16), 100, np.uint16)
+    out_b = preprocess_trial(tr, cfg, fields=("fsr",))["fsr"]
+    np.testing.assert_allclose(out_b[:150], 0.0, atol=1e-7)
+    np.testing.assert_allclose(out_b[150:], 2048 / 4095, atol=1e-6)
+    assert preprocess_trial(tr, PreprocessConfig(fsr_subtract_baseline=False), fields=("fsr",))["fsr"][0].min() > 0.02
+
+
+def test_irregular_clock_with_lost_packets(cfg):
+    tr = make_trial(0)
+    keep = np.ones(len(tr.t), bool)
+    keep[1000:1100] = False  # ~143 ms of lost packets, > one frame
+    lossy = RawTrial(t=tr.t[keep], acc=tr.acc[keep], fsr=tr.fsr[keep], pose_t=tr.pose_t, pose=tr.pose, attrs=tr.attrs)
+    out = preprocess_trial(lossy, cfg)
+    ref = preprocess_trial(tr, cfg)
+    assert out["acc"].shape == (T, 28, 28) and np.isfinite(out["acc"]).all()
+    np.testing.assert_allclose(out["fsr"][100:], ref["fsr"][100:], atol=0.02)
+    np.testing.assert_array_equal(out["actions"], ref["actions"])
+
+
+# ============================================================================ cache
+@pytest.fixture()
+def raw_file(tmp_path):
+    path = tmp_path / "raw.h5"
+    for rep in range(3):
+        write_trial(path, make_trial(rep))
+    return path
+
+
+@pytest.fixture()
+def counter(monkeypatch):
+    calls = []
+    real = cache_mod.preprocess_trials
+
+    def counting(trials, cfg, fields):
+        calls.append((len(trials), tuple(fields)))
+        return real(trials, cfg, fields)
+
+    monkeypatch.setattr(cache_mod, "preprocess_trials", counting)
+    return calls
+
+
+def test_cache_build_layout_and_reuse(raw_file, tmp_path, cfg, counter):
+    paths = build_cache([raw_file], tmp_path / "cache", cfg, workers=1)
+    assert set(paths) == {"acc", "fsr", "actions"}
+    assert len({p.name for p in paths.values()}) == 3 and all(p.name.startswith(f + "-") for f, p in paths.items())
+    assert len(counter) == 1  # one batched call for the chunk, all three fields
+    names = [n for n, _ in list_cached(paths["acc"])]
+    assert names == sorted(rawformat.trial_name(make_trial(r).attrs) for r in range(3))
+    ref = preprocess_trial(make_trial(1), cfg)
+    name1 = make_trial(1).name
+    for f in ("acc", "fsr", "actions"):
+        np.testing.assert_allclose(load_cached(paths[f], name1, f), ref[f], atol=1e-6)
+    attrs = dict(list_cached(paths["fsr"]))[name1]
+    assert attrs["object_id"] == 1 and attrs["action_index"] == 1 and attrs["spatial_frequency"] == C.OBJECTS[1].spatial_frequency
+    info = cache_info(paths["acc"])
+    assert info["complete"] and info["n_trials"] == 3 and info["skipped"] == []
+    assert info["config"]["n_fft"] == 128 and info["sources"] == [str(raw_file)] and info["key"] in paths["acc"].name
+    mtimes = {f: os.stat(p).st_mtime_ns for f, p in paths.items()}
+    again = build_cache([raw_file], tmp_path / "cache", cfg, workers=1)
+    assert again == paths and len(counter) == 1  # nothing recomputed
+    assert {f: os.stat(p).st_mtime_ns for f, p in again.items()} == mtimes
+    assert not [p for p in (tmp_path / "cache").iterdir() if ".tmp-" in p.name]
+
+
+def test_cache_invalidates_on_config_change(raw_file, tmp_path, cfg, counter):
+    first = build_cache([raw_file], tmp_path / "cache", cfg, workers=1)
+    other = build_cache([raw_file], tmp_path / "cache", PreprocessConfig(n_fft=256, win_length=256), workers=1)
+    assert other["acc"] != first["acc"]  # acc config changed -> new key, recomputed
+    assert other["fsr"] == first["fsr"] and other["actions"] == first["actions"]
+    assert counter[-1] == (3, ("acc",))  # only the stale field was recomputed
+    assert cache_info(other["acc"])["config"]["n_fft"] == 256
+
+
+def test_cache_invalidates_on_source_change(raw_file, tmp_path, cfg, counter):
+    first = build_cache([raw_file], tmp_path / "cache", cfg, workers=1)
+    tr = make_trial(2)
+    tr.acc[:, 0, 0, 2] += np.float32(0.01)
+    write_trial(raw_file, tr, overwrite=True)  # acc data changed, fsr / pose identical
+    second = build_cache([raw_file], tmp_path / "cache", cfg, workers=1)
+    assert second["acc"] != first["acc"]
+    assert second["fsr"] == first["fsr"] and second["actions"] == first["actions"]
+    new = load_cached(second["acc"], tr.name, "acc")
+    assert not np.allclose(new, load_cached(first["acc"], tr.name, "acc"))
+
+
+def test_corrupt_trial_is_skipped_and_named(raw_file, tmp_path, cfg):
+    bad = make_trial(1).name
+    with h5py.File(raw_file, "a") as f:  # truncate one trial's accelerometer stream
+        g = f["trials"][bad]
+        acc = g["tactile/acc"][:5000]
+        del g["tactile/acc"]
+        g.create_dataset("tactile/acc", data=acc)
+    paths = build_cache([raw_file], tmp_path / "cache", cfg, fields=("acc", "fsr"), workers=1)
+    assert bad not in dict(list_cached(paths["acc"])) and len(list_cached(paths["acc"])) == 2
+    skipped = cache_info(paths["acc"])["skipped"]
+    assert len(skipped) == 1 and skipped[0]["trial"] == bad and skipped[0]["field"] == "acc"
+    assert skipped[0]["file"] == str(raw_file) and "tactile/acc" in skipped[0]["problem"]
+    assert bad in dict(list_cached(paths["fsr"])) and cache_info(paths["fsr"])["skipped"] == []
+    with pytest.raises(TrialFormatError, match=bad):
+        build_cache([raw_file], tmp_path / "strict", cfg, fields=("acc",), workers=1, strict=True)
+    assert not (tmp_path / "strict").exists() or not any((tmp_path / "strict").iterdir())
+
+
+def test_acc_only_build_never_reads_fsr(raw_file, tmp_path, cfg, monkeypatch):
+    seen = []
+    real = rawformat.read_trial
+
+    def spy(path, name, fields=rawformat.ALL_REQUIRED_FIELDS, **kw):
+        seen.append(tuple(fields))
+        return real(path, name, fields, **kw)
+
+    monkeypatch.setattr(rawformat, "read_trial", spy)
+    with h5py.File(raw_file, "a") as f:  # no FSR data at all in the raw file
+        for g in f["trials"].values():
+            del g["tactile/fsr"]
+    paths = build_cache([raw_file], tmp_path / "cache", cfg, fields=("acc",), workers=1)
+    assert set(paths) == {"acc"} and len(list_cached(paths["acc"])) == 3
+    assert seen and all("fsr" not in flds and "pose" not in flds for flds in seen)
+    assert not list((tmp_path / "cache").glob("fsr-*"))
+    fsr = build_cache([raw_file], tmp_path / "cache", cfg, fields=("fsr",), workers=1)["fsr"]
+    assert len(list_cached(fsr)) == 0 and len(cache_info(fsr)["skipped"]) == 3
+
+
+def test_process_pool_build_equals_in_process(raw_file, tmp_path, cfg):
+    serial = build_cache([raw_file], tmp_path / "a", cfg, workers=1)
+    pooled = build_cache([raw_file], tmp_path / "b", cfg, workers=2, chunk_size=1)
+    for f in serial:
+        assert serial[f].name == pooled[f].name  # same key
+        for name, _ in list_cached(serial[f]):
+            np.testing.assert_array_equal(load_cached(serial[f], name, f), load_cached(pooled[f], name, f))
+    assert json.loads(h5py.File(pooled["acc"], "r").attrs["sources"]) == [str(raw_file)]
