@@ -32,6 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--action-index", type=int, default=0)
     src.add_argument("--sim-seed", type=int, default=0, help="simulator seed")
     p.add_argument("--rate", type=float, default=None, help="packets/s (default: the trial's fs_tactile, 700); 0 = as fast as requested")
+    p.add_argument("--pacing", default="fifo", choices=("fifo", "grid"), help="fifo: a backlog of up to --max-lag-s is answered at once; grid: at most one packet per 1/rate tick")
+    p.add_argument("--max-lag-s", type=float, default=0.05)
     p.add_argument("--no-loop", action="store_true", help="stop answering at the end of the trial instead of looping")
     p.add_argument("--device", default=None, help="device map YAML for the wiring (default: configs/record/device/ideal.yaml semantics)")
     p.add_argument("--link", default=None, help="also create this symlink to the pty (a stable port name)")
@@ -71,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
             garbage_mode=args.garbage_mode, disconnect_after_packets=args.disconnect_after_packets,
             disconnect_after_s=args.disconnect_after_s, seed=args.seed,
         )
-        emu = Emulator(trial, device=device, rate=args.rate, faults=faults, loop=not args.no_loop)
+        emu = Emulator(trial, device=device, rate=args.rate, faults=faults, loop=not args.no_loop, pacing=args.pacing, max_lag_s=args.max_lag_s)
     except ImportError as exc:
         print(f"emulate: the simulator is not available ({exc}); use --trial-file or --synthetic", file=sys.stderr)
         return 2

@@ -133,16 +133,20 @@ class Emulator:
     :meth:`start` (background thread) and :meth:`stop`.
 
     ``rate``: packets per second (default: the trial's ``fs_tactile``); ``0`` answers as
-    fast as requested. Frames are served in order and the trial loops (``loop=False``:
+    fast as requested; ``pacing``/``max_lag_s``: see :meth:`_pace`. Frames are served in order and the trial loops (``loop=False``:
     stop answering at the end).
     """
 
-    def __init__(self, trial: R.RawTrial, *, device: DeviceMap | None = None, rate: float | None = None, faults: Faults | None = None, loop: bool = True):
+    def __init__(self, trial: R.RawTrial, *, device: DeviceMap | None = None, rate: float | None = None, faults: Faults | None = None, loop: bool = True,
+                 pacing: str = "fifo", max_lag_s: float = 0.05):
         self.trial = trial
         self.device = device or DeviceMap()
         self.rate = float(trial.attrs.get("fs_tactile", C.FS_TACTILE) if rate is None else rate)
         self.faults = faults or Faults()
         self.loop = loop
+        if pacing not in ("fifo", "grid"):
+            raise ValueError(f"pacing must be fifo|grid, got {pacing!r}")
+        self.pacing, self.max_lag_s = pacing, float(max_lag_s)
         self.rng = np.random.default_rng(self.faults.seed)
         n = trial.t.shape[0]
         dt = np.diff(np.asarray(trial.t, dtype=np.float64)) * 1e6
@@ -158,7 +162,9 @@ class Emulator:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._frame = 0
+        self._grid0: float | None = None
         self._next_time: float | None = None
+        self._last_tick = -1
         self._t_first: float | None = None
 
     # ------------------------------------------------------------------ pty
@@ -235,15 +241,34 @@ class Emulator:
             view = view[n:]
 
     def _pace(self) -> None:
+        """Hold the answer until the next sample is due.
+
+        ``pacing="fifo"`` (default): samples are due on a fixed ``1/rate`` grid and the
+        board keeps up to ``max_lag_s`` of them, so after a slow request the backlog is
+        answered at once (the average rate stays ``rate`` if the reader keeps up on
+        average). ``pacing="grid"``: no backlog, at most one answer per grid tick; ticks
+        missed by a slow reader are lost (the rate drops with host latency)."""
         if self.rate <= 0:
             return
         now = time.perf_counter()
-        if self._next_time is None or now - self._next_time > 0.05:  # (re)start the schedule after a stall
-            self._next_time = now
+        period = 1.0 / self.rate
+        if self.pacing == "grid":
+            if self._grid0 is None:
+                self._grid0, self._last_tick = now, -1
+            tick = int((now - self._grid0) // period)
+            if tick <= self._last_tick:
+                tick = self._last_tick + 1
+                wait = self._grid0 + tick * period - now
+                if wait > 0:
+                    time.sleep(wait)
+            self._last_tick = tick
+            return
+        if self._next_time is None or now - self._next_time > self.max_lag_s:
+            self._next_time = now - (0.0 if self._next_time is None else self.max_lag_s)
         wait = self._next_time - now
         if wait > 0:
             time.sleep(wait)
-        self._next_time += 1.0 / self.rate
+        self._next_time += period
 
     def _answer(self) -> None:
         st, f = self.stats, self.faults

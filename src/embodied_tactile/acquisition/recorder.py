@@ -138,6 +138,7 @@ class Recorder:
         self._n_pose = 0
         self._t0 = 0.0
         self._last_t: float | None = None
+        self._pose_last = -np.inf
 
     # ------------------------------------------------------------------ serial helpers
     def _in_waiting(self) -> int:
@@ -220,7 +221,16 @@ class Recorder:
             ts.clear()
         if self.pose is not None and self._phase == "trial":
             pt, pv = self.pose.poll(time.perf_counter() - self._t0)
+            pt, pv = np.asarray(pt, dtype=np.float64).reshape(-1), np.asarray(pv)
+            # a live source may repeat or reorder samples: keep the strictly increasing, t >= 0 ones
+            keep = pt >= 0
+            if keep.any():
+                last = self._pose_last
+                cm = np.maximum.accumulate(np.where(keep, pt, -np.inf))
+                keep &= (pt == cm) & (pt > last) & np.concatenate([[True], np.diff(cm) > 0])
+            pt, pv = pt[keep], pv[keep]
             if len(pt):
+                self._pose_last = float(pt[-1])
                 self.writer.append("pose_t", pt)
                 self.writer.append("pose", pv)
                 self._n_pose += len(pt)
