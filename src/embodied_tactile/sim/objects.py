@@ -42,18 +42,6 @@ def surface(object_id: int, amplitude_mm: float | None = None) -> np.ndarray:
     return h
 
 
-@lru_cache(maxsize=64)
-def contact_surface(object_id: int, bridging_length_m: float, amplitude_mm: float | None = None) -> np.ndarray:
-    """The surface the skin presses against: for heterogeneous objects the stiff top layer
-    bridges detail shorter than its flexural length (Gaussian smoothing with that sigma)."""
-    h = surface(object_id, amplitude_mm)
-    if bridging_length_m <= 0:
-        return h
-    out = ndimage.gaussian_filter(h, bridging_length_m / P.SURFACE_DX_M, mode="wrap")
-    out.setflags(write=False)
-    return out
-
-
 def sample(h: np.ndarray, x: np.ndarray, y: np.ndarray, order: int = 1) -> np.ndarray:
     """Heights at object-frame positions (m; block centred on 0), periodic block."""
     c = (P.SURFACE_N - 1) / 2.0

@@ -77,10 +77,11 @@ def command(primitive: str, params: dict, t: np.ndarray, duration: float, physic
 
 
 def _tracking_error(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Smooth tracking error (6, n) at the pose rate: low-passed (2 Hz) white noise."""
-    a = np.exp(-2 * np.pi * 2.0 / C.FS_POSE)
-    e = signal.lfilter([1 - a], [1, -a], rng.standard_normal((6, n + 200)), axis=1)[:, 200:]
-    e /= np.sqrt((1 - a) / (1 + a))  # unit std of the stationary AR(1)
+    """Smooth tracking error (6, n) at the pose rate: white noise through a 4th-order 1 Hz
+    Butterworth low-pass (smooth enough to differentiate twice), scaled to TRACK_ERR_*."""
+    sos = signal.butter(4, 1.0, fs=C.FS_POSE, output="sos")
+    e = signal.sosfilt(sos, rng.standard_normal((6, n + 400)), axis=1)[:, 400:]
+    e /= np.sqrt(np.sum(signal.sosfilt(sos, np.r_[1.0, np.zeros(999)]) ** 2))  # unit std
     scale = np.array([P.TRACK_ERR_M] * 3 + [P.TRACK_ERR_RAD] * 3)[:, None]
     return e * scale
 
@@ -93,10 +94,14 @@ def _world_points(pose6: np.ndarray, lx: np.ndarray, ly: np.ndarray, lz: float) 
 
 
 def _shift_kernels(shift_px: np.ndarray, sigma_px: float) -> np.ndarray:
-    """(N, 16, 16) Gaussian kernels K[n, i, j] = g(i - j - shift_n), unit mass per source."""
+    """(N, 16, 16) Gaussian kernels K[n, i, j] ~ g(i - j - shift_n), each row normalised
+    over the array: a receiving taxel averages the sources around i - shift (the skin's
+    pressure just outside the array is taken equal to that at its edge, so the edges do
+    not lose load)."""
     idx = np.arange(C.FSR_GRID[0], dtype=np.float64)
     d = idx[None, :, None] - idx[None, None, :] - shift_px[:, None, None]
-    return np.exp(-0.5 * (d / sigma_px) ** 2) / (np.sqrt(2 * np.pi) * sigma_px)
+    k = np.exp(-0.5 * (d / max(sigma_px, 1e-3)) ** 2)
+    return k / k.sum(axis=2, keepdims=True)
 
 
 def _interp_rows(src_t: np.ndarray, src: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -141,9 +146,10 @@ def _device(skin: str):
 
 
 def fsr_counts(force_n: np.ndarray, gain: np.ndarray | float = 1.0) -> np.ndarray:
-    """Noise-free FSR counts: conductance ~ F^0.7 in a divider into the 12-bit ADC."""
-    x = (np.maximum(force_n, 0) / np.float32(P.FSR_HALF_N)) ** np.float32(P.FSR_EXPONENT)
-    return np.float32(C.FSR_MAX_COUNT) * gain * x / (1 + x)
+    """Noise-free FSR counts: conductance ~ (gain F)^0.7 in a divider into the 12-bit ADC
+    (``gain``: per-taxel sensitivity; the divider output saturates at full scale)."""
+    x = (np.maximum(force_n, 0) * gain / np.float32(P.FSR_HALF_N)) ** np.float32(P.FSR_EXPONENT)
+    return np.float32(C.FSR_MAX_COUNT) * x / (1 + x)
 
 
 def simulate_trial(
@@ -180,7 +186,7 @@ def simulate_trial(
 
     # ---------------------------------------------------------------- surfaces
     h_raw = O.surface(object_id, physics.amplitude_mm)
-    h_con = O.contact_surface(object_id, round(mech.bridging_length, 9), physics.amplitude_mm)
+    h_con = O.surface(object_id, physics.amplitude_mm)
     h_spl = O.spline_coeffs(h_raw)
 
     # ---------------------------------------------------------------- poses
@@ -232,9 +238,11 @@ def simulate_trial(
     # ---------------------------------------------------------------- FSR maps
     pm = p.reshape(n_p, *C.FSR_GRID)
     zero = np.zeros(n_p)
-    kt = _shift_kernels(zero[:1], P.SPREAD_TOP_M / _PITCH)[0]
+    # a stiff top layer of the object spreads the load over its flexural length (bridging)
+    lb = mech.bridging_length
+    kt = _shift_kernels(zero[:1], np.hypot(P.SPREAD_TOP_M, lb) / _PITCH)[0]
     top = kt @ pm @ kt.T
-    sb = P.SPREAD_BOTTOM_M / _PITCH
+    sb = np.hypot(P.SPREAD_BOTTOM_M, lb) / _PITCH
     kby, kbx = _shift_kernels(uy / _PITCH, sb), _shift_kernels(ux / _PITCH, sb)
     bot = kby @ pm @ kbx.transpose(0, 2, 1)
     force = np.stack([top, bot], axis=1) * _PITCH**2  # (n_p, 2, 16, 16) N per taxel
@@ -325,7 +333,7 @@ def force_indentation(
     physics = physics or PhysicsOverrides()
     obj = C.get_object(object_id)
     mech = P.mechanics(obj, skin, physics)
-    h_con = O.contact_surface(object_id, round(mech.bridging_length, 9), physics.amplitude_mm)
+    h_con = O.surface(object_id, physics.amplitude_mm)
     w0 = _world_points(np.zeros((6, 1)), _TX, _TY, -mech.h_skin)[0]
     h0 = O.sample(h_con, w0[:, 0], w0[:, 1])
     gap = h0.max() - h0  # distance of each taxel to the surface at first touch

@@ -1,0 +1,90 @@
+"""Numerical stability of the simulator over extreme physics (>= 200 short trials)."""
+
+from __future__ import annotations
+
+import itertools
+import warnings
+
+import numpy as np
+import pytest
+
+from embodied_tactile import constants as C
+from embodied_tactile.sim import PhysicsOverrides, contact_pressure, mechanics, qlv_relax, simulate_trial
+
+E_GRID = (1e3, 1e5, 3e7, 1e9, 1e10)  # Pa
+TAU_GRID = (1e-5, 1e-2, 1.0, 100.0)  # s
+AMP_GRID = (0.0, 15.0, 30.0)  # mm peak-to-peak
+FREQ_GRID = (0.0, 0.7, 2.0)  # Hz
+
+
+def _cases():
+    cases = []
+    for i, (e, tau, amp, w) in enumerate(itertools.product(E_GRID, TAU_GRID, AMP_GRID, FREQ_GRID)):
+        prim = C.PRIMITIVES[i % 3]
+        cases.append((i % 32, C.SKINS[(i // 3) % 2], prim, (7 * i) % 16,
+                      PhysicsOverrides(youngs_modulus=e, relaxation_time=tau, amplitude_mm=amp,
+                                       primitive_frequency_hz=w, lift_off=(i % 5 == 0))))
+    for j, (prim, skin, lift, scale) in enumerate(itertools.product(C.PRIMITIVES, C.SKINS, (False, True), (1e-6, 1e6))):
+        cases.append((27 + j % 5, skin, prim, 15, PhysicsOverrides(lift_off=lift, force_scale=scale, relaxation_time=1e-5 if j % 2 else 100.0)))
+    return cases
+
+
+CASES = _cases()
+
+
+def test_grid_is_large_enough():
+    assert len(CASES) >= 200
+
+
+def _check(tr):
+    assert np.isfinite(tr.acc).all() and np.isfinite(tr.t).all() and np.isfinite(tr.pose).all()
+    assert tr.fsr.dtype == np.uint16 and int(tr.fsr.max()) <= C.FSR_MAX_COUNT
+    assert float(np.abs(tr.acc).max()) <= C.ACC_RANGE_G
+    assert np.all(np.diff(tr.t) > 0) and np.all(np.diff(tr.pose_t) > 0)
+
+
+@pytest.mark.filterwarnings("error")
+def test_extreme_grid_finite_and_in_range():
+    saturated = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with np.errstate(divide="raise", over="raise", invalid="raise"):
+            for oid, skin, prim, act, phys in CASES:
+                tr = simulate_trial(oid, skin, prim, act, duration=0.5, physics=phys)
+                _check(tr)
+                saturated += int((tr.fsr == C.FSR_MAX_COUNT).any())
+    assert saturated >= 6  # the force_scale=1e6 cases really saturate
+
+
+@pytest.mark.filterwarnings("error")
+def test_qlv_update_is_stable_for_any_tau():
+    rng = np.random.default_rng(0)
+    p = np.abs(np.cumsum(rng.standard_normal((500, 8)), axis=0)) * 1e3
+    with np.errstate(divide="raise", over="raise", invalid="raise"):
+        for tau in (1e-9, 1e-5, 1e-3, 1.0, 100.0, 1e6):
+            out = qlv_relax(p, 1.0 / 100.0, [(0.5, tau), (3.0, tau * 7)])
+            assert np.isfinite(out).all() and (out >= 0).all()
+            # bounded by the instantaneous-modulus response
+            assert out.max() <= (1 + 0.5 + 3.0) * p.max() * 1.0001
+    # tau -> 0: relaxed response; tau -> inf: instantaneous (elastic with E0) increments
+    fast = qlv_relax(p, 0.01, [(0.5, 1e-9)])
+    np.testing.assert_allclose(fast, p, rtol=1e-6, atol=1e-6 * p.max())
+
+
+@pytest.mark.filterwarnings("error")
+def test_contact_law_finite_over_extremes():
+    d = np.r_[-1.0, 0.0, np.logspace(-9, -1, 50)]
+    for e in (1e3, 1e10):
+        for skin in C.SKINS:
+            for oid in (0, 27):
+                m = mechanics(C.get_object(oid), skin, PhysicsOverrides(youngs_modulus=e))
+                p = contact_pressure(m, d)
+                assert np.isfinite(p).all() and (p >= 0).all() and p[0] == 0 and p[1] == 0
+                assert np.all(np.diff(p[2:]) > 0)  # monotone in indentation
+
+
+def test_continuity_without_lift_off():
+    tr = simulate_trial(4, "soft", "pressing", 15, duration=2.0, physics=PhysicsOverrides(relaxation_time=1e-5))
+    total = tr.fsr.astype(np.float64).sum(axis=(2, 3))[:, 0]
+    # no jumps beyond what 2 Hz motion + noise can produce between 1.4 ms samples
+    assert np.abs(np.diff(total)).max() < 0.05 * (total.max() - total.min()) + 200

@@ -1,0 +1,255 @@
+"""Physics and format tests of the palpation simulator (CPU, short trials)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+from scipy import signal
+
+from embodied_tactile import constants as C
+from embodied_tactile.io.rawformat import read_trial, scan_raw
+from embodied_tactile.sim import (
+    PhysicsOverrides,
+    contact_pressure,
+    force_indentation,
+    generate_dataset,
+    mechanics,
+    simulate_trial,
+)
+from embodied_tactile.sim import objects as O
+
+SLIDE_FAST = 15  # A_xy 8 mm, A_gamma 6 deg, 0.8 Hz
+PRESS_DEEP = 15  # A_z 8 mm, 0.8 Hz
+
+
+def hf_energy(trial, f_lo: float = 30.0) -> float:
+    """Mean power (g^2) of all accelerometer channels above f_lo Hz."""
+    a = trial.acc.reshape(len(trial.t), -1).astype(np.float64)
+    b, a_ = signal.butter(4, f_lo, "high", fs=C.FS_TACTILE)
+    return float((signal.filtfilt(b, a_, a - a.mean(0), axis=0) ** 2).mean())
+
+
+def fsr_minus_offset(trial) -> np.ndarray:
+    return np.clip(trial.fsr.astype(np.float64) - 15.0, 0.0, None)
+
+
+def mean_maps(trial, block: int = 35) -> np.ndarray:
+    """Offset-subtracted FSR maps averaged over blocks of samples (20 Hz; averages out the
+    white ADC noise, keeps the spatial structure). (N / block, 2, 16, 16)."""
+    f = fsr_minus_offset(trial)
+    n = (len(f) // block) * block
+    return f[:n].reshape(-1, block, *f.shape[1:]).mean(axis=1)
+
+
+def map_roughness(m: np.ndarray) -> float:
+    """Discrete-Laplacian energy of maps (N, 16, 16) relative to their energy."""
+    lap = m[:, 1:-1, 1:-1] * 4 - m[:, 2:, 1:-1] - m[:, :-2, 1:-1] - m[:, 1:-1, 2:] - m[:, 1:-1, :-2]
+    return float((lap**2).sum() / (m**2).sum())
+
+
+# --------------------------------------------------------------------------- format
+def test_full_trial_shapes_ranges_and_clock():
+    tr = simulate_trial(5, "soft", "precession", 3)
+    assert tr.t.shape == (C.N_TACTILE,) and tr.t.dtype == np.float64
+    assert tr.acc.shape == (C.N_TACTILE, 4, 4, 3) and tr.acc.dtype == np.float32
+    assert tr.fsr.shape == (C.N_TACTILE, 2, 16, 16) and tr.fsr.dtype == np.uint16
+    assert tr.pose_t.shape == (C.N_POSE,) and tr.pose.shape == (C.N_POSE, 6) and tr.pose.dtype == np.float32
+    assert np.all(np.diff(tr.t) > 0) and np.all(np.diff(tr.pose_t) > 0)
+    assert abs(tr.t[-1] - tr.pose_t[-1]) < 0.02  # one clock
+    assert tr.fsr.max() <= C.FSR_MAX_COUNT and np.abs(tr.acc).max() <= C.ACC_RANGE_G
+    # quantised to 1/16384 g; gravity on the skin-normal axis; a noise floor of a few mg
+    assert np.allclose(tr.acc * C.ACC_COUNTS_PER_G, np.rint(tr.acc * C.ACC_COUNTS_PER_G))
+    assert 0.95 < tr.acc[..., 2].mean() < 1.05 and abs(tr.acc[..., 0].mean()) < 0.1
+    still = simulate_trial(5, "soft", "pressing", 0, duration=1.0, physics=PhysicsOverrides(primitive_frequency_hz=0.0))
+    noise = still.acc[..., 2].astype(np.float64) - still.acc[..., 2].mean(0)
+    assert 0.001 < noise.std() < 0.01
+    # precession: commanded roll follows A sin(2 pi w t + pi/2), i.e. starts at +A
+    amp = np.deg2rad(C.get_action("precession", 3).params["A_alpha_beta_deg"])
+    assert tr.pose[0, 3] == pytest.approx(amp, abs=2e-3)
+    assert attrs_ok(tr.attrs)
+
+
+def attrs_ok(attrs) -> bool:
+    return attrs["source"] == "simulated" and attrs["object_id"] == 5 and attrs["skin"] == "soft"
+
+
+def test_determinism_and_independent_streams():
+    a = simulate_trial(12, "hard", "sliding", 7, repetition=0, seed=3, duration=1.0)
+    b = simulate_trial(12, "hard", "sliding", 7, repetition=0, seed=3, duration=1.0)
+    c = simulate_trial(12, "hard", "sliding", 7, repetition=1, seed=3, duration=1.0)
+    d = simulate_trial(12, "hard", "sliding", 7, repetition=0, seed=4, duration=1.0)
+    for f in ("t", "acc", "fsr", "pose_t", "pose"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    assert not np.array_equal(a.fsr, c.fsr) and not np.array_equal(a.acc, c.acc)
+    assert not np.array_equal(a.acc, d.acc)
+    # noise (and placement / tracking error) differ, the physics does not: trials stay correlated
+    a = simulate_trial(12, "hard", "pressing", PRESS_DEEP, repetition=0, seed=3, duration=2.0)
+    c = simulate_trial(12, "hard", "pressing", PRESS_DEEP, repetition=1, seed=3, duration=2.0)
+    ta, tc = fsr_minus_offset(a).sum(axis=(2, 3))[:, 0], fsr_minus_offset(c).sum(axis=(2, 3))[:, 0]
+    assert np.corrcoef(ta, tc)[0, 1] > 0.9
+    # the object is the same object in every trial (seeded by object id only)
+    h1 = O.surface(12).copy()
+    O.surface.cache_clear()
+    O._unit_surface.cache_clear()
+    np.testing.assert_array_equal(h1, O.surface(12))
+    assert not np.array_equal(O.surface(12), O.surface(13))
+
+
+def test_surface_peak_to_peak_and_band():
+    for oid in (0, 13, 26):
+        obj = C.get_object(oid)
+        h = O.surface(oid)
+        assert np.ptp(h) == pytest.approx(obj.amplitude_mm * 1e-3, rel=1e-9)
+        spec = np.abs(np.fft.fft2(h)) ** 2
+        k = np.fft.fftfreq(h.shape[0], d=1e-3)
+        kr = np.hypot(k[:, None], k[None, :])
+        centroid = (spec * kr).sum() / spec.sum()
+        assert centroid == pytest.approx(obj.spatial_frequency, rel=0.35)
+
+
+# --------------------------------------------------------------------------- contact
+def test_stiffer_object_gives_more_force_at_same_indentation():
+    d = np.array([0.5e-3, 2e-3, 5e-3])
+    for skin in C.SKINS:
+        p = [contact_pressure(mechanics(C.get_object(o), skin), d) for o in (0, 3, 6)]  # 00-10, 00-50, PLA
+        assert np.all(p[0] < p[1]) and np.all(p[1] < p[2])
+        f = [force_indentation(1, skin, d, physics=PhysicsOverrides(youngs_modulus=e)) for e in (1e4, 1e5, 1e6, 1e9)]
+        assert all(np.all(f[i] < f[i + 1]) for i in range(3))
+    # the stiffer skin also gives more force on the same object
+    assert np.all(force_indentation(1, "soft", d) < force_indentation(1, "hard", d))
+    # and the mechanism reaches the FSRs: same displacement amplitude, larger force swing
+    swings = []
+    for e in (3e4, 3e5, 3e6):
+        tr = simulate_trial(1, "soft", "pressing", PRESS_DEEP, duration=2.0, physics=PhysicsOverrides(youngs_modulus=e))
+        swings.append(fsr_minus_offset(tr)[:, 0].sum(axis=(1, 2)).std())
+    assert swings[0] < swings[1] < swings[2]
+
+
+def test_heterogeneous_objects_stiffen_and_bridge():
+    d = np.linspace(0.5e-3, 4e-3, 10)
+    for skin in C.SKINS:
+        homo = contact_pressure(mechanics(C.get_object(1), skin), d)  # Ecoflex 00-10 bulk, no top layer
+        for oid in C.HETEROGENEOUS_OBJECTS:
+            het = contact_pressure(mechanics(C.get_object(oid), skin), d)
+            k_homo = np.polyfit(np.log(d), np.log(homo), 1)[0]
+            k_het = np.polyfit(np.log(d), np.log(het), 1)[0]
+            assert k_het > k_homo + 0.15, (oid, skin, k_homo, k_het)  # stiffening (membrane)
+            assert np.all(np.diff(het, 2) > 0)  # convex: stiffening
+    # the stiff top layer bridges fine surface detail: smoother pressure maps than the
+    # homogeneous Ecoflex 00-10 object with the same spatial frequency and amplitude
+    for het, homo in ((27, 1), (28, 10), (29, 19), (31, 11)):
+        assert mechanics(C.get_object(het), "soft").bridging_length > 1e-3
+        r = [map_roughness(mean_maps(simulate_trial(o, "hard", "pressing", PRESS_DEEP, duration=2.0))[:, 0]) for o in (het, homo)]
+        assert r[0] < 0.8 * r[1], (het, homo, r)
+
+
+def test_viscoelastic_relaxation_after_step():
+    from embodied_tactile.sim import qlv_relax
+
+    step = np.r_[np.zeros(10), np.ones(500)][:, None]
+    out = qlv_relax(step, 0.01, [(0.3, 0.5)])[:, 0]
+    assert out[10] == pytest.approx(1.3, rel=0.02)  # instantaneous modulus
+    assert out[-1] == pytest.approx(1.0, abs=1e-3)  # relaxed modulus
+    assert np.all(np.diff(out[10:]) <= 1e-12)  # monotone relaxation
+
+
+# --------------------------------------------------------------------------- vibration
+def test_sliding_vibration_grows_with_spatial_frequency_and_roughness():
+    for skin in C.SKINS:
+        e = {o: hf_energy(simulate_trial(o, skin, "sliding", SLIDE_FAST, duration=2.0)) for o in (2, 11, 20, 18)}
+        assert e[2] < e[11] < e[20], (skin, e)  # 10, 30, 50 /m at 20 mm
+        assert e[18] < e[20], (skin, e)  # 5 mm vs 20 mm at 50 /m
+    # pressing (no sliding) excites far less high-frequency vibration than sliding
+    press = hf_energy(simulate_trial(20, "hard", "pressing", PRESS_DEEP, duration=2.0))
+    assert press < 0.5 * e[20]
+
+
+def test_soft_skin_attenuates_high_frequency_vibration():
+    for oid in (20, 24, 11):
+        soft = hf_energy(simulate_trial(oid, "soft", "sliding", SLIDE_FAST, duration=2.0), 100.0)
+        hard = hf_energy(simulate_trial(oid, "hard", "sliding", SLIDE_FAST, duration=2.0), 100.0)
+        assert soft < 0.7 * hard, (oid, soft, hard)
+
+
+# --------------------------------------------------------------------------- FSR layers
+def test_bottom_map_is_smoother_than_top():
+    for skin in C.SKINS:
+        for oid, bound in ((0, 1.0), (11, 1.0), (20, 0.85), (24, 0.85)):
+            m = mean_maps(simulate_trial(oid, skin, "pressing", PRESS_DEEP, duration=2.0))
+            assert map_roughness(m[:, 1]) < bound * map_roughness(m[:, 0]), (skin, oid)
+
+
+def test_shear_displaces_bottom_map_against_sliding_direction():
+    idx = np.arange(16)
+    shifts = {}
+    for skin in C.SKINS:
+        total = 0.0
+        for oid in (10, 20):
+            tr = simulate_trial(oid, skin, "sliding", SLIDE_FAST, duration=5.0)
+            f = fsr_minus_offset(tr)
+            s = f.sum(axis=(2, 3)) + 1e-9
+            cx = (f.sum(axis=2) * idx).sum(-1) / s  # (N, 2) column centroid per layer
+            cy = (f.sum(axis=3) * idx).sum(-1) / s
+            dx, dy = cx[:, 1] - cx[:, 0], cy[:, 1] - cy[:, 0]
+            vx = np.interp(tr.t, tr.pose_t[1:], np.diff(tr.pose[:, 0].astype(np.float64)) / np.diff(tr.pose_t))
+            vy = np.interp(tr.t, tr.pose_t[1:], np.diff(tr.pose[:, 1].astype(np.float64)) / np.diff(tr.pose_t))
+            th = 0.3 * np.abs(vx).max()
+            # same positions are visited in both directions: the difference isolates the shear
+            sx = dx[vx > th].mean() - dx[vx < -th].mean()
+            sy = dy[vy > th].mean() - dy[vy < -th].mean()
+            assert sx + sy < 0, (skin, oid, sx, sy)
+            total += sx + sy
+        shifts[skin] = total
+    assert shifts["soft"] < shifts["hard"]  # the soft inter-layer shears more
+
+
+def test_saturation_and_lift_off():
+    sat = simulate_trial(6, "hard", "pressing", PRESS_DEEP, duration=1.0, physics=PhysicsOverrides(force_scale=1e6))
+    ref = simulate_trial(6, "hard", "pressing", PRESS_DEEP, duration=1.0)
+    touched = ref.fsr > 100  # every taxel in contact saturates
+    assert touched.mean() > 0.1 and (sat.fsr[touched] == C.FSR_MAX_COUNT).mean() > 0.9
+    lift = simulate_trial(6, "soft", "pressing", 0, duration=3.0, physics=PhysicsOverrides(lift_off=True))
+    mid = (lift.t > 1.4) & (lift.t < 1.6)
+    assert fsr_minus_offset(lift)[mid].max() < 10  # no contact: offsets + noise only
+    assert fsr_minus_offset(lift)[lift.t < 0.5].sum(axis=(1, 2, 3)).min() > 100
+
+
+# --------------------------------------------------------------------------- dataset / CLI
+def test_generate_dataset_resumes_and_passes_scan(tmp_path):
+    path = tmp_path / "raw.h5"
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 27], actions=[1], duration=0.5, workers=1)
+    with h5py.File(path, "r") as f:
+        first = f["trials/obj00_hard_pressing_a01_r00/tactile/fsr"][()]
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 27], actions=[1, 2], duration=0.5, workers=2)
+    good, errors = scan_raw(path)
+    assert errors == []
+    assert sorted(g.name for g in good) == [
+        "obj00_hard_pressing_a01_r00",
+        "obj00_hard_pressing_a02_r00",
+        "obj27_hard_pressing_a01_r00",
+        "obj27_hard_pressing_a02_r00",
+    ]
+    tr = read_trial(path, "obj00_hard_pressing_a01_r00")
+    np.testing.assert_array_equal(tr.fsr, first)
+    assert tr.attrs["heterogeneity"] == 0.0
+    assert read_trial(path, "obj27_hard_pressing_a02_r00").attrs["heterogeneity"] == 1.0
+
+
+def test_cli_writes_requested_trials(tmp_path):
+    out = tmp_path / "cli.h5"
+    cmd = [sys.executable, "-m", "embodied_tactile.simulate", "skin=soft", "primitive=sliding", f"out={out}",
+           "objects=[0,1]", "actions=[0,5]", "repetitions=1", "seed=0", "workers=2", "duration=0.5"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
+    assert res.returncode == 0, res.stderr
+    good, errors = scan_raw(out)
+    assert errors == []
+    assert sorted(g.name for g in good) == [
+        f"obj{o:02d}_soft_sliding_a{a:02d}_r00" for o in (0, 1) for a in (0, 5)
+    ]
+    assert all(g.attrs["source"] == "simulated" for g in good)
