@@ -12,6 +12,7 @@ Target: >= 700 packets/s with no loss when no fault is injected.
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import subprocess
 import sys
@@ -70,6 +71,7 @@ def main() -> None:
     ap.add_argument("--rows", default="paced,grid,unpaced,faults")
     args = ap.parse_args()
     out = []
+    load0 = os.getloadavg()
     with tempfile.TemporaryDirectory() as d:
         for key in args.rows.split(","):
             out.append(run_row(key, args.duration, Path(d)))
@@ -81,6 +83,7 @@ def main() -> None:
             f"| {r['row']:52s} | {r['packets']:7d} | {r['rate']:12.1f} | {r['lost']:4d} | {r['garbage']:7d} | {r['jit_std_ms']:15.3f} | "
             f"{r['max_dt_ms']:17.2f} | {r['cpu_pct']:26.1f} | {'ok' if r['valid'] else 'BAD':8s} |"
         )
+    print(f"{os.cpu_count()} CPUs, load average {load0[0]:.2f} before / {os.getloadavg()[0]:.2f} after; {args.duration:g} s per row")
 
 
 if __name__ == "__main__":

@@ -202,6 +202,7 @@ def test_emulator_recorder_roundtrip(tmp_path):
         ("truncate", Faults(truncate=0.01, seed=3)),
         ("garbage_random", Faults(garbage=0.01, garbage_mode="random", seed=4)),
         ("garbage_shift", Faults(garbage=0.01, garbage_mode="shift", seed=5)),
+        ("garbage_long", Faults(garbage=0.01, garbage_mode="long", seed=6)),
     ],
 )
 def test_faults(tmp_path, trial3s, kind, faults):
@@ -301,6 +302,30 @@ def test_cli_sigkill_leaves_readable_file(tmp_path, trial3s):
     n = len(rec.t)
     assert sent - 700 <= n <= sent + 5, (n, sent)  # all but at most the last second
     _check_genuine(trial3s, rec)
+
+
+def test_emulate_cli_serves_packets(tmp_path):
+    import serial
+
+    proc = subprocess.Popen([sys.executable, "-m", "embodied_tactile.emulate", "--synthetic", "1", "--max-seconds", "20", "--rate", "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/")
+        trial = synthetic_trial(1.0)
+        with serial.serial_for_url(port, baudrate=500000, timeout=2) as ser:
+            for k in range(3):
+                ser.write(bytes([0xD0]))
+                acc, fsr, dt_acc, dt_fsr = P.decode_packet(ser.read(1128))
+                np.testing.assert_array_equal(fsr, trial.fsr[k])
+                assert np.abs(acc - trial.acc[k]).max() <= LSB and abs(dt_acc - 1e6 / 700) < 2
+            ser.write(b"\x00\x01")  # anything but 0xD0 is ignored
+            time.sleep(0.1)
+            assert ser.in_waiting == 0
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0 and '"sent": 3' in err
 
 
 def test_cli_config_and_port_errors(tmp_path):

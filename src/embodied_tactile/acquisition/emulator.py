@@ -5,7 +5,7 @@ The emulator opens a pty pair, prints/returns the slave path (what a recorder op
 trial, paced at the trial's rate (or as fast as requested). Faults can be injected with
 given probabilities (seedable): ``drop`` (no answer), ``delay`` (answer after
 ``delay_s``, i.e. after the recorder's timeout), ``truncate`` (only part of the packet),
-``garbage`` (random bytes, or the packet shifted by a few junk bytes) and ``disconnect``
+``garbage`` (random bytes, the packet shifted by a few junk bytes, or followed by junk) and ``disconnect``
 (close the pty after N packets or t seconds, like an unplugged cable).
 
 Pure NumPy + os/pty; no torch, no pyserial needed on this side.
@@ -96,7 +96,7 @@ class Faults:
     delay_s: float = 0.15  # must exceed the recorder's timeout to be a fault
     truncate: float = 0.0
     garbage: float = 0.0
-    garbage_mode: str = "mixed"  # random | shift | mixed
+    garbage_mode: str = "mixed"  # random | shift | long | mixed
     disconnect_after_packets: int | None = None
     disconnect_after_s: float | None = None
     seed: int = 0
@@ -106,8 +106,8 @@ class Faults:
             p = getattr(self, k)
             if not 0.0 <= p <= 1.0:
                 raise ValueError(f"fault probability {k}={p} not in [0, 1]")
-        if self.garbage_mode not in ("random", "shift", "mixed"):
-            raise ValueError(f"garbage_mode must be random|shift|mixed, got {self.garbage_mode!r}")
+        if self.garbage_mode not in ("random", "shift", "long", "mixed"):
+            raise ValueError(f"garbage_mode must be random|shift|long|mixed, got {self.garbage_mode!r}")
 
 
 @dataclass
@@ -305,11 +305,14 @@ class Emulator:
             self._write(pkt[: int(self.rng.integers(1, PACKET_SIZE))])
         elif u[3] < f.garbage:
             st.garbage += 1
-            mode = f.garbage_mode if f.garbage_mode != "mixed" else ("random", "shift")[int(self.rng.integers(2))]
+            mode = f.garbage_mode if f.garbage_mode != "mixed" else ("random", "shift", "long")[int(self.rng.integers(3))]
+            junk = self.rng.integers(0, 256, int(self.rng.integers(1, 64)), dtype=np.uint8).tobytes()
             if mode == "random":
                 self._write(self.rng.integers(0, 256, PACKET_SIZE, dtype=np.uint8).tobytes())
-            else:  # junk bytes in front: the packet arrives shifted, its tail spills over
-                self._write(self.rng.integers(0, 256, int(self.rng.integers(1, 64)), dtype=np.uint8).tobytes() + pkt)
+            elif mode == "shift":  # junk bytes in front: the packet arrives shifted, its tail spills over
+                self._write(junk + pkt)
+            else:  # "long": a response longer than a packet (junk after it)
+                self._write(pkt + junk)
         else:
             self._write(pkt)
             st.sent += 1

@@ -84,6 +84,7 @@ class RecordResult:
     jitter_std_s: float = float("nan")
     jitter_max_s: float = float("nan")
     cpu_s: float = 0.0
+    wall_s: float = 0.0
     garbage_reasons: dict[str, int] = field(default_factory=dict)
     path: str = ""
     trial: str = ""
@@ -322,8 +323,8 @@ class Recorder:
             garbage_reasons=dict(self.reasons),
             path=str(self.writer.path),
             trial=self.writer.name,
+            wall_s=time.perf_counter() - t_start,
         )
-        res.wall_s = time.perf_counter() - t_start  # type: ignore[attr-defined]
         return res
 
 
