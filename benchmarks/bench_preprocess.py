@@ -46,7 +46,7 @@ def synthetic_trial(i: int, seed: int = 0) -> RawTrial:
     pose[:, 2] = 0.1 + 0.004 * np.cos(2 * np.pi * 0.4 * (pose_t - pose_t[0]) + np.pi)
     pose[:, 3] = 0.01 * (pose_t - pose_t[0])
     attrs = make_attrs(object_id=i % 32, skin="soft", primitive="pressing", action_index=i % 16,
-                       repetition=i // 512, source="simulated", seed=seed + i)
+                       repetition=i // 32, source="simulated", seed=seed + i)
     return RawTrial(t=t, acc=acc, fsr=fsr, pose_t=pose_t, pose=pose, attrs=attrs)
 
 
