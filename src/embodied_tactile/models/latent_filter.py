@@ -32,6 +32,7 @@ from .networks import (
     gaussian_entropy,
     gaussian_nll,
     kl_diag_gaussians,
+    small_batch_convs,
 )
 
 FUSIONS = ("single", "early", "late")
@@ -191,7 +192,12 @@ class LatentFilter(nn.Module):
         self._check_obs(o)
         m = v = None
         for name, idx in self._pathway_index:
-            x = o if len(self._pathway_index) == 1 else o.index_select(1, getattr(self, f"_idx_{name}"))
+            if len(self._pathway_index) == 1:
+                x = o
+            elif idx == list(range(idx[0], idx[-1] + 1)):
+                x = o[:, idx[0]:idx[-1] + 1]  # contiguous channels: a view
+            else:
+                x = o.index_select(1, getattr(self, f"_idx_{name}"))
             mi, vi = self.encoders[name](x)
             m, v = (mi, vi) if m is None else fuse_gaussians(m, v, mi, vi)
         return m, v
@@ -316,5 +322,6 @@ class LatentFilter(nn.Module):
         equals the batched ``forward(..., sample=False)`` at the same t.
         Returns ({z_mean, z_var, y_mean, y_var, zp_mean, zp_var, z, y}, new_state).
         """
-        enc_m, enc_v = self.encode(obs_t)
+        with small_batch_convs(obs_t.shape[0]):
+            enc_m, enc_v = self.encode(obs_t)
         return self.step(enc_m, enc_v, action_t.float(), state, sample, prev_action)

@@ -7,7 +7,7 @@ float32 with autocast disabled, whatever precision the surrounding network runs 
 from __future__ import annotations
 
 import math
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from typing import Iterator, Sequence
 
 import torch
@@ -18,10 +18,21 @@ LOG_2PI = math.log(2.0 * math.pi)
 
 
 @contextmanager
-def float32_region(x: Tensor) -> Iterator[None]:
-    """Disable autocast for the device of ``x`` (callers cast their inputs to float32)."""
-    with torch.autocast(device_type=x.device.type, enabled=False):
+def _autocast_off(device_type: str) -> Iterator[None]:
+    with torch.autocast(device_type=device_type, enabled=False):
         yield
+
+
+_NULL = nullcontext()
+
+
+def float32_region(x: Tensor):
+    """Context with autocast disabled for the device of ``x`` (callers cast their inputs
+    to float32). A no-op context when autocast is off (cheap on the online path)."""
+    dev = x.device.type
+    if torch.is_autocast_enabled(dev):
+        return _autocast_off(dev)
+    return _NULL
 
 
 def softplus_var(raw: Tensor, floor: float) -> Tensor:
@@ -75,6 +86,21 @@ def gaussian_nll(x: Tensor, mean: Tensor, log_sigma: Tensor) -> Tensor:
         return 0.5 * r * r + ls + 0.5 * LOG_2PI
 
 
+@contextmanager
+def small_batch_convs(n: int, threshold: int = 8) -> Iterator[None]:
+    """For a handful of frames, oneDNN's per-call overhead dominates (~3x slower than the
+    native kernels at batch 1 on CPU): disable it around the call. No-op otherwise."""
+    if n > threshold or not torch.backends.mkldnn.is_available():
+        yield
+        return
+    prev = torch._C._get_mkldnn_enabled()
+    torch._C._set_mkldnn_enabled(False)
+    try:
+        yield
+    finally:
+        torch._C._set_mkldnn_enabled(prev)
+
+
 # --------------------------------------------------------------------------- networks
 
 
@@ -109,6 +135,8 @@ class ConvEncoder(nn.Module):
     def forward(self, o: Tensor) -> tuple[Tensor, Tensor]:
         if o.shape[-3:] != (self.in_channels, 28, 28):
             raise ValueError(f"encoder expects (N, {self.in_channels}, 28, 28), got {tuple(o.shape)}")
+        if o.shape[0] >= 64 and o.device.type == "cpu":
+            o = o.contiguous(memory_format=torch.channels_last)  # ~2-3x faster oneDNN convs
         m, raw = self.head(self.conv(o)).chunk(2, dim=-1)
         return m.float(), softplus_var(raw, self.min_var)
 

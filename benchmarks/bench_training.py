@@ -1,0 +1,135 @@
+"""Latent Filter training throughput and online filtering latency (CPU).
+
+For every modality: sequences/s of one training step (forward + backward + Adam step)
+of the batched model (encoders/decoders over all B*T frames in one call, only the
+LSTM/transition recursion in a Python loop) against a naive reference that runs the
+encoder and decoder inside the time loop, with the same weights, in the same run.
+Then the median latency of ``filter_step`` for multi_l at batch 1 on one thread.
+
+    python benchmarks/bench_training.py            # paper shapes B=48, T=300
+    python benchmarks/bench_training.py --quick    # B=8, T=50
+    python benchmarks/bench_training.py --batch 16 --seq 100 --modalities acc multi_l
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from embodied_tactile.models import MODALITY_PRESETS, LatentFilter
+from embodied_tactile.models.networks import gaussian_entropy, gaussian_nll, kl_diag_gaussians
+
+
+def naive_terms(m: LatentFilter, batch: dict, sample: bool = True) -> dict:
+    """Same loss as ``LatentFilter.elbo_terms``, encoder and decoder called per time step."""
+    obs, actions = batch["obs"], batch["actions"].float()
+    B, T = obs.shape[:2]
+    log_sigma = m.obs_log_sigma().view(1, -1, 1, 1)
+    state, nll, kl_z, kl_y, ent = None, 0.0, 0.0, 0.0, 0.0
+    if T > 1:
+        py_m, py_v = m.prior(batch["object_id"], actions)
+    for t in range(T):
+        enc_m, enc_v = m.encode(obs[:, t])
+        out, state = m.step(enc_m, enc_v, actions[:, t], state, sample)
+        rec = m.decode(out["z"])
+        nll = nll + gaussian_nll(obs[:, t], rec, log_sigma).sum(dim=(1, 2, 3))
+        kl_z = kl_z + kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"])
+        ent = ent + gaussian_entropy(out["z_var"])
+        if t > 0:
+            kl_y = kl_y + kl_diag_gaussians(out["y_mean"], out["y_var"], py_m[:, t], py_v[:, t])
+            ent = ent + gaussian_entropy(out["y_var"])
+    return {"nll": nll.mean(), "kl_z": kl_z.mean(), "kl_y": torch.as_tensor(kl_y).mean(), "entropy": ent.mean()}
+
+
+def make_batch(C: int, B: int, T: int) -> dict:
+    g = torch.Generator().manual_seed(0)
+    return {"obs": torch.rand(B, T, C, 28, 28, generator=g), "actions": torch.randn(B, T, 6, generator=g),
+            "object_id": torch.randint(0, 32, (B,), generator=g)}
+
+
+def time_steps(fn, model, opt, repeats: int, warmup: int = 1) -> float:
+    times = []
+    for i in range(warmup + repeats):
+        t0 = time.perf_counter()
+        opt.zero_grad(set_to_none=True)
+        terms = fn()
+        (terms["nll"] + terms["kl_z"] + terms["kl_y"]).backward()
+        opt.step()
+        if i >= warmup:
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def bench_latency(model_kw: dict, n: int = 2000) -> tuple[float, float]:
+    torch.set_num_threads(1)
+    m = LatentFilter("multi_l", **model_kw).eval()
+    obs = torch.rand(n + 100, 1, 3, 28, 28)
+    act = torch.randn(n + 100, 1, 6)
+    times = []
+    with torch.inference_mode():
+        state, prev = None, None
+        for i in range(n + 100):
+            t0 = time.perf_counter()
+            _, state = m.filter_step(obs[i], act[i], prev, state)
+            dt = time.perf_counter() - t0
+            prev = act[i]
+            if i >= 100:
+                times.append(dt)
+    times.sort()
+    return statistics.median(times) * 1e3, times[int(0.99 * len(times))] * 1e3
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--batch", type=int, default=None, help="B (default 48, --quick 8)")
+    p.add_argument("--seq", type=int, default=None, help="T (default 300, --quick 50)")
+    p.add_argument("--quick", action="store_true", help="smaller shapes for a fast check")
+    p.add_argument("--modalities", nargs="+", default=sorted(MODALITY_PRESETS), choices=sorted(MODALITY_PRESETS))
+    p.add_argument("--repeats", type=int, default=2, help="timed steps per model (median; after 1 warm-up)")
+    p.add_argument("--naive-repeats", type=int, default=1)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--widths", type=int, nargs=2, default=[16, 32], help="encoder conv widths")
+    p.add_argument("--hidden", type=int, default=128)
+    p.add_argument("--latency-steps", type=int, default=2000)
+    p.add_argument("--no-naive", action="store_true")
+    args = p.parse_args()
+    B = args.batch or (8 if args.quick else 48)
+    T = args.seq or (50 if args.quick else 300)
+    model_kw = dict(encoder={"widths": args.widths, "hidden": args.hidden}, transition_hidden=128, lstm_hidden=128)
+    torch.set_num_threads(args.threads)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; shapes B={B}, T={T}, 28x28; "
+          f"encoder widths {args.widths}, hidden {args.hidden}; n_z=16, n_y=16")
+    print(f"{'modality':<9} {'C':>2} {'params':>8} {'step s':>8} {'seq/s':>8} {'naive s':>8} {'naive seq/s':>11} {'speed-up':>9}")
+    for name in args.modalities:
+        torch.manual_seed(0)
+        m = LatentFilter(name, **model_kw)
+        C = len(m.modality["channels"])
+        batch = make_batch(C, B, T)
+        opt = torch.optim.Adam(m.parameters(), lr=1e-5)
+        t_fast = time_steps(lambda: m.elbo_terms(batch), m, opt, args.repeats)
+        n_params = sum(p.numel() for p in m.parameters())
+        if args.no_naive:
+            print(f"{name:<9} {C:>2} {n_params:>8} {t_fast:>8.2f} {B / t_fast:>8.1f}")
+            continue
+        t_naive = time_steps(lambda: naive_terms(m, batch), m, opt, args.naive_repeats)
+        print(f"{name:<9} {C:>2} {n_params:>8} {t_fast:>8.2f} {B / t_fast:>8.1f} {t_naive:>8.2f} "
+              f"{B / t_naive:>11.1f} {t_naive / t_fast:>8.1f}x", flush=True)
+    if not args.no_naive:
+        # the reference computes the same loss (deterministic mode)
+        m = LatentFilter("multi_l", **model_kw)
+        small = make_batch(3, 2, 6)
+        with torch.no_grad():
+            a = m.elbo_terms(small, sample=False)
+            b = naive_terms(m, small, sample=False)
+        diff = max(abs(float(a[k]) - float(b[k])) / max(1.0, abs(float(a[k]))) for k in ("nll", "kl_z", "kl_y", "entropy"))
+        print(f"naive reference vs batched loss, max relative difference: {diff:.1e}")
+    med, p99 = bench_latency(model_kw, args.latency_steps)
+    print(f"filter_step multi_l, batch 1, 1 thread: median {med:.3f} ms, p99 {p99:.3f} ms "
+          f"over {args.latency_steps} steps")
+
+
+if __name__ == "__main__":
+    main()
