@@ -35,7 +35,7 @@ def hf_energy(trial, f_lo: float = 30.0) -> float:
 
 
 def fsr_minus_offset(trial) -> np.ndarray:
-    return np.clip(trial.fsr.astype(np.float64) - 15.0, 0.0, None)
+    return np.clip(trial.fsr.astype(np.float64) - 5.0, 0.0, None)
 
 
 def mean_maps(trial, block: int = 35) -> np.ndarray:
@@ -185,34 +185,42 @@ def test_bottom_map_is_smoother_than_top():
 
 
 def test_shear_displaces_bottom_map_against_sliding_direction():
-    idx = np.arange(16)
-    shifts = {}
+    """Same trial with and without friction (same seed: same noise, poses and contact).
+    The top map does not change (an FSR senses normal force only); the bottom map is
+    displaced along the traction on the skin, i.e. against the sliding velocity. The
+    displacement is estimated per frame by least squares (optical-flow style):
+    B_fric - B_ref ~ -s . grad(B_ref)."""
+
+    def shift(tr, ref):
+        b, r = fsr_minus_offset(tr)[:, 1], fsr_minus_offset(ref)[:, 1]
+        gy, gx = np.gradient(r, axis=(1, 2))
+        d = b - r
+        sx = -(d * gx).sum(axis=(1, 2)) / ((gx**2).sum(axis=(1, 2)) + 1e-9)
+        sy = -(d * gy).sum(axis=(1, 2)) / ((gy**2).sum(axis=(1, 2)) + 1e-9)
+        return sx, sy
+
+    amplitude = {}
     for skin in C.SKINS:
-        total = 0.0
-        for oid in (10, 20):
-            tr = simulate_trial(oid, skin, "sliding", SLIDE_FAST, duration=5.0)
-            f = fsr_minus_offset(tr)
-            s = f.sum(axis=(2, 3)) + 1e-9
-            cx = (f.sum(axis=2) * idx).sum(-1) / s  # (N, 2) column centroid per layer
-            cy = (f.sum(axis=3) * idx).sum(-1) / s
-            dx, dy = cx[:, 1] - cx[:, 0], cy[:, 1] - cy[:, 0]
+        amplitude[skin] = 0.0
+        for oid in (10, 20, 27):
+            tr = simulate_trial(oid, skin, "sliding", SLIDE_FAST, duration=3.0)
+            ref = simulate_trial(oid, skin, "sliding", SLIDE_FAST, duration=3.0, physics=PhysicsOverrides(friction=0.0))
+            np.testing.assert_array_equal(tr.fsr[:, 0], ref.fsr[:, 0])
+            sx, sy = shift(tr, ref)
             vx = np.interp(tr.t, tr.pose_t[1:], np.diff(tr.pose[:, 0].astype(np.float64)) / np.diff(tr.pose_t))
             vy = np.interp(tr.t, tr.pose_t[1:], np.diff(tr.pose[:, 1].astype(np.float64)) / np.diff(tr.pose_t))
-            th = 0.3 * np.abs(vx).max()
-            # same positions are visited in both directions: the difference isolates the shear
-            sx = dx[vx > th].mean() - dx[vx < -th].mean()
-            sy = dy[vy > th].mean() - dy[vy < -th].mean()
-            assert sx + sy < 0, (skin, oid, sx, sy)
-            total += sx + sy
-        shifts[skin] = total
-    assert shifts["soft"] < shifts["hard"]  # the soft inter-layer shears more
+            assert np.corrcoef(sx, vx)[0, 1] < -0.5, (skin, oid, np.corrcoef(sx, vx)[0, 1])
+            assert np.corrcoef(sy, vy)[0, 1] < -0.5, (skin, oid, np.corrcoef(sy, vy)[0, 1])
+            amplitude[skin] += np.median(np.abs(sx)) + np.median(np.abs(sy))
+    assert amplitude["soft"] > 2 * amplitude["hard"], amplitude  # the soft inter-layer shears more
 
 
 def test_saturation_and_lift_off():
     sat = simulate_trial(6, "hard", "pressing", PRESS_DEEP, duration=1.0, physics=PhysicsOverrides(force_scale=1e6))
     ref = simulate_trial(6, "hard", "pressing", PRESS_DEEP, duration=1.0)
     touched = ref.fsr > 100  # every taxel in contact saturates
-    assert touched.mean() > 0.1 and (sat.fsr[touched] == C.FSR_MAX_COUNT).mean() > 0.9
+    assert touched.mean() > 0.1 and (sat.fsr[touched] >= C.FSR_MAX_COUNT - 3).mean() > 0.9
+    assert (sat.fsr[touched] == C.FSR_MAX_COUNT).mean() > 0.6
     lift = simulate_trial(6, "soft", "pressing", 0, duration=3.0, physics=PhysicsOverrides(lift_off=True))
     mid = (lift.t > 1.4) & (lift.t < 1.6)
     assert fsr_minus_offset(lift)[mid].max() < 10  # no contact: offsets + noise only

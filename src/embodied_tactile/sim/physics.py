@@ -72,8 +72,10 @@ MAX_SHEAR_STRAIN = 0.5
 #: FSR: conductance ~ F^FSR_EXPONENT, divider at the force FSR_HALF_N (half-scale count).
 FSR_EXPONENT = 0.7
 FSR_HALF_N = 0.15
-FSR_NOISE_COUNTS = 1.0
-FSR_OFFSET_COUNTS = 12.0
+FSR_ACTIVATION_N = 0.005  # turn-on force: below it the FSR stays open circuit
+FSR_NOISE_COUNTS = 0.6  # ADC noise floor (rms counts)
+FSR_NOISE_REL = 0.006  # FSR resistance noise: sigma += REL * c (1 - c / 4095), c = count
+FSR_OFFSET_COUNTS = 3.0  # zero-force offsets 0..3 counts (an unloaded FSR is ~open circuit)
 FSR_GAIN_SPREAD = 0.1
 
 #: Approach: quasi-static preload before the primitive starts.
@@ -98,7 +100,8 @@ class PhysicsOverrides:
     ``amplitude_mm`` rescales the surface peak-to-peak; ``primitive_frequency_hz``
     replaces the action's frequency; ``lift_off`` retracts the robot 30 mm over the
     middle third of the trial; ``force_scale`` multiplies all contact pressures
-    (1e6 drives every sensor into saturation).
+    (1e6 drives every sensor into saturation); ``friction`` replaces the skin/object
+    Coulomb coefficient (0 switches shear and stick-slip off).
     """
 
     youngs_modulus: float | None = None
@@ -107,6 +110,7 @@ class PhysicsOverrides:
     primitive_frequency_hz: float | None = None
     lift_off: bool = False
     force_scale: float = 1.0
+    friction: float | None = None  # Coulomb coefficient skin/object (0: no shear)
 
 
 @dataclass(frozen=True)
@@ -151,7 +155,7 @@ def mechanics(obj: C.WaveObject, skin: str, physics: PhysicsOverrides | None = N
         tau_obj=float(tau) if tau is not None else bulk.relaxation_time,
         e_top=top.youngs_modulus if top else 0.0,
         t_top=obj.top_thickness_mm * 1e-3,
-        friction=min(surface.friction, sk.friction),
+        friction=float(physics.friction) if physics.friction is not None else min(surface.friction, sk.friction),
     )
 
 
