@@ -1,0 +1,307 @@
+"""Evaluation library: NMSE, KRR alignment (leakage guards, Nystroem), baselines, tables, figures."""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("TMPDIR", "/tmp")) / "embodied_tactile_numba"))
+
+from embodied_tactile.constants import OBJECTS  # noqa: E402
+from embodied_tactile.eval import (LeakageError, NMSE_DEFINITION, NMSEUndefinedWarning, Results,  # noqa: E402
+                                   evaluate_latents, fit_alignment, nmse, nmse_over_time, nmse_trajectory)
+from embodied_tactile.eval.krr import final_segment_rows  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _one_blas_thread():
+    """The test machine is small and shared: multi-threaded BLAS only thrashes."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        yield
+
+
+# ------------------------------------------------------------------ synthetic latents
+def synthetic_split(n, *, t=40, d=16, seed=0, noise=0.05, offset=0, rng_w=1234):
+    """Latents converge over time to a smooth nonlinear function of the factors."""
+    rng = np.random.default_rng(seed)
+    w = np.random.default_rng(rng_w).normal(size=(4, d))
+    obj = rng.integers(0, 32, n)
+    u = rng.uniform(-1, 1, (n, 4))  # latent causes
+    factors = np.c_[np.sin(2 * u[:, 0]), u[:, 1] ** 3 + u[:, 1], np.exp(u[:, 2]), np.tanh(2 * u[:, 3])]
+    base = np.tanh(u @ w)
+    conv = (1 - np.exp(-np.arange(t) / 8.0))[None, :, None]
+    lat = base[:, None, :] * conv + noise * rng.normal(size=(n, t, d))
+    return {"y": lat, "z": lat[..., ::-1].copy(), "factors": factors, "object_id": obj,
+            "action_index": rng.integers(0, 16, n), "seq_id": np.arange(n) + offset}
+
+
+# ------------------------------------------------------------------ NMSE
+def test_nmse_matches_hand_computation():
+    y = np.array([[1.0, 0.0], [2.0, 1.0], [3.0, 2.0], [6.0, 1.0]])
+    yh = np.array([[1.5, 0.0], [2.0, 0.5], [2.0, 2.0], [5.0, 1.0]])
+    # factor 0: err = .25+0+1+1 = 2.25 ; mean = 3, den = 4+1+0+9 = 14
+    # factor 1: err = 0+.25+0+0 = .25 ; mean = 1, den = 1+0+1+0 = 2
+    np.testing.assert_allclose(nmse(y, yh), [2.25 / 14, 0.25 / 2])
+    # trajectory form == flattening (sequence, frame)
+    pred = np.stack([yh, y], axis=1)  # (4, 2, 2)
+    np.testing.assert_allclose(nmse_trajectory(y, pred), [2.25 / 28, 0.25 / 4])
+    np.testing.assert_allclose(nmse_over_time(y, pred), [[2.25 / 14, 0.25 / 2], [0.0, 0.0]])
+    # NaN targets are ignored
+    y2 = np.vstack([y, [[np.nan, np.nan]]])
+    np.testing.assert_allclose(nmse(y2, np.vstack([yh, [[0.0, 0.0]]])), [2.25 / 14, 0.25 / 2])
+
+
+def test_nmse_zero_variance_is_nan_with_warning():
+    y = np.array([[1.0, 1.0], [2.0, 1.0], [3.0, 1.0]])
+    with pytest.warns(NMSEUndefinedWarning):
+        out = nmse(y, y + 0.1)
+    assert np.isfinite(out[0]) and np.isnan(out[1])
+    # with a reference variance the subset value is defined
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = nmse(y, y + 0.1, var_ref=np.array([1.0, 0.5]))
+    np.testing.assert_allclose(out, [0.01, 0.02])
+
+
+# ------------------------------------------------------------------ KRR
+def test_krr_recovers_smooth_nonlinear_mapping_and_not_shuffled():
+    tr, te = synthetic_split(240, seed=1), synthetic_split(80, seed=2, offset=10_000)
+    align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"])
+    assert align.params["kernel"] == "rbf" and align.params["method"] == "exact_krr"
+    pred = align.predict(te["y"], ids=te["seq_id"])
+    assert pred.shape == (80, 40, 4)
+    last = nmse(te["factors"], pred[:, -1])
+    assert np.all(last < 0.05), last
+    # early frames (unconverged latents) are worse than late ones
+    curve = nmse_over_time(te["factors"], pred)
+    assert curve[0].mean() > curve[-1].mean()
+    # shuffled targets: nothing to learn -> about the mean predictor
+    rng = np.random.default_rng(0)
+    bad = fit_alignment(tr["y"], tr["factors"][rng.permutation(240)])
+    assert np.all(nmse(te["factors"], bad.predict(te["y"])[:, -1]) > 0.8)
+
+
+def test_alignment_never_scores_its_training_sequences():
+    tr = synthetic_split(60, seed=3)
+    align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"], cv=3)
+    with pytest.raises(LeakageError):
+        align.predict(tr["y"][:5], ids=tr["seq_id"][:5])
+    te = synthetic_split(20, seed=4, offset=5)  # ids 5..24 overlap the training ids 0..59
+    with pytest.raises(LeakageError):
+        evaluate_latents(tr, te)
+
+
+def test_cv_uses_training_rows_only(monkeypatch):
+    """The grid search only ever sees the training rows; held-out latents enter predict only."""
+    import embodied_tactile.eval.krr as krr
+
+    tr, te = synthetic_split(50, seed=5), synthetic_split(30, seed=6, offset=1000)
+    te["y"] = te["y"] + 100.0  # unmistakable held-out values
+    seen = []
+    orig = krr._grid_cv
+
+    def spy(xs, ys, folds, *a, **k):
+        seen.append((xs.copy(), folds))
+        return orig(xs, ys, folds, *a, **k)
+
+    monkeypatch.setattr(krr, "_grid_cv", spy)
+    res, align = evaluate_latents(tr, te, alignment={"cv": 3, "frames_per_sequence": 2})
+    (xs, folds), = seen
+    assert xs.shape[0] == 50 * 2  # 2 final-segment frames per training sequence
+    raw = xs * align.x_scale + align.x_mean
+    assert np.abs(raw).max() < 50  # no held-out row (they are ~100)
+    # folds are grouped by sequence: no sequence on both sides
+    seq = np.repeat(np.arange(50), 2)
+    for a, b in folds:
+        assert not set(seq[a]) & set(seq[b])
+    assert res.n_train == 50 and res.n_test == 30
+
+
+def test_grid_cv_matches_sklearn_gridsearchcv():
+    from sklearn.kernel_ridge import KernelRidge
+    from sklearn.model_selection import GridSearchCV, GroupKFold
+
+    from embodied_tactile.eval.krr import _grid_cv
+
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(60, 3)), rng.normal(size=(60, 2))
+    groups = np.repeat(np.arange(20), 3)
+    folds = list(GroupKFold(3).split(x, y, groups))
+    gammas, alphas = [0.1, 1.0], [1e-2, 1.0]
+    ours = _grid_cv(x, y, folds, gammas, alphas, nystroem=False, m=0, seed=0)
+    gs = GridSearchCV(KernelRidge(kernel="rbf"), {"gamma": gammas, "alpha": alphas}, cv=folds,
+                      scoring="neg_mean_squared_error").fit(x, y)
+    ref = -gs.cv_results_["mean_test_score"].reshape(2, 2).T  # sklearn orders params alphabetically: alpha, gamma
+    np.testing.assert_allclose(ours, ref, rtol=1e-6)
+
+
+def test_final_segment_rows():
+    lat = np.arange(2 * 10 * 1, dtype=float).reshape(2, 10, 1)
+    rows, seq = final_segment_rows(lat, final_segment=0.3, reduce="frames", frames_per_sequence=2)
+    assert rows[:, 0].tolist() == [7.0, 9.0, 17.0, 19.0] and seq.tolist() == [0, 0, 1, 1]
+    rows, seq = final_segment_rows(lat, final_segment=2, reduce="mean")
+    assert rows[:, 0].tolist() == [8.5, 18.5]
+
+
+def test_nystroem_path_for_large_n():
+    tr, te = synthetic_split(600, t=12, seed=7), synthetic_split(100, t=12, seed=8, offset=10_000)
+    align = fit_alignment(tr["y"], tr["factors"], final_segment=0.25, frames_per_sequence=2, nystroem_threshold=500,
+                          n_components=200,
+                          cv=3, alphas=(1e-3, 1e-2), gammas=(0.3, 1.0))
+    assert align.params["method"] == "nystroem_ridge" and align.params["n_train_rows"] == 1200
+    assert np.all(nmse(te["factors"], align.predict(te["y"])[:, -1]) < 0.1)
+
+
+def test_latent_both_concatenates():
+    tr, te = synthetic_split(40, seed=9), synthetic_split(20, seed=10, offset=1000)
+    res, align = evaluate_latents(tr, te, latent="both", alignment={"cv": 2})
+    assert align.x_mean.shape == (32,) and res.latents_last.shape == (20, 32)
+
+
+# ------------------------------------------------------------------ baselines
+def _obs_split(n, t=16, seed=0, offset=0):
+    rng = np.random.default_rng(seed)
+    obj = rng.integers(0, 32, n)
+    f = np.array([OBJECTS[o].factors() for o in obj])
+    tt = np.arange(t) / 30.0
+    act = np.zeros((n, t, 6))
+    act[:, :, 2] = -(1 - np.cos(2 * np.pi * 0.8 * tt))[None]
+    force = (-act[:, :, 2])[:, :, None, None] * (f[:, 2] - 4.0)[:, None, None, None]
+    top = force + 0.05 * rng.normal(size=(n, t, 28, 28))
+    bot = 0.7 * force + 0.05 * rng.normal(size=(n, t, 28, 28))
+    acc = rng.uniform(0, 1, (n, t, 28, 28))
+    return {"obs": np.stack([acc, top, bot], 2).astype(np.float32), "actions": act.astype(np.float32), "factors": f,
+            "object_id": obj, "action_index": rng.integers(0, 16, n), "seq_id": np.arange(n) + offset}
+
+
+def test_mean_predictor_nmse_about_one():
+    from embodied_tactile.eval.baselines import evaluate_mean
+
+    tr, te = synthetic_split(400, seed=11), synthetic_split(400, seed=12, offset=10_000)
+    res = evaluate_mean(tr, te, n_frames=5)
+    v = res.subset_nmse()
+    assert res.pred.shape == (400, 5, 4)
+    assert np.all(np.abs(v - 1.0) < 0.1), v
+
+
+def test_handcrafted_features_and_krr_baseline():
+    from embodied_tactile.eval.baselines import evaluate_handcrafted, handcrafted_features
+
+    tr, te = _obs_split(60, seed=1), _obs_split(20, seed=2, offset=1000)
+    feats, names = handcrafted_features(tr["obs"], tr["actions"], ("acc", "fsr_t", "fsr_b"))
+    assert feats.shape == (60, 16, len(names)) and np.isfinite(feats).all()
+    for k in ("peak_force", "slope_force_depth", "hysteresis", "relaxation", "shear_centroid_offset",
+              "top_bottom_diff_energy", "acc_low_band", "acc_high_band", "acc_spectral_centroid"):
+        assert k in names
+    only_acc, names_acc = handcrafted_features(tr["obs"][:, :, :1], tr["actions"], ("acc",))
+    assert all(n.startswith("acc_") for n in names_acc)
+    res = evaluate_handcrafted(tr, te, ("acc", "fsr_t", "fsr_b"), alignment={"cv": 3}, modality="multi_l")
+    assert res.pred.shape == (20, 16, 4) and np.isfinite(res.pred).all()
+    assert res.curve()[-1][2] < 0.3  # stiffness is encoded in the force amplitude (whole-sequence features)
+
+
+def test_gru_baseline_tiny_run():
+    import torch
+
+    torch.set_num_threads(1)
+    from embodied_tactile.eval.baselines import GRURegressor, evaluate_gru
+
+    tr, te = _obs_split(12, t=8, seed=3), _obs_split(6, t=8, seed=4, offset=1000)
+    res = evaluate_gru(tr, te, gru={"epochs": 2, "hidden": 8, "feat": 8, "batch_size": 4})
+    assert res.pred.shape == (6, 8, 4) and np.isfinite(res.pred).all()
+    assert len(res.params["loss_history"]) == 2
+    # loader API (iterable of batch dicts) with a batch cap
+    batches = [{"obs": torch.as_tensor(tr["obs"][i:i + 4]), "actions": torch.as_tensor(tr["actions"][i:i + 4]),
+                "factors": torch.as_tensor(tr["factors"][i:i + 4])} for i in range(0, 12, 4)]
+    m = GRURegressor(in_channels=3, hidden=8, feat=8, epochs=1, max_batches_per_epoch=2).fit(batches)
+    assert m.predict(batches).shape == (12, 8, 4)
+
+
+# ------------------------------------------------------------------ tables / figures / report
+def _results_set():
+    out = []
+    for prim in ("pressing", "sliding"):
+        for skin in ("soft", "hard"):
+            tr = synthetic_split(80, t=20, seed=hash((prim, skin)) % 1000)
+            te = synthetic_split(40, t=20, seed=hash((prim, skin, 1)) % 1000, offset=10_000)
+            res, _ = evaluate_latents(tr, te, modality="multi_l", skin=skin, primitive=prim, source="simulated",
+                                      alignment={"cv": 2, "alphas": (1e-2,), "gammas": (0.3, 1.0)},
+                                      params={"train_time_s": 12.0})
+            out.append(res)
+    return out
+
+
+def test_table_writers(tmp_path):
+    from embodied_tactile.eval.tables import table_actions, table_groups, table_runtime, table_summary
+
+    rs = _results_set()
+    for t in (table_actions(rs), table_groups(rs), table_summary(rs), table_runtime(rs)):
+        md, csv_, tex, js = t.to_markdown(), t.to_csv(), t.to_latex(), t.to_json()
+        for text in (md, csv_):
+            assert NMSE_DEFINITION in text and "80 train / 40 held-out" in text and "simulated" in text
+        assert "\\toprule" in tex and "\\bottomrule" in tex and "Data source: simulated" in tex
+        json.dumps(js)
+    g = table_groups(rs)
+    assert len(g.rows) == 2 * 5 and g.rows[4][1] == "Overall"
+    vals = np.array([r[2:] for r in g.rows], dtype=float)
+    assert np.isfinite(vals).mean() > 0.9  # cells with sequences are finite
+    np.testing.assert_allclose(vals[4], np.nanmean(vals[:4], axis=0))
+    a = table_actions(rs)
+    assert len(a.rows) == 16 and a.rows[0][1:3] == [2.0, 0.2]  # pressing A_z, omega_z of action 1
+
+
+def test_pooled_nmse_equals_nmse_for_one_run():
+    from embodied_tactile.eval.tables import pooled_nmse
+
+    rs = _results_set()
+    r = rs[0]
+    np.testing.assert_allclose(pooled_nmse([r]), nmse_trajectory(r.factors, r.pred))
+    m = r.action_index < 8
+    np.testing.assert_allclose(pooled_nmse([r], lambda x: x.action_index < 8), r.subset_nmse(m))
+
+
+def test_report_writes_everything(tmp_path):
+    from embodied_tactile.eval.figures import class_distances
+    from embodied_tactile.eval.report import write_report
+
+    rs = _results_set()[:2]
+    hist = {"run": [{"train_wall_time_s": 1.0, "nmse_overall": 0.5}, {"train_wall_time_s": 2.0, "nmse_overall": 0.2}]}
+    written = write_report(rs, tmp_path, source="simulated", histories=hist, umap=False)  # UMAP: test below
+    pngs = [Path(p) for p in written["figures"]]
+    assert any("distances" in p.name for p in pngs)
+    assert any("error_vs_runtime" in p.name for p in pngs) and any("nmse_time_by" in p.name for p in pngs)
+    for p in pngs:
+        assert p.read_bytes()[:4] == b"\x89PNG"
+    for ext in ("md", "csv", "tex"):
+        assert (tmp_path / f"table_environmentshape.{ext}").exists()
+    blob = json.loads((tmp_path / "results.json").read_text())
+    assert blob["nmse_definition"] == NMSE_DEFINITION
+    assert all(np.isfinite(v) for v in blob["runs"][0]["nmse_trajectory"].values())
+    # class distances: cdist between classes, not stacked classes
+    x = np.array([[0.0], [0.0], [10.0], [12.0]])
+    cls, d = class_distances(x, [0, 0, 1, 1])
+    np.testing.assert_allclose(d, [[0.0, 11.0], [11.0, 2.0]])
+    cls, d = class_distances(x, [0, 0, 1, 1], mode="centroid")
+    np.testing.assert_allclose(d, [[0.0, 11.0], [11.0, 0.0]])
+
+
+@pytest.mark.slow  # numba compiles UMAP once per process (~15 s idle machine)
+def test_umap_tiny_n(tmp_path):
+    from embodied_tactile.eval.figures import plot_umap, umap_embed
+
+    x = np.random.default_rng(0).normal(size=(4, 16))
+    assert umap_embed(x).shape == (4, 3)  # PCA fallback for n < 5
+    p = plot_umap(np.random.default_rng(1).normal(size=(9, 16)), np.arange(9) % 3, tmp_path / "u.png")
+    assert p.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_results_validation():
+    with pytest.raises(ValueError):
+        Results(pred=np.zeros((3, 2, 4)), factors=np.zeros((2, 4)), object_id=[0, 1, 2], action_index=[0, 0, 0])
