@@ -294,7 +294,7 @@ def acc_magnitude(acc: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
 
 
 def _logmel_from_resampled(y: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
-    """(..., n) resampled signals -> (..., n_mels, n_frames) scaled log-mel, float64."""
+    """(..., n) resampled signals -> (..., n_mels, n_frames) scaled log-mel, float32."""
     left, right = stft_padding(cfg, y.shape[-1])
     yp = _pad_last(y, left, right)
     if cfg.stft_backend == "librosa":
@@ -310,9 +310,11 @@ def _logmel_from_resampled(y: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
         spec = np.fft.rfft(frames * _stft_window(cfg.window, cfg.win_length, cfg.n_fft), axis=-1)
         pw = spec.real**2 + spec.imag**2  # (..., n_frames, n_fft//2+1)
         power = np.swapaxes(pw @ _mel_basis(cfg._mel_key()).T, -1, -2)  # (..., n_mels, n_frames)
-    power = power[..., : cfg.n_frames]
-    db = 10.0 * np.log10(np.maximum(power, cfg.db_amin))  # = librosa.power_to_db(ref=1, top_db=None)
-    return (db - cfg.db_min) / (cfg.db_max - cfg.db_min)
+    # = librosa.power_to_db(ref=1, amin=db_amin, top_db=None); the log in float32 (the
+    # power's float32 rounding is < 1e-6 dB) - the FFT itself stays float64.
+    power = np.maximum(power[..., : cfg.n_frames], cfg.db_amin).astype(np.float32)
+    db = np.float32(10.0) * np.log10(power)
+    return (db - np.float32(cfg.db_min)) * np.float32(1.0 / (cfg.db_max - cfg.db_min))
 
 
 def acc_logmel(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float = C.FS_TACTILE) -> np.ndarray:
