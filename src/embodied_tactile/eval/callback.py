@@ -25,7 +25,7 @@ import numpy as np
 
 from ..constants import FACTOR_NAMES
 from .krr import assert_disjoint, fit_alignment
-from .metrics import nmse_over_time, overall
+from .metrics import nmse_over_time, nmse_trajectory, overall
 
 try:  # lightning is a dependency of the package, but keep the eval core importable without it
     from lightning.pytorch.callbacks import Callback
@@ -95,7 +95,7 @@ class KRRAlignmentCallback(Callback):
                  max_val_sequences: int | None = None, val_frame_stride: int = 2, final_segment: float | int = 0.1,
                  frames_per_sequence: int = 2, cv: int = 3, nystroem_threshold: int = 1024, n_components: int = 256,
                  alphas=(1e-3, 1e-2, 1e-1, 1.0), gammas=(0.3, 1.0, 3.0), run_on_train_end: bool = True,
-                 history_name: str = "krr_history.jsonl", seed: int = 0):
+                 history_name: str = "krr_history.jsonl", seed: int = 0, n_threads: int | None = None):
         if latent not in LATENT_KEYS:
             raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
         self.every_n_epochs = int(every_n_epochs)
@@ -105,7 +105,7 @@ class KRRAlignmentCallback(Callback):
         self.val_frame_stride = max(1, int(val_frame_stride))
         self.align_kw = dict(final_segment=final_segment, frames_per_sequence=frames_per_sequence, cv=cv,
                              nystroem_threshold=nystroem_threshold, n_components=n_components,
-                             alphas=tuple(alphas), gammas=tuple(gammas), seed=seed)
+                             alphas=tuple(alphas), gammas=tuple(gammas), seed=seed, n_threads=n_threads)
         self.run_on_train_end = run_on_train_end
         self.history_name = history_name
         self._t_start: float | None = None
@@ -154,8 +154,7 @@ class KRRAlignmentCallback(Callback):
         x_te = te[self.latent][:, ::-1][:, :: self.val_frame_stride][:, ::-1]  # keep the last frame
         pred = align.predict(x_te, ids=te.get("seq_id"))
         curve = nmse_over_time(te["factors"], pred)  # (T', 4)
-        with np.errstate(all="ignore"):
-            per_factor = np.nanmean(curve, axis=0) if np.isfinite(curve).any() else np.full(4, np.nan)
+        per_factor = nmse_trajectory(te["factors"], pred)  # == mean of the curve over frames
         cb = time.perf_counter() - t0
         self._cb_time += cb
         total = time.perf_counter() - self._t_start

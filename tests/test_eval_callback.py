@@ -1,0 +1,99 @@
+"""KRRAlignmentCallback inside a tiny Lightning Trainer (fake model + fake datamodule)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+L = pytest.importorskip("lightning")
+
+from embodied_tactile.constants import FACTOR_NAMES, OBJECTS  # noqa: E402
+from embodied_tactile.eval.callback import KRRAlignmentCallback  # noqa: E402
+
+T, C, D = 12, 1, 8
+
+
+class FakeData(torch.utils.data.Dataset):
+    def __init__(self, n, seed):
+        g = np.random.default_rng(seed)
+        self.obj = (2 * np.arange(n) + seed) % 32  # every object group, heterogeneity varies
+        self.fac = np.array([OBJECTS[o].factors() for o in self.obj], dtype=np.float32)
+        self.act = g.integers(0, 16, n)
+        self.obs = g.normal(size=(n, T, C, 28, 28)).astype(np.float32)
+        # the observation carries the standardised factors in its first pixels
+        z = (self.fac - np.array([30.0, 11.7, 6.0, 0.2])) / np.array([16.3, 6.2, 2.2, 0.4])
+        self.obs[:, :, 0, 0, :4] = z[:, None, :]
+
+    def __len__(self):
+        return len(self.obj)
+
+    def __getitem__(self, i):
+        return {"obs": torch.from_numpy(self.obs[i]), "actions": torch.zeros(T, 6), "object_id": torch.tensor(self.obj[i]),
+                "factors": torch.from_numpy(self.fac[i]), "action_index": torch.tensor(self.act[i])}
+
+
+class FakeDataModule(L.LightningDataModule):
+    def __init__(self):
+        super().__init__()
+        self.train_ds, self.val_ds = FakeData(48, 0), FakeData(16, 1)
+
+    def train_dataloader(self):
+        return torch.utils.data.DataLoader(self.train_ds, batch_size=8, shuffle=True)
+
+    def train_eval_dataloader(self):
+        return torch.utils.data.DataLoader(self.train_ds, batch_size=8, shuffle=False)
+
+    def val_dataloader(self):
+        return torch.utils.data.DataLoader(self.val_ds, batch_size=8, shuffle=False)
+
+
+class FakeModel(L.LightningModule):
+    def __init__(self):
+        super().__init__()
+        self.lin = torch.nn.Linear(4, D)
+        self.rnn = torch.nn.GRU(D, D, batch_first=True)
+
+    def infer_latents(self, batch):
+        x = batch["obs"][:, :, 0, 0, :4]
+        h, _ = self.rnn(torch.tanh(self.lin(x)))
+        return {"z_mean": h, "y_mean": torch.tanh(self.lin(x)) + 0.0 * h}
+
+    def training_step(self, batch, _):
+        out = self.infer_latents(batch)
+        return (out["z_mean"] ** 2).mean()
+
+    def validation_step(self, batch, _):
+        self.log("val/loss", (self.infer_latents(batch)["z_mean"] ** 2).mean())
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=1e-3)
+
+
+def test_callback_writes_history_and_logs(tmp_path):
+    torch.set_num_threads(1)
+    from lightning.pytorch.loggers import CSVLogger
+
+    cb = KRRAlignmentCallback(every_n_epochs=1, latent="y", max_train_sequences=40, cv=2, val_frame_stride=3,
+                              n_threads=1)
+    logger = CSVLogger(tmp_path, name="run")
+    trainer = L.Trainer(max_epochs=2, default_root_dir=tmp_path, logger=logger, callbacks=[cb], enable_progress_bar=False,
+                        enable_model_summary=False, enable_checkpointing=False, accelerator="cpu", devices=1,
+                        log_every_n_steps=1, num_sanity_val_steps=0)
+    trainer.fit(FakeModel(), datamodule=FakeDataModule())
+    path = cb.history_path(trainer)
+    assert path.name == "krr_history.jsonl" and path.exists()
+    rows = [json.loads(line) for line in path.read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [0, 1]  # every epoch; no duplicate at train end (same step)
+    for r in rows:
+        assert r["n_train"] == 40 and r["n_test"] == 16
+        assert all(np.isfinite(r["nmse"][f]) for f in FACTOR_NAMES)
+        assert r["nmse_overall"] < 0.5  # the fake latents carry the factors
+        assert r["train_wall_time_s"] >= 0 and r["callback_time_s"] > 0
+    assert rows[1]["train_wall_time_s"] > rows[0]["train_wall_time_s"]
+    assert "krr/nmse_overall" in trainer.callback_metrics
+    logged = (tmp_path / "run" / "version_0" / "metrics.csv").read_text()
+    for k in ("krr/nmse_spatial_frequency", "krr/nmse_overall", "krr/train_wall_time_s", "krr/callback_time_s"):
+        assert k in logged
