@@ -37,10 +37,18 @@ def _compose(overrides: list[str], tmp_path: Path):
     return cfg
 
 
+def _compose_job(overrides: list[str], tmp_path: Path):
+    """The job config (no hydra node), with ${hydra:...} resolvable."""
+    cfg = _compose(overrides, tmp_path)
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg
+
+
 @pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in options(g)])
 def test_every_option_composes_and_instantiates(group, option, tmp_path):
     extra = ["data.raw_files=[x.h5]"] if (group, option) == ("data", "recorded") else []
-    cfg = _compose([f"{group}={option}", *extra], tmp_path)
+    cfg = _compose_job([f"{group}={option}", *extra], tmp_path)
     OmegaConf.resolve(cfg)
     dm = instantiate(cfg.data)
     assert dm.channels == list(cfg.modality.channels)
@@ -57,19 +65,19 @@ def test_every_option_composes_and_instantiates(group, option, tmp_path):
 
 
 def test_modality_sizes_flow_by_interpolation(tmp_path):
-    cfg = _compose(["modality=fsr_tb"], tmp_path)
+    cfg = _compose_job(["modality=fsr_tb"], tmp_path)
     assert list(cfg.data.channels) == ["fsr_t", "fsr_b"]
     assert cfg.model.modality.name == "fsr_tb"
 
 
 def test_wandb_is_offline_by_default(tmp_path, monkeypatch):
     monkeypatch.delenv("WANDB_OFFLINE", raising=False)
-    cfg = _compose(["logger=wandb"], tmp_path)
+    cfg = _compose_job(["logger=wandb"], tmp_path)
     assert cfg.logger.wandb.offline is True
 
 
 def test_paper_experiment_settings(tmp_path):
-    cfg = _compose(["experiment=paper"], tmp_path)
+    cfg = _compose_job(["experiment=paper"], tmp_path)
     assert cfg.model.optimizer.lr == pytest.approx(1e-5)
     assert cfg.data.batch_size == 48 and cfg.trainer.max_epochs == 500
     assert cfg.annealing.name == "dvbf"
@@ -82,6 +90,6 @@ def test_ablation_sweep_lists_24_jobs(tmp_path):
     prims = params.primitive.split(",")
     assert len(combos) == 8 and len(prims) == 3 and len(combos) * len(prims) == 24
     for combo in combos:
-        c = _compose([f"combo={combo}"], tmp_path)
+        c = _compose_job([f"combo={combo}"], tmp_path)
         mod, skin = combo.rsplit("_", 1)
         assert c.modality.name == mod and c.skin.name == skin
