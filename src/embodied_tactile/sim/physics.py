@@ -237,7 +237,9 @@ def skin_transmissibility(f: np.ndarray, fn: float, zeta: float) -> np.ndarray:
 def antialias(f: np.ndarray, fs: float = C.FS_TACTILE) -> np.ndarray:
     """Accelerometer digital low-pass magnitude; tones at or above Nyquist are removed."""
     f = np.asarray(f, dtype=np.float64)
-    h = 1.0 / np.sqrt(1.0 + (f / ACC_AA_HZ) ** 8)
+    r2 = (f / ACC_AA_HZ) ** 2
+    r4 = r2 * r2
+    h = 1.0 / np.sqrt(1.0 + r4 * r4)
     return np.where(f < 0.5 * fs, h, 0.0)
 
 
