@@ -328,3 +328,13 @@ def test_process_pool_build_equals_in_process(raw_file, tmp_path, cfg):
         for name, _ in list_cached(serial[f]):
             np.testing.assert_array_equal(load_cached(serial[f], name, f), load_cached(pooled[f], name, f))
     assert json.loads(h5py.File(pooled["acc"], "r").attrs["sources"]) == [str(raw_file)]
+
+
+def test_duplicate_trial_names_across_files_are_skipped(raw_file, tmp_path, cfg):
+    other = tmp_path / "other.h5"
+    write_trial(other, make_trial(0))  # same canonical name as raw_file's first trial
+    path = build_cache([raw_file, other, raw_file], tmp_path / "cache", cfg, fields=("actions",), workers=1)["actions"]
+    info = cache_info(path)
+    assert info["n_trials"] == 3 and info["sources"] == [str(raw_file), str(other)]
+    assert [(e["file"], e["trial"]) for e in info["skipped"]] == [(str(other), make_trial(0).name)]
+    assert "duplicate" in info["skipped"][0]["problem"]

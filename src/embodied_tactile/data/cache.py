@@ -263,7 +263,7 @@ def build_cache(
     unknown = set(fields) - set(FIELDS)
     if unknown:
         raise ValueError(f"unknown fields {sorted(unknown)}; choose from {FIELDS}")
-    paths = [str(p) for p in raw_paths]
+    paths = list(dict.fromkeys(str(p) for p in raw_paths))  # each file once, order kept
     cache_dir = Path(cache_dir)
     cache_dir.mkdir(parents=True, exist_ok=True)
 
@@ -312,6 +312,13 @@ def build_cache(
                     skipped[f].append(e)
             for name, attrs, arrays in results:
                 for f, arr in arrays.items():
+                    if name in files[f]["trials"]:  # same trial name in two raw files
+                        e = _err(path, name, f, f"duplicate trial name, already cached from {files[f]['trials'][name].attrs['source_file']}")
+                        if strict:
+                            raise TrialFormatError(e["file"], e["trial"], e["field"], e["problem"])
+                        log.warning("skipping %s / %s for %s: %s", e["file"], e["trial"], f, e["problem"])
+                        skipped[f].append(e)
+                        continue
                     g = files[f]["trials"].create_group(name)
                     g.create_dataset(f, data=arr, compression=compression)
                     for k, v in attrs.items():
