@@ -244,7 +244,11 @@ class TactileDataModule(L.LightningDataModule):
         return cfg
 
     def prepare_data(self) -> None:
-        """Simulate missing trials (simulator source) and build the per-field caches."""
+        """Simulate missing trials (simulator source) and build the per-field caches.
+
+        Runs once per DataModule object (fit then validate reuse the caches it found)."""
+        if self.cache_files:
+            return
         if self.source == "simulated":
             from embodied_tactile.sim import generate_dataset
 
