@@ -50,9 +50,12 @@ def sample(h: np.ndarray, x: np.ndarray, y: np.ndarray, order: int = 1) -> np.nd
     return out.reshape(np.shape(x))
 
 
-def spline_coeffs(h: np.ndarray) -> np.ndarray:
-    """Cubic B-spline coefficients of a heightmap (for smooth order-3 sampling)."""
-    return ndimage.spline_filter(h, order=3, mode="grid-wrap")
+@lru_cache(maxsize=64)
+def spline_coeffs(object_id: int, amplitude_mm: float | None = None) -> np.ndarray:
+    """Cubic B-spline coefficients of an object's heightmap (for smooth order-3 sampling)."""
+    out = ndimage.spline_filter(surface(object_id, amplitude_mm), order=3, mode="grid-wrap")
+    out.setflags(write=False)
+    return out
 
 
 def sample_spline(coeffs: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:

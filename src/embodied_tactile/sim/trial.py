@@ -115,6 +115,16 @@ def _upsample(src: np.ndarray, ratio: int, n: int) -> np.ndarray:
     return out.reshape(blocks * ratio, *src.shape[1:])[:n]
 
 
+def _upsample_cubic(src: np.ndarray, ratio: int, n: int) -> np.ndarray:
+    """Catmull-Rom (cubic, C1) interpolation by an integer ``ratio`` along axis 0 (float64)."""
+    blocks = -(-n // ratio)
+    s = np.concatenate([src[:1], src, src[-1:], src[-1:]], axis=0)
+    p0, p1, p2, p3 = (s[i : i + blocks, None] for i in range(4))
+    f = (np.arange(ratio) / ratio).reshape(1, ratio, *([1] * (src.ndim - 1)))
+    out = p1 + 0.5 * f * ((p2 - p0) + f * ((2 * p0 - 5 * p1 + 4 * p2 - p3) + f * (3 * (p1 - p2) + p3 - p0)))
+    return out.reshape(blocks * ratio, *src.shape[1:])[:n]
+
+
 def _fast_noise(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
     """Zero-mean, unit-variance float32 noise (triangular: sum of two random bytes) at
     a fraction of the cost of Gaussian draws; it ends in integer ADC counts anyway."""
@@ -202,7 +212,7 @@ def simulate_trial(
     # ---------------------------------------------------------------- surfaces
     h_raw = O.surface(object_id, physics.amplitude_mm)
     h_con = O.surface(object_id, physics.amplitude_mm)
-    h_spl = O.spline_coeffs(h_raw)
+    h_spl = O.spline_coeffs(object_id, physics.amplitude_mm)
 
     # ---------------------------------------------------------------- poses
     x0, y0 = rng["placement"].normal(0.0, P.PLACEMENT_ERR_M, 2)
@@ -292,7 +302,8 @@ def simulate_trial(
 
     # texture: stair steps of the printed layers (crossed at |dh/dt| / dz) and infill lines
     wn_ = _world_points(pose_t6, _NX, _NY, -H)  # (n_t, 16, 3)
-    h_n = O.sample_spline(h_spl, wn_[..., 0], wn_[..., 1])
+    wn_p = _world_points(pose_p, _NX, _NY, -H)  # (n_p, 16, 3): heights at the physics rate,
+    h_n = _upsample_cubic(O.sample_spline(h_spl, wn_p[..., 0], wn_p[..., 1]), ratio, n_t)  # C1 in time
     dtt = 1.0 / C.FS_TACTILE
     f_step = np.abs(np.gradient(h_n, dtt, axis=0)) / P.LAYER_HEIGHT_M
     f_inf = np.abs(np.gradient(wn_[..., 0], dtt, axis=0)) / P.INFILL_PITCH_M
