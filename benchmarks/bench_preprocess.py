@@ -50,10 +50,13 @@ def synthetic_trial(i: int, seed: int = 0) -> RawTrial:
     return RawTrial(t=t, acc=acc, fsr=fsr, pose_t=pose_t, pose=pose, attrs=attrs)
 
 
-def _work(chunk):
-    trials, cfg = chunk
+_TRIALS: list[RawTrial] = []  # inherited by the forked workers: no pickling of inputs
+
+
+def _work(task):
+    lo, hi, cfg = task
     with _one_blas_thread():
-        return {k: v.shape for k, v in preprocess_trials(trials, cfg).items()}
+        return {k: v.shape for k, v in preprocess_trials(_TRIALS[lo:hi], cfg).items()}
 
 
 def _read(task):
@@ -110,7 +113,8 @@ def main() -> None:
     rows.append(("full pipeline in memory, 1 proc", k / t1, None))
 
     # -- full pipeline in memory on `workers` processes
-    chunks = [(trials[i : i + args.chunk], cfg) for i in range(0, len(trials), args.chunk)]
+    _TRIALS[:] = trials
+    chunks = [(i, i + args.chunk, cfg) for i in range(0, len(trials), args.chunk)]
     with mp.get_context("fork").Pool(args.workers) as pool:
         pool.map(_work, chunks[: args.workers])  # warm-up
         tw = _best(lambda: pool.map(_work, chunks))

@@ -118,6 +118,7 @@ class PreprocessConfig:
         """The config entries that change the numbers of ``field`` (for cache keys)."""
         keys = _FIELD_KEYS[field]
         d = self.to_dict()
+        d["fmax"] = self.fmax_hz  # None and fs/2 are the same setting
         return {k: d[k] for k in keys}
 
     def validate(self) -> "PreprocessConfig":
@@ -287,10 +288,11 @@ def acc_magnitude(acc: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
     a = np.asarray(acc, dtype=np.float64)
     mag = np.sqrt(np.einsum("...k,...k->...", a, a))  # (..., N, 4, 4)
     mag = mag.reshape(*mag.shape[:-2], -1)  # (..., N, 16)
-    mag = np.moveaxis(mag, -2, -1)  # (..., 16, N)
+    mag = np.ascontiguousarray(np.moveaxis(mag, -2, -1))  # (..., 16, N), time contiguous
     if cfg.acc_remove_mean:
-        mag = mag - mag.mean(axis=-1, keepdims=True)
-    return mag / cfg.acc_scale_g
+        mag -= mag.mean(axis=-1, keepdims=True)
+    mag /= cfg.acc_scale_g
+    return mag
 
 
 def _logmel_from_resampled(y: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
