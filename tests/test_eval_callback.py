@@ -97,3 +97,19 @@ def test_callback_writes_history_and_logs(tmp_path):
     logged = (tmp_path / "run" / "version_0" / "metrics.csv").read_text()
     for k in ("krr/nmse_spatial_frequency", "krr/nmse_overall", "krr/train_wall_time_s", "krr/callback_time_s"):
         assert k in logged
+
+
+def test_collect_latents_feeds_evaluate_latents():
+    torch.set_num_threads(1)
+    from embodied_tactile.eval import evaluate_latents
+    from embodied_tactile.eval.callback import collect_latents
+
+    dm, model = FakeDataModule(), FakeModel()
+    model.train()
+    tr = collect_latents(model, dm.train_eval_dataloader(), latent="both", max_sequences=20)
+    te = collect_latents(model, dm.val_dataloader(), latent="both")
+    assert model.training  # mode restored
+    assert tr["z"].shape == (20, T, D) and tr["y"].shape == (20, T, D) and te["factors"].shape == (16, 4)
+    res, align = evaluate_latents(tr, te, latent="both", alignment={"cv": 2})
+    assert align.x_mean.shape == (2 * D,) and res.pred.shape == (16, T, 4)
+    assert np.isfinite(res.subset_nmse()).all()

@@ -26,6 +26,7 @@ import numpy as np
 from ..constants import FACTOR_NAMES
 from .krr import assert_disjoint, fit_alignment
 from .metrics import nmse_over_time, nmse_trajectory, overall
+from .results import select_latents
 
 try:  # lightning is a dependency of the package, but keep the eval core importable without it
     from lightning.pytorch.callbacks import Callback
@@ -50,13 +51,16 @@ def _to_device(batch, device):
 
 
 def collect_latents(pl_module, loader, *, latent: str = "y", max_sequences: int | None = None) -> dict[str, np.ndarray]:
-    """Run ``pl_module.infer_latents`` over ``loader`` -> split dict (latents under ``latent``
-    key 'y' / 'z' / 'both', plus factors, object_id, action_index, seq_id when batches carry it).
+    """Run ``pl_module.infer_latents`` over ``loader`` -> split dict for
+    :func:`~embodied_tactile.eval.results.evaluate_latents`: ``"z"`` / ``"y"`` (n, T, d) from
+    ``z_mean`` / ``y_mean`` (those the module returns; the ones ``latent`` needs are required),
+    ``factors``, ``object_id``, ``action_index`` and ``seq_id`` when batches carry it.
     Usable outside the callback (evaluate.py)."""
     import torch
 
-    keys = LATENT_KEYS[latent]
-    lat, fac, obj, act, ids = [], [], [], [], []
+    need = LATENT_KEYS[latent]
+    lat: dict[str, list] = {"z": [], "y": []}
+    fac, obj, act, ids = [], [], [], []
     n = 0
     was_training = pl_module.training
     pl_module.eval()
@@ -65,24 +69,29 @@ def collect_latents(pl_module, loader, *, latent: str = "y", max_sequences: int 
             for batch in loader:
                 batch = _to_device(batch, pl_module.device)
                 out = pl_module.infer_latents(batch)
-                z = torch.cat([out[k] for k in keys], dim=-1).float().cpu().numpy()
-                take = len(z) if max_sequences is None else min(len(z), max_sequences - n)
-                lat.append(z[:take])
+                missing = [k for k in need if k not in out]
+                if missing:
+                    raise KeyError(f"infer_latents returned {sorted(out)}; latent={latent!r} needs {list(need)}")
+                take = len(batch["factors"]) if max_sequences is None else min(len(batch["factors"]), max_sequences - n)
+                for k in ("z", "y"):
+                    if f"{k}_mean" in out:
+                        lat[k].append(out[f"{k}_mean"][:take].float().cpu().numpy())
                 fac.append(batch["factors"][:take].float().cpu().numpy())
                 obj.append(batch["object_id"][:take].cpu().numpy())
                 act.append(batch["action_index"][:take].cpu().numpy())
                 if "seq_id" in batch:
-                    ids.append(np.asarray(batch["seq_id"][:take].cpu() if hasattr(batch["seq_id"], "cpu") else batch["seq_id"][:take]))
+                    sid = batch["seq_id"][:take]
+                    ids.append(np.asarray(sid.cpu() if hasattr(sid, "cpu") else sid))
                 n += take
                 if max_sequences is not None and n >= max_sequences:
                     break
     finally:
         pl_module.train(was_training)
-    out = {latent: np.concatenate(lat), "factors": np.concatenate(fac), "object_id": np.concatenate(obj),
-           "action_index": np.concatenate(act)}
+    res = {k: np.concatenate(v) for k, v in lat.items() if v}
+    res.update({"factors": np.concatenate(fac), "object_id": np.concatenate(obj), "action_index": np.concatenate(act)})
     if ids:
-        out["seq_id"] = np.concatenate(ids)
-    return out
+        res["seq_id"] = np.concatenate(ids)
+    return res
 
 
 class KRRAlignmentCallback(Callback):
@@ -150,8 +159,8 @@ class KRRAlignmentCallback(Callback):
         te = collect_latents(pl_module, val_loader, latent=self.latent, max_sequences=self.max_val_sequences)
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
         t_inf = time.perf_counter()
-        align = fit_alignment(tr[self.latent], tr["factors"], ids=tr.get("seq_id"), **self.align_kw)
-        x_te = te[self.latent][:, ::-1][:, :: self.val_frame_stride][:, ::-1]  # keep the last frame
+        align = fit_alignment(select_latents(tr, self.latent), tr["factors"], ids=tr.get("seq_id"), **self.align_kw)
+        x_te = select_latents(te, self.latent)[:, ::-1][:, :: self.val_frame_stride][:, ::-1]  # keep the last frame
         pred = align.predict(x_te, ids=te.get("seq_id"))
         curve = nmse_over_time(te["factors"], pred)  # (T', 4)
         per_factor = nmse_trajectory(te["factors"], pred)  # == mean of the curve over frames
