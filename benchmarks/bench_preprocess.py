@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
+import resource
 import shutil
 import tempfile
 import time
@@ -55,15 +56,18 @@ _TRIALS: list[RawTrial] = []  # inherited by the forked workers: no pickling of 
 
 def _work(task):
     lo, hi, cfg = task
+    c0 = time.process_time()
     with _one_blas_thread():
-        return {k: v.shape for k, v in preprocess_trials(_TRIALS[lo:hi], cfg).items()}
+        preprocess_trials(_TRIALS[lo:hi], cfg)
+    return time.process_time() - c0
 
 
 def _read(task):
     path, names = task
+    c0 = time.process_time()
     for n in names:
         read_trial(path, n, ("t", "acc", "fsr", "pose", "baseline_fsr"))
-    return len(names)
+    return time.process_time() - c0
 
 
 def _one_blas_thread():
@@ -72,13 +76,29 @@ def _one_blas_thread():
     return one()
 
 
-def _best(fn, repeat: int = 2) -> float:
-    """Best wall time of ``repeat`` runs (the box is shared: the minimum is the signal)."""
-    best = float("inf")
+def _cpu_all() -> float:
+    """CPU seconds of this process and its reaped children."""
+    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+
+def _best(fn, repeat: int = 2) -> tuple[float, float]:
+    """(best wall, best CPU) seconds over ``repeat`` runs of ``fn`` in this process."""
+    wall = cpu = float("inf")
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
+    return wall, cpu
+
+
+def _pool_best(pool, fn, tasks, repeat: int = 2) -> tuple[float, float]:
+    """(best wall, its summed worker CPU) of ``pool.map(fn, tasks)``."""
+    best = (float("inf"), float("inf"))
     for _ in range(repeat):
         t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
+        cpu = sum(pool.map(fn, tasks))
+        best = min(best, (time.perf_counter() - t0, cpu))
     return best
 
 
@@ -90,8 +110,9 @@ def main() -> None:
     args = ap.parse_args()
     cfg = PreprocessConfig().validate()
     trials = [synthetic_trial(i) for i in range(args.trials)]
-    rows = []
+    rows = []  # (stage, n_trials, wall s, cpu s, naive cpu s or None)
     load0 = os.getloadavg()[0]
+    w = args.workers
 
     # -- acc: vectorised vs naive, same process, same trials
     k = min(8, args.trials)
@@ -99,26 +120,20 @@ def main() -> None:
     cfg_l = PreprocessConfig(stft_backend="librosa")
     with _one_blas_thread():
         acc_logmel(acc[:1], cfg); acc_logmel(acc[:1], cfg_l); acc_logmel_naive(trials[0].acc, cfg)  # warm-up
-        t_naive = _best(lambda: [acc_logmel_naive(tr.acc, cfg) for tr in trials[:k]], 1)
-        t_lib = _best(lambda: acc_logmel(acc, cfg_l))
-        t_vec = _best(lambda: acc_logmel(acc, cfg))
-        t_fsr = _best(lambda: preprocess_trials(trials[:k], cfg, ("fsr",)))
-        t_act = _best(lambda: preprocess_trials(trials[:k], cfg, ("actions",)))
-        t1 = _best(lambda: preprocess_trials(trials[:k], cfg))
-    rows.append(("acc naive per-sensor loop, 1 proc", k / t_naive, 1.0))
-    rows.append(("acc vectorised, librosa STFT, 1 proc", k / t_lib, t_naive / t_lib))
-    rows.append(("acc vectorised, numpy STFT (default), 1 proc", k / t_vec, t_naive / t_vec))
-    rows.append(("fsr only, 1 proc", k / t_fsr, None))
-    rows.append(("actions only, 1 proc", k / t_act, None))
-    rows.append(("full pipeline in memory, 1 proc", k / t1, None))
+        naive = _best(lambda: [acc_logmel_naive(tr.acc, cfg) for tr in trials[:k]], 1)
+        rows.append(("acc naive per-sensor loop, 1 proc", k, *naive, naive))
+        rows.append(("acc vectorised, librosa STFT, 1 proc", k, *_best(lambda: acc_logmel(acc, cfg_l)), naive))
+        rows.append(("acc vectorised, numpy STFT (default), 1 proc", k, *_best(lambda: acc_logmel(acc, cfg)), naive))
+        rows.append(("fsr only, 1 proc", k, *_best(lambda: preprocess_trials(trials[:k], cfg, ("fsr",))), None))
+        rows.append(("actions only, 1 proc", k, *_best(lambda: preprocess_trials(trials[:k], cfg, ("actions",))), None))
+        rows.append(("full pipeline in memory, 1 proc", k, *_best(lambda: preprocess_trials(trials[:k], cfg)), None))
 
-    # -- full pipeline in memory on `workers` processes
+    # -- full pipeline in memory on `workers` processes (trials inherited through fork)
     _TRIALS[:] = trials
     chunks = [(i, i + args.chunk, cfg) for i in range(0, len(trials), args.chunk)]
-    with mp.get_context("fork").Pool(args.workers) as pool:
-        pool.map(_work, chunks[: args.workers])  # warm-up
-        tw = _best(lambda: pool.map(_work, chunks))
-    rows.append((f"full pipeline in memory, {args.workers} procs", len(trials) / tw, None))
+    with mp.get_context("fork").Pool(w) as pool:
+        pool.map(_work, chunks[:w])  # warm-up
+        rows.append((f"full pipeline in memory, {w} procs", len(trials), *_pool_best(pool, _work, chunks), None))
 
     # -- end to end: raw HDF5 -> per-field caches
     tmp = Path(tempfile.mkdtemp(prefix="bench_pre_"))
@@ -128,25 +143,26 @@ def main() -> None:
             write_trial(raw, tr)
         names = [tr.name for tr in trials]
         tasks = [(raw, names[i : i + args.chunk]) for i in range(0, len(names), args.chunk)]
-        with mp.get_context("fork").Pool(args.workers) as pool:
-            tr_ = _best(lambda: pool.map(_read, tasks), 1)
-        rows.append((f"read raw HDF5 only (gzip), {args.workers} procs", len(trials) / tr_, None))
-        t0 = time.perf_counter()
-        cache_mod.build_cache([raw], tmp / "cache", cfg, workers=args.workers, chunk_size=args.chunk)
-        tb = time.perf_counter() - t0
-        rows.append((f"build_cache raw -> 3 caches, {args.workers} workers", len(trials) / tb, None))
-        t0 = time.perf_counter()
-        cache_mod.build_cache([raw], tmp / "cache", cfg, workers=args.workers)
-        rows.append(("build_cache again (reuse: fingerprint only)", len(trials) / (time.perf_counter() - t0), None))
+        with mp.get_context("fork").Pool(w) as pool:
+            rows.append((f"read raw HDF5 only (gzip), {w} procs", len(trials), *_pool_best(pool, _read, tasks, 1), None))
+        for label in (f"build_cache raw -> 3 caches, {w} workers", "build_cache again (reuse: fingerprint only)"):
+            t0, c0 = time.perf_counter(), _cpu_all()
+            cache_mod.build_cache([raw], tmp / "cache", cfg, workers=w, chunk_size=args.chunk)
+            rows.append((label, len(trials), time.perf_counter() - t0, _cpu_all() - c0, None))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
-    print(f"\n{args.trials} synthetic 10 s trials, {os.cpu_count()} CPUs, chunk {args.chunk}, "
-          f"load average {load0:.1f} -> {os.getloadavg()[0]:.1f}\n")
-    print(f"| {'stage':<46} | {'trials/s':>9} | {'vs naive':>8} |")
-    print(f"|{'-' * 48}|{'-' * 11}|{'-' * 10}|")
-    for name, rate, ratio in rows:
-        print(f"| {name:<46} | {rate:9.1f} | {'' if ratio is None else f'{ratio:7.1f}x':>8} |")
+    print(f"\n{args.trials} synthetic 10 s trials, {os.cpu_count()} CPUs, {w} workers, chunk {args.chunk}, "
+          f"load average {load0:.1f} -> {os.getloadavg()[0]:.1f}")
+    print("wall trials/s = as measured on this (possibly shared) box; CPU ms/trial = CPU time of all our")
+    print(f"processes; idle-box estimate = trials/s if each process had its own core (min(procs, {w}) / CPU per trial)\n")
+    print(f"| {'stage':<46} | {'wall trials/s':>13} | {'CPU ms/trial':>12} | {'idle-box est. trials/s':>22} | {'vs naive (CPU)':>14} |")
+    print(f"|{'-' * 48}|{'-' * 15}|{'-' * 14}|{'-' * 24}|{'-' * 16}|")
+    for name, n, wall, cpu, ref in rows:
+        procs = 1 if "1 proc" in name else w
+        est = procs * n / cpu
+        ratio = "" if ref is None else f"{ref[1] / cpu:.1f}x"
+        print(f"| {name:<46} | {n / wall:13.1f} | {1000 * cpu / n:12.1f} | {est:22.1f} | {ratio:>14} |")
 
 
 if __name__ == "__main__":
