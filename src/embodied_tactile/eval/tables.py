@@ -150,7 +150,8 @@ def table_actions(results: Sequence[Results], *, method: str | None = "latent_fi
         cells, i = [str(row[0])], 1
         for p in prims:
             k = len(ACTION_PARAM_NAMES[p])
-            cells += [f"{v:.1f}" for v in row[i : i + k]] + [_fmt(row[i + k], 3)]
+            col_vals = [r[i + k] for r in rows]
+            cells += [f"{v:.1f}" for v in row[i : i + k]] + [_cell(row[i + k], col_vals, "orange", 3)]
             i += k + 1
         lines.append(" & ".join(cells) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
@@ -189,7 +190,9 @@ def table_groups(results: Sequence[Results], *, method: str | None = "latent_fil
             if r[1] == "Overall":
                 lines.append(rf"\cmidrule(lr){{2-{2 + len(GROUPS) * ng}}}")
             label = FACTOR_LABELS.get(r[1], r[1])
-            lines.append(" & ".join([first, label] + [_fmt(v, 3) for v in r[2:]]) + r" \\")
+            allv = [v for rr in rows for v in rr[2:]]
+            hues = [h for h in ("red", "green", "blue") for _ in prims]
+            lines.append(" & ".join([first, label] + [_cell(v, allv, h, 3) for v, h in zip(r[2:], hues)]) + r" \\")
         if si < len(skins) - 1:
             lines.append(r"\midrule")
     lines += [r"\bottomrule", r"\end{tabular}"]
@@ -237,6 +240,17 @@ def _fmt(v, nd: int = 4, csv_: bool = False) -> str:
             return "nan"
         return repr(float(v)) if csv_ else f"{float(v):.{nd}g}" if abs(float(v)) < 1e-3 else f"{float(v):.{nd}f}"
     return str(v)
+
+
+def _cell(v, column, hue: str, nd: int) -> str:
+    """Paper-style heat cell: ``\\cellcolor{hue!P!white}`` with P min-max scaled over ``column``
+    (needs ``\\usepackage[table]{xcolor}``); lower NMSE = lighter."""
+    vals = np.asarray([x for x in column if isinstance(x, (int, float, np.floating)) and math.isfinite(float(x))])
+    if not (isinstance(v, (float, np.floating)) and math.isfinite(float(v))) or vals.size == 0:
+        return _fmt(v, nd)
+    lo, hi = float(vals.min()), float(vals.max())
+    pct = int(round(99 * (float(v) - lo) / (hi - lo))) if hi > lo else 0
+    return rf"\cellcolor{{{hue}!{pct}!white}}{_fmt(v, nd)}"
 
 
 def _num(v):
