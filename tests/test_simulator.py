@@ -165,6 +165,9 @@ def test_sliding_vibration_grows_with_spatial_frequency_and_roughness():
         assert e[2] < e[11] < e[20], (skin, e)  # 10, 30, 50 /m at 20 mm
         assert e[18] < e[20], (skin, e)  # 5 mm vs 20 mm at 50 /m
         assert e[20] < e[26], (skin, e)  # cast silicone vs printed PLA (rougher layer lines)
+    # faster sliding (8 mm vs 2 mm amplitude at 0.8 Hz) crosses more steps per second
+    slow = hf_energy(simulate_trial(20, "hard", "sliding", 3, duration=2.0))
+    assert slow < 0.5 * e[20]
     # pressing (no sliding) excites far less high-frequency vibration than sliding
     press = hf_energy(simulate_trial(20, "hard", "pressing", PRESS_DEEP, duration=2.0))
     assert press < 0.5 * e[20]
@@ -247,6 +250,14 @@ def test_generate_dataset_resumes_and_passes_scan(tmp_path):
     np.testing.assert_array_equal(tr.fsr, first)
     assert tr.attrs["heterogeneity"] == 0.0
     assert read_trial(path, "obj27_hard_pressing_a02_r00").attrs["heterogeneity"] == 1.0
+    # an interrupted write (attributes are written last) is redone on resume
+    with h5py.File(path, "a") as f:
+        g = f["trials/obj27_hard_pressing_a02_r00"]
+        for k in list(g.attrs):
+            del g.attrs[k]
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 27], actions=[1, 2], duration=0.5, workers=1)
+    good, errors = scan_raw(path)
+    assert errors == [] and len(good) == 4
 
 
 def test_cli_writes_requested_trials(tmp_path):

@@ -18,14 +18,28 @@ from embodied_tactile.sim.trial import simulate_trial
 log = logging.getLogger(__name__)
 
 
-def _existing(path: Path) -> set[str]:
+_NEEDED = ("tactile/t", "tactile/acc", "tactile/fsr", "pose/t", "pose/ee")
+
+
+def _existing(path: Path, seed: int) -> set[str]:
+    """Names of the complete trials already in ``path``. A group left half-written by an
+    interrupted run (write_trial sets the attributes last) is deleted so it is redone."""
     if not path.exists():
         return set()
-    try:
-        with h5py.File(path, "r") as f:
-            return set(f["trials"].keys()) if "trials" in f else set()
-    except OSError:
-        raise
+    done: set[str] = set()
+    with h5py.File(path, "a") as f:
+        if "trials" not in f:
+            return done
+        for name in list(f["trials"].keys()):
+            g = f["trials"][name]
+            if "seed" in g.attrs and all(p in g for p in _NEEDED):
+                done.add(name)
+                if int(g.attrs["seed"]) != int(seed):
+                    log.warning("%s: trial %s was simulated with seed %s, not %s", path, name, g.attrs["seed"], seed)
+            else:
+                log.warning("%s: removing incomplete trial %s (interrupted run)", path, name)
+                del f["trials"][name]
+    return done
 
 
 def _job(args: tuple) -> object:
@@ -65,7 +79,7 @@ def generate_dataset(
         raise ValueError(f"primitive must be one of {C.PRIMITIVES}, got {primitive!r}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    done = set() if overwrite else _existing(path)
+    done = set() if overwrite else _existing(path, seed)
     jobs = []
     for o in objects:
         for a in actions:

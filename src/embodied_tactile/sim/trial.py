@@ -210,8 +210,7 @@ def simulate_trial(
     dt = 1.0 / P.PHYSICS_RATE_HZ
 
     # ---------------------------------------------------------------- surfaces
-    h_raw = O.surface(object_id, physics.amplitude_mm)
-    h_con = O.surface(object_id, physics.amplitude_mm)
+    h_con = O.surface(object_id, physics.amplitude_mm)  # heightmap (m)
     h_spl = O.spline_coeffs(object_id, physics.amplitude_mm)
 
     # ---------------------------------------------------------------- poses
