@@ -330,7 +330,7 @@ def acc_logmel(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float = C.FS_
     b = mel.shape[0]
     mel = mel.reshape(b, C.ACC_GRID[0], C.ACC_GRID[1], cfg.n_mels, cfg.n_frames)
     mel = np.moveaxis(mel, (1, 2, 4), (3, 4, 1))  # (B, T, n_mels, 4, 4)
-    return tile_layout(mel, cfg.tile_shape).astype(np.float32)
+    return tile_layout(mel, cfg.tile_shape).astype(np.float32, copy=False)
 
 
 def acc_logmel_naive(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float = C.FS_TACTILE) -> np.ndarray:
