@@ -88,6 +88,7 @@ def save_provenance(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
             "python": sys.version,
             "platform": platform.platform(),
             "argv": sys.argv,
+            "cwd": os.getcwd(),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         },
     )

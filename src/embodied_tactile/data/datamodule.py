@@ -332,13 +332,29 @@ class TactileDataModule(L.LightningDataModule):
             # deterministic, so rebuilding finds the existing files without recomputing.
             self._build_cache()
         refs = self._list_trials()
-        train, val = stratified_split(refs, self.val_fraction, self.split_seed)
-        if self.split_file:
-            self._save_split(train, val)
+        if self.split_file and Path(self.split_file).exists():
+            train, val = self._load_split(refs)
+        else:
+            train, val = stratified_split(refs, self.val_fraction, self.split_seed)
+            if self.split_file:
+                self._save_split(train, val)
         self.train_set = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len)
         self.val_set = TactileSequenceDataset(self.cache_files, val, self.channels, self.seq_len)
         log.info("data: %d train / %d held-out sequences, channels %s, skipped %d bad trial(s)",
                  len(train), len(val), self.channels, len(self.skipped))
+
+    def _load_split(self, refs: Sequence[TrialRef]) -> tuple[list[TrialRef], list[TrialRef]]:
+        """Reuse a saved split (resumed runs, evaluation): the split belongs to the run."""
+        saved = json.loads(Path(self.split_file).read_text())
+        by_name = {r.name: r for r in refs}
+        missing = [n for n in saved["train"] + saved["val"] if n not in by_name]
+        if missing:
+            raise RuntimeError(
+                f"split file {self.split_file} names {len(missing)} trial(s) absent from the data "
+                f"(e.g. {missing[:3]}); the data changed since the run was started"
+            )
+        log.info("reusing the saved split %s", self.split_file)
+        return [by_name[n] for n in saved["train"]], [by_name[n] for n in saved["val"]]
 
     def _save_split(self, train: Sequence[TrialRef], val: Sequence[TrialRef]) -> None:
         path = Path(self.split_file)

@@ -199,12 +199,9 @@ class KRRAlignmentCallback(Callback):
         return metrics
 
     def history_path(self, trainer) -> Path:
-        root = None
-        try:
-            root = trainer.log_dir
-        except Exception:  # noqa: BLE001 - some loggers raise without a directory
-            root = None
-        return Path(root or trainer.default_root_dir) / self.history_name
+        """``<run folder>/krr_history.jsonl``: the trainer's root dir (the Hydra run folder),
+        so evaluate.py finds it whatever loggers were configured."""
+        return Path(trainer.default_root_dir) / self.history_name
 
     @staticmethod
     def _log_to_loggers(trainer, metrics: Mapping[str, Any]) -> None:
