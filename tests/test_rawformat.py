@@ -162,3 +162,12 @@ def test_incremental_writer_interrupted_stays_readable(tmp_path):
     np.testing.assert_array_equal(back.fsr, tr.fsr[:350])
     w.close(complete=True)
     assert rf.scan_raw(path)[0][0].attrs["complete"]
+
+
+def test_format_error_pickles():
+    import pickle
+
+    err = rf.TrialFormatError("f.h5", "obj00", "tactile/acc", "bad")
+    back = pickle.loads(pickle.dumps(err))
+    assert (back.file, back.trial, back.field, back.problem) == ("f.h5", "obj00", "tactile/acc", "bad")
+    assert str(back) == str(err)

@@ -110,6 +110,9 @@ class TrialFormatError(ValueError):
         self.problem = problem
         super().__init__(f"{self.file}: trial '{trial}', field '{field}': {problem}")
 
+    def __reduce__(self):  # picklable across process pools
+        return (type(self), (self.file, self.trial, self.field, self.problem))
+
 
 @dataclass
 class RawTrial:
@@ -214,7 +217,10 @@ def write_trial(target: str | os.PathLike | h5py.File, trial: RawTrial, *, overw
         if arr is None:
             continue
         opts = _COMPRESSION if arr.ndim > 1 else {}
-        g.create_dataset(path, data=arr, chunks=True if opts else None, **opts)
+        # One-second chunks along time: few, large gzip blocks decode much faster than
+        # h5py's automatic small chunks, and a modality reads whole trials anyway.
+        chunks = (min(arr.shape[0], int(trial.attrs.get("fs_tactile", C.FS_TACTILE))), *arr.shape[1:]) if opts and arr.shape[0] else None
+        g.create_dataset(path, data=arr, chunks=chunks, **opts)
     _set_attrs(g, trial.attrs)
     return name
 
