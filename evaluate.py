@@ -1,0 +1,433 @@
+"""Evaluate trained Latent Filter runs: KRR alignment, NMSE tables, curves, UMAP, baselines.
+
+    python evaluate.py logs/train/runs/<run>                        # one run (best checkpoint)
+    python evaluate.py logs/train/runs/<run>/checkpoints/last.ckpt  # one checkpoint
+    python evaluate.py logs/train/multiruns/<time>                  # every job of a sweep
+    python evaluate.py <run> latent=both baselines=[handcrafted,gru,mean] gru.epochs=5 out=/tmp/ev
+    python evaluate.py <run> checkpoint=last umap=false
+
+Why argparse + OmegaConf and not ``@hydra.main``: Hydra takes no positional arguments (every
+command-line word must be an override), and the run folder is the one thing every call
+needs. So the path is an argparse positional and the options are an OmegaConf dotlist
+merged over ``configs/evaluate.yaml`` (the same ``key=value`` syntax as train.py; unknown
+keys are an error).
+
+The recipe, per run (docs/evaluation.md, "evaluate.py"):
+
+1. reload the run's OWN config from ``config_resolved.yaml`` (never rebuilt from the
+   defaults: a run trained with ``modality=fsr_tb`` evaluates as fsr_tb, with no extra
+   argument); ``configs/evaluate.yaml`` holds evaluation options only;
+2. relative data paths are resolved against the training cwd (``provenance.json``) when
+   they do not exist relative to the current directory;
+3. the DataModule is instantiated from ``cfg.data`` with ``split_file=<run>/split.json``
+   (the saved split is reused; the regressor never sees the sequences it scores: trial
+   names go along as ``seq_id`` and the library raises ``LeakageError`` on overlap);
+4. the model class of ``cfg.model._target_`` is loaded with ``load_from_checkpoint``
+   (best checkpoint by default, ``checkpoint=last`` as option) on the CPU;
+5. ``collect_latents`` over ``train_eval_dataloader()`` (fit) and ``val_dataloader()``
+   (scored); inference time per held-out trial is measured on pre-loaded batches;
+6. ``evaluate_latents`` + the baselines (hand-crafted features -> KRR, supervised GRU,
+   mean predictor) on the same split; KRR history (``krr_history.jsonl``) for the
+   error-vs-run-time figure; training time from ``metrics.json`` (``train_wall_s``);
+7. ``write_report`` into ``<run>/evaluation`` (or ``<multirun>/evaluation``, aggregating
+   every job) and the Markdown tables printed to the terminal.
+
+A multirun folder: every sub-folder holding a ``config_resolved.yaml`` is a job; jobs
+without a checkpoint are skipped with a message. DataModules are shared between jobs with
+the same data config and the same saved split, and the GRU baseline is off by default for
+multiruns (``baselines=[handcrafted,gru,mean]`` turns it on).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigKeyError
+
+REPO = Path(__file__).resolve().parent
+DEFAULTS = REPO / "configs" / "evaluate.yaml"
+BASELINES = ("handcrafted", "gru", "mean")
+MULTIRUN_BASELINES = ("handcrafted", "mean")
+
+log = logging.getLogger("evaluate")
+
+
+class EvaluationError(RuntimeError):
+    """A run folder / checkpoint / option that cannot be evaluated (message names it)."""
+
+
+# ----------------------------------------------------------------------------- options
+def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
+    """``configs/evaluate.yaml`` + ``key=value`` overrides (unknown top-level keys rejected;
+    ``alignment.*`` and ``gru.*`` accept any keyword of fit_alignment / GRURegressor)."""
+    base = OmegaConf.load(DEFAULTS)
+    OmegaConf.set_struct(base, True)
+    for open_key in ("alignment", "gru"):
+        OmegaConf.set_struct(base[open_key], False)
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise EvaluationError(f"options must be key=value, got {bad}")
+    try:
+        opts = OmegaConf.merge(base, OmegaConf.from_dotlist(list(overrides)))
+    except ConfigKeyError as err:
+        raise EvaluationError(f"unknown evaluation option: {err}. Known: {sorted(base.keys())}. "
+                              "(The scene and model come from the run's own config and cannot be overridden.)") from err
+    if opts.checkpoint not in ("best", "last"):
+        raise EvaluationError(f"checkpoint must be 'best' or 'last', got {opts.checkpoint!r}")
+    if opts.latent not in ("y", "z", "both"):
+        raise EvaluationError(f"latent must be 'y', 'z' or 'both', got {opts.latent!r}")
+    if opts.baselines is not None:
+        unknown = [b for b in opts.baselines if b not in BASELINES]
+        if unknown:
+            raise EvaluationError(f"unknown baseline(s) {unknown}; choose from {list(BASELINES)}")
+    return opts
+
+
+# ----------------------------------------------------------------------------- discovery
+@dataclass
+class Run:
+    run_dir: Path
+    ckpt: Path
+    cfg: DictConfig = field(repr=False)
+    name: str = ""
+
+
+def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
+    """best: ``metrics.json`` best_checkpoint, else the newest ``checkpoints/best*.ckpt``;
+    last (or no best): ``checkpoints/last.ckpt``. Raises EvaluationError naming the folder."""
+    ck_dir = run_dir / "checkpoints"
+    last = ck_dir / "last.ckpt"
+    if which == "best":
+        mpath = run_dir / "metrics.json"
+        if mpath.exists():
+            try:
+                best = json.loads(mpath.read_text()).get("best_checkpoint")
+            except ValueError:
+                best = None
+            if best:
+                p = Path(best)
+                cand = p if p.exists() else ck_dir / p.name  # the run folder may have moved
+                if cand.exists():
+                    return cand
+        bests = sorted(ck_dir.glob("best*.ckpt"), key=lambda p: (p.stat().st_mtime, p.name))
+        if bests:
+            return bests[-1]
+        if last.exists():
+            log.warning("%s: no best checkpoint, using %s", run_dir, last)
+            return last
+    elif last.exists():
+        return last
+    have = sorted(p.name for p in ck_dir.glob("*.ckpt")) if ck_dir.is_dir() else []
+    raise EvaluationError(
+        f"no {'checkpoint' if which == 'best' else 'last.ckpt'} in run folder {run_dir} "
+        f"(looked in {ck_dir}; found {have or 'nothing'}). Did training finish or get killed before its first epoch?")
+
+
+def load_run(run_dir: Path, which: str, ckpt: Path | None = None) -> Run:
+    cpath = run_dir / "config_resolved.yaml"
+    if not cpath.exists():
+        raise EvaluationError(f"{run_dir} is not a training run folder: no config_resolved.yaml "
+                              "(give a run folder made by train.py, one of its checkpoints, or a multirun folder)")
+    cfg = OmegaConf.load(cpath)
+    return Run(run_dir=run_dir, ckpt=ckpt or find_checkpoint(run_dir, which), cfg=cfg, name=run_dir.name)
+
+
+def discover(target: Path, which: str) -> tuple[str, list[Run], list[tuple[Path, str]]]:
+    """-> (kind 'run' | 'multirun', runs, skipped (folder, reason))."""
+    target = Path(target)
+    if not target.exists():
+        raise EvaluationError(f"no such file or folder: {target}")
+    if target.is_file():
+        if target.suffix != ".ckpt":
+            raise EvaluationError(f"{target} is a file but not a checkpoint (*.ckpt)")
+        return "run", [load_run(target.resolve().parent.parent, which, ckpt=target.resolve())], []
+    if (target / "config_resolved.yaml").exists():
+        return "run", [load_run(target, which)], []
+    jobs = sorted((d for d in target.iterdir() if d.is_dir() and (d / "config_resolved.yaml").exists()),
+                  key=lambda d: d.name)
+    if not jobs:
+        raise EvaluationError(f"{target} holds no training run: no config_resolved.yaml in it nor in its "
+                              "sub-folders (expected a run folder, a checkpoint or a multirun folder)")
+    runs, skipped = [], []
+    for d in jobs:
+        try:
+            runs.append(load_run(d, which))
+        except EvaluationError as err:
+            skipped.append((d, str(err)))
+            log.warning("skipping %s", err)
+    if not runs:
+        raise EvaluationError(f"multirun folder {target}: none of its {len(jobs)} job(s) has a checkpoint; "
+                              + "; ".join(r for _, r in skipped[:3]))
+    return "multirun", runs, skipped
+
+
+# ----------------------------------------------------------------------------- data
+def _training_cwd(run_dir: Path) -> Path | None:
+    p = run_dir / "provenance.json"
+    try:
+        cwd = json.loads(p.read_text()).get("cwd")
+    except (OSError, ValueError):
+        return None
+    return Path(cwd) if cwd else None
+
+
+def _resolve_path(value: str, train_cwd: Path | None) -> str:
+    """Relative path: as is when it exists from here, else relative to the training cwd."""
+    p = Path(value)
+    if p.is_absolute() or train_cwd is None:
+        return value
+    globby = any(ch in value for ch in "*?[")
+    here = bool(list(Path().glob(value))) if globby else p.exists()
+    if here:
+        return value
+    there = train_cwd / p
+    return str(there) if (bool(list(train_cwd.glob(value))) if globby else there.exists()) else value
+
+
+def data_config(run: Run, opts: DictConfig) -> dict:
+    """The run's cfg.data with the saved split, loader options and resolved paths."""
+    data = OmegaConf.to_container(run.cfg.data, resolve=True)
+    split = run.run_dir / "split.json"
+    if not split.exists():
+        raise EvaluationError(f"{run.run_dir} has no split.json: the training/held-out split of this run is unknown, "
+                              "so the alignment could be fitted on scored sequences; refusing to evaluate")
+    train_cwd = _training_cwd(run.run_dir)
+    data["data_dir"] = _resolve_path(str(data.get("data_dir", "data")), train_cwd)
+    if data.get("raw_files"):
+        data["raw_files"] = [_resolve_path(str(f), train_cwd) for f in data["raw_files"]]
+    data["split_file"] = str(split)
+    if opts.data.batch_size:
+        data["batch_size"] = int(opts.data.batch_size)
+    data["num_workers"] = int(opts.data.num_workers)
+    return data
+
+
+class DataCache:
+    """One prepared DataModule (and its loaded batches) per (data config, saved split)."""
+
+    def __init__(self) -> None:
+        self._dms: dict[str, Any] = {}
+        self._batches: dict[tuple[str, str], list] = {}
+        self.hits = 0
+
+    @staticmethod
+    def key(data: dict) -> str:
+        split = json.loads(Path(data["split_file"]).read_text())
+        d = {k: v for k, v in data.items() if k != "split_file"}
+        return json.dumps([d, split.get("train"), split.get("val")], sort_keys=True, default=str)
+
+    def get(self, data: dict):
+        from hydra.utils import instantiate
+
+        k = self.key(data)
+        if k in self._dms:
+            self.hits += 1
+            return k, self._dms[k]
+        dm = instantiate(OmegaConf.create(data), _convert_="all")
+        dm.prepare_data()
+        dm.setup("fit")
+        self._dms[k] = dm
+        return k, dm
+
+    def batches(self, k: str, dm, which: str) -> list:
+        if (k, which) not in self._batches:
+            loader = dm.train_eval_dataloader() if which == "train" else dm.val_dataloader()
+            self._batches[(k, which)] = list(loader)
+        return self._batches[(k, which)]
+
+
+# ----------------------------------------------------------------------------- one run
+def _names(dm, which: str) -> list[str]:
+    ds = dm.train_set if which == "train" else dm.val_set
+    return [t.name for t in ds.trials]
+
+
+def collect_split(model, batches: list, names: list[str], latent: str) -> tuple[dict, float]:
+    """collect_latents over pre-loaded batches (so the timing is inference only) + the
+    observations / actions the baselines need + trial names as seq_id."""
+    import numpy as np
+    import torch
+
+    from embodied_tactile.eval.callback import collect_latents
+
+    t0 = time.perf_counter()
+    split = collect_latents(model, batches, latent=latent)
+    dt = time.perf_counter() - t0
+    split["obs"] = torch.cat([b["obs"] for b in batches]).numpy()
+    split["actions"] = torch.cat([b["actions"] for b in batches]).numpy()
+    if len(names) != len(split["factors"]):
+        raise EvaluationError(f"{len(names)} trial names but {len(split['factors'])} sequences served")
+    split["seq_id"] = np.asarray(names)
+    return split, dt
+
+
+def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequence[str]) -> tuple[list, list[dict], dict]:
+    """-> (Results of every method, krr history rows, info dict)."""
+    import torch
+    from hydra.utils import get_class
+
+    from embodied_tactile.eval import evaluate_latents
+    from embodied_tactile.eval.baselines import MODALITY_CHANNELS, evaluate_gru, evaluate_handcrafted, evaluate_mean
+    from embodied_tactile.eval.figures import read_history
+
+    t_run = time.perf_counter()
+    cfg = run.cfg
+    modality, skin, primitive = str(cfg.modality.name), str(cfg.skin.name), str(cfg.primitive.name)
+    data = data_config(run, opts)
+    source = str(data.get("source", "simulated"))
+    channels = list(data["channels"])
+    if modality in MODALITY_CHANNELS and tuple(channels) != tuple(MODALITY_CHANNELS[modality]):
+        log.warning("%s: data channels %s differ from the %s preset %s; the run's channels are used",
+                    run.run_dir, channels, modality, MODALITY_CHANNELS[modality])
+    key, dm = cache.get(data)
+    t_data = time.perf_counter()
+
+    cls = get_class(str(cfg.model._target_))
+    model = cls.load_from_checkpoint(str(run.ckpt), map_location="cpu")
+    model.eval()
+    tr, _ = collect_split(model, cache.batches(key, dm, "train"), _names(dm, "train"), opts.latent)
+    te, infer_s = collect_split(model, cache.batches(key, dm, "val"), _names(dm, "val"), opts.latent)
+    t_inf = time.perf_counter()
+
+    metrics = _read_json(run.run_dir / "metrics.json")
+    hist_path = run.run_dir / "krr_history.jsonl"
+    history = read_history(hist_path) if hist_path.exists() else []
+    train_s = metrics.get("train_wall_s")
+    if train_s is None and history:
+        train_s = history[-1].get("train_wall_time_s")
+    meta = dict(modality=modality, skin=skin, primitive=primitive, source=source)
+    align = OmegaConf.to_container(opts.alignment, resolve=True)
+    params = {"train_time_s": float("nan") if train_s is None else float(train_s),
+              "inference_s_per_sequence": infer_s / max(1, len(te["factors"])),
+              "inference_s_total_val": infer_s,
+              "train_time_excl_eval_s": history[-1].get("train_wall_time_s") if history else None,
+              "checkpoint": str(run.ckpt), "run_dir": str(run.run_dir)}
+    res, _ = evaluate_latents(tr, te, latent=opts.latent, alignment=align, params=params, **meta)
+    results = [res]
+    timings = {"data_s": t_data - t_run, "load_and_infer_s": t_inf - t_data}
+    for b in baselines:
+        t0 = time.perf_counter()
+        if b == "handcrafted":
+            results.append(evaluate_handcrafted(tr, te, channels, alignment=align, **meta))
+        elif b == "gru":
+            results.append(evaluate_gru(tr, te, gru=OmegaConf.to_container(opts.gru, resolve=True), **meta))
+        elif b == "mean":
+            results.append(evaluate_mean(tr, te, n_frames=te["obs"].shape[1], **meta))
+        timings[f"{b}_s"] = time.perf_counter() - t0
+    for r in results:
+        r.params.setdefault("run_dir", str(run.run_dir))
+    timings["total_s"] = time.perf_counter() - t_run
+    info = {"run_dir": str(run.run_dir), "checkpoint": str(run.ckpt), "modality": modality, "skin": skin,
+            "primitive": primitive, "source": source, "channels": channels, "latent": opts.latent,
+            "n_train": int(len(tr["factors"])), "n_val": int(len(te["factors"])),
+            "n_frames": int(te["obs"].shape[1]), "train_wall_s": train_s, "timings": timings,
+            "baselines": list(baselines)}
+    del model
+    torch.set_grad_enabled(True)
+    return results, history, info
+
+
+def _read_json(p: Path) -> dict:
+    try:
+        return json.loads(p.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+# ----------------------------------------------------------------------------- main
+def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
+    """Evaluate a run / checkpoint / multirun; return {"out": folder, "runs": [info...],
+    "skipped": [...], "written": write_report's dict}. Raises EvaluationError."""
+    opts = parse_options(overrides)
+    if opts.torch_threads:
+        import torch
+
+        torch.set_num_threads(int(opts.torch_threads))
+    kind, runs, skipped = discover(Path(target), opts.checkpoint)
+    baselines = list(opts.baselines) if opts.baselines is not None else list(
+        BASELINES if kind == "run" else MULTIRUN_BASELINES)
+    root = runs[0].run_dir if kind == "run" else Path(target)
+    out = Path(opts.out) if opts.out else root / ("evaluation" if opts.checkpoint == "best" else f"evaluation-{opts.checkpoint}")
+
+    from embodied_tactile.eval import write_report
+
+    t0 = time.perf_counter()
+    cache = DataCache()
+    all_results, histories, infos = [], {}, []
+    from collections import Counter
+
+    cells = Counter(_cell(r) for r in runs)
+    for i, run in enumerate(runs):
+        log.info("[%d/%d] %s (%s)", i + 1, len(runs), run.run_dir, run.ckpt.name)
+        results, history, info = evaluate_run(run, opts, cache, baselines)
+        cell = (info["modality"], info["skin"], info["primitive"])
+        if cells[cell] > 1:
+            # two jobs of one scene (e.g. a seed or annealing sweep): keep them apart by folder
+            for r in results:
+                r.modality = f"{r.modality}@{run.name}"
+        label = "/".join((results[0].modality, info["skin"], info["primitive"]))
+        if history:
+            histories[label] = history
+        all_results.extend(results)
+        infos.append(info)
+        log.info("    %s: NMSE overall %.4g (%d train / %d held-out, %.1f s)", label,
+                 results[0].summary()["nmse_trajectory_overall"], info["n_train"], info["n_val"],
+                 info["timings"]["total_s"])
+    t_eval = time.perf_counter()
+    sources = sorted({i["source"] for i in infos})
+    split_extra = {i["run_dir"]: {"n_train": i["n_train"], "n_val": i["n_val"], "split_file": str(Path(i["run_dir"]) / "split.json")}
+                   for i in infos}
+    written = write_report(all_results, out, source=sources[0] if len(sources) == 1 else None,
+                           split_sizes_=split_extra, histories=histories or None,
+                           figures=bool(opts.figures), umap=bool(opts.umap), distance_mode=str(opts.distance_mode))
+    t_rep = time.perf_counter()
+    summary = {"kind": kind, "target": str(target), "out": str(out), "options": OmegaConf.to_container(opts),
+               "baselines": baselines, "runs": infos,
+               "skipped": [{"run_dir": str(d), "reason": r} for d, r in skipped],
+               "datamodule_reuse": cache.hits, "timings": {"evaluate_s": t_eval - t0, "report_s": t_rep - t_eval}}
+    (out / "evaluation.json").write_text(json.dumps(summary, indent=1, default=str))
+    if opts.print_tables:
+        for p in written["tables"]:
+            if p.endswith(".md"):
+                print(Path(p).read_text())
+    for d, r in skipped:
+        print(f"SKIPPED {d}: {r}")
+    print(f"evaluated {len(infos)} run(s) ({len(skipped)} skipped) in {t_rep - t0:.1f} s -> {out}")
+    return {"out": str(out), "runs": infos, "skipped": summary["skipped"], "written": written}
+
+
+def _cell(run: Run) -> tuple:
+    c = run.cfg
+    return (str(c.modality.name), str(c.skin.name), str(c.primitive.name))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        description="Evaluate a training run folder, a checkpoint file or a multirun folder "
+                    "(options: key=value over configs/evaluate.yaml).",
+        epilog="e.g. python evaluate.py logs/train/runs/<run> latent=both baselines=[handcrafted,mean] umap=false")
+    ap.add_argument("path", help="run folder | checkpoint (.ckpt) | multirun folder")
+    ap.add_argument("overrides", nargs="*", help="evaluation options, key=value (see configs/evaluate.yaml)")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
+    warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+    try:
+        evaluate(args.path, args.overrides)
+    except EvaluationError as err:
+        print(f"evaluate.py: error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
