@@ -14,6 +14,7 @@ Then the median latency of ``filter_step`` for multi_l at batch 1 on one thread.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -50,17 +51,28 @@ def make_batch(C: int, B: int, T: int) -> dict:
             "object_id": torch.randint(0, 32, (B,), generator=g)}
 
 
-def time_steps(fn, model, opt, repeats: int, warmup: int = 1) -> float:
-    times = []
-    for i in range(warmup + repeats):
-        t0 = time.perf_counter()
-        opt.zero_grad(set_to_none=True)
-        terms = fn()
-        (terms["nll"] + terms["kl_z"] + terms["kl_y"]).backward()
-        opt.step()
-        if i >= warmup:
-            times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+def one_step(fn, opt) -> float:
+    t0 = time.perf_counter()
+    opt.zero_grad(set_to_none=True)
+    terms = fn()
+    (terms["nll"] + terms["kl_z"] + terms["kl_y"]).backward()
+    opt.step()
+    return time.perf_counter() - t0
+
+
+def time_pair(fast, naive, opt, repeats: int, naive_repeats: int) -> tuple[list[float], list[float]]:
+    """Alternate batched and naive steps (after one warm-up each) so that both see the
+    same machine load; returns the timings of each."""
+    one_step(fast, opt)
+    if naive is not None:
+        one_step(naive, opt)
+    tf, tn = [], []
+    for i in range(max(repeats, naive_repeats)):
+        if i < repeats:
+            tf.append(one_step(fast, opt))
+        if naive is not None and i < naive_repeats:
+            tn.append(one_step(naive, opt))
+    return tf, tn
 
 
 def bench_latency(model_kw: dict, n: int = 2000) -> tuple[float, float]:
@@ -88,8 +100,8 @@ def main() -> None:
     p.add_argument("--seq", type=int, default=None, help="T (default 300, --quick 50)")
     p.add_argument("--quick", action="store_true", help="smaller shapes for a fast check")
     p.add_argument("--modalities", nargs="+", default=sorted(MODALITY_PRESETS), choices=sorted(MODALITY_PRESETS))
-    p.add_argument("--repeats", type=int, default=2, help="timed steps per model (median; after 1 warm-up)")
-    p.add_argument("--naive-repeats", type=int, default=1)
+    p.add_argument("--repeats", type=int, default=3, help="timed batched steps per model (after 1 warm-up)")
+    p.add_argument("--naive-repeats", type=int, default=2, help="timed naive steps per model")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--widths", type=int, nargs=2, default=[16, 32], help="encoder conv widths")
     p.add_argument("--hidden", type=int, default=128)
@@ -102,21 +114,25 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; shapes B={B}, T={T}, 28x28; "
           f"encoder widths {args.widths}, hidden {args.hidden}; n_z=16, n_y=16")
-    print(f"{'modality':<9} {'C':>2} {'params':>8} {'step s':>8} {'seq/s':>8} {'naive s':>8} {'naive seq/s':>11} {'speed-up':>9}")
+    print(f"load average at start: {os.getloadavg()[0]:.2f} (1 min) on {os.cpu_count()} CPUs")
+    print("step s = min over repeats (median in brackets); seq/s = B / min step; speed-up = naive / batched (min)")
+    print(f"{'modality':<9} {'C':>2} {'params':>8} {'step s':>16} {'seq/s':>7} {'naive step s':>16} "
+          f"{'naive seq/s':>11} {'speed-up':>8}")
     for name in args.modalities:
         torch.manual_seed(0)
         m = LatentFilter(name, **model_kw)
         C = len(m.modality["channels"])
         batch = make_batch(C, B, T)
         opt = torch.optim.Adam(m.parameters(), lr=1e-5)
-        t_fast = time_steps(lambda: m.elbo_terms(batch), m, opt, args.repeats)
         n_params = sum(p.numel() for p in m.parameters())
-        if args.no_naive:
-            print(f"{name:<9} {C:>2} {n_params:>8} {t_fast:>8.2f} {B / t_fast:>8.1f}")
-            continue
-        t_naive = time_steps(lambda: naive_terms(m, batch), m, opt, args.naive_repeats)
-        print(f"{name:<9} {C:>2} {n_params:>8} {t_fast:>8.2f} {B / t_fast:>8.1f} {t_naive:>8.2f} "
-              f"{B / t_naive:>11.1f} {t_naive / t_fast:>8.1f}x", flush=True)
+        naive = None if args.no_naive else (lambda: naive_terms(m, batch))
+        tf, tn = time_pair(lambda: m.elbo_terms(batch), naive, opt, args.repeats, args.naive_repeats)
+        f_min = min(tf)
+        row = f"{name:<9} {C:>2} {n_params:>8} {f_min:>7.2f} ({statistics.median(tf):>6.2f}) {B / f_min:>7.1f}"
+        if tn:
+            n_min = min(tn)
+            row += (f" {n_min:>7.2f} ({statistics.median(tn):>6.2f}) {B / n_min:>11.1f} {n_min / f_min:>7.1f}x")
+        print(row, flush=True)
     if not args.no_naive:
         # the reference computes the same loss (deterministic mode)
         m = LatentFilter("multi_l", **model_kw)
@@ -127,6 +143,7 @@ def main() -> None:
         diff = max(abs(float(a[k]) - float(b[k])) / max(1.0, abs(float(a[k]))) for k in ("nll", "kl_z", "kl_y", "entropy"))
         print(f"naive reference vs batched loss, max relative difference: {diff:.1e}")
     med, p99 = bench_latency(model_kw, args.latency_steps)
+    print(f"load average at end: {os.getloadavg()[0]:.2f}")
     print(f"filter_step multi_l, batch 1, 1 thread: median {med:.3f} ms, p99 {p99:.3f} ms "
           f"over {args.latency_steps} steps")
 

@@ -278,3 +278,26 @@ def test_nonfinite_loss_raises_with_step_and_term(tmp_path):
     tr = trainer(tmp_path, limit_val_batches=0)
     with pytest.raises(FloatingPointError, match=r"non-finite loss at step 0: kl_y=nan"):
         tr.fit(module, DataLoader(ListDataset(batch), batch_size=2))
+
+
+def test_hydra_instantiation_with_project_style_configs(tmp_path):
+    """DictConfig modality (extra `label`, `pathways` mapping), `_target_` schedule and
+    `_partial_` optimizer, as Hydra passes them; hparams stay checkpoint-safe."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create({
+        "_target_": "embodied_tactile.models.module.LateFusionLatentFilter",
+        "modality": {"name": "multi_l", "label": "MULTI-L", "channels": ["acc", "fsr_t", "fsr_b"],
+                     "fusion": "late", "pathways": {"vibration": ["acc"], "force": ["fsr_t", "fsr_b"]}},
+        "encoder": {"widths": [4, 8], "hidden": 32}, "transition_hidden": 32, "lstm_hidden": 32,
+        "annealing": {"_target_": "embodied_tactile.models.annealing.DVBFAnnealing", "c0": 0.01, "T_A": 100},
+        "optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-5},
+    })
+    module = instantiate(cfg)
+    assert set(module.model.encoders) == {"vibration", "force"}
+    assert module.hparams["annealing"] == {"name": "dvbf", "c0": 0.01, "T_A": 100.0}
+    assert module.hparams["optimizer"] == {"name": "Adam", "lr": 1e-5}
+    assert type(module.hparams["modality"]) is dict
+    opt = module.configure_optimizers()
+    assert isinstance(opt, torch.optim.Adam) and opt.defaults["lr"] == 1e-5

@@ -161,6 +161,8 @@ class ConvDecoder(nn.Module):
 
     def forward(self, z: Tensor) -> Tensor:
         h = self.fc(z).view(z.shape[0], self.w2, 7, 7)
+        if z.shape[0] >= 64 and z.device.type == "cpu":
+            h = h.contiguous(memory_format=torch.channels_last)  # ~2x faster transposed convs
         return self.deconv(h)
 
 
