@@ -1,0 +1,165 @@
+"""evaluate.py end to end on tiny trained runs (debug=fast): one run trained with a
+non-default modality (fsr_tb) from another working directory with a relative data_dir, and
+a two-job multirun (acc, fsr_t) sharing the data folder."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import evaluate as ev  # noqa: E402
+
+FAST = ["print_tables=false", "alignment.cv=2"]
+
+
+def _train(args, cwd, log):
+    env = dict(os.environ, WANDB_MODE="disabled", PYTHONUNBUFFERED="1")
+    p = subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=cwd, env=env,
+                       capture_output=True, text=True, timeout=240)
+    log.write_text(p.stdout + p.stderr)
+    assert p.returncode == 0, p.stderr[-3000:]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """run: modality=fsr_tb, trained in <tmp> with the RELATIVE data_dir 'data' (evaluation
+    from the repo must find it through provenance.json's cwd); multi: modality=acc,fsr_t."""
+    tmp = tmp_path_factory.mktemp("evaluate")
+    _train(["debug=fast", "modality=fsr_tb", "paths.data_dir=data", f"hydra.run.dir={tmp}/run"], tmp, tmp / "run.log")
+    _train(["-m", "debug=fast", "modality=acc,fsr_t", f"paths.data_dir={tmp}/data", f"hydra.sweep.dir={tmp}/multi"],
+           REPO, tmp / "multi.log")
+    return tmp
+
+
+def _finite_tree(obj, path="") -> list[str]:
+    bad = []
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            bad += _finite_tree(v, f"{path}.{k}")
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            bad += _finite_tree(v, f"{path}[{i}]")
+    elif isinstance(obj, float) and not math.isfinite(obj):
+        bad.append(path)
+    return bad
+
+
+def test_run_cli_writes_everything_as_trained_modality(trained):
+    run = trained / "run"
+    env = dict(os.environ, WANDB_MODE="disabled")
+    p = subprocess.run([sys.executable, str(REPO / "evaluate.py"), str(run), "gru.epochs=2", "alignment.cv=2"],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+    assert p.returncode == 0, p.stderr[-3000:]
+    out = run / "evaluation"
+    for name in ("action_config", "environmentshape", "summary", "runtime"):
+        for ext in ("md", "csv", "tex"):
+            assert (out / f"table_{name}.{ext}").stat().st_size > 0
+        assert f"**{name}.**" in p.stdout  # Markdown printed to the terminal
+    figs = {f.name for f in (out / "figures").glob("*.png")}
+    for f in ("nmse_time_by_modality.png", "nmse_time_by_skin.png", "nmse_time_by_method.png",
+              "nmse_time_by_best_worst_action.png", "error_vs_runtime.png",
+              "umap_latent_filter_fsr_tb_soft_pressing.png", "distances_latent_filter_fsr_tb_soft_pressing.png"):
+        assert f in figs, sorted(figs)
+    res = json.loads((out / "results.json").read_text())
+    # the run's own modality, no argument given
+    assert {r["modality"] for r in res["runs"]} == {"fsr_tb"}
+    assert {r["method"] for r in res["runs"]} == {"latent_filter", "handcrafted_krr", "gru", "mean"}
+    assert "| latent_filter | fsr_tb | soft | pressing |" in (out / "table_summary.md").read_text()
+    # the saved split is reused: sizes equal split.json
+    split = json.loads((run / "split.json").read_text())
+    for r in res["runs"]:
+        assert (r["n_train"], r["n_test"]) == (len(split["train"]), len(split["val"]))
+        assert math.isfinite(r["nmse_trajectory_overall"]) and math.isfinite(r["nmse_last_step_overall"])
+        assert all(math.isfinite(v) for v in r["nmse_trajectory"].values())
+    lf = next(r for r in res["runs"] if r["method"] == "latent_filter")
+    assert lf["params"]["train_time_s"] > 0 and lf["params"]["inference_s_per_sequence"] > 0
+    assert res["histories"], "krr_history.jsonl rows missing"
+    # every table states the NMSE definition, the split sizes and the data source
+    for t in res["tables"]:
+        assert res["nmse_definition"] in t["caption"]
+        assert f"{len(split['train'])} train / {len(split['val'])} held-out" in t["caption"]
+        assert "Data source: simulated" in t["caption"]
+    assert not _finite_tree(res["runs"]), _finite_tree(res["runs"])
+    info = json.loads((out / "evaluation.json").read_text())["runs"][0]
+    assert info["channels"] == ["fsr_t", "fsr_b"] and info["modality"] == "fsr_tb"
+    assert Path(info["checkpoint"]).name.startswith("best")
+
+
+def test_saved_split_reused_and_leakage_guard(trained):
+    from embodied_tactile.eval import LeakageError, evaluate_latents
+
+    run = trained / "run"
+    opts = ev.parse_options(FAST)
+    _, (r,), _ = ev.discover(run, "best")
+    cache = ev.DataCache()
+    key, dm = cache.get(ev.data_config(r, opts))
+    split = json.loads((run / "split.json").read_text())
+    assert ev._names(dm, "train") == split["train"] and ev._names(dm, "val") == split["val"]
+    from hydra.utils import get_class
+
+    model = get_class(str(r.cfg.model._target_)).load_from_checkpoint(str(r.ckpt), map_location="cpu")
+    tr, _ = ev.collect_split(model, cache.batches(key, dm, "train"), ev._names(dm, "train"), "y")
+    te, _ = ev.collect_split(model, cache.batches(key, dm, "val"), ev._names(dm, "val"), "y")
+    assert not set(tr["seq_id"]) & set(te["seq_id"])  # scored ids disjoint from fitted ids
+    assert tr["obs"].shape[2] == 2  # fsr_tb: two channels, from the run's config
+    with pytest.raises(LeakageError):  # scoring a fitted sequence is refused
+        evaluate_latents(tr, {k: v[:2] for k, v in tr.items()}, latent="y", alignment={"cv": 2})
+
+
+def test_checkpoint_path(trained, tmp_path):
+    ckpt = trained / "run" / "checkpoints" / "last.ckpt"
+    out = ev.evaluate(ckpt, [*FAST, f"out={tmp_path}/ev", "baselines=[mean]", "umap=false", "figures=false"])
+    assert Path(out["runs"][0]["checkpoint"]) == ckpt.resolve()
+    assert out["runs"][0]["modality"] == "fsr_tb"
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert {r["method"] for r in res["runs"]} == {"latent_filter", "mean"}
+
+
+def test_multirun_aggregate_and_skip(trained, capsys):
+    multi = trained / "multi"
+    broken = multi / "modality=broken"  # a job killed before its first checkpoint
+    broken.mkdir(exist_ok=True)
+    shutil.copy(multi / "modality=acc" / "config_resolved.yaml", broken / "config_resolved.yaml")
+    out = ev.evaluate(multi, [*FAST, "umap=false"])
+    printed = capsys.readouterr().out
+    assert Path(out["out"]) == multi / "evaluation"
+    assert len(out["runs"]) == 2 and {i["modality"] for i in out["runs"]} == {"acc", "fsr_t"}
+    assert "SKIPPED" in printed and "modality=broken" in printed
+    assert len(out["skipped"]) == 1 and "no checkpoint" in out["skipped"][0]["reason"]
+    res = json.loads((multi / "evaluation" / "results.json").read_text())
+    lf = [r for r in res["runs"] if r["method"] == "latent_filter"]
+    assert {r["modality"] for r in lf} == {"acc", "fsr_t"}
+    assert {r["method"] for r in res["runs"]} == {"latent_filter", "handcrafted_krr", "mean"}  # no GRU by default
+    assert all(math.isfinite(r["nmse_trajectory_overall"]) for r in res["runs"])
+    assert set(res["histories"]) == {"acc/soft/pressing", "fsr_t/soft/pressing"}
+    curves = res["figure_curves"]["modality"]
+    assert {"acc", "fsr_t"} <= set(curves) and np.isfinite(np.asarray(curves["acc"], float)).all()
+    for name in ("action_config", "environmentshape", "summary", "runtime"):
+        assert (multi / "evaluation" / f"table_{name}.tex").exists()
+    assert (multi / "evaluation" / "figures" / "error_vs_runtime.png").exists()
+    assert (multi / "evaluation" / "figures" / "distances_latent_filter_acc_soft_pressing.png").exists()
+    shutil.rmtree(broken)
+
+
+def test_folder_without_checkpoint_is_a_clear_error(trained, tmp_path, capsys):
+    empty = tmp_path / "no_ckpt_run"
+    empty.mkdir()
+    shutil.copy(trained / "run" / "config_resolved.yaml", empty / "config_resolved.yaml")
+    assert ev.main([str(empty)]) == 2
+    err = capsys.readouterr().err
+    assert "no checkpoint" in err and str(empty) in err
+    assert ev.main([str(tmp_path / "nowhere")]) == 2
+    assert "no such file or folder" in capsys.readouterr().err
+    assert ev.main([str(trained / "run"), "modality=acc"]) == 2  # the scene is not an evaluation option
+    assert "unknown evaluation option" in capsys.readouterr().err
