@@ -135,6 +135,10 @@ class TactileSequenceDataset(Dataset):
             planes.append(arr if idx is None else arr[:, idx])
         obs = np.stack(planes, axis=1).astype(np.float32, copy=False)
         actions = h["actions"]["trials"][tr.name]["actions"][sl].astype(np.float32, copy=False)
+        for fld, arr in (("obs", obs), ("actions", actions)):
+            if not np.isfinite(arr).all():  # a damaged cache is a bug to report, not to feed the model
+                src = self.cache_files["actions" if fld == "actions" else CHANNELS[self.channels[0]][0]]
+                raise ValueError(f"{src}: trial '{tr.name}', field '{fld}': non-finite values in the preprocessed cache")
         return {
             "obs": torch.from_numpy(np.ascontiguousarray(obs)),
             "actions": torch.from_numpy(np.ascontiguousarray(actions)),

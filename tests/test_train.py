@@ -1,0 +1,196 @@
+"""train.py end to end: run folder, resume after SIGKILL, multirun, DDP, the ablation grid,
+and the non-finite-loss guard. Each run is a subprocess on the tiny debug scene."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from conftest import REPO
+
+ENV = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
+
+
+def train_cmd(*overrides: str) -> list[str]:
+    flags = [o for o in overrides if o.startswith("-")]
+    return [sys.executable, str(REPO / "train.py"), *flags, "debug=fast", *[o for o in overrides if not o.startswith("-")]]
+
+
+def run_train(*overrides: str, timeout: int = 300, check: bool = True) -> subprocess.CompletedProcess:
+    res = subprocess.run(train_cmd(*overrides), cwd=REPO, env=ENV, capture_output=True, text=True, timeout=timeout)
+    if check and res.returncode != 0:
+        raise AssertionError(f"train.py failed ({res.returncode}):\n{res.stdout[-3000:]}\n{res.stderr[-5000:]}")
+    return res
+
+
+@pytest.fixture(scope="module")
+def data_dir(tiny_data_dir) -> Path:
+    return tiny_data_dir
+
+
+@pytest.fixture(scope="module")
+def one_run(data_dir, tmp_path_factory) -> Path:
+    run = tmp_path_factory.mktemp("run") / "r"
+    run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "trainer.max_epochs=2")
+    return run
+
+
+def test_run_folder_contents(one_run):
+    for name in ("config_resolved.yaml", ".hydra/config.yaml", "metrics.json", "split.json", "provenance.json",
+                 "checkpoints/last.ckpt", "csv/metrics.csv", "krr_history.jsonl"):
+        assert (one_run / name).exists(), name
+    assert list((one_run / "checkpoints").glob("best-*.ckpt"))
+    metrics = json.loads((one_run / "metrics.json").read_text())
+    assert metrics["status"] == "finished"
+    assert np.isfinite(metrics["final_val"]["val/elbo"])
+    assert metrics["peak_rss_bytes"] > 0 and metrics["train_wall_s"] > 0
+    prov = json.loads((one_run / "provenance.json").read_text())
+    assert prov["packages"]["torch"] and prov["packages"]["lightning"]
+    assert "git_commit" in prov
+    split = json.loads((one_run / "split.json").read_text())
+    assert split["train"] and split["val"] and not set(split["train"]) & set(split["val"])
+    history = [json.loads(line) for line in (one_run / "krr_history.jsonl").read_text().splitlines()]
+    assert history and "train_wall_time_s" in history[-1]
+
+
+def test_checkpoint_round_trip(one_run):
+    from omegaconf import OmegaConf
+    from hydra.utils import get_class
+
+    cfg = OmegaConf.load(one_run / "config_resolved.yaml")
+    cls = get_class(cfg.model._target_)
+    model = cls.load_from_checkpoint(one_run / "checkpoints" / "last.ckpt", map_location="cpu")
+    model.eval()
+    torch.manual_seed(0)
+    batch = {"obs": torch.rand(2, 5, 3, 28, 28), "actions": torch.zeros(2, 5, 6)}
+    a = model.infer_latents(batch)
+    b = cls.load_from_checkpoint(one_run / "checkpoints" / "last.ckpt", map_location="cpu").eval().infer_latents(batch)
+    torch.testing.assert_close(a["y_mean"], b["y_mean"])
+    assert a["y_mean"].shape == (2, 5, 16)
+
+
+def _ckpt_epoch(path: Path) -> int:
+    return int(torch.load(path, map_location="cpu", weights_only=False)["epoch"])
+
+
+def test_resume_after_sigkill(data_dir, tmp_path):
+    run = tmp_path / "run"
+    overrides = (f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "trainer.max_epochs=40", "callbacks.krr_alignment=null")
+    proc = subprocess.Popen(train_cmd(*overrides), cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    last = run / "checkpoints" / "last.ckpt"
+    deadline = time.time() + 240
+    try:
+        while time.time() < deadline:
+            if last.exists() and _ckpt_epoch(last) >= 2:
+                break
+            if proc.poll() is not None:
+                pytest.fail("training ended before it could be killed")
+            time.sleep(0.5)
+        else:
+            pytest.fail("no checkpoint of epoch >= 2 appeared")
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    killed_at = _ckpt_epoch(last)  # 0-based index of the last finished epoch
+    step_at_kill = int(torch.load(last, map_location="cpu", weights_only=False)["global_step"])
+    res = run_train(*overrides[:-2], "trainer.max_epochs=" + str(killed_at + 3), "callbacks.krr_alignment=null")
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["resumed_from"] and metrics["resumed_from"].endswith("last.ckpt")
+    assert "resuming from" in res.stderr + res.stdout
+    # it continued after the last finished epoch: exactly 2 more epochs, none repeated
+    steps_per_epoch = step_at_kill // (killed_at + 1)
+    assert steps_per_epoch >= 1
+    assert _ckpt_epoch(last) == killed_at + 2
+    assert int(torch.load(last, map_location="cpu", weights_only=False)["global_step"]) == step_at_kill + 2 * steps_per_epoch
+    csv = (run / "csv" / "metrics.csv").read_text().splitlines()
+    assert len(csv) > 1
+
+
+def test_multirun_two_modalities(data_dir, tmp_path):
+    sweep = tmp_path / "multi"
+    run_train("-m", "modality=acc,fsr_t", f"paths.data_dir={data_dir}", f"hydra.sweep.dir={sweep}", timeout=400)
+    subdirs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
+    assert "modality=acc" in subdirs and "modality=fsr_t" in subdirs
+    for name in ("modality=acc", "modality=fsr_t"):
+        m = json.loads((sweep / name / "metrics.json").read_text())
+        assert m["status"] == "finished"
+        assert m["data"]["channels"] == [name.split("=")[1]]
+
+
+def test_ddp_two_cpu_processes(data_dir, tmp_path):
+    run = tmp_path / "ddp"
+    res = run_train("trainer=ddp", f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "callbacks.krr_alignment=null", timeout=400)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "finished" and np.isfinite(metrics["final_val"]["val/elbo"])
+    assert "world_size=2" in res.stdout + res.stderr or "distributed_backend=gloo" in res.stdout + res.stderr
+
+
+def test_nonfinite_loss_stops_and_keeps_last_checkpoint(data_dir, tmp_path):
+    """Overflowing (finite) inputs make the loss non-finite: the run stops, names step and
+    term, and last.ckpt from the previous epoch survives unchanged."""
+    import shutil
+
+    d = tmp_path / "data"
+    shutil.copytree(data_dir, d)
+    run = tmp_path / "run"
+    base = (f"paths.data_dir={d}", f"hydra.run.dir={run}", "modality=acc", "callbacks.krr_alignment=null")
+    run_train(*base, "trainer.max_epochs=1")
+    last = run / "checkpoints" / "last.ckpt"
+    before = last.read_bytes()
+    for cache in (d / "cache").glob("acc-*.h5"):
+        with h5py.File(cache, "a") as f:
+            for g in f["trials"].values():
+                g["acc"][...] = 1e30
+    res = run_train(*base, "trainer.max_epochs=3", check=False)
+    assert res.returncode != 0
+    out = res.stdout + res.stderr
+    assert "non-finite loss at step" in out and "nll=" in out
+    assert last.read_bytes() == before
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "failed" and "non-finite" in metrics["error"]
+
+
+def test_ablation_sweep_composes_all_24_jobs(tmp_path):
+    """What `python train.py -m sweep=ablation trainer.fast_dev_run=true` launches: 24 jobs,
+    each composing and instantiating its data module, model and trainer."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.utils import instantiate
+    from omegaconf import open_dict
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        root = compose(config_name="train", overrides=["sweep=ablation"], return_hydra_config=True)
+        params = root.hydra.sweeper.params
+        jobs = [(c, p) for c in params.combo.split(",") for p in params.primitive.split(",")]
+        assert len(jobs) == 24
+        seen = set()
+        for combo, prim in jobs:
+            cfg = compose(config_name="train", overrides=[f"combo={combo}", f"primitive={prim}", "trainer.fast_dev_run=true",
+                                                          f"paths.data_dir={tmp_path}"], return_hydra_config=True)
+            with open_dict(cfg):
+                cfg.hydra.runtime.output_dir = str(tmp_path / f"{combo}_{prim}")
+            HydraConfig.instance().set_config(cfg)
+            with open_dict(cfg):
+                del cfg["hydra"]
+            dm = instantiate(cfg.data)
+            model = instantiate(cfg.model)
+            trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
+            assert trainer.fast_dev_run
+            assert dm.primitive == prim and dm.skin == combo.rsplit("_", 1)[1]
+            assert model.hparams.modality["name"] == combo.rsplit("_", 1)[0]
+            seen.add((cfg.modality.name, cfg.skin.name, prim))
+        assert len(seen) == 24
