@@ -203,6 +203,10 @@ def data_config(run: Run, opts: DictConfig) -> dict:
                               "so the alignment could be fitted on scored sequences; refusing to evaluate")
     train_cwd = _training_cwd(run.run_dir)
     data["data_dir"] = _resolve_path(str(data.get("data_dir", "data")), train_cwd)
+    if not Path(data["data_dir"]).exists():
+        log.warning("%s: data folder %s not found (training cwd %s); the DataModule will %s", run.run_dir,
+                    data["data_dir"], train_cwd, "re-simulate the scene" if data.get("source") == "simulated"
+                    else "fail unless raw_files are found")
     if data.get("raw_files"):
         data["raw_files"] = [_resolve_path(str(f), train_cwd) for f in data["raw_files"]]
     data["split_file"] = str(split)
