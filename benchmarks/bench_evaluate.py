@@ -65,11 +65,11 @@ def main() -> None:
     if build_s is not None:
         print(f"building the multirun took {build_s:.0f} s")
     print()
-    print("| runs | wall s | per-run s | runs loop s | report s | data s | load+infer s | handcrafted s | DataModules reused |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| runs | wall s | per-run s | runs loop s | report s | data s | load+infer s | handcrafted s | gru s | DataModules reused |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     print(f"| {runs} | {wall:.1f} | {wall / max(runs, 1):.2f} | {ev['timings']['evaluate_s']:.1f} | "
           f"{ev['timings']['report_s']:.1f} | {stages['data_s']:.1f} | {stages['load_and_infer_s']:.1f} | "
-          f"{stages['handcrafted_s']:.1f} | {ev['datamodule_reuse']} |")
+          f"{stages['handcrafted_s']:.1f} | {stages['gru_s']:.1f} | {ev['datamodule_reuse']} |")
 
 
 if __name__ == "__main__":

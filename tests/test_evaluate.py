@@ -60,7 +60,7 @@ def test_run_cli_writes_everything_as_trained_modality(trained):
     env = dict(os.environ, WANDB_MODE="disabled")
     p = subprocess.run([sys.executable, str(REPO / "evaluate.py"), str(run), "gru.epochs=2", "alignment.cv=2"],
                        cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
-    assert p.returncode == 0, p.stderr[-3000:]
+    assert p.returncode == 0, f"rc={p.returncode}\nSTDOUT:\n{p.stdout[-2000:]}\nSTDERR:\n{p.stderr[-6000:]}"
     out = run / "evaluation"
     for name in ("action_config", "environmentshape", "summary", "runtime"):
         for ext in ("md", "csv", "tex"):
