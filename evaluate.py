@@ -277,7 +277,6 @@ def collect_split(model, batches: list, names: list[str], latent: str) -> tuple[
 
 def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequence[str]) -> tuple[list, list[dict], dict]:
     """-> (Results of every method, krr history rows, info dict)."""
-    import torch
     from hydra.utils import get_class
 
     from embodied_tactile.eval import evaluate_latents
@@ -337,7 +336,6 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
             "n_frames": int(te["obs"].shape[1]), "train_wall_s": train_s, "timings": timings,
             "baselines": list(baselines)}
     del model
-    torch.set_grad_enabled(True)
     return results, history, info
 
 
@@ -361,7 +359,12 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     baselines = list(opts.baselines) if opts.baselines is not None else list(
         BASELINES if kind == "run" else MULTIRUN_BASELINES)
     root = runs[0].run_dir if kind == "run" else Path(target)
-    out = Path(opts.out) if opts.out else root / ("evaluation" if opts.checkpoint == "best" else f"evaluation-{opts.checkpoint}")
+    if opts.out:
+        out = Path(opts.out)
+    elif Path(target).is_file():  # one checkpoint file: keep its report apart from the run's default one
+        out = root / f"evaluation-{runs[0].ckpt.stem}"
+    else:
+        out = root / ("evaluation" if opts.checkpoint == "best" else f"evaluation-{opts.checkpoint}")
 
     from embodied_tactile.eval import write_report
 
