@@ -25,6 +25,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile import runtime
+from embodied_tactile.jsonio import write_json
 
 log = logging.getLogger("train")
 
@@ -63,7 +64,7 @@ def main(cfg: DictConfig) -> float | None:
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     except FloatingPointError as err:  # the model's non-finite-loss guard: name step and term
         metrics.update(status="failed", error=str(err), train_wall_s=time.perf_counter() - t0)
-        runtime.write_json(f"{run_dir}/metrics.json", metrics)
+        write_json(f"{run_dir}/metrics.json", metrics)
         log.error("training stopped: %s (last good checkpoint kept in %s/checkpoints)", err, run_dir)
         raise
     metrics["train_wall_s"] = time.perf_counter() - t0
@@ -81,7 +82,7 @@ def main(cfg: DictConfig) -> float | None:
     metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
     metrics["status"] = "finished"
     if trainer.global_rank == 0:
-        runtime.write_json(f"{run_dir}/metrics.json", metrics)
+        write_json(f"{run_dir}/metrics.json", metrics)
         log.info("run folder: %s", run_dir)
 
     for lg in loggers:  # one wandb run per multirun job

@@ -23,6 +23,8 @@ from typing import Any, Mapping
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
+from embodied_tactile.jsonio import write_json
+
 log = logging.getLogger(__name__)
 
 PACKAGES = (
@@ -54,22 +56,6 @@ def git_state(repo: str | os.PathLike | None = None) -> dict[str, Any]:
     commit = git("rev-parse", "HEAD")
     diff = git("diff", "HEAD")
     return {"commit": commit.strip() if commit else None, "dirty": bool(diff), "diff": diff or ""}
-
-
-def write_json(path: str | os.PathLike, payload: Mapping[str, Any]) -> None:
-    """Atomic JSON write (a crash never leaves half a file)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(payload, indent=2, default=_json_default))
-    os.replace(tmp, path)
-
-
-def _json_default(o: Any) -> Any:
-    if hasattr(o, "item"):
-        return o.item()
-    if hasattr(o, "tolist"):
-        return o.tolist()
-    return str(o)
 
 
 def save_provenance(cfg: DictConfig, run_dir: str | os.PathLike) -> None:

@@ -39,6 +39,7 @@ import numpy as np
 
 from embodied_tactile.data.preprocess import FIELDS, PREPROCESS_VERSION, RAW_FIELDS, PreprocessConfig, preprocess_trials
 from embodied_tactile.io import rawformat
+from embodied_tactile.jsonio import to_jsonable
 from embodied_tactile.io.rawformat import FIELDS as RAW_PATHS
 from embodied_tactile.io.rawformat import TrialFormatError
 
@@ -107,7 +108,7 @@ def fingerprint_file(path: str | os.PathLike, names: Sequence[str], fields: Iter
             g: h5py.Group | None = None
             try:
                 g = trials[name]
-                attrs = json.dumps(_jsonable(rawformat.read_attrs(g)), sort_keys=True)
+                attrs = json.dumps(to_jsonable(rawformat.read_attrs(g)), sort_keys=True)
             except (OSError, KeyError, RuntimeError) as exc:
                 attrs = f"unreadable: {exc}"
             for fld in fields:
@@ -123,20 +124,6 @@ def fingerprint_file(path: str | os.PathLike, names: Sequence[str], fields: Iter
                             per_ds[(name, dpath)] = f"unreadable: {type(exc).__name__}: {exc}"
                     hs[fld].update(f"{dpath}={per_ds[(name, dpath)]}\0".encode())
     return {fld: h.hexdigest() for fld, h in hs.items()}
-
-
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, bytes):
-        return v.decode()
-    return v
 
 
 def cache_key(field: str, cfg: PreprocessConfig, source_digests: Sequence[str]) -> str:

@@ -25,6 +25,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from embodied_tactile import constants as C
+from embodied_tactile.jsonio import write_json
 
 log = logging.getLogger(__name__)
 
@@ -372,9 +373,7 @@ class TactileDataModule(L.LightningDataModule):
             "val": [t.name for t in val],
             "skipped": self.skipped,
         }
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(payload, indent=1))
-        os.replace(tmp, path)
+        write_json(path, payload, indent=1)
 
     # ------------------------------------------------------------------ loaders
     def _loader(self, ds: Dataset, shuffle: bool, batch_size: int | None = None) -> DataLoader:

@@ -13,7 +13,8 @@ import numpy as np
 from .figures import (best_worst_action_curves, class_distances, curves_by, plot_distance_matrix,
                       plot_error_vs_runtime, plot_nmse_curves, plot_umap)
 from .metrics import NMSE_DEFINITION, overall
-from .results import Results, _jsonable
+from ..jsonio import to_jsonable
+from .results import Results
 from .tables import caption_note, split_sizes, table_actions, table_groups, table_runtime, table_summary
 
 
@@ -102,16 +103,8 @@ def write_report(
         "histories": histories or {},
     }
     p = out / "results.json"
-    p.write_text(json.dumps(_nan_to_none(_jsonable(blob)), indent=1, allow_nan=False))
+    p.write_text(json.dumps(to_jsonable(blob, nan_to_none=True), indent=1, allow_nan=False))
     written["json"].append(str(p))
     return written
 
 
-def _nan_to_none(obj):
-    if isinstance(obj, dict):
-        return {k: _nan_to_none(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_nan_to_none(v) for v in obj]
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj

@@ -25,6 +25,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..constants import FACTOR_NAMES, get_object
+from ..jsonio import to_jsonable
 from .krr import Alignment, assert_disjoint, fit_alignment
 from .metrics import nmse_over_time, nmse_trajectory, overall, reference_variance
 
@@ -102,7 +103,7 @@ class Results:
             "nmse_trajectory_overall": overall(traj),
             "nmse_last_step": dict(zip(FACTOR_NAMES, _f(last))),
             "nmse_last_step_overall": overall(last),
-            "params": _jsonable(self.params),
+            "params": to_jsonable(self.params),
         }
 
 
@@ -171,19 +172,3 @@ def _f(v) -> list:
     return [float(x) for x in np.asarray(v, dtype=np.float64).ravel()]
 
 
-def _jsonable(obj):
-    if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        return float(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.bool_,)):
-        return bool(obj)
-    if obj is None or isinstance(obj, (str, int, bool)):
-        return obj
-    return str(obj)
