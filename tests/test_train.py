@@ -194,3 +194,14 @@ def test_ablation_sweep_composes_all_24_jobs(tmp_path):
             assert model.hparams.modality["name"] == combo.rsplit("_", 1)[0]
             seen.add((cfg.modality.name, cfg.skin.name, prim))
         assert len(seen) == 24
+
+
+def test_joblib_launcher_parallel_jobs_share_a_fresh_data_dir(tmp_path):
+    """Two sweep jobs in parallel (joblib) on an empty data folder: both prepare the same raw
+    file; the data-folder lock serialises that, and both runs finish."""
+    sweep = tmp_path / "multi"
+    run_train("-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "modality=acc,fsr_t", "trainer.max_epochs=1",
+              f"paths.data_dir={tmp_path / 'data'}", f"hydra.sweep.dir={sweep}", "callbacks.krr_alignment=null", timeout=400)
+    for name in ("modality=acc", "modality=fsr_t"):
+        (job,) = [p for p in sweep.iterdir() if name in p.name.split(",")]  # folder named after its overrides
+        assert json.loads((job / "metrics.json").read_text())["status"] == "finished"

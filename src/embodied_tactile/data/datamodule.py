@@ -10,13 +10,14 @@ fields: ``acc`` never opens FSR data, raw or cached.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import h5py
 import lightning as L
@@ -48,6 +49,28 @@ def fields_for_channels(channels: Sequence[str]) -> list[str]:
         if f not in fields:
             fields.append(f)
     return [*fields, "actions"]
+
+
+@contextlib.contextmanager
+def data_dir_lock(data_dir: Path) -> Iterator[None]:
+    """Exclusive advisory lock on a data folder while trials are simulated and caches built.
+
+    Parallel sweep jobs (joblib launcher, DDP ranks, several users) share ``data/``: without
+    it two jobs would append to the same raw HDF5 file at once. POSIX only; elsewhere the
+    lock is a no-op and parallel jobs need separate data folders.
+    """
+    data_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    with open(data_dir / ".prepare.lock", "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 @dataclass(frozen=True)
@@ -254,6 +277,10 @@ class TactileDataModule(L.LightningDataModule):
         Runs once per DataModule object (fit then validate reuse the caches it found)."""
         if self.cache_files:
             return
+        with data_dir_lock(self.data_dir):
+            self._prepare_locked()
+
+    def _prepare_locked(self) -> None:
         if self.source == "simulated":
             from embodied_tactile.sim import generate_dataset
 
@@ -335,7 +362,8 @@ class TactileDataModule(L.LightningDataModule):
         if not self.cache_files:
             # prepare_data ran in another process (DDP rank 0): the cache keys are
             # deterministic, so rebuilding finds the existing files without recomputing.
-            self._build_cache()
+            with data_dir_lock(self.data_dir):
+                self._build_cache()
         refs = self._list_trials()
         if self.split_file and Path(self.split_file).exists():
             train, val = self._load_split(refs)
