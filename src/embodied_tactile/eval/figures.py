@@ -30,6 +30,16 @@ FRAME_RATE_HZ = 30.0  # preprocessed frames per second (docs/architecture.md)
 
 
 # ----------------------------------------------------------------------------- curves
+
+def _save(fig, path: Path, *, tight: bool = True) -> Path:
+    """Write a figure as PNG (creating its folder) and release it."""
+    if tight:
+        fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
 def plot_nmse_curves(curves: Mapping[str, np.ndarray], path, *, title: str = "", frame_rate: float = FRAME_RATE_HZ,
                      note: str = "") -> Path:
     """curves: label -> (T, 4) NMSE over time. One panel per factor + one for the mean."""
@@ -49,11 +59,7 @@ def plot_nmse_curves(curves: Mapping[str, np.ndarray], path, *, title: str = "",
     axes[0].set_ylabel("NMSE (held-out)")
     axes[-1].legend(fontsize=7, loc="upper right")
     fig.suptitle(title + (f"\n{note}" if note else ""), fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def curves_by(results: Sequence[Results], key: str) -> dict[str, np.ndarray]:
@@ -111,10 +117,7 @@ def plot_umap(latents, labels, path, *, title: str = "", seed: int = 0, n_neighb
     sc = ax.scatter(emb[:, 0], emb[:, 1], emb[:, 2], c=labels, cmap="nipy_spectral", s=10)
     fig.colorbar(sc, ax=ax, shrink=0.6, label="object id")
     ax.set_title(title, fontsize=8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, tight=False)
 
 
 def class_distances(latents, labels, *, mode: str = "pairwise") -> tuple[np.ndarray, np.ndarray]:
@@ -157,11 +160,7 @@ def plot_distance_matrix(classes, dist, path, *, title: str = "", normalise: boo
     ax.set_yticks(range(len(classes)), [str(c) for c in classes], fontsize=5)
     fig.colorbar(im, ax=ax, label="distance" + (" (min-max)" if normalise else ""))
     ax.set_title(title, fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 # ----------------------------------------------------------------------------- error vs run time
@@ -194,8 +193,4 @@ def plot_error_vs_runtime(histories: Mapping[str, Sequence[Mapping]], path, *, t
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     ax.set_title(title, fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
