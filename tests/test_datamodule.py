@@ -137,6 +137,7 @@ def test_bad_trial_is_skipped_and_named(tiny_data_dir, tmp_path, caplog):
     names = {t.name for t in dm.train_set.trials + dm.val_set.trials}
     assert bad not in names and len(names) == len(good) - 1
     assert bad in caplog.text and "tactile/acc" in caplog.text
+    assert [e["trial"] for e in dm.skipped] == [bad]  # reported once, not once per cached field
     strict = tiny_datamodule(tmp_path / "strict", ["acc"], strict=True)
     shutil.copytree(d / "raw", tmp_path / "strict" / "raw")
     with pytest.raises(rf.TrialFormatError, match=bad):

@@ -245,7 +245,7 @@ class TactileDataModule(L.LightningDataModule):
         self.cache_files: dict[str, str] = {}
         self.train_set: TactileSequenceDataset | None = None
         self.val_set: TactileSequenceDataset | None = None
-        self.skipped: list[str] = []
+        self.skipped: list[dict[str, str]] = []  # {file, trial, field, problem} of each bad trial
 
     # ------------------------------------------------------------------ files
     @property
@@ -322,11 +322,13 @@ class TactileDataModule(L.LightningDataModule):
                 for name, g in f["trials"].items():
                     entries[name] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in g.attrs.items()}
                 per_field.append(entries)
-                skipped = f.attrs.get("skipped", "[]")
                 try:
-                    self.skipped.extend(json.loads(skipped))
+                    listed = json.loads(f.attrs.get("skipped", "[]"))
                 except (TypeError, ValueError):
-                    pass
+                    listed = []
+                for entry in listed:  # a trial rejected at scan time is listed by every field's cache
+                    if entry not in self.skipped:
+                        self.skipped.append(entry)
         names = set(per_field[0]).intersection(*per_field[1:])
         refs = []
         for name in sorted(names):
