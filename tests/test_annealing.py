@@ -53,6 +53,15 @@ def test_linear():
         assert loss.item() == pytest.approx(100 + beta * 14.0, rel=1e-6)
 
 
+def test_linear_y_weight_scales_only_the_prior_term():
+    s = LinearKLWarmup(beta0=0.5, n_steps=10, y_weight=10.0)
+    loss, logs = s(0, terms())
+    assert loss.item() == pytest.approx(100 + 0.5 * (10.0 + 10.0 * 4.0), rel=1e-6)
+    assert s.config()["y_weight"] == 10.0
+    with pytest.raises(ValueError, match="y_weight > 0"):
+        LinearKLWarmup(y_weight=0.0)
+
+
 def test_geometric():
     s = GeometricKLWeights(z_start=100, z_end=200, y_start=1, y_end=20, n_steps=10)
     loss, logs = s(5, terms())

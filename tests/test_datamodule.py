@@ -46,6 +46,34 @@ def test_batch_shapes_and_dtypes(tiny_data_dir, modality, tmp_path):
             np.testing.assert_array_equal(dm.train_set[0]["obs"][:, 0].numpy(), f["trials"][name]["fsr"][:, 1])
 
 
+def test_training_windows_are_random_crops_and_evaluation_sees_whole_trials(tiny_data_dir, tmp_path):
+    dm = tiny_datamodule(tiny_data_dir, ["fsr_t", "fsr_b"], split_file=str(tmp_path / "split.json"),
+                         train_window=40, windows_per_trial=3)
+    dm.prepare_data()
+    dm.setup("fit")
+    n = len(dm.train_set)
+    assert len(dm.train_dataloader().dataset) == 3 * n
+    torch.manual_seed(0)
+    starts = set()
+    for i in range(3 * n):
+        item = dm.train_dataloader().dataset[i]
+        full = dm.train_set[i % n]
+        assert item["obs"].shape == (40, 2, 28, 28) and item["actions"].shape == (40, 6)
+        assert int(item["object_id"]) == int(full["object_id"])
+        # the crop is a contiguous block of the whole trial, observations and actions aligned
+        hits = [s for s in range(300 - 40 + 1) if torch.equal(full["actions"][s:s + 40], item["actions"])
+                and torch.equal(full["obs"][s:s + 40], item["obs"])]
+        assert hits
+        starts.add(hits[0])
+    assert len(starts) > 1  # offsets are drawn, not fixed
+    for loader in (dm.train_eval_dataloader(), dm.val_dataloader()):
+        assert next(iter(loader))["obs"].shape[1] == 300
+    with pytest.raises(ValueError, match="train window must be >= 2"):
+        bad = tiny_datamodule(tiny_data_dir, ["fsr_t"], split_file=str(tmp_path / "s2.json"), train_window=1)
+        bad.prepare_data()
+        bad.setup("fit")
+
+
 def test_split_is_stratified_stable_and_saved(tiny_data_dir, tmp_path):
     dm = tiny_datamodule(tiny_data_dir, ["fsr_t"], split_file=str(tmp_path / "split.json"))
     dm.prepare_data()

@@ -140,10 +140,10 @@ def test_few_steps_decrease_loss(name):
 
 
 # ------------------------------------------------------------------ online filtering
-@pytest.mark.parametrize("name", ["acc", "multi_l"])
-def test_filter_step_equals_batched_forward(name):
+@pytest.mark.parametrize("name,y_update", [("acc", "evidence"), ("multi_l", "evidence"), ("multi_l", "direct")])
+def test_filter_step_equals_batched_forward(name, y_update):
     torch.manual_seed(1)
-    m = LatentFilter(name, **TINY).eval()
+    m = LatentFilter(name, **TINY, y_update=y_update).eval()
     batch = make_batch(N_CH[name], B=3, T=9)
     with torch.no_grad():
         ref = m(batch["obs"], batch["actions"], sample=False)
@@ -156,6 +156,35 @@ def test_filter_step_equals_batched_forward(name):
     lat = m.infer_latents({"obs": batch["obs"], "actions": batch["actions"]})  # no object_id needed
     torch.testing.assert_close(lat["z_mean"], ref["z_mean"])
     assert set(lat) == {"z_mean", "z_var", "y_mean", "y_var"}
+
+
+def test_evidence_y_posterior_is_the_product_of_its_evidence():
+    """y_update='evidence': q(y_t) = N(0, 1/p0) x prod_k N(m_k, 1/lambda_k): the precision
+    only grows, the mean is the precision-weighted mean of the evidence, and the floor holds."""
+    from embodied_tactile.models.networks import YPosterior
+
+    torch.manual_seed(0)
+    yp = YPosterior(n_z=3, n_y=2, n_a=1, hidden=8, min_var=1e-3, update="evidence", prior_precision=2.0)
+    state = yp.initial_state(4, torch.device("cpu"))
+    lams, ms, variances = [], [], []
+    for _ in range(6):
+        z, a = torch.randn(4, 3), torch.randn(4, 1)
+        h, _ = yp.cell(torch.cat([z, a], -1), (state[0], state[1]))
+        m_k, raw = yp.head(h).chunk(2, -1)
+        mean, var, state = yp(z, a, state)
+        lams.append(torch.nn.functional.softplus(raw))
+        ms.append(m_k)
+        variances.append(var)
+        lam, m = torch.stack(lams), torch.stack(ms)
+        prec = 2.0 + lam.sum(0)
+        torch.testing.assert_close(mean, (lam * m).sum(0) / prec, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(var, 1.0 / prec + 1e-3, rtol=1e-5, atol=1e-7)
+    v = torch.stack(variances)
+    assert (v[1:] <= v[:-1]).all() and (v > 1e-3).all()
+    with pytest.raises(ValueError, match="y_update must be one of"):
+        YPosterior(3, 2, 1, update="lstm")
+    with pytest.raises(ValueError, match="y_prior_precision must be > 0"):
+        YPosterior(3, 2, 1, prior_precision=0.0)
 
 
 # ------------------------------------------------------------------ numerics

@@ -113,9 +113,17 @@ def stratified_split(trials: Sequence[TrialRef], val_fraction: float, seed: int)
 
 class TactileSequenceDataset(Dataset):
     """Preprocessed sequences of one split. Opens its HDF5 caches lazily in each worker
-    and pickles without the handles."""
+    and pickles without the handles.
 
-    def __init__(self, cache_files: Mapping[str, str], trials: Sequence[TrialRef], channels: Sequence[str], seq_len: int | None = None):
+    ``seq_len`` keeps the first frames of every trial (None = all). ``window`` serves a
+    random ``window``-frame crop of each trial instead (offset drawn from torch's RNG, so
+    ``seed_everything`` makes it reproducible), ``windows_per_trial`` crops per trial and
+    pass; only the HDF5 rows of the crop are read. A trial shorter than ``window`` is
+    served whole.
+    """
+
+    def __init__(self, cache_files: Mapping[str, str], trials: Sequence[TrialRef], channels: Sequence[str],
+                 seq_len: int | None = None, window: int | None = None, windows_per_trial: int = 1):
         self.cache_files = dict(cache_files)
         self.trials = list(trials)
         self.channels = list(channels)
@@ -124,10 +132,16 @@ class TactileSequenceDataset(Dataset):
         if missing:
             raise ValueError(f"no cache file for field(s) {missing}")
         self.seq_len = seq_len
+        if window is not None and int(window) < 2:
+            raise ValueError(f"train window must be >= 2 frames (the recursion needs a transition), got {window}")
+        if int(windows_per_trial) < 1:
+            raise ValueError(f"windows_per_trial must be >= 1, got {windows_per_trial}")
+        self.window = None if window is None else int(window)
+        self.windows_per_trial = int(windows_per_trial)
         self._handles: dict[str, h5py.File] | None = None
 
     def __len__(self) -> int:
-        return len(self.trials)
+        return len(self.trials) * self.windows_per_trial
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
@@ -145,10 +159,22 @@ class TactileSequenceDataset(Dataset):
                 h.close()
         self._handles = None
 
+    def _rows(self, h: dict[str, h5py.File], tr: TrialRef) -> slice:
+        if self.window is None:
+            return slice(None, self.seq_len)
+        n = h["actions"]["trials"][tr.name]["actions"].shape[0]
+        n = n if self.seq_len is None else min(n, int(self.seq_len))
+        if n <= self.window:
+            return slice(None, n)
+        start = int(torch.randint(0, n - self.window + 1, ()))
+        return slice(start, start + self.window)
+
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        tr = self.trials[i]
+        if not 0 <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} items")
+        tr = self.trials[i % len(self.trials)]
         h = self._open()
-        sl = slice(None, self.seq_len)
+        sl = self._rows(h, tr)
         cache: dict[str, np.ndarray] = {}
         planes = []
         for c in self.channels:
@@ -184,6 +210,10 @@ class TactileDataModule(L.LightningDataModule):
         objects / actions: subsets of object ids / action indices (None = all).
         preprocess: keyword arguments of ``PreprocessConfig``.
         split_file: where the split is saved (JSON); reused if it exists and matches.
+        seq_len: keep the first ``seq_len`` frames of every trial (None = all).
+        train_window / windows_per_trial: the training loader serves ``windows_per_trial``
+            random ``train_window``-frame crops of every training trial per epoch (None =
+            whole trials). Held-out and alignment loaders always serve whole trials.
     """
 
     def __init__(
@@ -208,6 +238,8 @@ class TactileDataModule(L.LightningDataModule):
         batch_size: int = 48,
         num_workers: int = 0,
         seq_len: int | None = None,
+        train_window: int | None = None,
+        windows_per_trial: int = 1,
         strict: bool = False,
         pin_memory: bool = False,
     ):
@@ -240,11 +272,14 @@ class TactileDataModule(L.LightningDataModule):
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)
         self.seq_len = seq_len
+        self.train_window = None if train_window is None else int(train_window)
+        self.windows_per_trial = int(windows_per_trial)
         self.strict = bool(strict)
         self.pin_memory = bool(pin_memory)
         self.cache_files: dict[str, str] = {}
         self.train_set: TactileSequenceDataset | None = None
         self.val_set: TactileSequenceDataset | None = None
+        self.train_crops: TactileSequenceDataset | None = None  # what train_dataloader serves
         self.skipped: list[dict[str, str]] = []  # {file, trial, field, problem} of each bad trial
 
     # ------------------------------------------------------------------ files
@@ -375,6 +410,11 @@ class TactileDataModule(L.LightningDataModule):
                 self._save_split(train, val)
         self.train_set = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len)
         self.val_set = TactileSequenceDataset(self.cache_files, val, self.channels, self.seq_len)
+        self.train_crops = self.train_set
+        if self.train_window is not None or self.windows_per_trial != 1:
+            self.train_crops = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len,
+                                                      window=self.train_window,
+                                                      windows_per_trial=self.windows_per_trial)
         log.info("data: %d train / %d held-out sequences, channels %s, skipped %d bad trial(s)",
                  len(train), len(val), self.channels, len(self.skipped))
 
@@ -418,8 +458,8 @@ class TactileDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        assert self.train_set is not None, "call setup() first"
-        return self._loader(self.train_set, shuffle=True)
+        assert self.train_crops is not None, "call setup() first"
+        return self._loader(self.train_crops, shuffle=True)
 
     def train_eval_dataloader(self) -> DataLoader:
         """Training split, fixed order (for latent alignment / evaluation)."""
@@ -434,7 +474,7 @@ class TactileDataModule(L.LightningDataModule):
         return self.val_dataloader()
 
     def teardown(self, stage: str | None = None) -> None:
-        for ds in (self.train_set, self.val_set):
+        for ds in (self.train_set, self.train_crops, self.val_set):
             if ds is not None:
                 ds.close()
 

@@ -3,8 +3,11 @@
 
 Time indexing (t = 1..T in the docs, 0-based in code):
 
-* y_t ~ q(y_t | z_{t-1}, y_{t-1}, a_{t-1}): LSTMCell fed [z_{t-1}, a_{t-1}], y_{t-1} via the
-  hidden state. At t = 1 the LSTM gets zeros from a zero state (a learned constant).
+* y_t ~ q(y_t | z_{t-1}, y_{t-1}, a_{t-1}): LSTMCell fed [z_{t-1}, a_{t-1}]. With
+  ``y_update="evidence"`` (default) its head gives one step's Gaussian evidence about the
+  trial-constant y and q(y_t) is the product of all evidence so far (see
+  :class:`~embodied_tactile.models.networks.YPosterior`); with ``"direct"`` the head gives
+  q(y_t) itself. At t = 1 the LSTM gets zeros from a zero state.
 * p(z_t | z_{t-1}, y_t, a_t): residual MLP, N(z_{t-1} + f_mu, softplus(f_v) + floor).
 * q_filt(z_t) = q(z_t | o_t) x p(z_t | z_{t-1}, y_t, a_t), normalised (variance form).
   z_1 comes from the encoder alone.
@@ -115,8 +118,11 @@ def resolve_modality(modality: Any) -> dict[str, Any]:
     return out
 
 
-def _state_to(z: Tensor, a: Tensor, h: Tensor, c: Tensor) -> dict[str, Tensor]:
-    return {"z": z, "a": a, "h": h, "c": c}
+_Y_STATE_KEYS = ("h", "c", "y_prec", "y_pm")
+
+
+def _state_to(z: Tensor, a: Tensor, y_state: tuple[Tensor, ...]) -> dict[str, Tensor]:
+    return {"z": z, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
 
 
 class LatentFilter(nn.Module):
@@ -134,13 +140,17 @@ class LatentFilter(nn.Module):
             per-channel parameter sigma_c = obs_sigma_min + softplus(raw_c).
         prior: kwargs of :class:`HierarchicalPrior` (sigma_init, learn_sigma, var_floor,
             action_term).
+        y_update: ``"evidence"`` (accumulate per-step Gaussian evidence about the
+            trial-constant y) or ``"direct"`` (the LSTM head is q(y_t)); y_prior_precision:
+            precision of the N(0, 1/p) start of the evidence product.
     """
 
     def __init__(self, modality: Any, n_z: int = 16, n_y: int = 16, n_a: int = 6,
                  n_objects: int = 32, encoder: Optional[Mapping] = None,
                  transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
                  obs_sigma: float = 1.0, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
-                 prior: Optional[Mapping] = None) -> None:
+                 prior: Optional[Mapping] = None, y_update: str = "evidence",
+                 y_prior_precision: float = 1.0) -> None:
         super().__init__()
         self.modality = resolve_modality(modality)
         self.n_z, self.n_y, self.n_a = int(n_z), int(n_y), int(n_a)
@@ -162,7 +172,8 @@ class LatentFilter(nn.Module):
         self._identity_order = order == list(range(self.n_channels))
         self.register_buffer("_inv_order", torch.argsort(torch.tensor(order)), persistent=False)
         self.transition = TransitionNet(n_z, n_y, n_a, transition_hidden, min_var)
-        self.y_posterior = YPosterior(n_z, n_y, n_a, lstm_hidden, min_var)
+        self.y_posterior = YPosterior(n_z, n_y, n_a, lstm_hidden, min_var, update=y_update,
+                                      prior_precision=y_prior_precision)
         self.prior = HierarchicalPrior(n_y, n_a, n_objects, **(to_plain(prior) or {}))
         if obs_sigma <= obs_sigma_min:
             raise ValueError(f"obs_sigma={obs_sigma} must exceed obs_sigma_min={obs_sigma_min}")
@@ -211,8 +222,7 @@ class LatentFilter(nn.Module):
     def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, Tensor]:
         z = torch.zeros(batch, self.n_z, device=device, dtype=dtype)
         a = torch.zeros(batch, self.n_a, device=device, dtype=dtype)
-        h = torch.zeros(batch, self.y_posterior.hidden, device=device, dtype=dtype)
-        return _state_to(z, a, h, h.clone())
+        return _state_to(z, a, self.y_posterior.initial_state(batch, device, dtype))
 
     @staticmethod
     def _draw(m: Tensor, v: Tensor, sample: bool) -> Tensor:
@@ -231,7 +241,8 @@ class LatentFilter(nn.Module):
             a_prev = state["a"]  # zeros: nothing precedes the first frame
         else:
             a_prev = state["a"] if prev_action is None else prev_action.float()
-        y_m, y_v, (h, c) = self.y_posterior(state["z"], a_prev, (state["h"], state["c"]))
+        y_state = tuple(state[k] for k in _Y_STATE_KEYS if k in state)
+        y_m, y_v, y_state = self.y_posterior(state["z"], a_prev, y_state)
         y = self._draw(y_m, y_v, sample)
         if first:
             # z_1 from the encoder alone; its prior is N(0, I).
@@ -243,7 +254,7 @@ class LatentFilter(nn.Module):
         z = self._draw(z_m, z_v, sample)
         out = {"z_mean": z_m, "z_var": z_v, "z": z, "y_mean": y_m, "y_var": y_v, "y": y,
                "zp_mean": zp_m, "zp_var": zp_v}
-        return out, _state_to(z, a_t.float(), h, c)
+        return out, _state_to(z, a_t.float(), y_state)
 
     # ------------------------------------------------------------------ batched
     def forward(self, obs: Tensor, actions: Tensor, sample: bool = True) -> dict[str, Tensor]:
@@ -317,7 +328,8 @@ class LatentFilter(nn.Module):
         """Online filtering: one frame obs_t (B, C, 28, 28) and action a_t (B, n_a) in.
 
         ``state`` is None for the first frame, else the returned ``new_state``
-        (z_{t-1} mean or sample, a_{t-1}, LSTM h and c). ``prev_action`` (a_{t-1})
+        (z_{t-1} mean or sample, a_{t-1}, LSTM h and c, and with ``y_update="evidence"`` the
+        accumulated precision ``y_prec`` and precision-weighted mean sum ``y_pm``). ``prev_action`` (a_{t-1})
         overrides the action stored in the state. With ``sample=False`` the posterior
         equals the batched ``forward(..., sample=False)`` at the same t.
         Returns ({z_mean, z_var, y_mean, y_var, zp_mean, zp_var, z, y}, new_state).

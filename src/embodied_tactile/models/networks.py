@@ -188,24 +188,62 @@ class TransitionNet(nn.Module):
         return z_prev.float() + self.mean(h).float(), softplus_var(self.var(h), self.min_var)
 
 
-class YPosterior(nn.Module):
-    """q(y_t | z_{t-1}, y_{t-1}, a_{t-1}): LSTMCell fed [z_{t-1}, a_{t-1}], Gaussian head.
+Y_UPDATES = ("evidence", "direct")
 
-    y_{t-1} enters through the LSTM hidden state (as in the authors' earlier code).
+
+class YPosterior(nn.Module):
+    """q(y_t | z_{t-1}, y_{t-1}, a_{t-1}): an LSTMCell fed [z_{t-1}, a_{t-1}] and a Gaussian head.
+
+    ``update`` says what the head's Gaussian N(m_t, s_t) is:
+
+    * ``"direct"``: q(y_t) itself; y_{t-1} enters only through the LSTM state (the authors'
+      earlier code).
+    * ``"evidence"``: one step's evidence about the trial-constant y. q(y_t) is the normalised
+      product of a N(0, 1/prior_precision) start and all evidence so far,
+      precision P_t = prior_precision + sum_k lambda_k, mean = (sum_k lambda_k m_k) / P_t,
+      with lambda_k = softplus(raw_k) (no floor needed: P_t >= prior_precision > 0).
+      This is the exact Bayesian filter for a static latent, so the posterior can only
+      sharpen as evidence accumulates, and the evidence network is a local function that
+      short training windows teach as well as whole trials. The variance 1/P_t + min_var
+      keeps the floor. y_{t-1} enters through (P_{t-1}, sum lambda m) and the LSTM state.
+
+    The recurrent state is a tuple of tensors (h, c) or (h, c, P, sum lambda m); see
+    :meth:`initial_state`. All Gaussian arithmetic runs in float32.
     """
 
-    def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3) -> None:
+    def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3,
+                 update: str = "evidence", prior_precision: float = 1.0) -> None:
         super().__init__()
-        self.hidden = int(hidden)
+        if update not in Y_UPDATES:
+            raise ValueError(f"y_update must be one of {Y_UPDATES}, got {update!r}")
+        if not prior_precision > 0:
+            raise ValueError(f"y_prior_precision must be > 0, got {prior_precision}")
+        self.hidden, self.n_y = int(hidden), int(n_y)
         self.min_var = float(min_var)
+        self.update = update
+        self.prior_precision = float(prior_precision)
         self.cell = nn.LSTMCell(n_z + n_a, hidden)
         self.head = nn.Linear(hidden, 2 * n_y)
 
-    def forward(self, z_prev: Tensor, a_prev: Tensor, hc: tuple[Tensor, Tensor]
-                ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
-        h, c = self.cell(torch.cat([z_prev, a_prev], dim=-1), hc)
+    def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32) -> tuple[Tensor, ...]:
+        h = torch.zeros(batch, self.hidden, device=device, dtype=dtype)
+        if self.update == "direct":
+            return h, h.clone()
+        prec = torch.full((batch, self.n_y), self.prior_precision, device=device, dtype=torch.float32)
+        return h, h.clone(), prec, torch.zeros_like(prec)
+
+    def forward(self, z_prev: Tensor, a_prev: Tensor, state: tuple[Tensor, ...]
+                ) -> tuple[Tensor, Tensor, tuple[Tensor, ...]]:
+        h, c = self.cell(torch.cat([z_prev, a_prev], dim=-1), (state[0], state[1]))
         m, raw = self.head(h).chunk(2, dim=-1)
-        return m.float(), softplus_var(raw, self.min_var), (h, c)
+        if self.update == "direct":
+            return m.float(), softplus_var(raw, self.min_var), (h, c)
+        with float32_region(raw):
+            lam = F.softplus(raw.float())
+            prec = state[2] + lam
+            pm = state[3] + lam * m.float()
+            mean, var = pm / prec, 1.0 / prec + self.min_var
+        return mean, var, (h, c, prec, pm)
 
 
 class HierarchicalPrior(nn.Module):

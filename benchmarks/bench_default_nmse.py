@@ -1,0 +1,81 @@
+"""Held-out NMSE of the default scene against training choices (error against run time).
+
+    python benchmarks/bench_default_nmse.py                      # every variant below, in turn
+    python benchmarks/bench_default_nmse.py --only default direct_whole
+    python benchmarks/bench_default_nmse.py --work /tmp/nmse -- trainer.max_epochs=8
+
+Each variant is one ``python train.py <overrides>`` run of the embedded default scene
+(multi_l, soft skin, pressing; 96 training / 32 held-out sequences) in its own folder under
+``--work``, all sharing one data folder (simulated once). The KRR callback's last entry in
+``krr_history.jsonl`` gives the held-out NMSE on the y latent (whole trajectory and last
+frame, mean over the four factors) and the training wall time. About 6 minutes per variant
+on 2 cores; run it on a quiet machine. Prints one Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: name -> train.py overrides on top of the default (experiment=cpu_budget)
+VARIANTS: dict[str, list[str]] = {
+    "default": [],
+    "direct_whole": ["model.y_update=direct", "data.train_window=null", "data.windows_per_trial=1",
+                     "annealing.schedule.y_weight=1.0"],
+    "evidence_whole": ["data.train_window=null", "data.windows_per_trial=1"],
+    "direct_windows": ["model.y_update=direct"],
+    "y_weight_1": ["annealing.schedule.y_weight=1.0"],
+    "prior_no_action": ["model.prior.action_term=false"],
+}
+
+
+def run(name: str, overrides: list[str], work: Path, extra: list[str]) -> dict:
+    run_dir = work / name
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, str(REPO / "train.py"), f"paths.data_dir={work / 'data'}",
+                           f"hydra.run.dir={run_dir}", "resume=false", "logger=none", *overrides, *extra],
+                          cwd=REPO, env=dict(os.environ, WANDB_MODE="disabled"), capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        return {"name": name, "error": proc.stderr.strip().splitlines()[-1:] or ["failed"], "wall_s": wall}
+    rows = [json.loads(line) for line in (run_dir / "krr_history.jsonl").read_text().splitlines() if line.strip()]
+    last = rows[-1]
+    return {"name": name, "overrides": " ".join(overrides) or "(default)", "epochs": last["epoch"] + 1,
+            "steps": last["step"], "train_s": last["train_wall_time_s"], "wall_s": wall,
+            "traj": last["nmse_overall"], "last": last["nmse_last_overall"],
+            "curve": [(r["train_wall_time_s"], r["nmse_overall"], r["nmse_last_overall"]) for r in rows]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_default_nmse"))
+    ap.add_argument("--only", nargs="*", choices=sorted(VARIANTS), help="variants to run (default: all)")
+    ap.add_argument("extra", nargs="*", help="overrides appended to every run (after --)")
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    results = [run(n, VARIANTS[n], args.work, args.extra) for n in (args.only or list(VARIANTS))]
+    print("\nHeld-out NMSE on y (mean over 4 factors; 0 = perfect, 1 = train mean), default scene")
+    print("| variant | overrides | epochs | optimiser steps | train s | run wall s | NMSE traj | NMSE last |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in results:
+        if "error" in r:
+            print(f"| {r['name']} | FAILED: {r['error'][0]} | | | | {r['wall_s']:.0f} | | |")
+            continue
+        print(f"| {r['name']} | {r['overrides']} | {r['epochs']} | {r['steps']} | {r['train_s']:.0f} | "
+              f"{r['wall_s']:.0f} | {r['traj']:.3f} | {r['last']:.3f} |")
+    print("\nNMSE against training wall time (s: traj / last) per variant:")
+    for r in results:
+        if "curve" in r:
+            print(f"  {r['name']}: " + ", ".join(f"{t:.0f}s: {a:.3f}/{b:.3f}" for t, a, b in r["curve"]))
+    (args.work / "results.json").write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
