@@ -222,6 +222,17 @@ def test_gru_baseline_tiny_run():
                 "factors": torch.as_tensor(tr["factors"][i:i + 4])} for i in range(0, 12, 4)]
     m = GRURegressor(in_channels=3, hidden=8, feat=8, epochs=1, max_batches_per_epoch=2).fit(batches)
     assert m.predict(batches).shape == (12, 8, 4)
+    # training windows: 3 crops of 5 frames per sequence and epoch -> 3x the optimiser steps
+    # of whole sequences; prediction still covers every frame
+    seen = []
+    w = GRURegressor(in_channels=3, hidden=8, feat=8, epochs=1, batch_size=4, window=5, windows_per_trial=3)
+    orig = w.net.forward
+    w.net.forward = lambda obs, act: (seen.append(tuple(obs.shape)), orig(obs, act))[1]
+    w.fit(tr["obs"], tr["actions"], tr["factors"])
+    assert seen == [(4, 5, 3, 28, 28)] * 9
+    assert w.predict(te["obs"], te["actions"]).shape == (6, 8, 4)
+    with pytest.raises(ValueError, match="need array input"):
+        GRURegressor(in_channels=3, window=5).fit(batches)
 
 
 # ------------------------------------------------------------------ tables / figures / report

@@ -235,17 +235,27 @@ class GRURegressor:
     factors (n, 4)), or ``fit(loader)`` with an iterable of batch dicts (``obs``,
     ``actions``, ``factors``; re-iterated every epoch). ``predict`` returns (n, T, 4) in
     original units. ``max_batches_per_epoch`` / small ``epochs`` make a tiny test run.
+    ``window`` / ``windows_per_trial`` (array input only): train on that many random
+    ``window``-frame crops of every sequence per epoch, as the Latent Filter's CPU budget
+    does (same frames per epoch, more optimiser steps); prediction always runs over whole
+    sequences.
     """
 
     def __init__(self, in_channels: int, action_dim: int = 6, hidden: int = 64, feat: int = 64,
                  epochs: int = 30, lr: float = 1e-3, batch_size: int = 16, weight_decay: float = 0.0,
-                 max_batches_per_epoch: int | None = None, seed: int = 0, device: str = "cpu"):
+                 max_batches_per_epoch: int | None = None, window: int | None = None,
+                 windows_per_trial: int = 1, seed: int = 0, device: str = "cpu"):
         import torch
         from torch import nn
 
+        if window is not None and int(window) < 1:
+            raise ValueError(f"GRU window must be >= 1 frame, got {window}")
+        if int(windows_per_trial) < 1:
+            raise ValueError(f"GRU windows_per_trial must be >= 1, got {windows_per_trial}")
         self.cfg = dict(in_channels=in_channels, action_dim=action_dim, hidden=hidden, feat=feat, epochs=epochs,
                         lr=lr, batch_size=batch_size, weight_decay=weight_decay,
-                        max_batches_per_epoch=max_batches_per_epoch, seed=seed, device=device)
+                        max_batches_per_epoch=max_batches_per_epoch, window=window,
+                        windows_per_trial=int(windows_per_trial), seed=seed, device=device)
         torch.manual_seed(seed)
 
         class Net(nn.Module):
@@ -280,6 +290,8 @@ class GRURegressor:
         if actions is not None:
             data, actions = np.asarray(data, np.float32), np.asarray(actions, np.float32)
             fac = np.asarray(factors, np.float64)
+        elif c["window"] is not None or c["windows_per_trial"] != 1:
+            raise ValueError("GRU training windows need array input (obs, actions, factors), not a loader")
         else:  # loader: one pass for the target statistics
             fac = np.concatenate([np.asarray(b["factors"], np.float64) for b in data])
         self.y_mean_ = np.nanmean(fac, 0)
@@ -289,10 +301,23 @@ class GRURegressor:
         rng = np.random.default_rng(c["seed"])
         self.net.train()
         t0 = time.perf_counter()
+        def epoch_batches():
+            if actions is None:
+                yield from _batches(data, batch_size=c["batch_size"], shuffle=True, rng=rng)
+                return
+            for _ in range(c["windows_per_trial"]):
+                obs_e, act_e = data, actions
+                T = data.shape[1]
+                if c["window"] is not None and c["window"] < T:
+                    start = rng.integers(0, T - c["window"] + 1, size=len(data))
+                    idx = start[:, None] + np.arange(c["window"])[None]
+                    rows = np.arange(len(data))[:, None]
+                    obs_e, act_e = data[rows, idx], actions[rows, idx]
+                yield from _batches(obs_e, act_e, fac, batch_size=c["batch_size"], shuffle=True, rng=rng)
+
         for _ in range(c["epochs"]):
             tot, cnt = 0.0, 0
-            for bi, b in enumerate(_batches(data, actions, fac if actions is not None else None,
-                                            batch_size=c["batch_size"], shuffle=True, rng=rng)):
+            for bi, b in enumerate(epoch_batches()):
                 if c["max_batches_per_epoch"] is not None and bi >= c["max_batches_per_epoch"]:
                     break
                 y = (np.asarray(b["factors"], np.float64) - self.y_mean_) / self.y_scale_
