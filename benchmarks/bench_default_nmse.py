@@ -2,7 +2,7 @@
 
     python benchmarks/bench_default_nmse.py                      # every variant below, in turn
     python benchmarks/bench_default_nmse.py --only default direct_whole
-    python benchmarks/bench_default_nmse.py --work /tmp/nmse -- trainer.max_epochs=8
+    python benchmarks/bench_default_nmse.py --work /tmp/nmse --data-dir data -- trainer.max_epochs=8
 
 Each variant is one ``python train.py <overrides>`` run of the embedded default scene
 (multi_l, soft skin, pressing; 96 training / 32 held-out sequences) in its own folder under
@@ -36,10 +36,10 @@ VARIANTS: dict[str, list[str]] = {
 }
 
 
-def run(name: str, overrides: list[str], work: Path, extra: list[str]) -> dict:
+def run(name: str, overrides: list[str], work: Path, data_dir: Path, extra: list[str]) -> dict:
     run_dir = work / name
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, str(REPO / "train.py"), f"paths.data_dir={work / 'data'}",
+    proc = subprocess.run([sys.executable, str(REPO / "train.py"), f"paths.data_dir={data_dir}",
                            f"hydra.run.dir={run_dir}", "resume=false", "logger=none", *overrides, *extra],
                           cwd=REPO, env=dict(os.environ, WANDB_MODE="disabled"), capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -56,11 +56,13 @@ def run(name: str, overrides: list[str], work: Path, extra: list[str]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_default_nmse"))
+    ap.add_argument("--data-dir", type=Path, help="data folder to share (default: <work>/data)")
     ap.add_argument("--only", nargs="*", choices=sorted(VARIANTS), help="variants to run (default: all)")
     ap.add_argument("extra", nargs="*", help="overrides appended to every run (after --)")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    results = [run(n, VARIANTS[n], args.work, args.extra) for n in (args.only or list(VARIANTS))]
+    data_dir = args.data_dir or args.work / "data"
+    results = [run(n, VARIANTS[n], args.work, data_dir, args.extra) for n in (args.only or list(VARIANTS))]
     print("\nHeld-out NMSE on y (mean over 4 factors; 0 = perfect, 1 = train mean), default scene")
     print("| variant | overrides | epochs | optimiser steps | train s | run wall s | NMSE traj | NMSE last |")
     print("|---|---|---|---|---|---|---|---|")
