@@ -42,6 +42,10 @@ def main(cfg: DictConfig) -> float | None:
 
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
+    if not loggers:  # logger=none: Lightning refuses a LearningRateMonitor without a logger
+        from lightning.pytorch.callbacks import LearningRateMonitor
+
+        callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
     plain = runtime.use_plain_progress(cfg.plain_progress)
     if plain:
         callbacks.append(runtime.PlainProgress())

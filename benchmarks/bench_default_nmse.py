@@ -44,7 +44,8 @@ def run(name: str, overrides: list[str], work: Path, data_dir: Path, extra: list
                           cwd=REPO, env=dict(os.environ, WANDB_MODE="disabled"), capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
-        return {"name": name, "error": proc.stderr.strip().splitlines()[-1:] or ["failed"], "wall_s": wall}
+        lines = [ln for ln in proc.stderr.splitlines() if "Error" in ln or "Exception" in ln]
+        return {"name": name, "error": lines[-1:] or [f"exit code {proc.returncode}"], "wall_s": wall}
     rows = [json.loads(line) for line in (run_dir / "krr_history.jsonl").read_text().splitlines() if line.strip()]
     last = rows[-1]
     return {"name": name, "overrides": " ".join(overrides) or "(default)", "epochs": last["epoch"] + 1,
