@@ -4,10 +4,9 @@
 Time indexing (t = 1..T in the docs, 0-based in code):
 
 * y_t ~ q(y_t | z_{t-1}, y_{t-1}, a_{t-1}): LSTMCell fed [z_{t-1}, a_{t-1}]. With
-  ``y_update="evidence"`` (default) its head gives one step's Gaussian evidence about the
-  trial-constant y and q(y_t) is the product of all evidence so far (see
-  :class:`~embodied_tactile.models.networks.YPosterior`); with ``"direct"`` the head gives
-  q(y_t) itself. At t = 1 the LSTM gets zeros from a zero state.
+  ``y_update="direct"`` (default) its head gives q(y_t) itself; with ``"evidence"`` it gives
+  one step's Gaussian evidence about the trial-constant y and q(y_t) is the product of all
+  evidence so far (see :class:`~embodied_tactile.models.networks.YPosterior`). At t = 1 the LSTM gets zeros from a zero state.
 * p(z_t | z_{t-1}, y_t, a_t): residual MLP, N(z_{t-1} + f_mu, softplus(f_v) + floor).
 * q_filt(z_t) = q(z_t | o_t) x p(z_t | z_{t-1}, y_t, a_t), normalised (variance form).
   z_1 comes from the encoder alone.
@@ -140,8 +139,8 @@ class LatentFilter(nn.Module):
             per-channel parameter sigma_c = obs_sigma_min + softplus(raw_c).
         prior: kwargs of :class:`HierarchicalPrior` (sigma_init, learn_sigma, var_floor,
             action_term).
-        y_update: ``"evidence"`` (accumulate per-step Gaussian evidence about the
-            trial-constant y) or ``"direct"`` (the LSTM head is q(y_t)); y_prior_precision:
+        y_update: ``"direct"`` (the LSTM head is q(y_t)) or ``"evidence"`` (accumulate
+            per-step Gaussian evidence about the trial-constant y); y_prior_precision:
             precision of the N(0, 1/p) start of the evidence product.
     """
 
@@ -149,7 +148,7 @@ class LatentFilter(nn.Module):
                  n_objects: int = 32, encoder: Optional[Mapping] = None,
                  transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
                  obs_sigma: float = 1.0, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
-                 prior: Optional[Mapping] = None, y_update: str = "evidence",
+                 prior: Optional[Mapping] = None, y_update: str = "direct",
                  y_prior_precision: float = 1.0) -> None:
         super().__init__()
         self.modality = resolve_modality(modality)

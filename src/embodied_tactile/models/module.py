@@ -56,9 +56,9 @@ class LatentFilterModule(L.LightningModule):
         obs_sigma, learn_obs_sigma, obs_sigma_min: Gaussian likelihood (1.0, True, 1e-2).
         prior: kwargs of the hierarchical prior (sigma_init 0.5, learn_sigma True,
             var_floor 1e-2, action_term True).
-        y_update, y_prior_precision: ``"evidence"`` (q(y_t) = product of per-step Gaussian
-            evidence about the trial-constant y, started at N(0, 1/y_prior_precision)) or
-            ``"direct"`` (the LSTM head is q(y_t)); see :class:`~.networks.YPosterior`.
+        y_update, y_prior_precision: ``"direct"`` (the LSTM head is q(y_t)) or ``"evidence"``
+            (q(y_t) = product of per-step Gaussian evidence about the trial-constant y,
+            started at N(0, 1/y_prior_precision)); see :class:`~.networks.YPosterior`.
         annealing: an :class:`AnnealingSchedule`, a name, or ``{name, **kwargs}``
             (None -> plain ELBO). Stored in the hyperparameters as its ``config()``.
         optimizer: ``functools.partial(torch.optim.X, **kw)`` (Hydra ``_partial_: true``)
@@ -78,7 +78,7 @@ class LatentFilterModule(L.LightningModule):
                  n_objects: int = 32, encoder: Optional[Mapping] = None,
                  transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
                  obs_sigma: float = 1.0, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
-                 prior: Optional[Mapping] = None, y_update: str = "evidence", y_prior_precision: float = 1.0,
+                 prior: Optional[Mapping] = None, y_update: str = "direct", y_prior_precision: float = 1.0,
                  annealing: Any = None, optimizer: Any = None, check_finite: bool = True) -> None:
         super().__init__()
         if modality is None:

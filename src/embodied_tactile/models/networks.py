@@ -212,7 +212,7 @@ class YPosterior(nn.Module):
     """
 
     def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3,
-                 update: str = "evidence", prior_precision: float = 1.0) -> None:
+                 update: str = "direct", prior_precision: float = 1.0) -> None:
         super().__init__()
         if update not in Y_UPDATES:
             raise ValueError(f"y_update must be one of {Y_UPDATES}, got {update!r}")
