@@ -1,5 +1,6 @@
 """Evaluate trained Latent Filter runs: KRR alignment, NMSE tables, curves, UMAP, baselines.
 
+    python evaluate.py                                              # the most recent run / multirun
     python evaluate.py logs/train/runs/<run>                        # one run (best checkpoint)
     python evaluate.py logs/train/runs/<run>/checkpoints/last.ckpt  # one checkpoint
     python evaluate.py logs/train/multiruns/<time>                  # every job of a sweep
@@ -46,13 +47,14 @@ import logging
 import os
 import sys
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError
+
+from embodied_tactile import quiet, summary
 
 REPO = Path(__file__).resolve().parent
 DEFAULTS = REPO / "configs" / "evaluate.yaml"
@@ -413,6 +415,26 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     return {"out": str(out), "runs": infos, "skipped": summary["skipped"], "written": written}
 
 
+def train_log_dir() -> str:
+    """``paths.log_dir`` as train.py composes it (configs/train.yaml + configs/local/)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        return str(compose(config_name="train").paths.log_dir)
+
+
+def latest_target(log_dir: str | None = None) -> Path:
+    """The most recent run or multirun (with a checkpoint) under ``<log_dir>/train``; says
+    which one on stdout. EvaluationError when there is none."""
+    train_dir = Path(log_dir or train_log_dir()) / "train"
+    try:
+        folder, kind, passed = summary.latest_run(train_dir)
+    except FileNotFoundError as err:
+        raise EvaluationError(str(err)) from None
+    print(summary.picked_message(folder, kind, passed, train_dir), flush=True)
+    return folder
+
+
 def _cell(run: Run) -> tuple:
     c = run.cfg
     return (str(c.modality.name), str(c.skin.name), str(c.primitive.name))
@@ -423,13 +445,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         description="Evaluate a training run folder, a checkpoint file or a multirun folder "
                     "(options: key=value over configs/evaluate.yaml).",
         epilog="e.g. python evaluate.py logs/train/runs/<run> latent=both baselines=[handcrafted,mean] umap=false")
-    ap.add_argument("path", help="run folder | checkpoint (.ckpt) | multirun folder")
+    ap.add_argument("path", nargs="?", default=None,
+                    help="run folder | checkpoint (.ckpt) | multirun folder; default: the most recent run or "
+                         "multirun under <paths.log_dir>/train (paths.log_dir=... picks another log folder)")
     ap.add_argument("overrides", nargs="*", help="evaluation options, key=value (see configs/evaluate.yaml)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
-    warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+    quiet.silence_third_party()
+    overrides = list(args.overrides)
+    if args.path is not None and "=" in args.path and not Path(args.path).exists():  # an option, not a path
+        overrides.insert(0, args.path)
+        args.path = None
+    log_dirs = [o.split("=", 1)[1] for o in overrides if o.startswith("paths.log_dir=")]
+    overrides = [o for o in overrides if not o.startswith("paths.log_dir=")]
     try:
-        evaluate(args.path, args.overrides)
+        if args.path is None:
+            args.path = str(latest_target(log_dirs[-1] if log_dirs else None))
+        evaluate(args.path, overrides)
     except EvaluationError as err:
         print(f"evaluate.py: error: {err}", file=sys.stderr)
         return 2

@@ -21,10 +21,11 @@ import hydra
 import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile import runtime
+from embodied_tactile import quiet, runtime, settings, summary
 from embodied_tactile.jsonio import write_json
 
 log = logging.getLogger("train")
@@ -32,7 +33,13 @@ log = logging.getLogger("train")
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
 def main(cfg: DictConfig) -> float | None:
+    quiet.silence_third_party()
     run_dir = HydraConfig.get().runtime.output_dir
+    try:  # settings.EntryCallback checked before the folder existed; values swept with -m reach only the job
+        settings.check_train_config(cfg)
+    except settings.SettingsError as err:
+        write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
+        settings.fail(err)
     runtime.save_provenance(cfg, run_dir)
     L.seed_everything(cfg.seed, workers=True)
     torch.set_float32_matmul_precision("high")
@@ -66,10 +73,12 @@ def main(cfg: DictConfig) -> float | None:
     t0 = time.perf_counter()
     try:
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
-    except FloatingPointError as err:  # the model's non-finite-loss guard: name step and term
-        metrics.update(status="failed", error=str(err), train_wall_s=time.perf_counter() - t0)
+    except BaseException as err:  # any failure: the folder must not look like a finished run
+        metrics.update(status="failed", error=str(err) or type(err).__name__, error_type=type(err).__name__,
+                       train_wall_s=time.perf_counter() - t0)
         write_json(f"{run_dir}/metrics.json", metrics)
-        log.error("training stopped: %s (last good checkpoint kept in %s/checkpoints)", err, run_dir)
+        if isinstance(err, FloatingPointError):  # the model's non-finite-loss guard: name step and term
+            log.error("training stopped: %s (last good checkpoint kept in %s/checkpoints)", err, run_dir)
         raise
     metrics["train_wall_s"] = time.perf_counter() - t0
     metrics["fit_metrics"] = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
@@ -84,10 +93,12 @@ def main(cfg: DictConfig) -> float | None:
         metrics["last_checkpoint"] = ckpt_cb.last_model_path or None
     metrics["data"] = datamodule.describe() if hasattr(datamodule, "describe") else {}
     metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
-    metrics["status"] = "finished"
+    metrics["status"] = "interrupted" if trainer.interrupted else "finished"  # Ctrl-C: Lightning returns
     if trainer.global_rank == 0:
         write_json(f"{run_dir}/metrics.json", metrics)
         log.info("run folder: %s", run_dir)
+        if HydraConfig.get().mode != RunMode.MULTIRUN:  # a multirun ends with settings.EntryCallback's summary
+            summary.print_run_summary(run_dir, metrics)
 
     for lg in loggers:  # one wandb run per multirun job
         if lg.__class__.__name__ == "WandbLogger":

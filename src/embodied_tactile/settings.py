@@ -1,0 +1,205 @@
+"""Bad settings stop train.py at the entry with one line naming the key and the value.
+
+:func:`check_train_config` type-checks the keys of the composed train config that reach
+Lightning / the data module / the optimiser as numbers or flags (``SCHEMA``), and
+:func:`check_paths` makes sure the data and log folders can be created and written.
+Both raise :class:`SettingsError`; :class:`EntryCallback` (a Hydra callback, registered in
+``configs/train.yaml``) runs them before Hydra creates the run folder, prints
+``train.py: error: <message>`` and exits with status 2 -- no traceback, no empty run
+folder. ``train.py`` runs the type check again per job (values swept with ``-m``).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+EXIT_BAD_SETTINGS = 2
+
+
+class SettingsError(ValueError):
+    """A config value that cannot work; the message names key, value and what is allowed."""
+
+
+@dataclass(frozen=True)
+class Spec:
+    """Allowed values of one key: ``kinds`` among 'int', 'float', 'bool', 'str', 'list'
+    (an int is accepted where a float is), optional bounds, None allowed or not."""
+
+    kinds: tuple[str, ...]
+    lo: float | None = None
+    hi: float | None = None
+    nullable: bool = False
+
+    def describe(self) -> str:
+        names = {"int": "an integer", "float": "a number", "bool": "true/false", "str": "a string", "list": "a list"}
+        s = " or ".join(names[k] for k in self.kinds)
+        if self.lo is not None and self.hi is not None:
+            s += f" in [{self.lo:g}, {self.hi:g}]"
+        elif self.lo is not None:
+            s += f" >= {self.lo:g}"
+        return s + (" or null" if self.nullable else "")
+
+    def accepts(self, v: Any) -> bool:
+        if v is None:
+            return self.nullable
+        if isinstance(v, bool):
+            return "bool" in self.kinds
+        if isinstance(v, int):
+            ok = "int" in self.kinds or "float" in self.kinds
+        elif isinstance(v, float):
+            ok = "float" in self.kinds and math.isfinite(v)
+        elif isinstance(v, str):
+            return "str" in self.kinds
+        elif isinstance(v, (list, tuple)):
+            return "list" in self.kinds
+        else:
+            return False
+        return ok and (self.lo is None or v >= self.lo) and (self.hi is None or v <= self.hi)
+
+
+INT0, INT1 = Spec(("int",), lo=0), Spec(("int",), lo=1)
+FLAG = Spec(("bool",))
+
+#: key -> Spec. Keys absent from a config (e.g. callbacks=none) are not checked.
+SCHEMA: dict[str, Spec] = {
+    "seed": Spec(("int",)),
+    "resume": FLAG,
+    "validate_at_end": FLAG,
+    "plain_progress": Spec(("bool", "str")),
+    "trainer.max_epochs": Spec(("int",), lo=-1, nullable=True),
+    "trainer.max_steps": Spec(("int",), lo=-1, nullable=True),
+    "trainer.devices": Spec(("int", "str", "list")),
+    "trainer.num_nodes": INT1,
+    "trainer.gradient_clip_val": Spec(("float",), lo=0, nullable=True),
+    "trainer.log_every_n_steps": INT1,
+    "trainer.check_val_every_n_epoch": Spec(("int",), lo=1, nullable=True),
+    "trainer.num_sanity_val_steps": Spec(("int",), lo=-1),
+    "trainer.limit_train_batches": Spec(("int", "float"), lo=0, nullable=True),
+    "trainer.limit_val_batches": Spec(("int", "float"), lo=0, nullable=True),
+    "trainer.accumulate_grad_batches": INT1,
+    "trainer.fast_dev_run": Spec(("bool", "int")),
+    "trainer.enable_progress_bar": FLAG,
+    "trainer.deterministic": Spec(("bool", "str")),
+    "data.batch_size": INT1,
+    "data.num_workers": INT0,
+    "data.repetitions": INT1,
+    "data.seq_len": Spec(("int",), lo=1, nullable=True),
+    "data.train_window": Spec(("int",), lo=1, nullable=True),
+    "data.windows_per_trial": Spec(("int",), lo=1, nullable=True),
+    "data.test_fraction": Spec(("float",), lo=0, hi=1),
+    "data.val_fraction": Spec(("float",), lo=0, hi=1),
+    "data.sim_workers": INT1,
+    "data.preprocess_workers": INT1,
+    "model.n_z": INT1,
+    "model.n_y": INT1,
+    "model.optimizer.lr": Spec(("float",), lo=0),
+    "callbacks.krr_alignment.every_n_epochs": INT0,
+}
+
+
+def _get(cfg: DictConfig, key: str) -> tuple[bool, Any]:
+    """(present, value) with interpolations resolved where they can be (a value that only
+    resolves inside a Hydra job, e.g. ``${hydra:...}``, is reported absent)."""
+    node: Any = cfg
+    for part in key.split("."):
+        if not isinstance(node, DictConfig) or part not in node:
+            return False, None
+        try:
+            node = node[part]
+        except Exception:  # unresolvable outside the job
+            return False, None
+    if isinstance(node, DictConfig):
+        return False, None
+    if OmegaConf.is_config(node):
+        node = OmegaConf.to_container(node, resolve=True)
+    return True, node
+
+
+def check_train_config(cfg: DictConfig) -> None:
+    """Raise SettingsError for the first key of SCHEMA whose value is of the wrong type or range."""
+    for key, spec in SCHEMA.items():
+        present, v = _get(cfg, key)
+        if present and not spec.accepts(v):
+            raise SettingsError(f"{key}={v!r} ({type(v).__name__}): expected {spec.describe()}")
+
+
+def check_writable_dir(key: str, value: Any) -> Path:
+    """Create the folder if needed and write a probe file into it; SettingsError naming the
+    key, the path and the OS reason otherwise."""
+    if value is None or str(value) == "":
+        raise SettingsError(f"{key} is empty: give a folder")
+    p = Path(str(value)).expanduser()
+    try:
+        if p.exists() and not p.is_dir():
+            raise SettingsError(f"{key}={value}: exists and is not a folder")
+        p.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=p):
+            pass
+    except OSError as err:
+        raise SettingsError(f"{key}={value}: cannot create or write this folder ({err.strerror or err})") from None
+    return p
+
+
+def check_paths(cfg: DictConfig, *, run_dir_key: str | None = None) -> None:
+    """paths.data_dir, paths.log_dir (and the run / sweep folder's parent when given)."""
+    for key in ("paths.data_dir", "paths.log_dir"):
+        present, v = _get(cfg, key)
+        if present:
+            check_writable_dir(key, v)
+    if run_dir_key:
+        present, v = _get(cfg, run_dir_key)
+        if present and v:
+            check_writable_dir(run_dir_key, Path(str(v)).parent)
+
+
+def fail(err: SettingsError, prog: str = "train.py") -> None:
+    """The one line and exit status 2."""
+    print(f"{prog}: error: {err}", file=sys.stderr)
+    raise SystemExit(EXIT_BAD_SETTINGS)
+
+
+try:  # Hydra is a dependency of train.py; keep this module importable without it
+    from hydra.experimental.callback import Callback as _HydraCallback
+except ImportError:  # pragma: no cover
+    _HydraCallback = object  # type: ignore[misc,assignment]
+
+
+class EntryCallback(_HydraCallback):
+    """Hydra callback of train.py: check settings before any folder is made; at the end of a
+    multirun, print its summary (:mod:`embodied_tactile.summary`)."""
+
+    def __init__(self) -> None:
+        self._sweep_dir: str | None = None
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config, "hydra.run.dir")
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config, "hydra.sweep.dir")
+        present, v = _get(config, "hydra.sweep.dir")
+        self._sweep_dir = str(v) if present else None
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        from .summary import print_multirun_summary
+
+        if self._sweep_dir and Path(self._sweep_dir).is_dir():
+            print_multirun_summary(self._sweep_dir)
+
+    @staticmethod
+    def _check(config: DictConfig, run_dir_key: str) -> None:
+        try:
+            check_train_config(config)
+            check_paths(config, run_dir_key=run_dir_key)
+        except SettingsError as err:
+            fail(err)
+
+
+__all__ = ["SettingsError", "SCHEMA", "Spec", "check_train_config", "check_paths", "check_writable_dir",
+           "fail", "EntryCallback", "EXIT_BAD_SETTINGS"]

@@ -1,0 +1,220 @@
+"""What a finished run says last, and where the latest run is.
+
+* :func:`run_summary_lines` -- the end of ``python train.py``: held-out NMSE per factor and
+  overall from the run's last KRR alignment (``krr_history.jsonl``), the training time, where
+  the checkpoint, metrics and figures are, and the exact ``python evaluate.py <run>`` command.
+* :func:`multirun_summary_lines` -- the end of ``python train.py -m ...`` (printed by the
+  Hydra callback :class:`embodied_tactile.settings.EntryCallback`): one line per job, the
+  multirun folder and its evaluate command.
+* :func:`latest_run` -- the most recent run or multirun under ``<log_dir>/train`` (what
+  ``python evaluate.py`` with no argument evaluates).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from .constants import FACTOR_NAMES
+
+FACTOR_SHORT = {"spatial_frequency": "spatial freq.", "amplitude": "amplitude", "stiffness": "stiffness",
+                "heterogeneity": "heterogeneity"}
+HISTORY = "krr_history.jsonl"
+RULE = "-" * 72
+
+
+def _read_json(p: Path) -> dict:
+    try:
+        return json.loads(Path(p).read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def last_alignment(run_dir: str | os.PathLike) -> dict | None:
+    """The last row of ``<run>/krr_history.jsonl`` (None when the run has none)."""
+    p = Path(run_dir) / HISTORY
+    try:
+        lines = [ln for ln in p.read_text().splitlines() if ln.strip()]
+    except OSError:
+        return None
+    for ln in reversed(lines):
+        try:
+            return json.loads(ln)
+        except ValueError:  # a line cut by a kill: take the one before
+            continue
+    return None
+
+
+def show_path(p: str | os.PathLike, cwd: str | os.PathLike | None = None) -> str:
+    """Relative to ``cwd`` when inside it (what the user types), else absolute."""
+    p = Path(p).absolute()
+    cwd = Path(cwd or os.getcwd()).absolute()
+    try:
+        return str(p.relative_to(cwd))
+    except ValueError:
+        return str(p)
+
+
+def evaluate_command(target: str | os.PathLike, cwd: str | os.PathLike | None = None) -> str:
+    return f"python evaluate.py {shlex.quote(show_path(target, cwd))}"
+
+
+def duration(seconds: float | None) -> str:
+    if seconds is None:
+        return "unknown"
+    s = float(seconds)
+    if s < 60:
+        return f"{s:.1f} s"
+    m, s = divmod(int(round(s)), 60)
+    if m < 60:
+        return f"{m} min {s:02d} s"
+    h, m = divmod(m, 60)
+    return f"{h} h {m:02d} min"
+
+
+def _fmt(v: Any) -> str:
+    return "n/a" if v is None else f"{float(v):.4g}"
+
+
+def nmse_lines(row: Mapping | None) -> list[str]:
+    if not row:
+        return ["held-out NMSE: no KRR alignment in this run (callbacks.krr_alignment off); "
+                "evaluate.py computes it"]
+    per = row.get("nmse") or {}
+    parts = "  ".join(f"{FACTOR_SHORT[f]} {_fmt(per.get(f))}" for f in FACTOR_NAMES)
+    where = [f"step {row['step']}"] if "step" in row else []
+    if row.get("train_wall_time_s") is not None:
+        where.append(f"{duration(row['train_wall_time_s'])} into training")
+    if row.get("n_test") is not None:
+        where.append(f"{row['n_test']} held-out sequences")
+    return [f"held-out NMSE (last KRR alignment: {', '.join(where) or 'krr_history.jsonl'}): "
+            f"overall {_fmt(row.get('nmse_overall'))}",
+            f"  per factor: {parts}"]
+
+
+def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None, *,
+                      cwd: str | os.PathLike | None = None) -> list[str]:
+    """The closing block of one run (``metrics``: the dict train.py writes to metrics.json;
+    read from ``<run>/metrics.json`` when None)."""
+    run = Path(run_dir)
+    m = dict(metrics) if metrics is not None else _read_json(run / "metrics.json")
+    status = m.get("status", "unknown")
+    lines = [RULE, f"run {status}: {show_path(run, cwd)}"]
+    if status == "failed" and m.get("error"):
+        lines.append(f"error: {m['error']}")
+    lines += nmse_lines(last_alignment(run))
+    t = f"training time: {duration(m.get('train_wall_s'))}"
+    if m.get("data_prep_s") is not None:
+        t += f" (data preparation {duration(m.get('data_prep_s'))} on top)"
+    lines.append(t)
+    ckpt = m.get("best_checkpoint") or m.get("last_checkpoint")
+    ck_dir = run / "checkpoints"
+    if ckpt:
+        lines.append(f"checkpoint:    {show_path(ckpt, cwd)}")
+    elif ck_dir.is_dir() and any(ck_dir.glob("*.ckpt")):
+        lines.append(f"checkpoints:   {show_path(ck_dir, cwd)}/")
+    else:
+        lines.append("checkpoint:    none written")
+    have = [n for n in ("metrics.json", HISTORY, "csv/metrics.csv") if (run / n).exists()]
+    lines.append(f"metrics:       {show_path(run, cwd)}/{{{','.join(have)}}}" if len(have) > 1 else
+                 f"metrics:       {show_path(run / have[0], cwd) if have else 'none written'}")
+    lines.append(f"figures:       {show_path(run / 'evaluation', cwd)}/ (tables, figures/), written by:")
+    lines.append(f"next:          {evaluate_command(run, cwd)}")
+    lines.append(RULE)
+    return lines
+
+
+def print_run_summary(run_dir, metrics: Mapping | None = None) -> None:
+    print("\n".join(run_summary_lines(run_dir, metrics)), flush=True)
+
+
+def _jobs(sweep_dir: Path) -> list[Path]:
+    return sorted((d for d in sweep_dir.iterdir() if d.is_dir() and (d / "config_resolved.yaml").exists()),
+                  key=lambda d: d.name)
+
+
+def multirun_summary_lines(sweep_dir: str | os.PathLike, *, cwd: str | os.PathLike | None = None) -> list[str]:
+    """One line per job (status, last KRR NMSE overall, training time), the folder and the
+    evaluate command."""
+    sweep = Path(sweep_dir)
+    jobs = _jobs(sweep) if sweep.is_dir() else []
+    rows = []
+    for d in jobs:
+        m = _read_json(d / "metrics.json")
+        row = last_alignment(d) or {}
+        rows.append((d.name, m.get("status", "unknown"), _fmt(row.get("nmse_overall")), duration(m.get("train_wall_s"))))
+    n_ok = sum(r[1] == "finished" for r in rows)
+    lines = [RULE, f"multirun: {len(rows)} job(s), {n_ok} finished, {len(rows) - n_ok} not: {show_path(sweep, cwd)}"]
+    if rows:
+        w = max(len(r[0]) for r in rows)
+        lines.append(f"  {'job'.ljust(w)}  {'status':8}  {'NMSE (last KRR)':>15}  training time")
+        lines += [f"  {a.ljust(w)}  {b:8}  {c:>15}  {t}" for a, b, c, t in rows]
+    lines.append(f"tables and figures: {show_path(sweep / 'evaluation', cwd)}/, written by:")
+    lines.append(f"next: {evaluate_command(sweep, cwd)}")
+    lines.append(RULE)
+    return lines
+
+
+def print_multirun_summary(sweep_dir) -> None:
+    print("\n".join(multirun_summary_lines(sweep_dir)), flush=True)
+
+
+# ----------------------------------------------------------------------------- latest run
+def _started(run_dir: Path) -> float | None:
+    """When a run started: mtime of its provenance.json / config_resolved.yaml (written once
+    at the start; the folder's own mtime moves when an evaluation is added)."""
+    for name in ("provenance.json", "config_resolved.yaml"):
+        p = run_dir / name
+        if p.exists():
+            return p.stat().st_mtime
+    return None
+
+
+def _has_checkpoint(run_dir: Path) -> bool:
+    ck = run_dir / "checkpoints"
+    return ck.is_dir() and any(ck.glob("*.ckpt"))
+
+
+def candidates(train_dir: str | os.PathLike) -> list[tuple[float, Path, str, bool]]:
+    """(start time, folder, 'run' | 'multirun', evaluable) under ``<train_dir>/runs`` and
+    ``<train_dir>/multiruns``, newest first."""
+    root = Path(train_dir)
+    out = []
+    for d in sorted((root / "runs").glob("*")) if (root / "runs").is_dir() else []:
+        t = _started(d) if d.is_dir() else None
+        if t is not None:
+            out.append((t, d, "run", _has_checkpoint(d)))
+    for d in sorted((root / "multiruns").glob("*")) if (root / "multiruns").is_dir() else []:
+        jobs = _jobs(d) if d.is_dir() else []
+        times = [t for t in (_started(j) for j in jobs) if t is not None]
+        if times:
+            out.append((max(times), d, "multirun", any(_has_checkpoint(j) for j in jobs)))
+    out.sort(key=lambda c: c[0], reverse=True)
+    return out
+
+
+def latest_run(train_dir: str | os.PathLike) -> tuple[Path, str, list[Path]]:
+    """-> (folder, 'run' | 'multirun', newer folders passed over because they hold no
+    checkpoint). FileNotFoundError (naming the folders looked in) when there is none."""
+    cands = candidates(train_dir)
+    passed: list[Path] = []
+    for _, d, kind, ok in cands:
+        if ok:
+            return d, kind, passed
+        passed.append(d)
+    root = Path(train_dir)
+    why = (f"{len(cands)} folder(s) there, none with a checkpoint (failed or killed before the first epoch)"
+           if cands else "nothing there")
+    raise FileNotFoundError(f"no trained run under {root}/runs or {root}/multiruns ({why}); "
+                            "train one with `python train.py`, or give a run folder: python evaluate.py <run>")
+
+
+def picked_message(folder: Path, kind: str, passed: Sequence[Path], train_dir) -> str:
+    msg = f"evaluate.py: no path given; evaluating the most recent {kind} under {show_path(train_dir)}: {show_path(folder)}"
+    if passed:
+        msg += f" (passed over {len(passed)} newer folder(s) without a checkpoint: " + ", ".join(
+            show_path(p) for p in passed[:3]) + ("..." if len(passed) > 3 else "") + ")"
+    return msg
