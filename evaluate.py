@@ -25,8 +25,8 @@ The recipe, per run (docs/evaluation.md, "evaluate.py"):
    names go along as ``seq_id`` and the library raises ``LeakageError`` on overlap);
 4. the model class of ``cfg.model._target_`` is loaded with ``load_from_checkpoint``
    (best checkpoint by default, ``checkpoint=last`` as option) on the CPU;
-5. ``collect_latents`` over ``train_eval_dataloader()`` (fit) and ``val_dataloader()``
-   (scored); inference time per held-out trial is measured on pre-loaded batches;
+5. ``collect_latents`` over ``train_eval_dataloader()`` (fit) and ``test_dataloader()``
+   (scored: the held-out test trials, never used for checkpoint selection); inference time per held-out trial is measured on pre-loaded batches;
 6. ``evaluate_latents`` + the baselines (hand-crafted features -> KRR, supervised GRU,
    mean predictor) on the same split; KRR history (``krr_history.jsonl``) for the
    error-vs-run-time figure; training time from ``metrics.json`` (``train_wall_s``);
@@ -230,7 +230,7 @@ class DataCache:
     def key(data: dict) -> str:
         split = json.loads(Path(data["split_file"]).read_text())
         d = {k: v for k, v in data.items() if k != "split_file"}
-        return json.dumps([d, split.get("train"), split.get("val")], sort_keys=True, default=str)
+        return json.dumps([d, split.get("train"), split.get("val"), split.get("test")], sort_keys=True, default=str)
 
     def get(self, data: dict):
         from hydra.utils import instantiate
@@ -247,14 +247,14 @@ class DataCache:
 
     def batches(self, k: str, dm, which: str) -> list:
         if (k, which) not in self._batches:
-            loader = dm.train_eval_dataloader() if which == "train" else dm.val_dataloader()
+            loader = dm.train_eval_dataloader() if which == "train" else dm.test_dataloader()
             self._batches[(k, which)] = list(loader)
         return self._batches[(k, which)]
 
 
 # ----------------------------------------------------------------------------- one run
 def _names(dm, which: str) -> list[str]:
-    ds = dm.train_set if which == "train" else dm.val_set
+    ds = dm.train_set if which == "train" else dm.test_set
     return [t.name for t in ds.trials]
 
 
@@ -301,7 +301,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     model = cls.load_from_checkpoint(str(run.ckpt), map_location="cpu")
     model.eval()
     tr, _ = collect_split(model, cache.batches(key, dm, "train"), _names(dm, "train"), opts.latent)
-    te, infer_s = collect_split(model, cache.batches(key, dm, "val"), _names(dm, "val"), opts.latent)
+    te, infer_s = collect_split(model, cache.batches(key, dm, "test"), _names(dm, "test"), opts.latent)
     t_inf = time.perf_counter()
 
     metrics = _read_json(run.run_dir / "metrics.json")
@@ -334,7 +334,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     timings["total_s"] = time.perf_counter() - t_run
     info = {"run_dir": str(run.run_dir), "checkpoint": str(run.ckpt), "modality": modality, "skin": skin,
             "primitive": primitive, "source": source, "channels": channels, "latent": opts.latent,
-            "n_train": int(len(tr["factors"])), "n_val": int(len(te["factors"])),
+            "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])),
             "n_frames": int(te["obs"].shape[1]), "train_wall_s": train_s, "timings": timings,
             "baselines": list(baselines)}
     del model
@@ -390,11 +390,11 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
         all_results.extend(results)
         infos.append(info)
         log.info("    %s: NMSE overall %.4g (%d train / %d held-out, %.1f s)", label,
-                 results[0].summary()["nmse_trajectory_overall"], info["n_train"], info["n_val"],
+                 results[0].summary()["nmse_trajectory_overall"], info["n_train"], info["n_test"],
                  info["timings"]["total_s"])
     t_eval = time.perf_counter()
     sources = sorted({i["source"] for i in infos})
-    split_extra = {i["run_dir"]: {"n_train": i["n_train"], "n_val": i["n_val"], "split_file": str(Path(i["run_dir"]) / "split.json")}
+    split_extra = {i["run_dir"]: {"n_train": i["n_train"], "n_test": i["n_test"], "split_file": str(Path(i["run_dir"]) / "split.json")}
                    for i in infos}
     written = write_report(all_results, out, source=sources[0] if len(sources) == 1 else None,
                            split_sizes_=split_extra, histories=histories or None,

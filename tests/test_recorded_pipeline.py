@@ -56,7 +56,8 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     )
     dm.prepare_data()
     dm.setup()
-    assert len(dm.train_set) == 2 and len(dm.val_set) == 2  # one repetition of each object per side
+    # one repetition of each object per side; no object has a trial to spare for validation
+    assert len(dm.train_set) == 2 and len(dm.test_set) == 2 and len(dm.val_set) == 0
     batch = next(iter(dm.train_dataloader()))
     assert batch["obs"].shape == (2, 30, 3, 28, 28) and batch["obs"].dtype == torch.float32
     assert torch.isfinite(batch["obs"]).all() and batch["obs"].abs().sum() > 0
@@ -72,5 +73,5 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     trainer = L.Trainer(max_epochs=1, accelerator="cpu", logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)
     trainer.fit(model, datamodule=dm)
-    val = trainer.validate(model, datamodule=dm, verbose=False)
-    assert np.isfinite(val[0]["val/elbo"])
+    test = trainer.test(model, datamodule=dm, verbose=False)
+    assert np.isfinite(test[0]["test/elbo"])

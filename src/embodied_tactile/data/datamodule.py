@@ -4,13 +4,16 @@ the files (raw + cache) and torch.
 Flow: ``prepare_data`` makes sure the raw trials exist (simulates the missing ones when
 the source is the simulator) and that the per-field preprocessing cache is built; ``setup``
 lists the cached trials of the configured skin / primitive / objects / actions and splits
-them 75/25, stratified by object and stable for a seed. A modality reads only its own
+them into train / validation / test (:func:`split_trials`: by trial, the paper's split, or
+by whole object), stable for a seed. Validation trials come from training objects and
+pick checkpoints; test trials are touched only by evaluation. A modality reads only its own
 fields: ``acc`` never opens FSR data, raw or cached.
 """
 
 from __future__ import annotations
 
 import contextlib
+import glob
 import hashlib
 import json
 import logging
@@ -26,6 +29,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from embodied_tactile import constants as C
+from embodied_tactile.io.rawformat import unique_paths
 from embodied_tactile.jsonio import write_json
 
 log = logging.getLogger(__name__)
@@ -83,32 +87,135 @@ class TrialRef:
     factors: tuple[float, float, float, float]
 
 
-def stratified_split(trials: Sequence[TrialRef], val_fraction: float, seed: int) -> tuple[list[TrialRef], list[TrialRef]]:
-    """75/25-style split, per object, independent of listing order and stable for a seed.
+SPLITS = ("trial", "object")
 
-    Every object with at least two trials appears on both sides. The order inside an
-    object is a hash of (seed, trial name), so adding trials of other objects, or other
-    trials, does not reshuffle an object's assignment more than necessary.
+
+def _hash_key(seed: int, name: str) -> bytes:
+    return hashlib.blake2b(f"{seed}/{name}".encode(), digest_size=8).digest()
+
+
+def _stratified_objects(by_obj: Mapping[int, Sequence[TrialRef]], test_fraction: float, seed: int) -> set[int]:
+    """Whole objects to hold out, balanced over every factor's levels.
+
+    ``round(test_fraction * n_objects)`` objects (at least 1, at most all but one) are taken
+    one at a time, each time the one that least increases
+    ``sum_{k, level} (held(k, level) - test_fraction * n(k, level))^2``, the distance of the
+    held-out counts per factor level from their proportional share, among the objects that
+    keep every level at or below ``ceil(test_fraction * n(k, level))``; ties go to a seeded
+    hash order. Every level so keeps most of its objects in training (the KRR
+    alignment and the population prior interpolate, they do not extrapolate), and the
+    heterogeneous minority is held out in proportion rather than by chance."""
+    objs = sorted(by_obj, key=lambda o: _hash_key(seed, f"object{o}"))
+    n_test = min(max(int(round(test_fraction * len(objs))), 1), len(objs) - 1)
+    levels = {o: [(k, round(float(v), 6) if np.isfinite(v) else None) for k, v in enumerate(by_obj[o][0].factors)]
+              for o in objs}
+    count: dict[tuple[int, Any], int] = {}
+    for o in objs:
+        for key in levels[o]:
+            count[key] = count.get(key, 0) + 1
+    cap = {key: int(np.ceil(test_fraction * n)) for key, n in count.items()}
+    held: dict[tuple[int, Any], int] = {}
+    taken: list[int] = []
+    budget = [20000]  # search nodes; the caps are loose enough that the first branch nearly always succeeds
+
+    def cost(o: int) -> float:  # growth of sum (held - f n)^2 if o were taken
+        return sum(2.0 * (held.get(key, 0) - test_fraction * count[key]) + 1.0 for key in levels[o])
+
+    def take(o: int, step: int) -> None:
+        (taken.append if step > 0 else taken.remove)(o)
+        for key in levels[o]:
+            held[key] = held.get(key, 0) + step
+
+    def search() -> bool:  # depth-first within the caps, cheapest first
+        if len(taken) == n_test:
+            return True
+        if budget[0] <= 0:
+            return False
+        budget[0] -= 1
+        feasible = [o for o in objs if o not in taken and all(held.get(key, 0) < cap[key] for key in levels[o])]
+        for o in sorted(feasible, key=cost):  # stable: ties keep the seeded hash order
+            take(o, +1)
+            if search():
+                return True
+            take(o, -1)
+        return False
+
+    if not search():  # no assignment within the caps: the least-deviation greedy one
+        for o in list(taken):
+            take(o, -1)
+        while len(taken) < n_test:
+            take(min((o for o in objs if o not in taken), key=cost), +1)
+    return set(taken)
+
+
+def split_trials(trials: Sequence[TrialRef], *, by: str = "trial", test_fraction: float = 0.25,
+                 val_fraction: float = 0.125, seed: int = 0
+                 ) -> tuple[list[TrialRef], list[TrialRef], list[TrialRef]]:
+    """Train / validation / test split, independent of listing order and stable for a seed.
+
+    * ``test``: the held-out set, touched only by evaluation (evaluate.py, the KRR
+      callback's report), never by model selection.
+      ``by="trial"`` (the paper's split): per object, ``round(test_fraction * n)`` of its
+      ``n`` trials (at least 1 and at most n - 1 when n >= 2), so every object is on both
+      sides. ``by="object"``: whole objects, balanced over factor levels
+      (:func:`_stratified_objects`), so no test object is ever seen in training.
+    * ``val``: ``round(val_fraction * N)`` of all N trials (at least 1 where possible), taken
+      from the *training* objects' remaining trials, one per object in a seeded object order
+      and only from objects that keep at least one training trial. It picks checkpoints
+      and drives early stopping. Empty when no object has a trial to spare (a warning says so).
+    * ``train``: the rest.
+
+    The order inside an object is a hash of (seed, trial name), so adding trials of other
+    objects does not reshuffle an object's assignment more than necessary.
     """
-    if not 0.0 < val_fraction < 1.0:
-        raise ValueError(f"val_fraction must be in (0, 1), got {val_fraction}")
+    if by not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {by!r}")
+    if not 0.0 < test_fraction < 1.0:
+        raise ValueError(f"test_fraction must be in (0, 1), got {test_fraction}")
+    if not 0.0 <= val_fraction < 1.0 - test_fraction:
+        raise ValueError(f"val_fraction must be in [0, 1 - test_fraction), got {val_fraction}")
     by_obj: dict[int, list[TrialRef]] = {}
     for tr in trials:
         by_obj.setdefault(tr.object_id, []).append(tr)
-    train: list[TrialRef] = []
+    for obj in by_obj:
+        by_obj[obj].sort(key=lambda t: _hash_key(seed, t.name))
+    test: list[TrialRef] = []
+    pool: dict[int, list[TrialRef]] = {}  # training objects' trials still available
+    if by == "object":
+        if len(by_obj) < 2:
+            raise ValueError(f"split=object needs at least 2 objects, got {sorted(by_obj)}")
+        held = _stratified_objects(by_obj, test_fraction, seed)
+        for obj, items in by_obj.items():
+            (test.extend(items) if obj in held else pool.__setitem__(obj, list(items)))
+    else:
+        for obj in sorted(by_obj):
+            items = by_obj[obj]
+            n = len(items)
+            if n >= 2:
+                n_test = min(max(int(round(test_fraction * n)), 1), n - 1)
+            else:
+                n_test = 0
+                log.warning("object %d has a single trial: it is used for training only", obj)
+            test.extend(items[:n_test])
+            pool[obj] = list(items[n_test:])
+    n_val = int(round(val_fraction * len(trials)))
+    if val_fraction > 0:
+        n_val = max(n_val, 1)
     val: list[TrialRef] = []
-    for obj in sorted(by_obj):
-        items = sorted(by_obj[obj], key=lambda t: hashlib.blake2b(f"{seed}/{t.name}".encode(), digest_size=8).digest())
-        n = len(items)
-        n_val = int(round(val_fraction * n))
-        if n >= 2:
-            n_val = min(max(n_val, 1), n - 1)
-        else:
-            n_val = 0
-            log.warning("object %d has a single trial: it is used for training only", obj)
-        val.extend(items[:n_val])
-        train.extend(items[n_val:])
-    return sorted(train, key=lambda t: t.name), sorted(val, key=lambda t: t.name)
+    order = sorted(pool, key=lambda o: _hash_key(seed, f"val-object{o}"))
+    while len(val) < n_val:
+        spare = [o for o in order if len(pool[o]) >= 2]
+        if not spare:
+            break
+        for o in spare:
+            if len(val) == n_val:
+                break
+            val.append(pool[o].pop(0))
+    if n_val and not val:
+        log.warning("no validation trials: no training object has a trial to spare; checkpoints follow the last epoch")
+    train = [t for items in pool.values() for t in items]
+    key = lambda t: t.name  # noqa: E731
+    return sorted(train, key=key), sorted(val, key=key), sorted(test, key=key)
 
 
 class TactileSequenceDataset(Dataset):
@@ -195,6 +302,8 @@ class TactileSequenceDataset(Dataset):
             "object_id": torch.tensor(tr.object_id, dtype=torch.long),
             "factors": torch.tensor(tr.factors, dtype=torch.float32),
             "action_index": torch.tensor(tr.action_index, dtype=torch.long),
+            "trial": tr.name,  # named in errors (the model's non-finite guard)
+            "first_frame": torch.tensor(sl.start or 0, dtype=torch.long),  # of this crop in the trial
         }
 
 
@@ -206,14 +315,23 @@ class TactileDataModule(L.LightningDataModule):
         source: ``"simulated"`` (raw file ``<data_dir>/raw/<skin>_<primitive>.h5``, missing
             trials simulated in ``prepare_data``) or ``"recorded"`` (``raw_files``, never
             generated).
+        raw_files: recorded files: paths or glob patterns, absolute, ``~`` or relative to
+            the working directory (see :attr:`raw_paths`).
         channels: observation channels of the modality, e.g. ``["acc", "fsr_t", "fsr_b"]``.
         objects / actions: subsets of object ids / action indices (None = all).
         preprocess: keyword arguments of ``PreprocessConfig``.
+        split: ``"trial"`` (the paper's: every object on both sides) or ``"object"`` (whole
+            objects held out, stratified over factor levels); see :func:`split_trials`.
+        test_fraction / val_fraction: held-out test share (of trials, or of objects for
+            ``split="object"``) and validation share of all trials (from training objects).
         split_file: where the split is saved (JSON); reused if it exists and matches.
         seq_len: keep the first ``seq_len`` frames of every trial (None = all).
         train_window / windows_per_trial: the training loader serves ``windows_per_trial``
             random ``train_window``-frame crops of every training trial per epoch (None =
             whole trials). Held-out and alignment loaders always serve whole trials.
+        strict: a bad raw trial is fatal instead of skipped.
+        include_incomplete: also use recordings marked ``complete=False`` (interrupted);
+            by default they are left out and counted in a warning.
     """
 
     def __init__(
@@ -232,7 +350,9 @@ class TactileDataModule(L.LightningDataModule):
         sim_workers: int = 2,
         preprocess: Mapping[str, Any] | None = None,
         preprocess_workers: int = 2,
-        val_fraction: float = 0.25,
+        split: str = "trial",
+        test_fraction: float = 0.25,
+        val_fraction: float = 0.125,
         split_seed: int = 0,
         split_file: str | None = None,
         batch_size: int = 48,
@@ -241,6 +361,7 @@ class TactileDataModule(L.LightningDataModule):
         train_window: int | None = None,
         windows_per_trial: int = 1,
         strict: bool = False,
+        include_incomplete: bool = False,
         pin_memory: bool = False,
     ):
         super().__init__()
@@ -266,6 +387,10 @@ class TactileDataModule(L.LightningDataModule):
         self.sim_workers = int(sim_workers)
         self.preprocess_kwargs = dict(preprocess or {})
         self.preprocess_workers = int(preprocess_workers)
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        self.split = split
+        self.test_fraction = float(test_fraction)
         self.val_fraction = float(val_fraction)
         self.split_seed = int(split_seed)
         self.split_file = split_file
@@ -278,22 +403,35 @@ class TactileDataModule(L.LightningDataModule):
         self.pin_memory = bool(pin_memory)
         self.cache_files: dict[str, str] = {}
         self.train_set: TactileSequenceDataset | None = None
-        self.val_set: TactileSequenceDataset | None = None
+        self.val_set: TactileSequenceDataset | None = None  # model selection (training objects)
+        self.test_set: TactileSequenceDataset | None = None  # held out: evaluation only
         self.train_crops: TactileSequenceDataset | None = None  # what train_dataloader serves
         self.skipped: list[dict[str, str]] = []  # {file, trial, field, problem} of each bad trial
+        self.include_incomplete = bool(include_incomplete)
+        self.excluded_incomplete: list[str] = []  # complete=False recordings left out
 
     # ------------------------------------------------------------------ files
     @property
     def raw_paths(self) -> list[Path]:
+        """The raw files. Recorded: each ``raw_files`` entry is a path or a glob pattern
+        (``*``, ``?``, ``[...]``, ``**``), absolute, ``~`` or relative to the working
+        directory; matches sorted, each file once, as absolute paths. A pattern that matches
+        nothing, or a path that does not exist, is an error naming it."""
         if self.source == "simulated":
             return [self.data_dir / "raw" / f"{self.skin}_{self.primitive}.h5"]
-        paths: list[Path] = []
+        paths: list[str] = []
         for pattern in self.raw_files_cfg:
-            matches = sorted(Path().glob(pattern)) if any(ch in pattern for ch in "*?[") else [Path(pattern)]
-            paths.extend(matches)
-        if not paths:
-            raise FileNotFoundError(f"no recorded raw files match {self.raw_files_cfg}")
-        return paths
+            expanded = os.path.expanduser(str(pattern))
+            if glob.has_magic(expanded):
+                matches = sorted(p for p in glob.glob(expanded, recursive=True) if os.path.isfile(p))
+                if not matches:
+                    raise FileNotFoundError(f"data.raw_files pattern {pattern!r} matches no file (cwd {os.getcwd()})")
+            elif not os.path.isfile(expanded):
+                raise FileNotFoundError(f"data.raw_files: recorded raw file not found: {pattern!r} (cwd {os.getcwd()})")
+            else:
+                matches = [expanded]
+            paths.extend(os.path.abspath(p) for p in matches)
+        return [Path(p) for p in unique_paths(paths)]
 
     @property
     def cache_dir(self) -> Path:
@@ -331,11 +469,7 @@ class TactileDataModule(L.LightningDataModule):
                 seed=self.sim_seed,
                 workers=self.sim_workers,
             )
-        else:
-            for p in self.raw_paths:
-                if not p.exists():
-                    raise FileNotFoundError(f"recorded raw file not found: {p}")
-        self._build_cache()
+        self._build_cache()  # recorded: raw_paths raises for a missing file or an empty pattern
 
     def _build_cache(self) -> dict[str, str]:
         from embodied_tactile.data.cache import build_cache
@@ -364,9 +498,10 @@ class TactileDataModule(L.LightningDataModule):
                 for entry in listed:  # a trial rejected at scan time is listed by every field's cache
                     if entry not in self.skipped:
                         self.skipped.append(entry)
-        names = set(per_field[0]).intersection(*per_field[1:])
+        names = self._whole_trials(per_field)
         refs = []
-        for name in sorted(names):
+        incomplete: list[str] = []
+        for name in names:
             a = per_field[0][name]
             if str(a["skin"]) != self.skin or str(a["primitive"]) != self.primitive:
                 continue
@@ -376,6 +511,10 @@ class TactileDataModule(L.LightningDataModule):
                 continue
             if self.source == "simulated" and int(a.get("repetition", 0)) >= self.repetitions:
                 continue
+            if not bool(a.get("complete", True)):  # an interrupted recording
+                incomplete.append(name)
+                if not self.include_incomplete:
+                    continue
             refs.append(
                 TrialRef(
                     name=name,
@@ -386,12 +525,48 @@ class TactileDataModule(L.LightningDataModule):
                     factors=tuple(float(a[k]) for k in C.FACTOR_NAMES),
                 )
             )
+        if incomplete and not self.include_incomplete:
+            self.excluded_incomplete = incomplete
+            log.warning("excluded %d incomplete recording(s) (complete=False: interrupted), e.g. %s; "
+                        "data.include_incomplete=true uses them", len(incomplete), incomplete[:3])
+        elif incomplete:
+            log.info("using %d incomplete recording(s) (include_incomplete=true)", len(incomplete))
         if not refs:
             raise RuntimeError(
                 f"no usable trials for skin={self.skin} primitive={self.primitive} objects={self.objects} "
                 f"actions={self.actions} in {self.cache_files} (skipped: {self.skipped[:5]})"
             )
         return refs
+
+    def _whole_trials(self, per_field: Sequence[Mapping[str, Mapping[str, Any]]]) -> list[str]:
+        """Names of the trials that every needed cache holds, all from one raw file.
+
+        A trial listed as skipped for any field, or absent from a cache, is skipped whole;
+        one absent without a reason is added to ``skipped`` with a warning. Fields of one
+        name from different raw files are an error (never a stitched trial)."""
+        bad = {(e.get("file"), e.get("trial")) for e in self.skipped}
+        mixed = []
+        out = []
+        for name in sorted(set().union(*per_field)):
+            sources = {fld: entries[name].get("source_file") for fld, entries in zip(self.fields, per_field) if name in entries}
+            if len(set(sources.values())) > 1:
+                mixed.append(f"'{name}': " + ", ".join(f"{fld} from {src}" for fld, src in sources.items()))
+                continue
+            src = next(iter(sources.values()))
+            if (src, name) in bad:
+                continue
+            absent = [fld for fld in self.fields if fld not in sources]
+            for fld in absent:
+                entry = {"file": str(src), "trial": name, "field": fld,
+                         "problem": f"absent from the cache {self.cache_files[fld]} (no reason listed there)"}
+                log.warning("skipping %s / %s: %s", src, name, entry["problem"])
+                self.skipped.append(entry)
+            if not absent:
+                out.append(name)
+        if mixed:
+            raise RuntimeError(f"cached fields of one trial come from different raw files: {'; '.join(mixed[:5])}"
+                               f"{' ...' if len(mixed) > 5 else ''} (caches {self.cache_files}); rebuild the caches")
+        return out
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
@@ -403,44 +578,57 @@ class TactileDataModule(L.LightningDataModule):
                 self._build_cache()
         refs = self._list_trials()
         if self.split_file and Path(self.split_file).exists():
-            train, val = self._load_split(refs)
+            train, val, test = self._load_split(refs)
         else:
-            train, val = stratified_split(refs, self.val_fraction, self.split_seed)
+            train, val, test = split_trials(refs, by=self.split, test_fraction=self.test_fraction,
+                                            val_fraction=self.val_fraction, seed=self.split_seed)
             if self.split_file:
-                self._save_split(train, val)
+                self._save_split(train, val, test)
         self.train_set = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len)
         self.val_set = TactileSequenceDataset(self.cache_files, val, self.channels, self.seq_len)
+        self.test_set = TactileSequenceDataset(self.cache_files, test, self.channels, self.seq_len)
         self.train_crops = self.train_set
         if self.train_window is not None or self.windows_per_trial != 1:
             self.train_crops = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len,
                                                       window=self.train_window,
                                                       windows_per_trial=self.windows_per_trial)
-        log.info("data: %d train / %d held-out sequences, channels %s, skipped %d bad trial(s)",
-                 len(train), len(val), self.channels, len(self.skipped))
+        log.info("data: %d train / %d validation / %d test sequences (split=%s), channels %s, skipped %d bad trial(s)",
+                 len(train), len(val), len(test), self.split, self.channels, len(self.skipped))
 
-    def _load_split(self, refs: Sequence[TrialRef]) -> tuple[list[TrialRef], list[TrialRef]]:
-        """Reuse a saved split (resumed runs, evaluation): the split belongs to the run."""
+    def _load_split(self, refs: Sequence[TrialRef]) -> tuple[list[TrialRef], list[TrialRef], list[TrialRef]]:
+        """Reuse a saved split (resumed runs, evaluation): the split belongs to the run.
+
+        A split file written before the train / val / test split (keys ``train`` and ``val``
+        only) held out its ``val`` trials for both selection and scoring: they are read as
+        the test set, with no validation set, and a warning says so."""
         saved = json.loads(Path(self.split_file).read_text())
+        if "test" not in saved:
+            log.warning("%s predates the train/val/test split: its held-out 'val' trials are the test set, "
+                        "and this run has no validation set", self.split_file)
+            saved = {**saved, "val": [], "test": saved["val"]}
         by_name = {r.name: r for r in refs}
-        missing = [n for n in saved["train"] + saved["val"] if n not in by_name]
+        missing = [n for n in saved["train"] + saved["val"] + saved["test"] if n not in by_name]
         if missing:
             raise RuntimeError(
                 f"split file {self.split_file} names {len(missing)} trial(s) absent from the data "
                 f"(e.g. {missing[:3]}); the data changed since the run was started"
             )
         log.info("reusing the saved split %s", self.split_file)
-        return [by_name[n] for n in saved["train"]], [by_name[n] for n in saved["val"]]
+        return tuple([by_name[n] for n in saved[k]] for k in ("train", "val", "test"))  # type: ignore[return-value]
 
-    def _save_split(self, train: Sequence[TrialRef], val: Sequence[TrialRef]) -> None:
+    def _save_split(self, train: Sequence[TrialRef], val: Sequence[TrialRef], test: Sequence[TrialRef]) -> None:
         path = Path(self.split_file)
         path.parent.mkdir(parents=True, exist_ok=True)
         payload = {
             "seed": self.split_seed,
+            "split": self.split,
+            "test_fraction": self.test_fraction,
             "val_fraction": self.val_fraction,
             "source": self.source,
             "raw_files": [str(p) for p in self.raw_paths],
             "train": [t.name for t in train],
             "val": [t.name for t in val],
+            "test": [t.name for t in test],
             "skipped": self.skipped,
         }
         write_json(path, payload, indent=1)
@@ -467,14 +655,17 @@ class TactileDataModule(L.LightningDataModule):
         return self._loader(self.train_set, shuffle=False)
 
     def val_dataloader(self) -> DataLoader:
+        """Validation trials of training objects: checkpoint selection, early stopping."""
         assert self.val_set is not None, "call setup() first"
         return self._loader(self.val_set, shuffle=False)
 
     def test_dataloader(self) -> DataLoader:
-        return self.val_dataloader()
+        """The held-out test trials: evaluation only, never model selection."""
+        assert self.test_set is not None, "call setup() first"
+        return self._loader(self.test_set, shuffle=False)
 
     def teardown(self, stage: str | None = None) -> None:
-        for ds in (self.train_set, self.train_crops, self.val_set):
+        for ds in (self.train_set, self.train_crops, self.val_set, self.test_set):
             if ds is not None:
                 ds.close()
 
@@ -488,12 +679,17 @@ class TactileDataModule(L.LightningDataModule):
             "raw_files": [str(p) for p in self.raw_paths],
             "cache_files": self.cache_files,
             "skipped": len(self.skipped),
+            "excluded_incomplete": len(self.excluded_incomplete),
         }
-        if self.train_set is not None and self.val_set is not None:
+        if self.train_set is not None and self.val_set is not None and self.test_set is not None:
+            everything = self.train_set.trials + self.val_set.trials + self.test_set.trials
+            info["split"] = self.split
             info["n_train"] = len(self.train_set)
             info["n_val"] = len(self.val_set)
-            info["objects"] = sorted({t.object_id for t in self.train_set.trials + self.val_set.trials})
-            info["actions"] = sorted({t.action_index for t in self.train_set.trials + self.val_set.trials})
+            info["n_test"] = len(self.test_set)
+            info["test_objects"] = sorted({t.object_id for t in self.test_set.trials})
+            info["objects"] = sorted({t.object_id for t in everything})
+            info["actions"] = sorted({t.action_index for t in everything})
             sample = self.train_set[0]
             info["obs_shape"] = list(sample["obs"].shape)
             info["actions_shape"] = list(sample["actions"].shape)

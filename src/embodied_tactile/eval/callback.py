@@ -3,12 +3,14 @@
 Each evaluation (i) runs ``pl_module.infer_latents(batch)`` (no grad, eval mode) over the
 datamodule's non-shuffled training loader (``train_eval_dataloader()`` when the datamodule
 has it, else ``train_dataloader()``) up to ``max_train_sequences`` and over
-``val_dataloader()`` (the held-out 25 %); (ii) fits :func:`fit_alignment` on the training
+``test_dataloader()`` (the held-out test trials, which never steer checkpoint selection;
+``val_dataloader()`` for a datamodule without a test set); (ii) fits :func:`fit_alignment` on the training
 latents' final segments only; (iii) scores every ``val_frame_stride``-th frame of the
 held-out sequences with :func:`nmse`. It logs ``krr/nmse_<factor>``, ``krr/nmse_overall``
 (whole trajectory, mean over factors), ``krr/nmse_last_overall`` (last frame),
 ``krr/train_wall_time_s`` (training wall time since ``on_train_start`` minus this callback's
-own time), ``krr/callback_time_s`` and ``krr/callback_fraction`` (callback time / total
+own time; both continue across a resume, through the callback's ``state_dict`` in the
+checkpoint), ``krr/callback_time_s`` and ``krr/callback_fraction`` (callback time / total
 elapsed) to every logger, and appends one JSON line to ``krr_history.jsonl`` in
 ``trainer.log_dir`` (or ``default_root_dir``).
 """
@@ -119,6 +121,8 @@ class KRRAlignmentCallback(Callback):
         self.history_name = history_name
         self._t_start: float | None = None
         self._cb_time = 0.0
+        self._elapsed_before = 0.0  # wall / callback time of the runs this one resumes (state_dict)
+        self._cb_before = 0.0
         self._last_step: int | None = None
         self.history: list[dict] = []
 
@@ -126,6 +130,15 @@ class KRRAlignmentCallback(Callback):
     def on_train_start(self, trainer, pl_module) -> None:
         self._t_start = time.perf_counter()
         self._cb_time = 0.0
+
+    def state_dict(self) -> dict[str, float]:
+        """Elapsed wall time and callback time so far, so that a resumed run continues them."""
+        elapsed = 0.0 if self._t_start is None else time.perf_counter() - self._t_start
+        return {"elapsed_s": self._elapsed_before + elapsed, "callback_time_s": self._cb_before + self._cb_time}
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        self._elapsed_before = float(state_dict["elapsed_s"])
+        self._cb_before = float(state_dict["callback_time_s"])
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         if self.every_n_epochs > 0 and (trainer.current_epoch + 1) % self.every_n_epochs == 0:
@@ -147,13 +160,14 @@ class KRRAlignmentCallback(Callback):
         if dm is None:
             raise RuntimeError("KRRAlignmentCallback needs trainer.datamodule (pass datamodule= to fit)")
         train = dm.train_eval_dataloader() if hasattr(dm, "train_eval_dataloader") else dm.train_dataloader()
-        return train, dm.val_dataloader()
+        held_out = dm.test_dataloader() if hasattr(dm, "test_set") else dm.val_dataloader()
+        return train, held_out
 
     def _evaluate(self, trainer, pl_module) -> dict[str, float]:
         t0 = time.perf_counter()
         if self._t_start is None:
             self._t_start = t0
-        train_wall = t0 - self._t_start - self._cb_time
+        train_wall = self._elapsed_before + (t0 - self._t_start) - self._cb_before - self._cb_time
         train_loader, val_loader = self._loaders(trainer)
         tr = collect_latents(pl_module, train_loader, latent=self.latent, max_sequences=self.max_train_sequences)
         te = collect_latents(pl_module, val_loader, latent=self.latent, max_sequences=self.max_val_sequences)
@@ -166,7 +180,8 @@ class KRRAlignmentCallback(Callback):
         per_factor = nmse_trajectory(te["factors"], pred)  # == mean of the curve over frames
         cb = time.perf_counter() - t0
         self._cb_time += cb
-        total = time.perf_counter() - self._t_start
+        cb_total = self._cb_before + self._cb_time
+        total = self._elapsed_before + time.perf_counter() - self._t_start
         self._last_step = trainer.global_step
         metrics = {f"krr/nmse_{f}": float(v) for f, v in zip(FACTOR_NAMES, per_factor)}
         metrics.update({
@@ -174,13 +189,13 @@ class KRRAlignmentCallback(Callback):
             "krr/nmse_last_overall": overall(curve[-1]),
             "krr/train_wall_time_s": float(train_wall),
             "krr/callback_time_s": float(cb),
-            "krr/callback_fraction": float(self._cb_time / total) if total > 0 else 0.0,
+            "krr/callback_fraction": float(cb_total / total) if total > 0 else 0.0,
         })
         row = {
             "epoch": int(trainer.current_epoch), "step": int(trainer.global_step),
             "train_wall_time_s": float(train_wall), "callback_time_s": float(cb),
             "callback_infer_s": float(t_inf - t0), "callback_krr_s": float(cb - (t_inf - t0)),
-            "callback_time_total_s": float(self._cb_time), "callback_fraction": metrics["krr/callback_fraction"],
+            "callback_time_total_s": float(cb_total), "callback_fraction": metrics["krr/callback_fraction"],
             "nmse": {f: _fin(v) for f, v in zip(FACTOR_NAMES, per_factor)},
             "nmse_overall": _fin(metrics["krr/nmse_overall"]), "nmse_last": {f: _fin(v) for f, v in zip(FACTOR_NAMES, curve[-1])},
             "nmse_last_overall": _fin(metrics["krr/nmse_last_overall"]),
