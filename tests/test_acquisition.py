@@ -192,6 +192,8 @@ def test_emulator_recorder_roundtrip(tmp_path):
     assert rec.baseline_t[-1] < 0 <= rec.t[0] and rec.t[-1] <= 1.0 + 0.01
     assert stats.sent == n_b + n
     assert rec.pose.shape[1] == 6 and rec.pose_t[0] == 0.0 and rec.pose_t[-1] <= rec.t[-1] + 0.02
+    # no packet lost, and the file says so (an absent dataset would mean "not recorded")
+    assert rec.lost_at.shape == (0,) and rec.lost_at.dtype == np.int64
 
 
 @pytest.mark.parametrize(
@@ -219,6 +221,13 @@ def test_faults(tmp_path, trial3s, kind, faults):
     else:
         assert res.lost >= n_injected and res.garbage == 0
     assert rec.attrs["lost_packets"] == res.lost and rec.attrs["garbage_packets"] == res.garbage
+    # where each drop happened: the index of the sample after the gap, one entry per lost packet
+    lost_at = rec.lost_at
+    assert lost_at is not None and len(lost_at) == res.lost  # baseline_s=0: every loss is in the trial
+    assert (np.diff(lost_at) >= 0).all() and ((0 <= lost_at) & (lost_at <= len(rec.t))).all()
+    if kind in ("drop", "truncate"):  # each loss waited out a read timeout between its two samples
+        inner = lost_at[(lost_at > 0) & (lost_at < len(rec.t))]
+        assert len(inner) and (rec.t[inner] - rec.t[inner - 1] >= 0.05).all()
     # intact packets are only missed while resyncing
     assert len(k) >= len(st.served) - 2 * n_injected
 

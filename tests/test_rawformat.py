@@ -92,6 +92,10 @@ CORRUPTIONS = {
     ),
     "bad_primitive": (lambda g: g.attrs.__setitem__("primitive", "poking"), "attrs/primitive", "must be one of"),
     "out_of_range_fsr": (lambda g: g["tactile/fsr"].__setitem__((0, 0, 0, 0), 5000), "tactile/fsr", "12-bit"),
+    "lost_at_out_of_range": (lambda g: g.create_dataset("tactile/lost_at", data=np.array([3, 701])), "tactile/lost_at", "outside 0..700"),
+    "lost_at_decreasing": (lambda g: g.create_dataset("tactile/lost_at", data=np.array([5, 3])), "tactile/lost_at", "decrease"),
+    "lost_at_dtype": (lambda g: g.create_dataset("tactile/lost_at", data=np.array([1.0, 2.0])), "tactile/lost_at", "dtype"),
+    "lost_at_shape": (lambda g: g.create_dataset("tactile/lost_at", data=np.zeros((2, 1), np.int64)), "tactile/lost_at", "shape"),
 }
 
 
@@ -171,3 +175,54 @@ def test_format_error_pickles():
     back = pickle.loads(pickle.dumps(err))
     assert (back.file, back.trial, back.field, back.problem) == ("f.h5", "obj00", "tactile/acc", "bad")
     assert str(back) == str(err)
+
+
+def test_lost_packet_positions_round_trip_and_are_optional(tmp_path):
+    """``tactile/lost_at``: where each lost packet was (the index of the sample after the gap);
+    written incrementally, validated on read, absent in files written before it existed."""
+    path = tmp_path / "rec.h5"
+    tr = make_trial()
+    w = rf.IncrementalTrialWriter(path, dict(tr.attrs, source="recorded"))
+    w.append("t", tr.t[:300])
+    w.append("acc", tr.acc[:300])
+    w.append("fsr", tr.fsr[:300])
+    w.append("lost_at", np.array([0, 120, 120]))
+    w.append("pose_t", tr.pose_t)
+    w.append("pose", tr.pose)
+    w.flush()
+    back = rf.read_trial(path, w.name)  # mid-recording
+    np.testing.assert_array_equal(back.lost_at, [0, 120, 120])
+    w.append("t", tr.t[300:])
+    w.append("acc", tr.acc[300:])
+    w.append("fsr", tr.fsr[300:])
+    w.append("lost_at", np.array([700]))  # lost after the last sample
+    w.close(complete=True)
+    back = rf.read_trial(path, w.name)
+    assert back.lost_at.dtype == np.int64 and back.baseline_lost_at is None
+    np.testing.assert_array_equal(back.lost_at, [0, 120, 120, 700])
+    with h5py.File(path) as f:
+        assert "baseline" not in f["trials"][w.name]  # no baseline recorded: none written
+    # write_trial / validate_arrays take it too, and refuse a bad one
+    copy = rf.RawTrial(**{**back.__dict__, "group": None})
+    rf.write_trial(tmp_path / "copy.h5", copy)
+    np.testing.assert_array_equal(rf.read_trial(tmp_path / "copy.h5", copy.name).lost_at, back.lost_at)
+    copy.lost_at = np.array([800])
+    with pytest.raises(rf.TrialFormatError, match="tactile/lost_at.*outside 0..700"):
+        rf.write_trial(tmp_path / "bad.h5", copy)
+    # an old file (no lost_at) reads as before
+    rf.write_trial(tmp_path / "old.h5", make_trial())
+    assert rf.read_trial(tmp_path / "old.h5", make_trial().name).lost_at is None
+    assert rf.scan_raw(tmp_path / "old.h5")[1] == []
+
+
+def test_scan_refuses_a_trial_name_in_two_files(tmp_path):
+    a, b, c = tmp_path / "a.h5", tmp_path / "b.h5", tmp_path / "c.h5"
+    rf.write_trial(a, make_trial(object_id=1))
+    rf.write_trial(b, make_trial(object_id=1, seed=5))
+    rf.write_trial(c, make_trial(object_id=2))
+    assert len(rf.scan_raw([a, c])[0]) == 2
+    assert len(rf.scan_raw([a, str(a), tmp_path / "." / "a.h5"])[0]) == 1  # the same file named thrice
+    for strict in (False, True):
+        with pytest.raises(rf.TrialFormatError, match="duplicate trial") as info:
+            rf.scan_raw([a, c, b], strict=strict)
+        assert str(a) in str(info.value) and str(b) in str(info.value) and make_trial(object_id=1).name in str(info.value)

@@ -17,6 +17,10 @@ Packet handling (see ``docs/acquisition.md``):
   request (bytes waiting there mean the pairing was off: the pending packet is dropped,
   counted lost, and the line drained).
 
+Every lost packet is located: the index of the sample that follows the gap is written
+to ``tactile/lost_at`` (``baseline/lost_at`` before ``t = 0``) with the next batch, so
+``lost_packets`` is also ``len(tactile/lost_at) + len(baseline/lost_at)``.
+
 Committed packets are buffered and written in batches through
 :class:`~embodied_tactile.io.rawformat.IncrementalTrialWriter` every ``flush_s`` (<= 1 s),
 each batch followed by a flush, so a crash loses at most the last ``flush_s``.
@@ -133,6 +137,7 @@ class Recorder:
         self.garbage = 0
         self.reasons: dict[str, int] = {}
         self._bufs: dict[str, tuple[bytearray, list[float]]] = {"baseline": (bytearray(), []), "trial": (bytearray(), [])}
+        self._lost_at: dict[str, list[int]] = {"baseline": [], "trial": []}  # not yet written
         self._phase = "baseline"
         self._trial_t: list[float] = []
         self._n_base = 0
@@ -179,7 +184,7 @@ class Recorder:
             raise _Unplugged(str(exc)) from exc
         t_host = time.perf_counter()
         if len(pkt) < PACKET_SIZE:  # timeout / short read: lost, never data
-            self.lost += 1
+            self._lose(t_host)
             self._drain(max(self.s.late_guard_s, self.s.quiet_s))
             return None
         reason = self.checker.check(pkt)
@@ -195,6 +200,14 @@ class Recorder:
         return bytes(pkt), t_host
 
     # ------------------------------------------------------------------ writing
+    def _lose(self, t_host: float) -> None:
+        """Count a lost packet and note where: the number of samples of its phase (baseline
+        before ``t = 0``, else trial) committed so far, i.e. the index of the next one."""
+        self.lost += 1
+        phase = "baseline" if t_host - self._t0 < 0 else "trial"
+        written = self._n_base if phase == "baseline" else len(self._trial_t)
+        self._lost_at[phase].append(written + len(self._bufs[phase][1]))
+
     def _commit(self, pkt: bytes, t_host: float) -> None:
         """Buffer a genuine packet; ``t < 0`` (before the trial start) goes to the baseline."""
         t = t_host - self._t0
@@ -220,6 +233,10 @@ class Recorder:
                 self._n_base += len(ts)
             buf.clear()
             ts.clear()
+        for phase, lost_at in self._lost_at.items():  # after the samples they point into
+            if lost_at:
+                self.writer.append("lost_at" if phase == "trial" else "baseline_lost_at", np.asarray(lost_at, dtype=np.int64))
+                lost_at.clear()
         if self.pose is not None and self._phase == "trial":
             pt, pv = self.pose.poll(time.perf_counter() - self._t0)
             pt, pv = np.asarray(pt, dtype=np.float64).reshape(-1), np.asarray(pv)
@@ -257,7 +274,7 @@ class Recorder:
             # commit the previous packet only if nothing is waiting: the pairing held
             if self._in_waiting():
                 if pending is not None:
-                    self.lost += 1
+                    self._lose(pending[1])
                     pending = None
                 self._drain(self.s.quiet_s)
             elif pending is not None:

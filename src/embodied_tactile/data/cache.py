@@ -7,7 +7,13 @@ or computes FSR data. ``key`` hashes
 * ``PREPROCESS_VERSION`` and ``CACHE_FORMAT_VERSION``,
 * per raw file: its trial names, each trial's attributes and a blake2b digest of the
   *stored* bytes (compressed chunks, read without decompressing) of exactly the raw
-  datasets the field reads (``preprocess.RAW_FIELDS``).
+  datasets the field reads and validates (``preprocess.RAW_FIELDS`` with their clocks and
+  lost-packet positions; an absent ``lost_at`` adds nothing, so older files keep their keys).
+
+A trial is cached under its group name, from its one raw file (``source_file``): a group
+name in two raw files is an error (``rawformat.check_unique_names``), never two halves of
+one trial. A field that cannot be computed for a trial is listed in that field's
+``skipped``; the DataModule then skips the trial whole.
 
 Layout::
 
@@ -87,13 +93,11 @@ def _dataset_digest(ds: h5py.Dataset, fh: BinaryIO | None = None) -> str:
 
 
 def _raw_datasets(field: str) -> list[str]:
-    """Dataset paths (inside a trial group) that processing ``field`` reads."""
-    need = set(RAW_FIELDS[field])
-    if need & {"acc", "fsr"}:
-        need.add("t")
-    if "pose" in need:
-        need.add("pose_t")
-    return [RAW_PATHS[f] for f in RAW_PATHS if f in need]
+    """Dataset paths (inside a trial group) that processing ``field`` reads and validates."""
+    return [RAW_PATHS[f] for f in rawformat.fields_needed(RAW_FIELDS[field])]
+
+
+_LOST_PATHS = {RAW_PATHS[f] for f in rawformat.LOST_FIELDS}
 
 
 def fingerprint_file(path: str | os.PathLike, names: Sequence[str], fields: Iterable[str]) -> dict[str, str]:
@@ -114,6 +118,8 @@ def fingerprint_file(path: str | os.PathLike, names: Sequence[str], fields: Iter
             for fld in fields:
                 hs[fld].update(f"{name}\0{attrs}\0".encode())
                 for dpath in _raw_datasets(fld):
+                    if dpath in _LOST_PATHS and g is not None and dpath not in g:
+                        continue  # optional, newer than the format: absent adds nothing
                     if (name, dpath) not in per_ds:
                         try:
                             if g is None or dpath not in g:
@@ -211,7 +217,9 @@ def _one_blas_thread():
 
 
 def _merge(a: rawformat.RawTrial, b: rawformat.RawTrial) -> rawformat.RawTrial:
-    for fld in ("t", "acc", "fsr", "pose_t", "pose", "baseline_t", "baseline_acc", "baseline_fsr"):
+    """Fields of one trial (same file, same group) read in two passes, as one RawTrial."""
+    assert a.name == b.name, (a.name, b.name)
+    for fld in RAW_PATHS:
         va, vb = getattr(a, fld), getattr(b, fld)
         if (va is None or len(va) == 0) and vb is not None and len(vb):
             setattr(a, fld, vb)
@@ -244,17 +252,19 @@ def build_cache(
     return ``{field: path}``. Existing complete caches with the same key are reused;
     missing fields are computed in one pass (each trial read once, only the raw datasets
     those fields need). Bad trials are logged, skipped and listed in the root attr
-    ``skipped``; ``strict=True`` raises the first TrialFormatError instead."""
+    ``skipped``; ``strict=True`` raises the first TrialFormatError instead. A trial name
+    found in two raw files raises, strict or not (``rawformat.check_unique_names``)."""
     cfg = (cfg or PreprocessConfig()).validate()
     fields = tuple(dict.fromkeys(fields))
     unknown = set(fields) - set(FIELDS)
     if unknown:
         raise ValueError(f"unknown fields {sorted(unknown)}; choose from {FIELDS}")
-    paths = list(dict.fromkeys(str(p) for p in raw_paths))  # each file once, order kept
+    paths = rawformat.unique_paths(raw_paths)  # each file once, order kept
     cache_dir = Path(cache_dir)
     cache_dir.mkdir(parents=True, exist_ok=True)
 
-    # 1) trial index (attrs only; data are validated when the worker reads them)
+    # 1) trial index (attrs only; data are validated when the worker reads them); raises
+    #    on a trial name held by two files
     infos, scan_errors = rawformat.scan_raw(paths, validate_data=False, strict=strict)
     by_file: dict[str, list[str]] = {p: [] for p in paths}
     for info in infos:
@@ -299,14 +309,7 @@ def build_cache(
                     skipped[f].append(e)
             for name, attrs, arrays in results:
                 for f, arr in arrays.items():
-                    if name in files[f]["trials"]:  # same trial name in two raw files
-                        e = _err(path, name, f, f"duplicate trial name, already cached from {files[f]['trials'][name].attrs['source_file']}")
-                        if strict:
-                            raise TrialFormatError(e["file"], e["trial"], e["field"], e["problem"])
-                        log.warning("skipping %s / %s for %s: %s", e["file"], e["trial"], f, e["problem"])
-                        skipped[f].append(e)
-                        continue
-                    g = files[f]["trials"].create_group(name)
+                    g = files[f]["trials"].create_group(name)  # names are unique: scan_raw checked
                     g.create_dataset(f, data=arr, compression=compression)
                     for k, v in attrs.items():
                         g.attrs[k] = np.asarray(v) if isinstance(v, (list, tuple)) else v

@@ -9,9 +9,15 @@ serial recorder, preprocessing and the DataModule all go through it. Layout (see
         tactile/t           (N,)            float64  s, strictly increasing
         tactile/acc         (N, 4, 4, 3)    float32  g, grid order (row-major 4x4), axes x,y,z
         tactile/fsr         (N, 2, 16, 16)  uint16   ADC counts 0..4095, layer 0 top, 1 bottom
+        tactile/lost_at     (L,)            int64    optional (recorder): one entry per lost packet,
+                                                     the index of the sample after the gap, 0..N
         pose/t              (M,)            float64  s, same clock as tactile/t
         pose/ee             (M, K>=6)       float32  x, y, z (m), roll, pitch, yaw (rad), extras
-        baseline/{t,acc,fsr}                optional no-contact baseline, same dtypes
+        baseline/{t,acc,fsr,lost_at}        optional no-contact baseline, same dtypes
+
+A trial's identity is its group: (file, group name). The group name, not the attributes,
+names the trial in caches and splits (a group may be renamed), and must be unique across
+the files of one dataset (``check_unique_names``).
 
 Every problem is reported as a :class:`TrialFormatError` naming file, trial and field.
 A bad trial is skipped with a warning (``strict=True`` makes it fatal); it never takes the
@@ -42,12 +48,17 @@ FIELDS: Mapping[str, str] = {
     "t": "tactile/t",
     "acc": "tactile/acc",
     "fsr": "tactile/fsr",
+    "lost_at": "tactile/lost_at",
     "pose_t": "pose/t",
     "pose": "pose/ee",
     "baseline_t": "baseline/t",
     "baseline_acc": "baseline/acc",
     "baseline_fsr": "baseline/fsr",
+    "baseline_lost_at": "baseline/lost_at",
 }
+#: Where packets were lost (recorder): field -> the clock its sample indices refer to.
+#: Optional; files written before it existed have none and stay valid.
+LOST_FIELDS: Mapping[str, str] = {"lost_at": "t", "baseline_lost_at": "baseline_t"}
 TACTILE_FIELDS = ("t", "acc", "fsr")
 POSE_FIELDS = ("pose_t", "pose")
 ALL_REQUIRED_FIELDS = ("t", "acc", "fsr", "pose_t", "pose")
@@ -87,6 +98,8 @@ _DTYPES: Mapping[str, tuple[np.dtype, ...]] = {
     "baseline_t": (np.dtype("float64"),),
     "baseline_acc": (np.dtype("float32"), np.dtype("float64")),
     "baseline_fsr": (np.dtype("uint16"),),
+    "lost_at": (np.dtype("int64"),),
+    "baseline_lost_at": (np.dtype("int64"),),
 }
 _TAIL_SHAPES: Mapping[str, tuple[int, ...] | None] = {
     "t": (),
@@ -97,6 +110,8 @@ _TAIL_SHAPES: Mapping[str, tuple[int, ...] | None] = {
     "baseline_t": (),
     "baseline_acc": (*C.ACC_GRID, C.ACC_AXES),
     "baseline_fsr": (C.FSR_LAYERS, *C.FSR_GRID),
+    "lost_at": (),
+    "baseline_lost_at": (),
 }
 
 
@@ -116,7 +131,11 @@ class TrialFormatError(ValueError):
 
 @dataclass
 class RawTrial:
-    """One trial in memory. Arrays as stored; ``attrs`` holds every REQUIRED_ATTRS key."""
+    """One trial in memory. Arrays as stored; ``attrs`` holds every REQUIRED_ATTRS key.
+
+    ``group`` is the name of the group it was read from (its identity, see
+    :func:`read_trial`); a trial built in memory has none and is named by its attributes.
+    """
 
     t: np.ndarray
     acc: np.ndarray
@@ -127,10 +146,14 @@ class RawTrial:
     baseline_t: np.ndarray | None = None
     baseline_acc: np.ndarray | None = None
     baseline_fsr: np.ndarray | None = None
+    lost_at: np.ndarray | None = None
+    baseline_lost_at: np.ndarray | None = None
+    group: str | None = None
 
     @property
     def name(self) -> str:
-        return trial_name(self.attrs)
+        """The group name: where the trial was read from, else :func:`trial_name`."""
+        return self.group if self.group is not None else trial_name(self.attrs)
 
     @property
     def factors(self) -> np.ndarray:
@@ -230,7 +253,9 @@ class IncrementalTrialWriter:
 
     Datasets are chunked and resizable; :meth:`flush` makes everything appended so far
     durable. The trial carries ``complete=False`` until :meth:`close` with ``complete=True``,
-    so an interrupted recording stays readable and is marked as such.
+    so an interrupted recording stays readable and is marked as such. ``lost_at`` /
+    ``baseline_lost_at`` take the sample index of each lost packet (kept even when empty:
+    an empty ``tactile/lost_at`` says no packet was lost).
     """
 
     def __init__(self, path: str | os.PathLike, attrs: Mapping[str, Any], *, chunk: int = 700, pose_columns: int = 6):
@@ -243,10 +268,11 @@ class IncrementalTrialWriter:
         self.group = trials.create_group(self.name)
         _set_attrs(self.group, {**attrs, "complete": False})
         self._ds: dict[str, h5py.Dataset] = {}
-        for fld in ("t", "acc", "fsr", "pose_t", "pose", "baseline_t", "baseline_acc", "baseline_fsr"):
+        for fld in FIELDS:
             tail = _TAIL_SHAPES[fld] if fld != "pose" else (pose_columns,)
+            rows = min(chunk, 64) if fld in LOST_FIELDS else chunk
             self._ds[fld] = self.group.create_dataset(
-                FIELDS[fld], shape=(0, *tail), maxshape=(None, *tail), dtype=_DTYPES[fld][0], chunks=(chunk, *tail)
+                FIELDS[fld], shape=(0, *tail), maxshape=(None, *tail), dtype=_DTYPES[fld][0], chunks=(rows, *tail)
             )
         self.file.flush()
 
@@ -271,9 +297,11 @@ class IncrementalTrialWriter:
     def close(self, *, complete: bool) -> None:
         if not self.file.id.valid:
             return
-        for fld in ("baseline_t", "baseline_acc", "baseline_fsr"):
-            if self._ds[fld].shape[0] == 0:
+        baseline = [f for f in FIELDS if f.startswith("baseline")]
+        if all(self._ds[f].shape[0] == 0 for f in baseline):
+            for fld in baseline:
                 del self.group[FIELDS[fld]]
+            del self.group["baseline"]
         self.group.attrs["complete"] = bool(complete)
         self.file.flush()
         self.file.close()
@@ -351,13 +379,37 @@ def _check_values(file: str, name: str, fld: str, data: np.ndarray) -> None:
         raise TrialFormatError(file, name, path, f"|acc| {float(np.abs(data).max()):.3g} g exceeds the +-{C.ACC_RANGE_G} g range")
 
 
-def _fields_needed(fields: Iterable[str]) -> list[str]:
+def _check_lost(file: str, name: str, fld: str, data: np.ndarray, n: int | None) -> None:
+    """Lost-packet positions: sample indices 0..n (n = after the last sample), non-decreasing."""
+    path = FIELDS[fld]
+    if n is None:
+        raise TrialFormatError(file, name, path, f"present without its clock {FIELDS[LOST_FIELDS[fld]]}")
+    if data.size and (int(data.min()) < 0 or int(data.max()) > n):
+        raise TrialFormatError(file, name, path, f"sample index {int(data.min()) if data.min() < 0 else int(data.max())} outside 0..{n}")
+    d = np.diff(data)
+    if (d < 0).any():
+        i = int(np.argmax(d < 0))
+        raise TrialFormatError(file, name, path, f"indices decrease at entry {i + 1} ({int(data[i])} -> {int(data[i + 1])})")
+
+
+def fields_needed(fields: Iterable[str]) -> list[str]:
+    """The fields to read for ``fields``: with their clocks, and with the clocks' lost-packet
+    positions (validated whenever the clock is read; optional)."""
     need = set(fields)
     if need & {"acc", "fsr"}:
         need.add("t")
     if "pose" in need:
         need.add("pose_t")
+    need.update(lost for lost, clock in LOST_FIELDS.items() if clock in need)
     return [f for f in FIELDS if f in need]
+
+
+def _clock(fld: str) -> str:
+    return "pose_t" if fld.startswith("pose") else "baseline_t" if fld.startswith("baseline") else "t"
+
+
+def _optional(fld: str) -> bool:
+    return fld.startswith("baseline") or fld in LOST_FIELDS
 
 
 def validate_arrays(file: str | os.PathLike, name: str, trial: RawTrial, fields: Iterable[str] = ALL_REQUIRED_FIELDS) -> None:
@@ -365,37 +417,39 @@ def validate_arrays(file: str | os.PathLike, name: str, trial: RawTrial, fields:
     file = str(file)
     _check_attrs(file, name, trial.attrs)
     counts = {"t": None, "pose_t": None, "baseline_t": None}
-    for fld in _fields_needed(fields):
+    for fld in fields_needed(fields):
         arr = getattr(trial, fld)
         if arr is None:
-            if fld.startswith("baseline"):
+            if _optional(fld):
                 continue
             raise TrialFormatError(file, name, FIELDS[fld], "required dataset is missing")
         arr = np.asarray(arr)
-        clock = "pose_t" if fld.startswith("pose") else "baseline_t" if fld.startswith("baseline") else "t"
-        _check_array(file, name, fld, arr, counts[clock] if fld != clock else None)
+        clock = _clock(fld)
+        _check_array(file, name, fld, arr, counts[clock] if fld != clock and fld not in LOST_FIELDS else None)
         if fld == clock:
             counts[clock] = arr.shape[0]
         _check_values(file, name, fld, arr)
+        if fld in LOST_FIELDS:
+            _check_lost(file, name, fld, arr, counts[clock])
 
 
 def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], check: bool = True) -> dict[str, np.ndarray]:
     """Read (and validate) the named fields of one trial group; opens only those datasets."""
     out: dict[str, np.ndarray] = {}
     counts: dict[str, int | None] = {"t": None, "pose_t": None, "baseline_t": None}
-    for fld in _fields_needed(fields):
+    for fld in fields_needed(fields):
         path = FIELDS[fld]
         try:
             if path not in g:
-                if fld.startswith("baseline"):
+                if _optional(fld):
                     continue
                 raise TrialFormatError(file, name, path, "required dataset is missing")
             ds = g[path]
             if not isinstance(ds, h5py.Dataset):
                 raise TrialFormatError(file, name, path, "is not a dataset")
-            clock = "pose_t" if fld.startswith("pose") else "baseline_t" if fld.startswith("baseline") else "t"
+            clock = _clock(fld)
             if check:
-                _check_array(file, name, fld, ds, counts[clock] if fld != clock else None)
+                _check_array(file, name, fld, ds, counts[clock] if fld != clock and fld not in LOST_FIELDS else None)
             data = ds[()]
         except TrialFormatError:
             raise
@@ -405,6 +459,8 @@ def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], chec
             counts[clock] = data.shape[0]
         if check:
             _check_values(file, name, fld, data)
+            if fld in LOST_FIELDS:
+                _check_lost(file, name, fld, data, counts[clock])
         out[fld] = data
     return out
 
@@ -447,6 +503,31 @@ def open_raw(path: str | os.PathLike) -> h5py.File:
     return f
 
 
+def unique_paths(paths: Iterable[str | os.PathLike]) -> list[str]:
+    """Each file once (the same file under two spellings too), first spelling and order kept."""
+    seen: dict[str, str] = {}
+    for p in paths:
+        seen.setdefault(os.path.realpath(os.path.expanduser(str(p))), str(p))
+    return list(seen.values())
+
+
+def check_unique_names(files_by_name: Mapping[str, Sequence[str]]) -> None:
+    """A trial is one group of one file, and its group name identifies it (in caches and
+    splits): a name held by two files of one dataset is an error naming both files, whatever
+    the state of either copy. Rename one group to keep both (``docs/data_format.md``)."""
+    dups = {n: fs for n, fs in files_by_name.items() if len(fs) > 1}
+    if not dups:
+        return
+    name = sorted(dups)[0]
+    others = "; ".join(f"'{n}' in {' and '.join(dups[n])}" for n in sorted(dups)[1:6])
+    more = f" ({len(dups) - 1} more duplicate name(s): {others}{' ...' if len(dups) > 6 else ''})" if len(dups) > 1 else ""
+    raise TrialFormatError(
+        dups[name][1], name, "group",
+        f"duplicate trial: the group name '{name}' is in {' and '.join(dups[name])}; trial names must be unique "
+        f"across the raw files of a dataset: rename one group (the group name is the trial's identity){more}",
+    )
+
+
 def scan_raw(
     paths: str | os.PathLike | Sequence[str | os.PathLike],
     *,
@@ -458,9 +539,13 @@ def scan_raw(
 
     Returns ``(good, errors)``. Bad trials are logged and skipped unless ``strict``, in
     which case the first error is raised. Only the datasets behind ``fields`` are opened.
+    A file given twice is scanned once; a group name found in two files raises
+    (:func:`check_unique_names`), strict or not.
     """
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
+    paths = unique_paths(paths)
+    files_by_name: dict[str, list[str]] = {}
     good: list[TrialInfo] = []
     errors: list[TrialFormatError] = []
 
@@ -483,6 +568,7 @@ def scan_raw(
                 fail(TrialFormatError(p, "*", "trials", f"unreadable trial index ({exc})"))
                 continue
             for name in names:
+                files_by_name.setdefault(name, []).append(str(p))
                 try:
                     try:
                         g = f["trials"][name]
@@ -495,11 +581,13 @@ def scan_raw(
                     good.append(TrialInfo(str(p), name, attrs))
                 except TrialFormatError as err:
                     fail(err)
+    check_unique_names(files_by_name)
     return good, errors
 
 
 def read_trial(path: str | os.PathLike, name: str, fields: Iterable[str] = ALL_REQUIRED_FIELDS, *, check: bool = True) -> RawTrial:
-    """Read one trial (only ``fields``; the others are left as empty arrays)."""
+    """Read one trial (only ``fields``; the others are left as empty arrays, optional ones
+    absent from the file as None). Its ``name`` is the group name ``name``."""
     with open_raw(path) as f:
         if name not in f["trials"]:
             raise TrialFormatError(path, name, "group", "no such trial")
@@ -519,6 +607,9 @@ def read_trial(path: str | os.PathLike, name: str, fields: Iterable[str] = ALL_R
         baseline_t=data.get("baseline_t"),
         baseline_acc=data.get("baseline_acc"),
         baseline_fsr=data.get("baseline_fsr"),
+        lost_at=data.get("lost_at"),
+        baseline_lost_at=data.get("baseline_lost_at"),
+        group=name,
     )
 
 

@@ -1,0 +1,138 @@
+"""Trial identity across raw files (docs/data_format.md, "Trial identity"): a trial is one
+group of one file, all its fields come from that group, and nothing is mixed or dropped
+without a stated reason."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from embodied_tactile.data.cache import build_cache, cache_info, list_cached
+from embodied_tactile.data.datamodule import TactileDataModule
+from embodied_tactile.io import rawformat as rf
+
+FAST = {"n_frames": 30}  # 1 s of each 10 s trial: the identity rules do not depend on T
+
+
+def _copy_trials(src, dst, names, rename=None):
+    """Copy trial groups of ``src`` into a new raw file ``dst`` (optionally renaming them)."""
+    rename = rename or {}
+    with h5py.File(src, "r") as fi, h5py.File(dst, "a") as fo:
+        fo.attrs["format"] = rf.FORMAT_NAME
+        fo.attrs["format_version"] = rf.FORMAT_VERSION
+        trials = fo.require_group("trials")
+        for n in names:
+            fi.copy(fi["trials"][n], trials, name=rename.get(n, n))
+    return dst
+
+
+@pytest.fixture()
+def names(tiny_data_dir):
+    good, _ = rf.scan_raw(tiny_data_dir / "raw" / "soft_pressing.h5", validate_data=False)
+    return [g.name for g in good]
+
+
+def _recorded(tmp_path, files, channels=("acc", "fsr_t"), **kw):
+    return TactileDataModule(
+        data_dir=str(tmp_path / "data"), source="recorded", raw_files=[str(f) for f in files], skin="soft",
+        primitive="pressing", channels=list(channels), preprocess=FAST, preprocess_workers=1, batch_size=2, **kw,
+    )
+
+
+def _refs(dm):
+    """Every trial the DataModule serves, whatever the split."""
+    sets = (getattr(dm, k, None) for k in ("train_set", "val_set", "test_set"))
+    return [t for s in sets if s is not None for t in s.trials]
+
+
+def _used(dm):
+    return {t.name for t in _refs(dm)}
+
+
+def test_duplicate_trial_in_two_files_is_an_error_naming_both(tiny_data_dir, names, tmp_path):
+    """The chimeric trial: the first copy is bad in fsr only. Before, the acc cache took the
+    trial from file A and the fsr cache from file B, and the stitched trial was trained on."""
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    x = names[0]
+    a = _copy_trials(raw, tmp_path / "a.h5", [x, names[1]])
+    b = _copy_trials(raw, tmp_path / "b.h5", [x, names[2]])
+    with h5py.File(a, "a") as f:
+        f["trials"][x]["tactile/fsr"][3, 0, 0, 0] = 5000  # out of the 12-bit range
+    dm = _recorded(tmp_path, [a, b])
+    with pytest.raises(rf.TrialFormatError, match="duplicate") as info:
+        dm.prepare_data()
+    msg = str(info.value)
+    assert x in msg and str(a) in msg and str(b) in msg
+    # the cache builder refuses it too, strict or not, and whatever the fields
+    for fields in (("acc",), ("fsr", "actions")):
+        with pytest.raises(rf.TrialFormatError, match="duplicate"):
+            build_cache([a, b], tmp_path / "cache2", fields=fields, workers=1, cfg=_cfg())
+
+
+def test_trial_bad_in_one_field_is_skipped_whole(tiny_data_dir, names, tmp_path):
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    a = _copy_trials(raw, tmp_path / "a.h5", names[:4])
+    bad = names[1]
+    with h5py.File(a, "a") as f:
+        f["trials"][bad]["tactile/fsr"][3, 0, 0, 0] = 5000
+    dm = _recorded(tmp_path, [a])
+    dm.prepare_data()
+    dm.setup()
+    assert bad not in _used(dm) and _used(dm) == set(names[:4]) - {bad}
+    assert [(e["trial"], e["field"]) for e in dm.skipped] == [(bad, "fsr")]
+    assert "tactile/fsr" in dm.skipped[0]["problem"] and dm.skipped[0]["file"] == str(a)
+
+
+def test_fields_of_one_trial_from_different_files_are_refused(tiny_data_dir, names, tmp_path):
+    """The DataModule checks that every cached field of a trial came from the same raw
+    file (a guard behind the cache builder's duplicate check)."""
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    a = _copy_trials(raw, tmp_path / "a.h5", names[:2])
+    b = _copy_trials(raw, tmp_path / "b.h5", names[:2])
+    acc = build_cache([a], tmp_path / "cache", fields=("acc",), workers=1, cfg=_cfg())
+    rest = build_cache([b], tmp_path / "cache", fields=("fsr", "actions"), workers=1, cfg=_cfg())
+    dm = _recorded(tmp_path, [a])
+    dm.cache_files = {"acc": str(acc["acc"]), "fsr": str(rest["fsr"]), "actions": str(rest["actions"])}
+    with pytest.raises(RuntimeError, match="different raw files") as info:
+        dm.setup()
+    assert str(a) in str(info.value) and str(b) in str(info.value)
+
+
+def _cfg():
+    from embodied_tactile.data.preprocess import PreprocessConfig
+
+    return PreprocessConfig(**FAST)
+
+
+def test_renamed_group_is_cached_under_its_group_name(tiny_data_dir, names, tmp_path, caplog):
+    """A group renamed to resolve a duplicate (its name no longer matches its attributes)
+    used to pass validation and then vanish from the cache without a word."""
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    x = names[0]
+    a = _copy_trials(raw, tmp_path / "a.h5", [x, names[1]])
+    b = _copy_trials(raw, tmp_path / "b.h5", [x, names[2]], rename={x: f"{x}_session2"})
+    paths = build_cache([a, b], tmp_path / "cache", cfg=_cfg(), fields=("acc", "actions"), workers=1)
+    for fld, p in paths.items():
+        cached = dict(list_cached(p))
+        assert set(cached) == {x, f"{x}_session2", names[1], names[2]}, fld
+        assert cached[f"{x}_session2"]["source_file"] == str(b) and cached[x]["source_file"] == str(a)
+        assert cache_info(p)["skipped"] == []
+    dm = _recorded(tmp_path, [a, b], channels=["acc"])
+    dm.prepare_data()
+    dm.setup()
+    assert _used(dm) == {x, f"{x}_session2", names[1], names[2]}
+    # the renamed copy keeps what its attributes say it is
+    ref = next(t for t in _refs(dm) if t.name == f"{x}_session2")
+    assert rf.trial_name({"skin": ref.skin, "primitive": ref.primitive, "object_id": ref.object_id,
+                          "action_index": ref.action_index, "repetition": int(x[-2:])}) == x
+
+
+def test_raw_trial_name_is_its_group(tiny_data_dir, names, tmp_path):
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    a = _copy_trials(raw, tmp_path / "a.h5", [names[0]], rename={names[0]: "renamed"})
+    tr = rf.read_trial(a, "renamed", fields=["acc"])
+    assert tr.name == "renamed" and tr.group == "renamed"
+    assert rf.trial_name(tr.attrs) == names[0]
+    fresh = rf.RawTrial(t=tr.t, acc=tr.acc, fsr=np.zeros(0), pose_t=np.zeros(0), pose=np.zeros(0), attrs=tr.attrs)
+    assert fresh.name == names[0]  # a trial not read from a file is named by its attributes
