@@ -14,7 +14,7 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("TMPDIR", "/tmp
 
 from embodied_tactile.constants import OBJECTS  # noqa: E402
 from embodied_tactile.eval import (LeakageError, NMSE_DEFINITION, NMSEUndefinedWarning, Results,  # noqa: E402
-                                   evaluate_latents, fit_alignment, nmse, nmse_over_time, nmse_trajectory)
+                                   evaluate_latents, fit_alignment, nmse, nmse_over_time, nmse_trajectory, overall)
 from embodied_tactile.eval.krr import final_segment_rows  # noqa: E402
 
 
@@ -259,13 +259,14 @@ def test_table_writers(tmp_path):
             assert NMSE_DEFINITION in text and "80 train / 40 held-out" in text and "simulated" in text
         assert "\\toprule" in tex and "\\bottomrule" in tex and "Data source: simulated" in tex
         json.dumps(js)
-    g = table_groups(rs)
-    assert len(g.rows) == 2 * 5 and g.rows[4][1] == "Overall"
-    vals = np.array([r[2:] for r in g.rows], dtype=float)
+    g = table_groups(rs)  # one block (4 factors + Overall) per modality x skin: multi_l/soft, multi_l/hard
+    assert g.columns[:3] == ["Modality", "Skin", "Factor"]
+    assert len(g.rows) == 2 * 5 and g.rows[4][2] == "Overall"
+    vals = np.array([r[3:] for r in g.rows], dtype=float)
     assert np.isfinite(vals).mean() > 0.9  # cells with sequences are finite
     np.testing.assert_allclose(vals[4], np.nanmean(vals[:4], axis=0))
-    a = table_actions(rs)
-    assert len(a.rows) == 16 and a.rows[0][1:3] == [2.0, 0.2]  # pressing A_z, omega_z of action 1
+    a = table_actions(rs)  # 16 action rows per modality x skin block
+    assert len(a.rows) == 2 * 16 and a.rows[0][3:5] == [2.0, 0.2]  # pressing A_z, omega_z of action 1
 
 
 def test_pooled_nmse_equals_nmse_for_one_run():
@@ -316,3 +317,104 @@ def test_umap_tiny_n(tmp_path):
 def test_results_validation():
     with pytest.raises(ValueError):
         Results(pred=np.zeros((3, 2, 4)), factors=np.zeros((2, 4)), object_id=[0, 1, 2], action_index=[0, 0, 0])
+
+
+# ------------------------------------------------------------------ configurations, seeds, missing cells
+def _fake_run(modality, skin, primitive, seed, err, *, actions=range(16), axes=None, n=48, t=6):
+    """A Results whose prediction error has a known scale (no alignment fitted)."""
+    rng = np.random.default_rng(hash((modality, skin, primitive, seed)) % 2**32)
+    obj = np.arange(n) % 32
+    f = np.array([OBJECTS[o].factors() for o in obj])
+    sd = np.nanstd(f, axis=0)
+    pred = f[:, None, :] + err * sd * rng.normal(size=(n, t, 4))
+    acts = np.resize(np.asarray(list(actions)), n)
+    return Results(pred=pred, factors=f, object_id=obj, action_index=acts, modality=modality, skin=skin,
+                   primitive=primitive, seed=seed, axes=dict(axes or {}), n_train=96,
+                   params={"train_time_s": 10.0 + seed})
+
+
+def test_tables_group_by_every_axis_and_average_over_seeds_only():
+    from embodied_tactile.eval.tables import cell_mean, pooled_nmse, table_actions, table_aggregate, table_groups
+
+    rs = ([_fake_run("acc", "soft", "pressing", s, 1.0) for s in range(3)]
+          + [_fake_run("multi_l", "soft", "pressing", s, 0.2) for s in range(3)]
+          + [_fake_run("multi_l", "hard", "pressing", s, 0.4) for s in range(2)]
+          + [_fake_run("multi_l", "soft", "pressing", s, 0.6, axes={"annealing.name": "dvbf"}) for s in range(3)])
+    g = table_groups(rs)
+    assert g.columns[:4] == ["Modality", "Skin", "annealing.name", "Factor"]
+    blocks = {tuple(r[:3]) for r in g.rows}
+    assert blocks == {("acc", "soft", "–"), ("multi_l", "soft", "–"), ("multi_l", "hard", "–"),
+                      ("multi_l", "soft", "dvbf")}, blocks  # soft never pools acc with multi_l
+    for key, runs in {("multi_l", "soft", "–"): rs[3:6], ("multi_l", "hard", "–"): rs[6:8],
+                      ("acc", "soft", "–"): rs[:3]}.items():
+        row = next(r for r in g.rows if tuple(r[:3]) == key and r[3] == "Overall")
+        hard = lambda r: r.group == "hard"  # noqa: E731
+        per_seed = [overall(pooled_nmse([r], hard)) for r in runs]  # one value per seed, then the mean
+        assert row[4 + 1] == pytest.approx(np.mean(per_seed))  # column hard:pressing
+        assert row[4 + 1] == pytest.approx(overall(cell_mean(runs, hard)[0]))
+    assert "mean over the seeds" in g.caption and "never averaged together" in g.caption
+    a = table_actions(rs)
+    assert {tuple(r[:3]) for r in a.rows} == blocks and len(a.rows) == 4 * 16
+    agg = table_aggregate(rs)
+    col = {c: i for i, c in enumerate(agg.columns)}
+    assert len(agg.rows) == 4
+    ml = next(r for r in agg.rows if r[1] == "multi_l" and r[2] == "soft" and r[col["annealing.name"]] == "–")
+    v = np.array([overall(r.subset_nmse()) for r in rs[3:6]])
+    from scipy.stats import t as student_t
+
+    h = student_t.ppf(0.975, 2) * v.std(ddof=1) / np.sqrt(3)
+    assert ml[col["n_seeds"]] == 3 and ml[col["seeds"]] == "0,1,2"
+    assert ml[col["traj:overall mean"]] == pytest.approx(v.mean()) and ml[col["traj:overall std"]] == pytest.approx(v.std(ddof=1))
+    lo, hi = (float(x) for x in ml[col["traj:overall 95% CI"]].strip("[]").split(","))
+    assert lo == pytest.approx(v.mean() - h, abs=1e-4) and hi == pytest.approx(v.mean() + h, abs=1e-4)
+    hard_row = next(r for r in agg.rows if r[2] == "hard")
+    assert hard_row[col["n_seeds"]] == 2 and hard_row[col["traj:overall 95% CI"]] == "–"  # no t interval for n < 3
+
+
+def test_config_axes_finds_swept_keys_not_derived_ones():
+    from embodied_tactile.eval.results import config_axes
+
+    cfgs, names = [], []
+    for mod, ch in (("acc", ["acc"]), ("fsr_tb", ["fsr_t", "fsr_b"])):
+        for ann in ("linear", "dvbf"):
+            for seed in (0, 1):
+                name = f"modality={mod},annealing={ann},seed={seed}"
+                names.append(name)
+                cfgs.append({"seed": seed, "modality": {"name": mod, "channels": ch}, "skin": {"name": "soft"},
+                             "primitive": {"name": "pressing"}, "data": {"channels": ch, "seed": seed, "batch_size": 16},
+                             "annealing": {"name": ann, "_target_": f"sched.{ann.capitalize()}"},
+                             "tags": [mod, ann], "paths": {"log_dir": "logs"},
+                             "callbacks": {"ckpt": {"dirpath": f"/x/multi/{name}/checkpoints"}}})
+    axes = config_axes(cfgs, names)
+    assert axes[0] == {"annealing.name": "linear"} and axes[2] == {"annealing.name": "dvbf"}
+    assert config_axes(cfgs[:1], names[:1]) == [{}]
+    # a seed-only sweep has no axis: its runs are replicates of one cell
+    assert config_axes([c for c in cfgs if c["modality"]["name"] == "acc" and c["annealing"]["name"] == "dvbf"],
+                       names[2:4]) == [{}, {}]
+
+
+def test_tables_never_print_nan():
+    from embodied_tactile.eval.report import write_report
+
+    # the default scene uses 4 action sets; sliding only measured two of them
+    rs = [_fake_run("multi_l", "soft", "pressing", 0, 0.3, actions=(0, 5, 10, 15)),
+          _fake_run("multi_l", "soft", "sliding", 0, 0.3, actions=(0, 5))]
+    rs[1].params.pop("train_time_s")  # an unmeasured time
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        written = write_report(rs, tmp, figures=False)
+        for p in written["tables"]:
+            text = Path(p).read_text()
+            assert "nan" not in text.lower(), (p, text)
+        md = (Path(tmp) / "table_action_config.md").read_text()
+        assert "– = not measured" in md
+        assert "– = not measured" in (Path(tmp) / "table_runtime.md").read_text()
+        assert "--" in (Path(tmp) / "table_action_config.tex").read_text()
+    from embodied_tactile.eval.tables import table_actions
+
+    a = table_actions(rs)
+    assert [r[2] for r in a.rows] == [1, 6, 11, 16]  # actions no run used are left out
+    c = a.columns.index("sliding:NMSE_1e-2")
+    assert np.isfinite(a.rows[0][c]) and np.isnan(a.rows[2][c])  # action 11 was not slid: '–' in print
+    assert "| 11 |" in a.to_markdown() and a.to_markdown().count("–") >= 2

@@ -86,9 +86,12 @@ def test_callback_writes_history_and_logs(tmp_path):
     path = cb.history_path(trainer)
     assert path.name == "krr_history.jsonl" and path.exists()
     rows = [json.loads(line) for line in path.read_text().splitlines()]
-    assert [r["epoch"] for r in rows] == [0, 1]  # every epoch; no duplicate at train end (same step)
+    # every epoch, then the final alignment (evaluate.py's settings: all training sequences, every frame)
+    assert [(r["epoch"], r["final"]) for r in rows] == [(0, False), (1, False), (1, True)]
+    assert rows[-1]["val_frame_stride"] == 1 and rows[-1]["alignment"]["frames_per_sequence"] == 4
+    assert rows[-1]["alignment"]["cv_folds"] == 5 and cb.final == rows[-1]
     for r in rows:
-        assert r["n_train"] == 40 and r["n_test"] == 16
+        assert r["n_train"] == (48 if r["final"] else 40) and r["n_test"] == 16
         assert all(np.isfinite(r["nmse"][f]) for f in FACTOR_NAMES)
         assert r["nmse_overall"] < 0.5  # the fake latents carry the factors
         assert r["train_wall_time_s"] >= 0 and r["callback_time_s"] > 0
@@ -113,3 +116,29 @@ def test_collect_latents_feeds_evaluate_latents():
     res, align = evaluate_latents(tr, te, latent="both", alignment={"cv": 2})
     assert align.x_mean.shape == (2 * D,) and res.pred.shape == (16, T, 4)
     assert np.isfinite(res.subset_nmse()).all()
+
+
+class _Probe(L.Callback):
+    """Records the krr/nmse_overall value visible at each epoch end (what progress lines print)."""
+
+    def __init__(self):
+        self.seen = []
+
+    def on_train_epoch_end(self, trainer, pl_module):
+        v = trainer.callback_metrics.get("krr/nmse_overall")
+        self.seen.append(None if v is None else float(v))
+
+
+def test_krr_value_shows_only_in_its_epoch_and_final_is_the_result(tmp_path):
+    torch.set_num_threads(1)
+    cb = KRRAlignmentCallback(every_n_epochs=2, latent="y", cv=2, val_frame_stride=3, n_threads=1)
+    probe = _Probe()
+    trainer = L.Trainer(max_epochs=3, default_root_dir=tmp_path, logger=False, callbacks=[cb, probe],
+                        enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
+                        accelerator="cpu", devices=1, num_sanity_val_steps=0)
+    trainer.fit(FakeModel(), datamodule=FakeDataModule())
+    periodic = cb.history[0]
+    assert probe.seen == [None, pytest.approx(periodic["nmse_overall"]), None]  # no stale value in epoch 3
+    assert cb.final is cb.history[-1] and cb.final["final"] and cb.final["epoch"] == 2
+    # after fit (metrics.json's fit_metrics) the krr/* values are the final alignment's
+    assert float(trainer.callback_metrics["krr/nmse_overall"]) == pytest.approx(cb.final["nmse_overall"])

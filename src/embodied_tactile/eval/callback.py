@@ -13,6 +13,17 @@ own time; both continue across a resume, through the callback's ``state_dict`` i
 checkpoint), ``krr/callback_time_s`` and ``krr/callback_fraction`` (callback time / total
 elapsed) to every logger, and appends one JSON line to ``krr_history.jsonl`` in
 ``trainer.log_dir`` (or ``default_root_dir``).
+
+The final alignment (``on_train_end``, always run unless ``run_on_train_end=False``) is the
+run's number: it uses evaluate.py's settings (``final_alignment``; default: the defaults of
+:func:`fit_alignment`, the same as ``configs/evaluate.yaml`` ``alignment``), every training
+sequence and every held-out frame, on the final weights, so ``python evaluate.py <run>``
+(``checkpoint=last``, the default) reproduces it. Its row in ``krr_history.jsonl`` carries
+``"final": true`` and its settings; :attr:`final` holds it (train.py writes it to
+``metrics.json``). The periodic checks are cheaper (``frames_per_sequence``, ``cv``, grids,
+``val_frame_stride``, ``max_train_sequences``): they trace the curve, they are not the result.
+A ``krr/*`` value shows in ``trainer.callback_metrics`` (hence in the per-epoch progress
+lines) only in the epoch it was computed.
 """
 
 from __future__ import annotations
@@ -106,7 +117,8 @@ class KRRAlignmentCallback(Callback):
                  max_val_sequences: int | None = None, val_frame_stride: int = 2, final_segment: float | int = 0.1,
                  frames_per_sequence: int = 2, cv: int = 3, nystroem_threshold: int = 1024, n_components: int = 256,
                  alphas=(1e-3, 1e-2, 1e-1, 1.0), gammas=(0.3, 1.0, 3.0), run_on_train_end: bool = True,
-                 history_name: str = "krr_history.jsonl", seed: int = 0, n_threads: int | None = None):
+                 history_name: str = "krr_history.jsonl", seed: int = 0, n_threads: int | None = None,
+                 final_alignment: Mapping[str, Any] | None = None):
         if latent not in LATENT_KEYS:
             raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
         self.every_n_epochs = int(every_n_epochs)
@@ -117,13 +129,16 @@ class KRRAlignmentCallback(Callback):
         self.align_kw = dict(final_segment=final_segment, frames_per_sequence=frames_per_sequence, cv=cv,
                              nystroem_threshold=nystroem_threshold, n_components=n_components,
                              alphas=tuple(alphas), gammas=tuple(gammas), seed=seed, n_threads=n_threads)
+        # the final alignment: evaluate.py's recipe (fit_alignment defaults unless given)
+        self.final_kw = dict(final_alignment or {})
+        self.final_kw.setdefault("n_threads", n_threads)
         self.run_on_train_end = run_on_train_end
         self.history_name = history_name
+        self.final: dict | None = None
         self._t_start: float | None = None
         self._cb_time = 0.0
         self._elapsed_before = 0.0  # wall / callback time of the runs this one resumes (state_dict)
         self._cb_before = 0.0
-        self._last_step: int | None = None
         self.history: list[dict] = []
 
     # ------------------------------------------------------------------ hooks
@@ -140,6 +155,12 @@ class KRRAlignmentCallback(Callback):
         self._elapsed_before = float(state_dict["elapsed_s"])
         self._cb_before = float(state_dict["callback_time_s"])
 
+    def on_train_epoch_start(self, trainer, pl_module) -> None:
+        # a krr/* value belongs to the epoch that computed it: never re-show it in later epochs
+        for store in (trainer.callback_metrics, trainer.progress_bar_metrics):
+            for k in [k for k in store if k.startswith("krr/")]:
+                del store[k]
+
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         if self.every_n_epochs > 0 and (trainer.current_epoch + 1) % self.every_n_epochs == 0:
             metrics = self._evaluate(trainer, pl_module)
@@ -149,10 +170,14 @@ class KRRAlignmentCallback(Callback):
                 self._log_to_loggers(trainer, metrics)
 
     def on_train_end(self, trainer, pl_module) -> None:
-        if self.run_on_train_end and self._last_step != trainer.global_step:
-            metrics = self._evaluate(trainer, pl_module)
+        if self.run_on_train_end:
+            metrics = self._evaluate(trainer, pl_module, final=True)
             if metrics:
+                import torch
+
                 self._log_to_loggers(trainer, metrics)
+                # the final alignment replaces any earlier krr/* value (metrics.json's fit_metrics)
+                trainer.callback_metrics.update({k: torch.tensor(v) for k, v in metrics.items()})
 
     # ------------------------------------------------------------------ work
     def _loaders(self, trainer):
@@ -163,18 +188,21 @@ class KRRAlignmentCallback(Callback):
         held_out = dm.test_dataloader() if hasattr(dm, "test_set") else dm.val_dataloader()
         return train, held_out
 
-    def _evaluate(self, trainer, pl_module) -> dict[str, float]:
+    def _evaluate(self, trainer, pl_module, final: bool = False) -> dict[str, float]:
         t0 = time.perf_counter()
         if self._t_start is None:
             self._t_start = t0
         train_wall = self._elapsed_before + (t0 - self._t_start) - self._cb_before - self._cb_time
         train_loader, val_loader = self._loaders(trainer)
-        tr = collect_latents(pl_module, train_loader, latent=self.latent, max_sequences=self.max_train_sequences)
-        te = collect_latents(pl_module, val_loader, latent=self.latent, max_sequences=self.max_val_sequences)
+        max_train, max_val, stride = (None, None, 1) if final else (
+            self.max_train_sequences, self.max_val_sequences, self.val_frame_stride)
+        align_kw = self.final_kw if final else self.align_kw
+        tr = collect_latents(pl_module, train_loader, latent=self.latent, max_sequences=max_train)
+        te = collect_latents(pl_module, val_loader, latent=self.latent, max_sequences=max_val)
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
         t_inf = time.perf_counter()
-        align = fit_alignment(select_latents(tr, self.latent), tr["factors"], ids=tr.get("seq_id"), **self.align_kw)
-        x_te = select_latents(te, self.latent)[:, ::-1][:, :: self.val_frame_stride][:, ::-1]  # keep the last frame
+        align = fit_alignment(select_latents(tr, self.latent), tr["factors"], ids=tr.get("seq_id"), **align_kw)
+        x_te = select_latents(te, self.latent)[:, ::-1][:, ::stride][:, ::-1]  # keep the last frame
         pred = align.predict(x_te, ids=te.get("seq_id"))
         curve = nmse_over_time(te["factors"], pred)  # (T', 4)
         per_factor = nmse_trajectory(te["factors"], pred)  # == mean of the curve over frames
@@ -182,7 +210,6 @@ class KRRAlignmentCallback(Callback):
         self._cb_time += cb
         cb_total = self._cb_before + self._cb_time
         total = self._elapsed_before + time.perf_counter() - self._t_start
-        self._last_step = trainer.global_step
         metrics = {f"krr/nmse_{f}": float(v) for f, v in zip(FACTOR_NAMES, per_factor)}
         metrics.update({
             "krr/nmse_overall": overall(per_factor),
@@ -192,7 +219,9 @@ class KRRAlignmentCallback(Callback):
             "krr/callback_fraction": float(cb_total / total) if total > 0 else 0.0,
         })
         row = {
-            "epoch": int(trainer.current_epoch), "step": int(trainer.global_step),
+            # at train end Lightning has already counted the last epoch: report the epoch trained last
+            "epoch": max(0, int(trainer.current_epoch) - 1) if final else int(trainer.current_epoch),
+            "step": int(trainer.global_step),
             "train_wall_time_s": float(train_wall), "callback_time_s": float(cb),
             "callback_infer_s": float(t_inf - t0), "callback_krr_s": float(cb - (t_inf - t0)),
             "callback_time_total_s": float(cb_total), "callback_fraction": metrics["krr/callback_fraction"],
@@ -200,16 +229,21 @@ class KRRAlignmentCallback(Callback):
             "nmse_overall": _fin(metrics["krr/nmse_overall"]), "nmse_last": {f: _fin(v) for f, v in zip(FACTOR_NAMES, curve[-1])},
             "nmse_last_overall": _fin(metrics["krr/nmse_last_overall"]),
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])), "latent": self.latent,
-            "val_frame_stride": self.val_frame_stride,
-            "alignment": {k: align.params[k] for k in ("method", "alpha", "gamma", "n_train_rows", "fit_time_s")},
+            "val_frame_stride": stride, "final": bool(final),
+            "alignment": {k: align.params[k] for k in ("method", "alpha", "gamma", "n_train_rows", "fit_time_s",
+                                                       "final_segment", "frames_per_sequence", "cv_folds", "seed")},
         }
+        if final:
+            row["alignment_settings"] = {k: v for k, v in align_kw.items() if k != "n_threads"}
+            self.final = row
         self.history.append(row)
         if trainer.is_global_zero:
             path = self.history_path(trainer)
             path.parent.mkdir(parents=True, exist_ok=True)
             with open(path, "a") as fh:
                 fh.write(json.dumps(row) + "\n")
-        log.info("KRR alignment epoch %d: nmse_overall=%.4f (callback %.2fs, %.1f%% of elapsed)", row["epoch"],
+        log.info("KRR alignment %sepoch %d: nmse_overall=%.4f (callback %.2fs, %.1f%% of elapsed)",
+                 "(final weights, evaluate.py settings) " if final else "(periodic check) ", row["epoch"],
                  metrics["krr/nmse_overall"], cb, 100 * metrics["krr/callback_fraction"])
         return metrics
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -48,6 +48,9 @@ class Results:
     seq_id: np.ndarray | None = None
     params: dict = field(default_factory=dict)  # alignment params, timings, ...
     var_ref: np.ndarray | None = None  # (4,) reference variance (default: of `factors`)
+    seed: int | None = None  # the run's seed: the replicate axis, the only one tables average over
+    axes: dict = field(default_factory=dict)  # other configuration axes that differ between runs
+    replicate: str = ""  # tells replicates of one cell apart in labels (e.g. 'seed=1'); '' when alone
 
     def __post_init__(self) -> None:
         self.pred = np.asarray(self.pred, dtype=np.float64)
@@ -74,7 +77,15 @@ class Results:
 
     @property
     def label(self) -> str:
-        return f"{self.method}/{self.modality}/{self.skin}/{self.primitive}"
+        extra = "".join(f"/{k}={v}" for k, v in sorted(self.axes.items()))
+        return f"{self.method}/{self.modality}/{self.skin}/{self.primitive}{extra}" + (
+            f"@{self.replicate}" if self.replicate else "")
+
+    @property
+    def cell(self) -> tuple:
+        """Every configuration axis but the seed: (method, modality, skin, primitive, ((axis, value), ...)).
+        Runs of one cell are replicates (seeds); tables average over them and nothing else."""
+        return (self.method, self.modality, self.skin, self.primitive, tuple(sorted(self.axes.items())))
 
     def subset_nmse(self, mask=None) -> np.ndarray:
         """Whole-trajectory NMSE per factor over the masked sequences (reference variance)."""
@@ -96,6 +107,8 @@ class Results:
             "modality": self.modality,
             "skin": self.skin,
             "primitive": self.primitive,
+            "axes": dict(self.axes),
+            "seed": self.seed,
             "source": self.source,
             "n_train": int(self.n_train),
             "n_test": self.n_test,
@@ -105,6 +118,66 @@ class Results:
             "nmse_last_step_overall": overall(last),
             "params": to_jsonable(self.params),
         }
+
+
+# ----------------------------------------------------------------------------- run axes
+NAMED_AXES = {"modality": "modality.name", "skin": "skin.name", "primitive": "primitive.name"}
+REPLICATE_KEY = "seed"
+_NOT_AXES = ("paths.", "hydra.", "tags", "task_name", "plain_progress", "resume")
+
+
+def flatten_config(cfg: Mapping, prefix: str = "") -> dict[str, Any]:
+    """Nested config dict -> {"a.b.c": leaf} (lists are leaves, as strings)."""
+    out: dict[str, Any] = {}
+    for k, v in cfg.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(flatten_config(v, key + "."))
+        else:
+            out[key] = str(v) if isinstance(v, (list, tuple)) else v
+    return out
+
+
+def config_axes(configs: Sequence[Mapping], run_names: Sequence[str] = ()) -> list[dict]:
+    """The configuration axes of a set of runs, beyond modality / skin / primitive and the seed.
+
+    ``configs``: each run's resolved config (nested dicts). Returns, per run, {dotted key:
+    value} for the keys whose value differs between the runs and that are not a function of
+    (modality, skin, primitive, seed) and the axes already kept (derived keys such as
+    ``data.channels`` or ``data.seed`` are dropped; ``*.name`` keys are preferred as labels).
+    Keys holding a run's own folder (checkpoint dirs) and ``paths.*`` / ``hydra.*`` are not axes.
+    """
+    flat = [flatten_config(c) for c in configs]
+    if len(flat) < 2:
+        return [{} for _ in flat]
+    names = [str(n) for n in run_names]
+    keys = sorted(set().union(*flat))
+    differing = []
+    for k in keys:
+        vals = [f.get(k) for f in flat]
+        if len({repr(v) for v in vals}) < 2 or k == REPLICATE_KEY or k.startswith(_NOT_AXES):
+            continue
+        if any(k.startswith(n.split(".")[0] + ".") for n in NAMED_AXES.values()):
+            continue
+        if names and any(n and n in str(v) for n, v in zip(names, vals)):
+            continue  # holds the run folder (e.g. the checkpoint dir): differs by construction
+        differing.append(k)
+    differing.sort(key=lambda k: (not k.endswith(".name"), k.count("."), k))
+    context = [[repr(f.get(p)) for p in (*NAMED_AXES.values(), REPLICATE_KEY)] for f in flat]
+    kept: list[str] = []
+    for k in differing:
+        seen: dict[tuple, str] = {}
+        determined = True
+        for ctx, f in zip(context, flat):
+            v = repr(f.get(k))
+            if seen.setdefault(tuple(ctx), v) != v:
+                determined = False
+                break
+        if not determined:
+            kept.append(k)
+            for ctx, f in zip(context, flat):
+                ctx.append(repr(f.get(k)))
+    return [{k: f.get(k) for k in kept} for f in flat]
 
 
 def select_latents(split: Mapping[str, Any], latent: str = "y") -> np.ndarray:

@@ -1,9 +1,14 @@
 """Tables from :class:`~embodied_tactile.eval.results.Results`: the paper's Table 1 / Table 2
 analogues, a per-run summary and a runtime table, with Markdown / CSV / LaTeX writers.
 
-All numbers come from :func:`pooled_nmse` (= :func:`~embodied_tactile.eval.metrics.nmse`
-with each run's reference variance), and every table carries the NMSE definition, the split
-sizes and the data source in its caption.
+All numbers come from :func:`~embodied_tactile.eval.metrics.nmse` (through
+:func:`pooled_nmse` on ONE run, with that run's reference variance). Runs are grouped by
+every configuration axis that differs between them (:attr:`Results.cell`: method, modality,
+skin, primitive and any other swept key); a table never averages across any of those, only
+over the seeds (replicates) of one cell, with the study protocol's statistics
+(:func:`seed_stats`: mean, std, 95 % t interval for n >= 3). Every table carries the NMSE
+definition, the split sizes, the data source and what each number averages over in its
+caption. A cell that was not measured prints ``–`` (explained in the caption), never ``nan``.
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -23,6 +29,8 @@ from .results import Results
 FACTOR_LABELS = {"spatial_frequency": "Spatial Freq.", "amplitude": "Amplitude", "stiffness": "Stiffness",
                  "heterogeneity": "Heterogeneity"}
 GROUPS = ("soft", "hard", "heterogeneous")
+MISSING = "\u2013"  # en dash: a cell that was not measured
+MISSING_NOTE = f"{MISSING} = not measured in these runs."
 PARAM_LATEX = {"A_z_mm": r"$A_{z}$\,(mm)", "omega_z_hz": r"$\omega_z$\,(Hz)",
                "A_alpha_beta_deg": r"$A_{\alpha,\beta}\,(^{\circ})$", "omega_alpha_beta_hz": r"$\omega_{\alpha,\beta}$\,(Hz)",
                "A_xy_mm": r"$A_{x,y}$\,(mm)", "A_gamma_deg": r"$A_\gamma(^{\circ})$",
@@ -37,15 +45,22 @@ class Table:
     rows: list[list] = field(default_factory=list)
     latex_body: str | None = None  # paper-layout tabular; generic booktabs when None
 
+    @property
+    def full_caption(self) -> str:
+        """The caption, plus what ``–`` means when a cell was not measured."""
+        missing = any(_missing(v) for r in self.rows for v in r)
+        return self.caption + (f" {MISSING_NOTE}" if missing and MISSING_NOTE not in self.caption else "")
+
     def to_markdown(self) -> str:
-        out = [f"**{self.name}.** {self.caption}", "", "| " + " | ".join(self.columns) + " |",
+        out = [f"**{self.name}.** {self.full_caption}", "", "| " + " | ".join(self.columns) + " |",
                "|" + "|".join("---" for _ in self.columns) + "|"]
         out += ["| " + " | ".join(_fmt(v) for v in r) + " |" for r in self.rows]
         return "\n".join(out) + "\n"
 
     def to_csv(self) -> str:
         buf = io.StringIO()
-        buf.write(f"# {self.name}: {self.caption}\n")
+        cap = self.full_caption.replace(MISSING_NOTE, f"{MISSING_NOTE[:-1]} (an empty cell here).")
+        buf.write(f"# {self.name}: {cap}\n")
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(self.columns)
         for r in self.rows:
@@ -62,10 +77,10 @@ class Table:
             lines += [r"\bottomrule", r"\end{tabular}"]
             body = "\n".join(lines)
         return ("\\begin{table*}[!tbh]\n\\centering\n\\resizebox{\\textwidth}{!}{%\n" + body + "%\n}\n"
-                f"\\caption{{{_tex(self.caption)}}}\n\\label{{tab:{self.name}}}\n\\end{{table*}}\n")
+                f"\\caption{{{_tex(self.full_caption)}}}\n\\label{{tab:{self.name}}}\n\\end{{table*}}\n")
 
     def to_json(self) -> dict:
-        return {"name": self.name, "caption": self.caption, "columns": self.columns,
+        return {"name": self.name, "caption": self.full_caption, "columns": self.columns,
                 "rows": [[_num(v) for v in r] for r in self.rows]}
 
 
@@ -105,7 +120,7 @@ def caption_note(results: Sequence[Results]) -> str:
     sizes = sorted({(int(r.n_train), r.n_test) for r in results})
     srcs = sorted({r.source for r in results})
     sz = "; ".join(f"{a} train / {b} held-out sequences" for a, b in sizes) if sizes else "none"
-    n_runs = len({(r.modality, r.skin, r.primitive) for r in results})
+    n_runs = len({(r.cell[1:], r.seed, r.replicate) for r in results})
     return (f"{NMSE_DEFINITION} Splits ({n_runs} run(s)): {sz}. Data source: {', '.join(srcs) or 'unknown'}.")
 
 
@@ -114,26 +129,119 @@ def _filter(results, method=None, modality=None, skin=None, primitive=None):
             and (skin is None or r.skin == skin) and (primitive is None or r.primitive == primitive)]
 
 
+# ----------------------------------------------------------------------------- seeds -> statistics
+def seed_stats(values) -> dict:
+    """The study protocol's per-cell statistics over seeds (one value per run): n, mean, std
+    (ddof 1) and the 95 % t interval (n >= 3 only; NaN below). NaN values are not counted."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    n = int(v.size)
+    mean = float(v.mean()) if n else float("nan")
+    std = float(v.std(ddof=1)) if n >= 2 else float("nan")
+    lo = hi = float("nan")
+    if n >= 3:
+        from scipy.stats import t as student_t
+
+        h = float(student_t.ppf(0.975, n - 1)) * std / math.sqrt(n)
+        lo, hi = mean - h, mean + h
+    return {"n": n, "mean": mean, "std": std, "ci95_low": lo, "ci95_high": hi}
+
+
+def cells(results: Sequence[Results]) -> dict[tuple, list[Results]]:
+    """Results grouped by :attr:`Results.cell` (every axis but the seed), in a stable order
+    (method as given, then modality, skin, primitive in the constants' order, then axes)."""
+    methods = list(dict.fromkeys(r.method for r in results))
+    out: dict[tuple, list[Results]] = {}
+    for r in sorted(results, key=lambda r: (methods.index(r.method), r.modality, _order(SKINS, r.skin),
+                                            _order(PRIMITIVES, r.primitive), r.cell[4])):
+        out.setdefault(r.cell, []).append(r)
+    return out
+
+
+def cell_mean(runs: Sequence[Results], select: Callable[[Results], np.ndarray] | None = None) -> tuple[np.ndarray, int]:
+    """Per-factor NMSE of each run (its own sequences, optionally masked), averaged over the
+    runs (= seeds of one cell) -> (mean (4,), number of runs that had sequences)."""
+    vals = []
+    for r in runs:
+        m = np.ones(r.n_test, bool) if select is None else np.asarray(select(r), bool)
+        if r.n_test and m.any():
+            vals.append(pooled_nmse([r], select))
+    if not vals:
+        return np.full(4, np.nan), 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(np.asarray(vals), axis=0), len(vals)
+
+
+def _order(seq, v) -> tuple:
+    return (seq.index(v), "") if v in seq else (len(seq), str(v))
+
+
+def _blocks(rs: Sequence[Results]) -> dict[tuple, list[Results]]:
+    """Cells without the primitive: (method, modality, skin, axes) -> runs (every primitive)."""
+    out: dict[tuple, list[Results]] = {}
+    for key, runs in cells(rs).items():
+        out.setdefault((key[0], key[1], key[2], key[4]), []).extend(runs)
+    return out
+
+
+def _block_columns(blocks) -> tuple[list[str], Callable[[tuple], list]]:
+    """Leading columns naming a block: Method (only when several), Modality, Skin, other axes."""
+    methods = {k[0] for k in blocks}
+    axes = sorted({a for k in blocks for a, _ in k[3]})
+    cols = (["Method"] if len(methods) > 1 else []) + ["Modality", "Skin"] + axes
+
+    def values(k):
+        ax = dict(k[3])
+        return ([k[0]] if len(methods) > 1 else []) + [k[1], k[2]] + [ax.get(a, MISSING) for a in axes]
+
+    return cols, values
+
+
+def _seeds_note(rs: Sequence[Results]) -> str:
+    ns = sorted({len(v) for v in cells(rs).values()})
+    n = ", ".join(str(x) for x in ns) or "0"
+    return (f"Each number is the mean over the seeds of one configuration (n = {n} per cell; "
+            "table_aggregate gives std and 95 % intervals); configurations (method, modality, skin, "
+            "primitive and any other swept setting) are never averaged together.")
+
+
+def _block_title(key, values_of) -> str:
+    return " / ".join(str(v) for v in values_of(key))
+
+
 # ----------------------------------------------------------------------------- Table 1
 def table_actions(results: Sequence[Results], *, method: str | None = "latent_filter", modality: str | None = None,
                   skin: str | None = None) -> Table:
     """Table 1 analogue: per action index (1..16) and primitive, the action parameters and
-    the whole-trajectory NMSE (mean over factors), printed in units of 1e-2 like the paper."""
+    the whole-trajectory NMSE (mean over factors), printed in units of 1e-2 like the paper.
+    One block of rows per (modality, skin, other axes); an action no run of a block measured
+    is left out, a cell measured for another primitive only prints ``–``."""
     rs = _filter(results, method, modality, skin)
     prims = [p for p in PRIMITIVES if any(r.primitive == p for r in rs)] or list(PRIMITIVES)
-    columns = ["Action Index"]
+    blocks = _blocks(rs)
+    bcols, bvals = _block_columns(blocks)
+    columns = bcols + ["Action Index"]
     for p in prims:
         columns += [f"{p}:{k}" for k in ACTION_PARAM_NAMES[p]] + [f"{p}:NMSE_1e-2"]
-    rows = []
-    for a in range(N_ACTIONS):
-        row: list = [a + 1]
-        for p in prims:
-            row += [ACTIONS[p][a].params[k] for k in ACTION_PARAM_NAMES[p]]
-            v = pooled_nmse(_filter(rs, primitive=p), lambda r, a=a: r.action_index == a)
-            row.append(100.0 * overall(v) if np.isfinite(v).any() else float("nan"))
-        rows.append(row)
+    rows, block_rows = [], {}
+    for key, runs in blocks.items():
+        block_rows[key] = []
+        for a in range(N_ACTIONS):
+            row: list = bvals(key) + [a + 1]
+            measured = False
+            for p in prims:
+                row += [ACTIONS[p][a].params[k] for k in ACTION_PARAM_NAMES[p]]
+                v, n = cell_mean(_filter(runs, primitive=p), lambda r, a=a: r.action_index == a)
+                measured |= n > 0
+                row.append(100.0 * overall(v) if n else float("nan"))
+            if measured:
+                rows.append(row)
+                block_rows[key].append(row)
     # paper layout
+    nb = len(bcols)
     spec = "c " + " ".join("c" * (len(ACTION_PARAM_NAMES[p]) + 1) for p in prims)
+    width = 1 + sum(len(ACTION_PARAM_NAMES[p]) + 1 for p in prims)
     head1 = [r"\multirow{2}{*}{Action Index}"]
     cmid, col = [], 2
     for p in prims:
@@ -146,98 +254,180 @@ def table_actions(results: Sequence[Results], *, method: str | None = "latent_fi
         head2 += [PARAM_LATEX[k] for k in ACTION_PARAM_NAMES[p]] + [r"NMSE $10^{-2}$"]
     lines = [rf"\begin{{tabular}}{{{spec}}}", r"\toprule", " & ".join(head1) + r" \\", " ".join(cmid),
              " & ".join(head2) + r" \\", r"\midrule"]
-    for row in rows:
-        cells, i = [str(row[0])], 1
-        for p in prims:
-            k = len(ACTION_PARAM_NAMES[p])
-            col_vals = [r[i + k] for r in rows]
-            cells += [f"{v:.1f}" for v in row[i : i + k]] + [_cell(row[i + k], col_vals, "orange", 3)]
-            i += k + 1
-        lines.append(" & ".join(cells) + r" \\")
+    for bi, (key, brows) in enumerate(block_rows.items()):
+        if len(block_rows) > 1:
+            if bi:
+                lines.append(r"\midrule")
+            lines.append(rf"\multicolumn{{{width}}}{{l}}{{\textit{{{_tex(_block_title(key, bvals))}}}}} \\")
+        for row in brows:
+            cells_, i = [str(row[nb])], nb + 1
+            for p in prims:
+                k = len(ACTION_PARAM_NAMES[p])
+                col_vals = [r[i + k] for r in brows]
+                cells_ += [f"{v:.1f}" for v in row[i : i + k]] + [_cell(row[i + k], col_vals, "orange", 3)]
+                i += k + 1
+            lines.append(" & ".join(cells_) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
     what = ", ".join(x for x in (method, modality, skin) if x) or "all runs"
     cap = (f"NMSE over the whole interaction trajectory (mean over the four factors, x1e-2) per action "
-           f"parameter set ({what}); lower is better. " + caption_note(rs))
+           f"parameter set ({what}), one block per {', '.join(bcols).lower()}; lower is better. "
+           f"Action sets no run of a block used are left out. {_seeds_note(rs)} " + caption_note(rs))
     return Table("action_config", cap, columns, rows, "\n".join(lines))
 
 
 # ----------------------------------------------------------------------------- Table 2
 def table_groups(results: Sequence[Results], *, method: str | None = "latent_filter", modality: str | None = None) -> Table:
-    """Table 2 analogue: NMSE per factor x object group x skin x primitive + Overall rows."""
+    """Table 2 analogue: NMSE per factor x object group x primitive, one block (factor rows +
+    Overall) per modality x skin (x other swept axes), as the paper writes it per modality."""
     rs = _filter(results, method, modality)
-    skins = [s for s in SKINS if any(r.skin == s for r in rs)] or list(SKINS)
     prims = [p for p in PRIMITIVES if any(r.primitive == p for r in rs)] or list(PRIMITIVES)
-    columns = ["Skin", "Factor"] + [f"{g}:{p}" for g in GROUPS for p in prims]
+    blocks = _blocks(rs)
+    bcols, bvals = _block_columns(blocks)
+    columns = bcols + ["Factor"] + [f"{g}:{p}" for g in GROUPS for p in prims]
     rows = []
-    for s in skins:
+    for key, runs in blocks.items():
         vals = np.full((len(GROUPS) * len(prims), 4), np.nan)
         for gi, g in enumerate(GROUPS):
             for pi, p in enumerate(prims):
-                vals[gi * len(prims) + pi] = pooled_nmse(_filter(rs, skin=s, primitive=p), lambda r, g=g: r.group == g)
+                vals[gi * len(prims) + pi] = cell_mean(_filter(runs, primitive=p), lambda r, g=g: r.group == g)[0]
         for k, f in enumerate(FACTOR_NAMES):
-            rows.append([s, f, *vals[:, k]])
-        rows.append([s, "Overall", *[overall(v) for v in vals]])
+            rows.append([*bvals(key), f, *vals[:, k]])
+        rows.append([*bvals(key), "Overall", *[overall(v) for v in vals]])
+    nb = len(bcols)
     ng = len(prims)
     spec = "c c " + " ".join("c" * ng for _ in GROUPS)
     lines = [rf"\begin{{tabular}}{{{spec}}}", r"\toprule",
              " & & " + " & ".join(rf"\multicolumn{{{ng}}}{{c}}{{{g.capitalize()} Objects}}" for g in GROUPS) + r" \\",
              " ".join(rf"\cmidrule(lr){{{3 + i * ng}-{2 + (i + 1) * ng}}}" for i in range(len(GROUPS))),
              " & & " + " & ".join(p.capitalize() for _ in GROUPS for p in prims) + r" \\", r"\midrule"]
-    for si, s in enumerate(skins):
-        block = [r for r in rows if r[0] == s]
+    allv = [v for rr in rows for v in rr[nb + 1:]]
+    hues = [h for h in ("red", "green", "blue") for _ in prims]
+    keys = list(blocks)
+    for bi, key in enumerate(keys):
+        block = [r for r in rows if r[:nb] == bvals(key)]
+        title = _tex(_block_title(key, bvals)).replace(" / ", ", ")
         for j, r in enumerate(block):
-            first = rf"\multirow{{{len(block)}}}{{*}}{{\rotatebox{{90}}{{{s.capitalize()} e-Skin}}}}" if j == 0 else ""
-            if r[1] == "Overall":
+            first = rf"\multirow{{{len(block)}}}{{*}}{{\rotatebox{{90}}{{{title}}}}}" if j == 0 else ""
+            if r[nb] == "Overall":
                 lines.append(rf"\cmidrule(lr){{2-{2 + len(GROUPS) * ng}}}")
-            label = FACTOR_LABELS.get(r[1], r[1])
-            allv = [v for rr in rows for v in rr[2:]]
-            hues = [h for h in ("red", "green", "blue") for _ in prims]
-            lines.append(" & ".join([first, label] + [_cell(v, allv, h, 3) for v, h in zip(r[2:], hues)]) + r" \\")
-        if si < len(skins) - 1:
+            label = FACTOR_LABELS.get(r[nb], r[nb])
+            lines.append(" & ".join([first, label] + [_cell(v, allv, h, 3) for v, h in zip(r[nb + 1:], hues)]) + r" \\")
+        if bi < len(keys) - 1:
             lines.append(r"\midrule")
     lines += [r"\bottomrule", r"\end{tabular}"]
     what = ", ".join(x for x in (method, modality) if x) or "all runs"
-    cap = (f"NMSE over the entire interaction sequence per factor, object group (soft / hard / heterogeneous), "
-           f"e-Skin and primitive ({what}); Overall = mean over the four factors; lower is better. "
-           + caption_note(rs))
+    cap = (f"NMSE over the entire interaction sequence per factor, object group (soft / hard / heterogeneous) "
+           f"and primitive, one block per {', '.join(bcols).lower()} ({what}); Overall = mean over the four "
+           f"factors; lower is better. {_seeds_note(rs)} " + caption_note(rs))
     return Table("environmentshape", cap, columns, rows, "\n".join(lines))
 
 
 # ----------------------------------------------------------------------------- summary / runtime
+def _axis_columns(results: Sequence[Results]) -> list[str]:
+    return sorted({a for r in results for a in r.axes})
+
+
 def table_summary(results: Sequence[Results]) -> Table:
     """One row per run/method: whole-trajectory and last-step NMSE per factor + overall."""
-    columns = ["method", "modality", "skin", "primitive", "n_train", "n_test",
+    axes = _axis_columns(results)
+    columns = ["method", "modality", "skin", "primitive", *axes, "seed", "n_train", "n_test",
                *[f"traj:{f}" for f in FACTOR_NAMES], "traj:overall", *[f"last:{f}" for f in FACTOR_NAMES], "last:overall"]
     rows = []
     for r in results:
         traj, last = r.subset_nmse(), r.curve()[-1]
-        rows.append([r.method, r.modality, r.skin, r.primitive, r.n_train, r.n_test, *traj, overall(traj), *last, overall(last)])
-    cap = "Whole-trajectory (traj) and last-frame (last) NMSE per factor. " + caption_note(results)
+        rows.append([r.method, r.modality, r.skin, r.primitive, *[r.axes.get(a, MISSING) for a in axes],
+                     MISSING if r.seed is None else r.seed, r.n_train, r.n_test, *traj, overall(traj), *last, overall(last)])
+    cap = "Whole-trajectory (traj) and last-frame (last) NMSE per factor, one row per run (no averaging). " + caption_note(results)
     return Table("summary", cap, columns, rows)
 
 
-def table_runtime(results: Sequence[Results]) -> Table:
-    """NMSE, training wall time and inference time per trial, per run and method.
-
-    Training time: ``params['train_time_s']`` (Latent Filter: the training wall time of the
-    run, e.g. the last ``train_wall_time_s`` of krr_history.jsonl; baselines: their own fit).
-    Inference: ``params['inference_s_per_sequence']`` (+ the KRR predict time per sequence)."""
-    columns = ["method", "modality", "skin", "primitive", "nmse_overall", "train_time_s", "inference_s_per_trial"]
+def table_aggregate(results: Sequence[Results]) -> Table:
+    """One row per configuration (every axis but the seed): the study protocol's statistics
+    over its seeds (n, mean, std, 95 % t interval for n >= 3) of the whole-trajectory and
+    last-frame overall NMSE, and the mean per factor."""
+    axes = _axis_columns(results)
+    columns = ["method", "modality", "skin", "primitive", *axes, "n_seeds", "seeds", "traj:overall mean",
+               "traj:overall std", "traj:overall 95% CI", "last:overall mean", "last:overall 95% CI",
+               *[f"traj:{f} mean" for f in FACTOR_NAMES]]
     rows = []
+    for key, runs in cells(results).items():
+        traj = np.array([r.subset_nmse() for r in runs])
+        t_all = seed_stats([overall(v) for v in traj])
+        l_all = seed_stats([overall(r.curve()[-1]) for r in runs])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            per_factor = np.nanmean(traj, axis=0)
+        seeds = ",".join(MISSING if r.seed is None else str(r.seed) for r in runs)
+        ax = dict(key[4])
+        rows.append([*key[:4], *[ax.get(a, MISSING) for a in axes], t_all["n"], seeds, t_all["mean"], t_all["std"],
+                     _interval(t_all), l_all["mean"], _interval(l_all), *per_factor])
+    cap = ("Per configuration, statistics over its seeds only (one value per run): mean, std and the 95 % "
+           f"t interval (Student t, n-1 degrees of freedom; {MISSING} for n < 3, std {MISSING} for n < 2). "
+           + caption_note(results))
+    return Table("aggregate", cap, columns, rows)
+
+
+def _interval(st: dict) -> str:
+    if not (math.isfinite(st["ci95_low"]) and math.isfinite(st["ci95_high"])):
+        return MISSING
+    return f"[{_fmt(st['ci95_low'])}, {_fmt(st['ci95_high'])}]"
+
+
+RUNTIME_DEFINITION = (
+    "Training time: wall time of fitting the method on the run's prepared training data, excluding data "
+    "preparation (simulation, preprocessing, cache) and evaluation (the Latent Filter: training with its "
+    "periodic KRR checks subtracted, from the run's final krr_history.jsonl row; baselines: their fit in "
+    "evaluate.py). NMSE: evaluate.py's held-out whole-trajectory NMSE (mean over factors) for every method. "
+    "Data preparation of the Latent Filter run (train.py, before fitting) is reported apart.")
+
+
+def runtime_points(results: Sequence[Results]) -> list[dict]:
+    """The one source of the runtime table AND the error-vs-run-time figure's markers: per
+    run and method, the held-out overall NMSE (evaluate.py) and the training time on one time
+    base (:data:`RUNTIME_DEFINITION`). Keys: label, method, modality, skin, primitive, seed,
+    nmse_overall, train_time_s, data_prepare_s, inference_s_per_trial."""
+    out = []
     for r in results:
         p = r.params
         inf = float(p.get("inference_s_per_sequence", 0.0)) + float(p.get("krr_predict_s_per_sequence", 0.0))
-        rows.append([r.method, r.modality, r.skin, r.primitive, overall(r.subset_nmse()),
-                     float(p.get("train_time_s", float("nan"))), inf])
-    cap = "Error vs run time per trial and method (times in seconds, this machine). " + caption_note(results)
+        prep = p.get("data_prepare_s")
+        out.append({"label": r.label, "method": r.method, "modality": r.modality, "skin": r.skin,
+                    "primitive": r.primitive, "axes": dict(r.axes), "seed": r.seed,
+                    "nmse_overall": overall(r.subset_nmse()),
+                    "train_time_s": float(p["train_time_s"]) if p.get("train_time_s") is not None else float("nan"),
+                    "data_prepare_s": float(prep) if prep is not None else float("nan"),
+                    "inference_s_per_trial": inf})
+    return out
+
+
+def table_runtime(results: Sequence[Results]) -> Table:
+    """NMSE, training time, data preparation time and inference time per trial, per run and
+    method, from :func:`runtime_points` (the error-vs-run-time figure plots the same points).
+
+    Training time: ``params['train_time_s']`` (Latent Filter: the last ``train_wall_time_s``
+    of krr_history.jsonl; baselines: their own fit). Data preparation: ``params['data_prepare_s']``
+    (the run's train.py; baselines reuse the prepared data). Inference: ``params['inference_s_per_sequence']``
+    (+ the KRR predict time per sequence)."""
+    columns = ["method", "modality", "skin", "primitive", "seed", "nmse_overall", "train_time_s", "data_prepare_s",
+               "inference_s_per_trial"]
+    rows = [[p["method"], p["modality"] + "".join(f"/{k}={v}" for k, v in sorted(p["axes"].items())), p["skin"],
+             p["primitive"], MISSING if p["seed"] is None else p["seed"], p["nmse_overall"], p["train_time_s"],
+             p["data_prepare_s"], p["inference_s_per_trial"]] for p in runtime_points(results)]
+    cap = ("Error vs run time per trial and method (times in seconds, this machine). " + RUNTIME_DEFINITION + " "
+           + caption_note(results))
     return Table("runtime", cap, columns, rows)
 
 
 # ----------------------------------------------------------------------------- formatting
+def _missing(v) -> bool:
+    return v is None or (isinstance(v, (float, np.floating)) and not math.isfinite(float(v)))
+
+
 def _fmt(v, nd: int = 4, csv_: bool = False) -> str:
+    """A cell as text: a non-finite number / None is ``–`` (empty in CSV), never ``nan``."""
+    if _missing(v):
+        return "" if csv_ else MISSING
     if isinstance(v, (float, np.floating)):
-        if not math.isfinite(float(v)):
-            return "nan"
         return repr(float(v)) if csv_ else f"{float(v):.{nd}g}" if abs(float(v)) < 1e-3 else f"{float(v):.{nd}f}"
     return str(v)
 
@@ -246,7 +436,9 @@ def _cell(v, column, hue: str, nd: int) -> str:
     """Paper-style heat cell: ``\\cellcolor{hue!P!white}`` with P min-max scaled over ``column``
     (needs ``\\usepackage[table]{xcolor}``); lower NMSE = lighter."""
     vals = np.asarray([x for x in column if isinstance(x, (int, float, np.floating)) and math.isfinite(float(x))])
-    if not (isinstance(v, (float, np.floating)) and math.isfinite(float(v))) or vals.size == 0:
+    if _missing(v):
+        return "--"
+    if not isinstance(v, (float, np.floating)) or vals.size == 0:
         return _fmt(v, nd)
     lo, hi = float(vals.min()), float(vals.max())
     pct = int(round(99 * (float(v) - lo) / (hi - lo))) if hi > lo else 0
@@ -262,6 +454,7 @@ def _num(v):
 
 
 def _tex(s: str) -> str:
+    s = s.replace(MISSING, "--")
     if "$" in s or "\\" in s:
         return s
     return s.replace("_", r"\_").replace("%", r"\%").replace("&", r"\&").replace("#", r"\#")
