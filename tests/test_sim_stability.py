@@ -10,11 +10,12 @@ import pytest
 
 from embodied_tactile import constants as C
 from embodied_tactile.sim import PhysicsOverrides, contact_pressure, mechanics, qlv_relax, simulate_trial
+from embodied_tactile.sim import validation as V
 
 E_GRID = (1e3, 1e5, 3e7, 1e9, 1e10)  # Pa
 TAU_GRID = (1e-5, 1e-2, 1.0, 100.0)  # s
 AMP_GRID = (0.0, 15.0, 30.0)  # mm peak-to-peak
-FREQ_GRID = (0.0, 0.7, 2.0)  # Hz
+FREQ_GRID = (0.01, 0.7, 2.0)  # Hz (> 0: a frequency of 0 is refused; 0.01 Hz holds still over 0.5 s)
 
 
 def _cases():
@@ -54,6 +55,27 @@ def test_extreme_grid_finite_and_in_range():
                 _check(tr)
                 saturated += int((tr.fsr == C.FSR_MAX_COUNT).any())
     assert saturated >= 6  # the force_scale=1e6 cases really saturate
+
+
+#: The ends of the allowed ranges (sim/validation.py, docs/simulator.md), combined so that the
+#: largest forces (stiffest object, deepest surface, largest scale) meet.
+EDGES = [
+    PhysicsOverrides(youngs_modulus=V.YOUNGS_MODULUS_RANGE_PA[0], amplitude_mm=V.MAX_AMPLITUDE_MM, relaxation_time=1e-300),
+    PhysicsOverrides(youngs_modulus=V.YOUNGS_MODULUS_RANGE_PA[1], amplitude_mm=V.MAX_AMPLITUDE_MM, relaxation_time=1e300,
+                     force_scale=V.MAX_FORCE_SCALE, friction=V.MAX_FRICTION),
+    PhysicsOverrides(primitive_frequency_hz=0.999 * V.MAX_PRIMITIVE_FREQUENCY_HZ, friction=V.MAX_FRICTION, force_scale=1e-300),
+    PhysicsOverrides(primitive_frequency_hz=1e-6, amplitude_mm=0.0, friction=0.0, lift_off=True),
+]
+
+
+@pytest.mark.filterwarnings("error")
+def test_allowed_range_edges_finite_and_in_range():
+    with np.errstate(divide="raise", over="raise", invalid="raise"):
+        for k, phys in enumerate(EDGES):
+            for prim in C.PRIMITIVES:
+                for oid, skin in ((6, "hard"), (27, "soft")):
+                    _check(simulate_trial(oid, skin, prim, 15, duration=0.5, physics=phys))
+            _check(simulate_trial(8, C.SKINS[k % 2], C.PRIMITIVES[k % 3], k, duration=V.MIN_DURATION_S, physics=phys))
 
 
 @pytest.mark.filterwarnings("error")

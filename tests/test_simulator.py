@@ -22,6 +22,7 @@ from embodied_tactile.sim import (
     simulate_trial,
 )
 from embodied_tactile.sim import objects as O
+from embodied_tactile.sim.dataset import PENDING_ATTR, OutputFileError
 
 SLIDE_FAST = 15  # A_xy 8 mm, A_gamma 6 deg, 0.8 Hz
 PRESS_DEEP = 15  # A_z 8 mm, 0.8 Hz
@@ -65,7 +66,8 @@ def test_full_trial_shapes_ranges_and_clock():
     # quantised to 1/16384 g; gravity on the skin-normal axis; a noise floor of a few mg
     assert np.allclose(tr.acc * C.ACC_COUNTS_PER_G, np.rint(tr.acc * C.ACC_COUNTS_PER_G))
     assert 0.95 < tr.acc[..., 2].mean() < 1.05 and abs(tr.acc[..., 0].mean()) < 0.1
-    still = simulate_trial(5, "soft", "pressing", 0, duration=1.0, physics=PhysicsOverrides(primitive_frequency_hz=0.0))
+    # 1e-3 Hz: the robot holds still over 1 s (a frequency of 0 is refused)
+    still = simulate_trial(5, "soft", "pressing", 0, duration=1.0, physics=PhysicsOverrides(primitive_frequency_hz=1e-3))
     noise = still.acc[..., 2].astype(np.float64) - still.acc[..., 2].mean(0)
     assert 0.001 < noise.std() < 0.01
     # precession: commanded roll follows A sin(2 pi w t + pi/2), i.e. starts at +A
@@ -225,6 +227,10 @@ def test_saturation_and_lift_off():
     touched = ref.fsr > 100  # every taxel in contact saturates
     assert touched.mean() > 0.1 and (sat.fsr[touched] >= C.FSR_MAX_COUNT - 3).mean() > 0.9
     assert (sat.fsr[touched] == C.FSR_MAX_COUNT).mean() > 0.6
+    # ... but only the touched ones (PhysicsOverrides docstring): taxels out of contact keep
+    # their offsets, so far from every FSR sample saturates
+    assert (sat.fsr[~touched & (ref.fsr < 20)] < 20).mean() > 0.9
+    assert 0.05 < (sat.fsr == C.FSR_MAX_COUNT).mean() < 0.5
     lift = simulate_trial(6, "soft", "pressing", 0, duration=3.0, physics=PhysicsOverrides(lift_off=True))
     mid = (lift.t > 1.4) & (lift.t < 1.6)
     assert fsr_minus_offset(lift)[mid].max() < 10  # no contact: offsets + noise only
@@ -250,14 +256,18 @@ def test_generate_dataset_resumes_and_passes_scan(tmp_path):
     np.testing.assert_array_equal(tr.fsr, first)
     assert tr.attrs["heterogeneity"] == 0.0
     assert read_trial(path, "obj27_hard_pressing_a02_r00").attrs["heterogeneity"] == 1.0
-    # an interrupted write (attributes are written last) is redone on resume
+    # an interrupted write (attributes are written last; the simulator names the group it
+    # is writing in the file's simulator_writing attribute first) is redone on resume
     with h5py.File(path, "a") as f:
         g = f["trials/obj27_hard_pressing_a02_r00"]
         for k in list(g.attrs):
             del g.attrs[k]
+        f.attrs[PENDING_ATTR] = "obj27_hard_pressing_a02_r00"
     generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 27], actions=[1, 2], duration=0.5, workers=1)
     good, errors = scan_raw(path)
     assert errors == [] and len(good) == 4
+    with h5py.File(path, "r") as f:
+        assert PENDING_ATTR not in f.attrs
 
 
 def test_cli_writes_requested_trials(tmp_path):
@@ -273,3 +283,115 @@ def test_cli_writes_requested_trials(tmp_path):
         f"obj{o:02d}_soft_sliding_a{a:02d}_r00" for o in (0, 1) for a in (0, 5)
     ]
     assert all(g.attrs["source"] == "simulated" for g in good)
+
+
+# --------------------------------------------------------------------------- never delete data
+def _digest(path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _write_trial_as(path, source: str, *, drop: str | None = None, object_id: int = 0, action: int = 1) -> str:
+    """Write a short trial marked ``source`` into ``path``, optionally without dataset ``drop``."""
+    import dataclasses
+
+    from embodied_tactile.io.rawformat import write_trial
+
+    tr = simulate_trial(object_id, "hard", "pressing", action, duration=0.5)
+    name = write_trial(path, dataclasses.replace(tr, attrs={**tr.attrs, "source": source}))
+    if drop:
+        with h5py.File(path, "a") as f:
+            del f["trials"][name][drop]
+    return name
+
+
+@pytest.mark.parametrize("drop", [None, "tactile/fsr"])
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_file_with_recorded_trials_is_never_modified(tmp_path, drop, overwrite):
+    """A recorded trial, complete or lacking a sensor field, is left byte-for-byte intact:
+    the simulator refuses the whole file, naming it, before writing anything."""
+    path = tmp_path / "recorded.h5"
+    name = _write_trial_as(path, "recorded", drop=drop)
+    before = _digest(path)
+    for objects in ([0], [8]):  # the recorded trial's own name, and another trial
+        with pytest.raises(OutputFileError) as info:
+            generate_dataset(path, skin="hard", primitive="pressing", objects=objects, actions=[1], duration=0.5,
+                             workers=1, overwrite=overwrite)
+        assert str(path) in str(info.value) and name in str(info.value) and "recorded" in str(info.value)
+        assert _digest(path) == before
+
+
+def test_unmarked_incomplete_group_is_not_deleted(tmp_path):
+    """A group without attributes that the simulator did not mark as its own write (no
+    simulator_writing attribute naming it) may be anyone's: it is left intact."""
+    path = tmp_path / "raw.h5"
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0], actions=[1, 2], duration=0.5, workers=1)
+    with h5py.File(path, "a") as f:
+        g = f["trials/obj00_hard_pressing_a02_r00"]
+        for k in list(g.attrs):
+            del g.attrs[k]
+    before = _digest(path)
+    with pytest.raises(OutputFileError, match="obj00_hard_pressing_a02_r00"):
+        generate_dataset(path, skin="hard", primitive="pressing", objects=[0], actions=[1, 2], duration=0.5, workers=1)
+    assert _digest(path) == before
+
+
+def test_only_missing_simulated_trials_are_simulated(tmp_path, monkeypatch):
+    from embodied_tactile.sim import dataset as D
+
+    path = tmp_path / "raw.h5"
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0], actions=[1, 2], duration=0.5, workers=1)
+    calls = []
+    real = D.simulate_trial
+    monkeypatch.setattr(D, "simulate_trial", lambda *a, **k: calls.append(a[:5]) or real(*a, **k))
+    with h5py.File(path, "r") as f:
+        kept = {n: f["trials"][n]["tactile/fsr"].id.get_offset() for n in f["trials"]}
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 8], actions=[1, 2], duration=0.5, workers=1)
+    assert calls == [(8, "hard", "pressing", 1, 0), (8, "hard", "pressing", 2, 0)]
+    with h5py.File(path, "r") as f:
+        assert {n: f["trials"][n]["tactile/fsr"].id.get_offset() for n in kept} == kept  # not rewritten
+    # a simulated trial that lacks a sensor field is not deleted and re-simulated: an error
+    # names file, trial and field, and the file is unchanged ...
+    with h5py.File(path, "a") as f:
+        del f["trials/obj08_hard_pressing_a02_r00/tactile/acc"]
+    before = _digest(path)
+    calls.clear()
+    with pytest.raises(OutputFileError) as info:
+        generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 8], actions=[1, 2], duration=0.5, workers=1)
+    assert str(path) in str(info.value) and "obj08_hard_pressing_a02_r00" in str(info.value) and "tactile/acc" in str(info.value)
+    assert _digest(path) == before and calls == []
+    # ... trials not requested are left alone, damaged or not ...
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0], actions=[1, 2], duration=0.5, workers=1)
+    assert _digest(path) == before and calls == []
+    # ... and overwrite=true regenerates it (a simulated trial: the simulator's own)
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[8], actions=[2], duration=0.5, workers=1, overwrite=True)
+    assert calls == [(8, "hard", "pressing", 2, 0)]
+    good, errors = scan_raw(path)
+    assert errors == [] and len(good) == 4
+
+
+def test_file_that_is_not_a_raw_file_is_left_alone(tmp_path):
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as f:
+        f["calibration"] = np.arange(3)
+    before = _digest(path)
+    with pytest.raises(OutputFileError, match="calibration"):
+        generate_dataset(path, skin="hard", primitive="pressing", objects=[0], actions=[1], duration=0.5, workers=1)
+    assert _digest(path) == before
+    path.write_bytes(b"not hdf5")
+    with pytest.raises(OutputFileError, match="cannot be opened"):
+        generate_dataset(path, skin="hard", primitive="pressing", objects=[0], actions=[1], duration=0.5, workers=1)
+    assert path.read_bytes() == b"not hdf5"
+
+
+def test_cli_refuses_a_recorded_file_with_exit_2(tmp_path, capsys):
+    from embodied_tactile.simulate import main
+
+    path = tmp_path / "recorded.h5"
+    _write_trial_as(path, "recorded")
+    before = _digest(path)
+    rc = main([f"out={path}", "skin=hard", "primitive=pressing", "objects=[8]", "actions=[1]", "duration=0.5", "workers=1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and str(path) in err[0]
+    assert _digest(path) == before

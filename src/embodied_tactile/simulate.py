@@ -5,6 +5,8 @@
 
 Every field of :class:`SimulateConfig` can be overridden with ``key=value`` (OmegaConf
 dotlist syntax); ``objects`` / ``actions`` default to the whole catalogue / action table.
+An invalid value (ranges in docs/simulator.md) or an output file the simulator may not
+write into exits with status 2 and a one-line message on stderr; nothing is written.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from embodied_tactile import constants as C
 
@@ -49,25 +52,35 @@ def main(argv: list[str] | None = None) -> int:
         print(__doc__)
         print(OmegaConf.to_yaml(OmegaConf.structured(SimulateConfig)))
         return 0
-    cfg = parse(argv)
-    logging.basicConfig(level=getattr(logging, str(cfg.log_level).upper(), logging.INFO), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from embodied_tactile.sim import PhysicsOverrides, generate_dataset
+    from embodied_tactile.sim import OutputFileError, SimParameterError, generate_dataset
+    from embodied_tactile.sim.validation import physics_overrides
 
-    physics = PhysicsOverrides(**OmegaConf.to_container(cfg.physics)) if cfg.physics else None
+    try:
+        cfg = parse(argv)
+        out = str(cfg.out)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None)
+        print(f"simulate: error: {key + ': ' if key else ''}{str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=getattr(logging, str(cfg.log_level).upper(), logging.INFO), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     t0 = time.perf_counter()
-    path = generate_dataset(
-        cfg.out,
-        skin=cfg.skin,
-        primitive=cfg.primitive,
-        objects=[int(o) for o in cfg.objects],
-        actions=[int(a) for a in cfg.actions],
-        repetitions=int(cfg.repetitions),
-        seed=int(cfg.seed),
-        workers=int(cfg.workers),
-        overwrite=bool(cfg.overwrite),
-        duration=float(cfg.duration),
-        physics=physics,
-    )
+    try:
+        path = generate_dataset(
+            out,
+            skin=cfg.skin,
+            primitive=cfg.primitive,
+            objects=list(cfg.objects),
+            actions=list(cfg.actions),
+            repetitions=cfg.repetitions,
+            seed=cfg.seed,
+            workers=cfg.workers,
+            overwrite=cfg.overwrite,
+            duration=cfg.duration,
+            physics=physics_overrides(OmegaConf.to_container(cfg.physics) if cfg.physics else None),
+        )
+    except (SimParameterError, OutputFileError) as exc:
+        print(f"simulate: error: {exc}", file=sys.stderr)
+        return 2
     logging.getLogger("embodied_tactile.simulate").info("wrote %s in %.1f s", path, time.perf_counter() - t0)
     return 0
 

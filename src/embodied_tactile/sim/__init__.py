@@ -1,12 +1,15 @@
 """Physically grounded palpation simulator (NumPy/SciPy only; see docs/simulator.md)."""
 
-from embodied_tactile.sim.dataset import generate_dataset
+from embodied_tactile.sim.dataset import OutputFileError, generate_dataset
 from embodied_tactile.sim.physics import Mechanics, PhysicsOverrides, contact_pressure, mechanics, qlv_relax
 from embodied_tactile.sim.trial import force_indentation, fsr_counts, simulate_trial
+from embodied_tactile.sim.validation import SimParameterError
 
 __all__ = [
     "Mechanics",
+    "OutputFileError",
     "PhysicsOverrides",
+    "SimParameterError",
     "contact_pressure",
     "force_indentation",
     "fsr_counts",

@@ -1,4 +1,10 @@
-"""Generate many simulated trials into one raw HDF5 file (resumable)."""
+"""Generate many simulated trials into one raw HDF5 file (resumable, never deleting data).
+
+Ownership rules (docs/data_format.md, "What is never deleted"): the simulator writes only
+into a new file or a file whose every trial is marked ``source="simulated"``; it adds only
+the trials that are missing; the one group it may remove is its own interrupted write,
+which it names in the file's ``simulator_writing`` attribute before creating the group.
+"""
 
 from __future__ import annotations
 
@@ -14,32 +20,75 @@ from embodied_tactile import constants as C
 from embodied_tactile.io.rawformat import make_attrs, trial_name, write_trial
 from embodied_tactile.sim.physics import PhysicsOverrides
 from embodied_tactile.sim.trial import simulate_trial
+from embodied_tactile.sim.validation import SimParameterError, check_choice, check_duration, check_int, check_overrides
 
 log = logging.getLogger(__name__)
 
 
 _NEEDED = ("tactile/t", "tactile/acc", "tactile/fsr", "pose/t", "pose/ee")
+#: Root attribute naming the trial group the simulator is writing right now. It is set (and
+#: flushed) before the group is created and removed once the group is complete, so a group
+#: it names after a crash is the simulator's own half-written trial.
+PENDING_ATTR = "simulator_writing"
 
 
-def _existing(path: Path, seed: int) -> set[str]:
-    """Names of the complete trials already in ``path``. A group left half-written by an
-    interrupted run (write_trial sets the attributes last) is deleted so it is redone."""
+class OutputFileError(ValueError):
+    """The output file holds data the simulator must not alter. Names file and trial."""
+
+    def __init__(self, file: str | os.PathLike, trial: str, problem: str):
+        self.file, self.trial, self.problem = str(file), trial, problem
+        super().__init__(f"{self.file}: trial {trial!r}: {problem}")
+
+    def __reduce__(self):
+        return (type(self), (self.file, self.trial, self.problem))
+
+
+def _text(v: object) -> str | None:
+    return v.decode() if isinstance(v, bytes) else (None if v is None else str(v))
+
+
+def _inventory(path: Path, seed: int) -> tuple[set[str], dict[str, str], str | None]:
+    """Read ``path`` (read-only) and return (complete simulated trials, damaged simulated
+    trials -> what they lack, the simulator's own interrupted group or None).
+
+    Raises :class:`OutputFileError` if the file holds anything the simulator did not write
+    and mark: a trial whose ``source`` is not ``"simulated"`` (recorded, or no attributes),
+    or content outside ``/trials``. Such a file is never opened for writing.
+    """
     if not path.exists():
-        return set()
-    done: set[str] = set()
-    with h5py.File(path, "a") as f:
+        return set(), {}, None
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise OutputFileError(path, "*", f"cannot be opened as HDF5 ({exc}); simulated trials are only written into a new or a simulated raw file") from None
+    complete: set[str] = set()
+    damaged: dict[str, str] = {}
+    with f:
+        other = sorted(k for k in f.keys() if k != "trials")
+        if other:
+            raise OutputFileError(path, "*", f"holds {other}, not only /trials: not a simulated raw file; choose another output file")
         if "trials" not in f:
-            return done
-        for name in list(f["trials"].keys()):
+            return complete, damaged, None
+        pending = _text(f.attrs.get(PENDING_ATTR))
+        for name in f["trials"].keys():
+            if name == pending:
+                continue
             g = f["trials"][name]
-            if "seed" in g.attrs and all(p in g for p in _NEEDED):
-                done.add(name)
-                if int(g.attrs["seed"]) != int(seed):
-                    log.warning("%s: trial %s was simulated with seed %s, not %s", path, name, g.attrs["seed"], seed)
-            else:
-                log.warning("%s: removing incomplete trial %s (interrupted run)", path, name)
-                del f["trials"][name]
-    return done
+            source = _text(g.attrs.get("source"))
+            if source != "simulated":
+                raise OutputFileError(
+                    path, name,
+                    f"source={source!r}, not 'simulated': the file holds trials the simulator did not write, "
+                    "and simulated trials are never written into such a file (it is left unchanged); choose another output file",
+                )
+            lacks = [p for p in _NEEDED if p not in g] + (["attrs/seed"] if "seed" not in g.attrs else [])
+            if lacks:
+                damaged[name] = ", ".join(lacks)
+                continue
+            complete.add(name)
+            if int(g.attrs["seed"]) != int(seed):
+                log.warning("%s: trial %s was simulated with seed %s, not %s", path, name, g.attrs["seed"], seed)
+        return complete, damaged, pending if pending is not None and pending in f["trials"] else None
 
 
 def _job(args: tuple) -> object:
@@ -69,39 +118,68 @@ def generate_dataset(
 ) -> Path:
     """Simulate objects x actions x repetitions trials of one skin and primitive into ``path``.
 
-    Trials already in the file are skipped (an interrupted run resumes) unless
-    ``overwrite``, which regenerates them. Simulation runs in a pool of ``workers``
-    processes; only the parent writes, one trial at a time, in deterministic order.
+    Only missing trials are simulated (an interrupted run resumes); ``overwrite``
+    regenerates the requested trials. The file must be new or hold simulated trials only
+    (:class:`OutputFileError` otherwise, before anything is written); a requested simulated
+    trial that lacks a field is an error too, unless ``overwrite``. Every argument is
+    checked first (``SimParameterError``). Simulation runs in a pool of ``workers``
+    processes (0 or 1: in this process); only the parent writes, one trial at a time, in
+    deterministic order.
     """
-    if skin not in C.SKINS:
-        raise ValueError(f"skin must be one of {C.SKINS}, got {skin!r}")
-    if primitive not in C.PRIMITIVES:
-        raise ValueError(f"primitive must be one of {C.PRIMITIVES}, got {primitive!r}")
+    skin = check_choice("skin", skin, C.SKINS)
+    primitive = check_choice("primitive", primitive, C.PRIMITIVES)
+    objects = list(dict.fromkeys(check_int(f"objects[{i}]", o, 0, C.N_OBJECTS - 1) for i, o in enumerate(objects)))
+    actions = list(dict.fromkeys(check_int(f"actions[{i}]", a, 0, C.N_ACTIONS - 1) for i, a in enumerate(actions)))
+    if not objects:
+        raise SimParameterError("objects", objects, f"a non-empty list of object ids 0..{C.N_OBJECTS - 1}")
+    if not actions:
+        raise SimParameterError("actions", actions, f"a non-empty list of action indices 0..{C.N_ACTIONS - 1}")
+    repetitions = check_int("repetitions", repetitions, 1)
+    seed = check_int("seed", seed, 0)
+    workers = check_int("workers", workers, 0)
+    duration = check_duration(duration)
+    check_overrides(physics)
+    if not isinstance(overwrite, bool):
+        raise SimParameterError("overwrite", overwrite, "true or false")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    done = set() if overwrite else _existing(path, seed)
+    complete, damaged, partial = _inventory(path, seed)
     jobs = []
     for o in objects:
         for a in actions:
-            for r in range(int(repetitions)):
+            for r in range(repetitions):
                 name = trial_name(make_attrs(object_id=o, skin=skin, primitive=primitive, action_index=a, repetition=r, source="simulated", seed=seed))
-                if name not in done:
-                    jobs.append((int(o), skin, primitive, int(a), r, int(seed), float(duration), physics))
-    log.info("%s: %d trials to simulate (%d already present)", path, len(jobs), len(done))
-    if not jobs:
-        with h5py.File(path, "a") as f:  # make sure the file exists with its root attrs
-            f.require_group("trials")
+                if name in damaged and not overwrite:
+                    raise OutputFileError(
+                        path, name,
+                        f"simulated trial lacks {damaged[name]}; the simulator never deletes a trial: "
+                        "remove it yourself or pass overwrite=true to regenerate it",
+                    )
+                if overwrite or name not in complete:
+                    jobs.append((o, skin, primitive, a, r, seed, duration, physics))
+    log.info("%s: %d trials to simulate (%d already present)", path, len(jobs), len(complete))
+    if not jobs and partial is None:
         return path
+    path.parent.mkdir(parents=True, exist_ok=True)
     with h5py.File(path, "a") as f:
+        if partial is not None:
+            log.warning("%s: removing trial %s, left half-written by an interrupted simulator run", path, partial)
+            del f["trials"][partial]
+            del f.attrs[PENDING_ATTR]
+            f.flush()
+
+        def write(trial) -> None:
+            f.attrs[PENDING_ATTR] = trial.name
+            f.flush()  # the mark reaches the file before the group does
+            write_trial(f, trial, overwrite=overwrite)
+            del f.attrs[PENDING_ATTR]
+
         if workers <= 1:
-            results = map(_job, jobs)
-            for trial in results:
-                write_trial(f, trial, overwrite=overwrite)
+            for trial in map(_job, jobs):
+                write(trial)
         else:
-            with ProcessPoolExecutor(max_workers=int(workers), initializer=_init_worker) as pool:
+            with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker) as pool:
                 for i, trial in enumerate(pool.map(_job, jobs, chunksize=4)):
-                    write_trial(f, trial, overwrite=overwrite)
+                    write(trial)
                     if (i + 1) % 64 == 0:
-                        f.flush()
                         log.info("%s: %d / %d trials", path, i + 1, len(jobs))
     return path

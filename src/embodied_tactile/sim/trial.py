@@ -6,10 +6,11 @@ import numpy as np
 from scipy import optimize, signal
 
 from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import RawTrial, make_attrs
+from embodied_tactile.io.rawformat import RawTrial, make_attrs, trial_name
 from embodied_tactile.sim import objects as O
 from embodied_tactile.sim import physics as P
 from embodied_tactile.sim.physics import PhysicsOverrides
+from embodied_tactile.sim.validation import check_choice, check_int, check_overrides, check_trial
 
 _STREAMS = ("placement", "tracking", "fsr", "acc", "stickslip", "clock")
 _DEVICE_ENTROPY = 0xE5_C1A1  # per-skin calibration (offsets, gains): the same device every trial
@@ -168,11 +169,29 @@ def _device(skin: str):
 
 
 def fsr_counts(force_n: np.ndarray, gain: np.ndarray | float = 1.0) -> np.ndarray:
-    """Noise-free FSR counts: conductance ~ (gain F)^0.7 in a divider into the 12-bit ADC
-    (``gain``: per-taxel sensitivity; the divider output saturates at full scale)."""
+    """Noise-free FSR counts (float32): conductance ~ (gain F)^0.7 in a divider into the
+    12-bit ADC, 4095 x / (1 + x) with x = ((gain F - 5 mN) / 0.15 N)^0.7 (``gain``: per-taxel
+    sensitivity). The divider approaches full scale without reaching it: half scale at
+    0.15 N, within 3 counts of 4095 from about 4.5e3 N, within 0.5 count (rounds to 4095)
+    from about 5.8e4 N."""
     f = np.maximum(force_n * gain - np.float32(P.FSR_ACTIVATION_N), 0)
     x = (f / np.float32(P.FSR_HALF_N)) ** np.float32(P.FSR_EXPONENT)
     return np.float32(C.FSR_MAX_COUNT) * x / (1 + x)
+
+
+def quantise(values: np.ndarray, lo: float, hi: float, *, trial: str, field: str) -> np.ndarray:
+    """Round ``values`` (float, in ADC steps) to the nearest step and clip to [lo, hi], in
+    place. Non-finite values are refused with a FloatingPointError naming the trial and
+    field: rounding or clipping would turn NaN into an arbitrary integer count."""
+    bad = ~np.isfinite(values)
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise FloatingPointError(
+            f"simulated trial {trial!r}, field {field!r}: {int(bad.sum())} non-finite value(s) before "
+            f"quantisation, first at index {first}; refusing to convert them to ADC counts"
+        )
+    np.rint(values, out=values)
+    return np.clip(values, lo, hi, out=values)
 
 
 def simulate_trial(
@@ -186,9 +205,11 @@ def simulate_trial(
     duration: float = C.TRIAL_DURATION,
     physics: PhysicsOverrides | None = None,
 ) -> RawTrial:
-    """Simulate one trial. Deterministic per (seed, object, skin, primitive, action, repetition)."""
-    if skin not in C.SKINS:
-        raise ValueError(f"skin must be one of {C.SKINS}, got {skin!r}")
+    """Simulate one trial. Deterministic: the same arguments (seed, object, skin, primitive,
+    action, repetition, duration, physics) give identical arrays. Every argument is checked
+    first (:func:`embodied_tactile.sim.validation.check_trial`, ``SimParameterError``)."""
+    check_trial(object_id, skin, primitive, action_index, repetition, seed, duration, physics)
+    name = trial_name(dict(object_id=object_id, skin=skin, primitive=primitive, action_index=action_index, repetition=repetition))
     physics = physics or PhysicsOverrides()
     obj = C.get_object(object_id)
     action = C.get_action(primitive, action_index)
@@ -276,8 +297,7 @@ def simulate_trial(
     # resistance noise enters through the divider slope c (1 - c / full): none at the rails
     noise *= counts * (np.float32(P.FSR_NOISE_REL) - counts * np.float32(P.FSR_NOISE_REL / C.FSR_MAX_COUNT)) + np.float32(P.FSR_NOISE_COUNTS)
     counts += noise
-    np.rint(counts, out=counts)
-    fsr = np.clip(counts, 0, C.FSR_MAX_COUNT, out=counts).astype(np.uint16)
+    fsr = quantise(counts, 0, C.FSR_MAX_COUNT, trial=name, field="tactile/fsr").astype(np.uint16)
 
     # ---------------------------------------------------------------- accelerometers (700 Hz)
     cmd_t, acc_cmd = command(primitive, action.params, t_tac, duration, physics)
@@ -328,7 +348,7 @@ def simulate_trial(
     acc = acc.reshape(n_t, *C.ACC_GRID, 3) + acc_off
     acc += rng["acc"].standard_normal(acc.shape) * P.ACC_NOISE_G
     lsb = 1.0 / C.ACC_COUNTS_PER_G
-    acc = np.clip(np.rint(acc / lsb), -C.ACC_RANGE_G * C.ACC_COUNTS_PER_G, C.ACC_RANGE_G * C.ACC_COUNTS_PER_G - 1) * lsb
+    acc = quantise(acc / lsb, -C.ACC_RANGE_G * C.ACC_COUNTS_PER_G, C.ACC_RANGE_G * C.ACC_COUNTS_PER_G - 1, trial=name, field="tactile/acc") * lsb
     acc = acc.astype(np.float32)
 
     # ---------------------------------------------------------------- recorded pose
@@ -358,6 +378,9 @@ def force_indentation(
     """Quasi-static (relaxed) normal force (N) of the skin pressed flat onto the object's
     contact surface at the nominal trial position, for indentations ``depths_m`` measured
     from first touch. The same contact law the trials integrate."""
+    check_int("object_id", object_id, 0, C.N_OBJECTS - 1)
+    check_choice("skin", skin, C.SKINS)
+    check_overrides(physics)
     physics = physics or PhysicsOverrides()
     obj = C.get_object(object_id)
     mech = P.mechanics(obj, skin, physics)
