@@ -148,3 +148,68 @@ def test_check_finite_names_step_and_term():
     with pytest.raises(FloatingPointError, match=r"non-finite loss at step 17: kl_y=nan"):
         check_finite(17, t)
     check_finite(3, terms(), torch.tensor(1.0))
+
+
+# ------------------------------------------------------------------ lengths that fit the run
+def _full_weight(s, step):
+    """Whether a schedule weighs every term fully at ``step``."""
+    if isinstance(s, DVBFAnnealing):
+        return s.weight(step) == 1.0
+    if isinstance(s, LinearKLWarmup):
+        return s.weight(step) == 1.0
+    if isinstance(s, GeometricKLWeights):
+        return s.weights(step) == pytest.approx((s.z_end, s.y_end))
+    return isinstance(s, NoAnnealing)
+
+
+def test_fraction_resolves_against_the_run_and_needs_resolving_in_training():
+    s = LinearKLWarmup(beta0=0.0, fraction=0.25)
+    s.train()
+    with pytest.raises(RuntimeError, match="set_total_steps"):
+        s(0, terms())
+    s.set_total_steps(400)
+    assert s.n_steps == 100 and s.weight(50) == pytest.approx(0.5) and s.weight(100) == 1.0
+    s.eval()
+    fresh = LinearKLWarmup(fraction=0.25).eval()  # a loaded model outside fit: schedule finished
+    assert fresh.weight(0) == 1.0
+    with pytest.raises(ValueError, match="exactly one of n_steps"):
+        LinearKLWarmup(n_steps=10, fraction=0.1)
+    with pytest.raises(ValueError, match="fraction must be in"):
+        DVBFAnnealing(fraction=1.5)
+    with pytest.raises(ValueError, match="finite number of optimiser steps"):
+        DVBFAnnealing(fraction=0.5).set_total_steps(float("inf"))
+    # absolute lengths stay available and ignore the run's length
+    a = DVBFAnnealing(c0=0.0, T_A=1000)
+    a.set_total_steps(10)
+    assert a.weight(500) == pytest.approx(0.5)
+    assert build_schedule(s.config()).config() == s.config()
+
+
+def _configured(annealing, experiment):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.utils import instantiate
+
+    from conftest import REPO
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=[f"annealing={annealing}", f"experiment={experiment}"])
+    return instantiate(cfg.annealing.schedule), cfg
+
+
+@pytest.mark.parametrize("experiment", ["cpu_budget", "paper"])
+@pytest.mark.parametrize("annealing", ["none", "linear", "dvbf", "geometric", "constrained"])
+def test_every_annealing_reaches_full_weight_before_training_ends(annealing, experiment):
+    s, cfg = _configured(annealing, experiment)
+    if annealing == "constrained":  # adaptive: the KL switches on when the reconstruction constraint is met
+        assert not s.has_length
+        return
+    s.train()
+    # the experiment's own optimiser steps (32 objects x its actions, 25 % test, 12.5 % validation)
+    n_trials = 32 * len(cfg.data.actions or range(16))
+    n_train = n_trials - n_trials // 4 - round(0.125 * n_trials)
+    per_epoch = -(-n_train * int(cfg.data.windows_per_trial) // int(cfg.data.batch_size))
+    for total in (per_epoch * int(cfg.trainer.max_epochs), 2, 7):
+        s.set_total_steps(total)
+        assert _full_weight(s, total - 1), (annealing, experiment, total)

@@ -305,8 +305,49 @@ def test_nonfinite_loss_raises_with_step_and_term(tmp_path):
     with torch.no_grad():
         module.model.prior.raw_var.fill_(float("nan"))
     tr = trainer(tmp_path, limit_val_batches=0)
-    with pytest.raises(FloatingPointError, match=r"non-finite loss at step 0: kl_y=nan"):
+    with pytest.raises(FloatingPointError, match=r"non-finite loss at step 0: kl_y=nan") as err:
         tr.fit(module, DataLoader(ListDataset(batch), batch_size=2))
+    assert "train batch 0, finite inputs of batch row 0 (object_id " in str(err.value)
+
+
+def test_nonfinite_loss_in_validation_raises_with_step_term_and_batch(tmp_path):
+    torch.manual_seed(0)
+    batch = make_batch(1, B=2, T=4)
+    batch["trial"] = ["obj05_a", "obj09_b"]
+    module = LatentFilterModule("acc", **TINY)
+    with torch.no_grad():
+        module.model.prior.raw_var.fill_(float("nan"))
+    with pytest.raises(FloatingPointError, match=r"non-finite loss at step 0: kl_y=nan") as err:
+        trainer(tmp_path).validate(module, DataLoader(ListDataset(batch), batch_size=2), verbose=False)
+    msg = str(err.value)
+    assert "val batch 0" in msg and "trial 'obj05_a'" in msg and "trial 'obj09_b'" in msg
+
+
+def test_nonfinite_input_names_trial_and_frame_in_training_and_validation(tmp_path):
+    """A NaN / inf injected at known trials and frames: training_step and validation_step
+    raise before the forward pass, naming those trials, fields and frames (in trial
+    coordinates: a crop's first_frame is added), and no other trial."""
+    torch.manual_seed(0)
+    batch = make_batch(1, B=4, T=6)
+    batch["trial"] = [f"obj{i:02d}_act00_rep0" for i in range(4)]
+    batch["first_frame"] = torch.tensor([0, 0, 40, 0])
+    batch["obs"][2, 3, 0, 5, 5] = float("nan")
+    batch["actions"][3, 1, 2] = float("inf")
+    batch["actions"][3, 4, 0] = float("nan")
+    module = LatentFilterModule("acc", **TINY, optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
+    before = {k: v.clone() for k, v in module.state_dict().items()}
+    dl = DataLoader(ListDataset(batch), batch_size=4)
+    runs = {"train": lambda: trainer(tmp_path, limit_val_batches=0).fit(module, dl),
+            "val": lambda: trainer(tmp_path).validate(module, dl, verbose=False)}
+    for stage, run in runs.items():
+        with pytest.raises(FloatingPointError, match=rf"non-finite input at step 0 \({stage} batch 0\)") as err:
+            run()
+        msg = str(err.value)
+        assert "trial 'obj02_act00_rep0' (object_id " in msg and "obs frame 43" in msg
+        assert "trial 'obj03_act00_rep0'" in msg and "actions frames 1, 4" in msg
+        assert "obj00" not in msg and "obj01" not in msg
+    for k, v in module.state_dict().items():  # no step was taken
+        torch.testing.assert_close(v, before[k], rtol=0, atol=0, equal_nan=True)
 
 
 def test_hydra_instantiation_with_project_style_configs(tmp_path):
@@ -325,7 +366,7 @@ def test_hydra_instantiation_with_project_style_configs(tmp_path):
     })
     module = instantiate(cfg)
     assert set(module.model.encoders) == {"vibration", "force"}
-    assert module.hparams["annealing"] == {"name": "dvbf", "c0": 0.01, "T_A": 100.0}
+    assert module.hparams["annealing"] == {"name": "dvbf", "c0": 0.01, "T_A": 100.0, "fraction": None}
     assert module.hparams["optimizer"] == {"name": "Adam", "lr": 1e-5}
     assert type(module.hparams["modality"]) is dict
     opt = module.configure_optimizers()

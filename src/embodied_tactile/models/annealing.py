@@ -10,6 +10,15 @@ Stateful schedules keep their state in the state_dict (``_extra_state``), so it 
 
 Each schedule also has ``config()`` -> plain dict (``name`` + constructor kwargs) and
 :func:`build_schedule` rebuilds one from it (used for checkpoint-safe hyperparameters).
+
+Schedule lengths (DVBF ``T_A``, the warm-up's and the geometric weights' ``n_steps``) are
+given either as absolute optimiser steps or as ``fraction`` of the run's total optimiser
+steps. A fraction is resolved by :meth:`AnnealingSchedule.set_total_steps`, which the
+LightningModule calls at the start of ``fit`` with Lightning's
+``trainer.estimated_stepping_batches``, so a schedule always finishes within the run
+whatever its number of epochs, batch size or data size. Outside ``fit`` (evaluation of a
+trained model) an unresolved fraction counts as a finished schedule; in training mode it
+is an error.
 """
 
 from __future__ import annotations
@@ -42,12 +51,59 @@ class AnnealingSchedule(nn.Module):
 
     name = "base"
 
+    #: whether the schedule has a length (absolute steps or a fraction of the run)
+    has_length = False
+
     def __init__(self) -> None:
         super().__init__()
         self._config: dict[str, Any] = {}
+        self.fraction: Optional[float] = None
+        self._steps: Optional[float] = None  # absolute length, or the resolved fraction
+        self.total_steps: Optional[int] = None
 
     def config(self) -> dict[str, Any]:
         return {"name": self.name, **self._config}
+
+    def _init_length(self, what: str, steps: Optional[float], fraction: Optional[float]) -> None:
+        """Exactly one of ``steps`` (absolute optimiser steps, > 0) and ``fraction`` (of the
+        run's total optimiser steps, in (0, 1])."""
+        if (steps is None) == (fraction is None):
+            raise ValueError(f"{self.name} annealing: give exactly one of {what} (absolute optimiser steps) and "
+                             f"fraction (of the run's optimiser steps), got {what}={steps}, fraction={fraction}")
+        if fraction is not None:
+            if not 0.0 < float(fraction) <= 1.0:
+                raise ValueError(f"{self.name} annealing: fraction must be in (0, 1], got {fraction}")
+            self.fraction = float(fraction)
+        else:
+            if not float(steps) > 0:
+                raise ValueError(f"{self.name} annealing: {what} must be > 0, got {steps}")
+            self._steps = float(steps)
+
+    def set_total_steps(self, total_steps: float) -> None:
+        """Resolve a fractional length against the run's total optimiser steps."""
+        if self.fraction is None:
+            return
+        if not math.isfinite(float(total_steps)) or total_steps < 1:
+            raise ValueError(f"{self.name} annealing with fraction={self.fraction} needs a finite number of "
+                             f"optimiser steps (set trainer.max_epochs or max_steps), got {total_steps}")
+        self.total_steps = int(total_steps)
+        self._steps = max(1.0, self.fraction * self.total_steps)
+
+    def progress(self, step: int, length: Optional[float] = None) -> float:
+        """``min(1, step / length)``; ``length`` defaults to the schedule's own."""
+        length = self.length if length is None else length
+        return 1.0 if length is None else min(max(step, 0) / length, 1.0)
+
+    @property
+    def length(self) -> Optional[float]:
+        """Length in optimiser steps; None = unresolved fraction outside training (finished)."""
+        if self._steps is None and self.fraction is not None:
+            if self.training:
+                raise RuntimeError(f"{self.name} annealing: its length is fraction={self.fraction} of the run's "
+                                   "optimiser steps; call set_total_steps(total) first (the LightningModule does "
+                                   "at the start of fit)")
+            return None
+        return self._steps
 
     def forward(self, step: int, terms: Mapping[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
         missing = [k for k in ("nll", "kl_z", "kl_y") if k not in terms]
@@ -74,7 +130,7 @@ class NoAnnealing(AnnealingSchedule):
 class DVBFAnnealing(AnnealingSchedule):
     """DVBF annealing (Karl et al. 2017, as in their original code).
 
-    ``c = min(1, c0 + step / T_A)`` and
+    ``c = min(1, c0 + step / T_A)`` (``T_A`` absolute, or ``fraction`` x the run's steps) and
     ``loss = c * (nll + kl_z + kl_y) - (1 - c) * entropy``
     i.e. -E_q[c log p(o|z) + c log p(z, y) - log q(z, y)]: the prior and likelihood are
     tempered while the full entropy of q is kept (an entropy bonus that keeps posteriors
@@ -84,15 +140,22 @@ class DVBFAnnealing(AnnealingSchedule):
 
     name = "dvbf"
 
-    def __init__(self, c0: float = 0.01, T_A: float = 1e5) -> None:
+    has_length = True
+
+    def __init__(self, c0: float = 0.01, T_A: Optional[float] = None, fraction: Optional[float] = None) -> None:
         super().__init__()
-        if not 0.0 <= c0 <= 1.0 or T_A <= 0:
-            raise ValueError(f"dvbf annealing needs 0 <= c0 <= 1 and T_A > 0, got c0={c0}, T_A={T_A}")
-        self.c0, self.T_A = float(c0), float(T_A)
-        self._config = {"c0": self.c0, "T_A": self.T_A}
+        if not 0.0 <= c0 <= 1.0:
+            raise ValueError(f"dvbf annealing needs 0 <= c0 <= 1, got c0={c0}")
+        self.c0 = float(c0)
+        self._init_length("T_A", T_A, fraction)
+        self._config = {"c0": self.c0, "T_A": None if T_A is None else float(T_A), "fraction": self.fraction}
+
+    @property
+    def T_A(self) -> Optional[float]:
+        return self.length
 
     def weight(self, step: int) -> float:
-        return min(1.0, self.c0 + step / self.T_A)
+        return min(1.0, self.c0 + self.progress(step))
 
     def _loss(self, step, terms):
         c = self.weight(step)
@@ -103,7 +166,8 @@ class DVBFAnnealing(AnnealingSchedule):
 
 
 class LinearKLWarmup(AnnealingSchedule):
-    """Linear KL warm-up: ``beta = min(1, beta0 + (1 - beta0) * step / n_steps)``,
+    """Linear KL warm-up: ``beta = min(1, beta0 + (1 - beta0) * step / n_steps)`` (``n_steps``
+    absolute, or ``fraction`` x the run's optimiser steps),
     ``loss = nll + beta * (kl_z + y_weight * kl_y)``.
 
     ``y_weight`` (default 1: the plain ELBO at the end of the warm-up) up-weights the
@@ -114,17 +178,26 @@ class LinearKLWarmup(AnnealingSchedule):
 
     name = "linear"
 
-    def __init__(self, beta0: float = 0.0, n_steps: int = 10000, y_weight: float = 1.0) -> None:
+    has_length = True
+
+    def __init__(self, beta0: float = 0.0, n_steps: Optional[int] = None, y_weight: float = 1.0,
+                 fraction: Optional[float] = None) -> None:
         super().__init__()
-        if not 0.0 <= beta0 <= 1.0 or n_steps <= 0:
-            raise ValueError(f"linear warm-up needs 0 <= beta0 <= 1 and n_steps > 0, got {beta0}, {n_steps}")
+        if not 0.0 <= beta0 <= 1.0:
+            raise ValueError(f"linear warm-up needs 0 <= beta0 <= 1, got {beta0}")
         if not y_weight > 0:
             raise ValueError(f"linear warm-up needs y_weight > 0, got {y_weight}")
-        self.beta0, self.n_steps, self.y_weight = float(beta0), int(n_steps), float(y_weight)
-        self._config = {"beta0": self.beta0, "n_steps": self.n_steps, "y_weight": self.y_weight}
+        self.beta0, self.y_weight = float(beta0), float(y_weight)
+        self._init_length("n_steps", None if n_steps is None else int(n_steps), fraction)
+        self._config = {"beta0": self.beta0, "n_steps": None if n_steps is None else int(n_steps),
+                        "fraction": self.fraction, "y_weight": self.y_weight}
+
+    @property
+    def n_steps(self) -> Optional[float]:
+        return self.length
 
     def weight(self, step: int) -> float:
-        return min(1.0, self.beta0 + (1.0 - self.beta0) * step / self.n_steps)
+        return min(1.0, self.beta0 + (1.0 - self.beta0) * self.progress(step))
 
     def _loss(self, step, terms):
         beta = self.weight(step)
@@ -134,23 +207,31 @@ class LinearKLWarmup(AnnealingSchedule):
 class GeometricKLWeights(AnnealingSchedule):
     """Geometric KL weights of the authors' earlier code, separate for z and y:
     ``w(i) = w_start * (w_end / w_start) ** (min(i, n_steps) / n_steps)`` (constant w_end
-    after ``n_steps``), ``loss = nll + w_z(step) * kl_z + w_y(step) * kl_y``.
+    after ``n_steps``; absolute, or ``fraction`` x the run's optimiser steps),
+    ``loss = nll + w_z(step) * kl_z + w_y(step) * kl_y``.
     Defaults z: 100 -> 200, y: 1 -> 20 (they pair with a fixed-sigma likelihood)."""
 
     name = "geometric"
 
+    has_length = True
+
     def __init__(self, z_start: float = 100.0, z_end: float = 200.0, y_start: float = 1.0,
-                 y_end: float = 20.0, n_steps: int = 10000) -> None:
+                 y_end: float = 20.0, n_steps: Optional[int] = None, fraction: Optional[float] = None) -> None:
         super().__init__()
-        if min(z_start, z_end, y_start, y_end) <= 0 or n_steps <= 0:
-            raise ValueError("geometric weights must be > 0 and n_steps > 0")
+        if min(z_start, z_end, y_start, y_end) <= 0:
+            raise ValueError("geometric weights must be > 0")
         self.z_start, self.z_end, self.y_start, self.y_end = map(float, (z_start, z_end, y_start, y_end))
-        self.n_steps = int(n_steps)
+        self._init_length("n_steps", None if n_steps is None else int(n_steps), fraction)
         self._config = {"z_start": self.z_start, "z_end": self.z_end, "y_start": self.y_start,
-                        "y_end": self.y_end, "n_steps": self.n_steps}
+                        "y_end": self.y_end, "n_steps": None if n_steps is None else int(n_steps),
+                        "fraction": self.fraction}
+
+    @property
+    def n_steps(self) -> Optional[float]:
+        return self.length
 
     def weights(self, step: int) -> tuple[float, float]:
-        f = min(max(step, 0), self.n_steps) / self.n_steps
+        f = self.progress(step)
         return (self.z_start * (self.z_end / self.z_start) ** f,
                 self.y_start * (self.y_end / self.y_start) ** f)
 

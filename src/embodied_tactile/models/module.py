@@ -44,6 +44,37 @@ def _optimizer_factory(optimizer: Any) -> Callable:
     raise TypeError(f"optimizer must be a callable (functools.partial) or a mapping, got {type(optimizer).__name__}")
 
 
+def _trial_label(batch: Mapping[str, Any], row: int) -> str:
+    """``trial 'name' (object_id 8, action_index 10)``, or ``batch row 3 (...)`` for a batch
+    without ``trial`` names."""
+    trials = batch.get("trial")
+    label = f"trial {trials[row]!r}" if trials is not None else f"batch row {row}"
+    ids = [f"{k} {int(batch[k][row])}" for k in ("object_id", "action_index") if k in batch]
+    return f"{label} ({', '.join(ids)})" if ids else label
+
+
+def nonfinite_inputs(batch: Mapping[str, Any], max_frames: int = 8) -> list[str]:
+    """Where a batch's ``obs`` / ``actions`` are NaN or infinite: one entry per trial and
+    field, e.g. ``"trial 'x' (object_id 8, action_index 10) obs frame 37"``. Frames count
+    from the start of the trial's preprocessed sequence (``first_frame`` of a crop added);
+    empty when every value is finite."""
+    first = batch.get("first_frame")
+    found = []
+    for key in ("obs", "actions"):
+        x = batch.get(key)
+        if not isinstance(x, Tensor) or not x.is_floating_point() or bool(torch.isfinite(x).all()):
+            continue
+        bad = ~torch.isfinite(x.detach()).flatten(2).all(-1)  # (B, T)
+        for row in bad.any(1).nonzero().flatten().tolist():
+            frames = bad[row].nonzero().flatten()
+            if first is not None:
+                frames = frames + int(first[row])
+            shown = ", ".join(str(f) for f in frames[:max_frames].tolist())
+            more = f" ... ({len(frames)} frames)" if len(frames) > max_frames else ""
+            found.append(f"{_trial_label(batch, row)} {key} frame{'s' if len(frames) > 1 else ''} {shown}{more}")
+    return found
+
+
 class LatentFilterModule(L.LightningModule):
     """Latent Filter training module for any modality (``fusion`` single|early|late).
 
@@ -64,7 +95,9 @@ class LatentFilterModule(L.LightningModule):
         optimizer: ``functools.partial(torch.optim.X, **kw)`` (Hydra ``_partial_: true``)
             or ``{name: "Adam", lr: ...}``; None -> Adam(lr=1e-5). Stored as
             ``{name, **kw}`` when it is a torch.optim partial with plain keywords.
-        check_finite: raise FloatingPointError on a non-finite training loss.
+        check_finite: raise FloatingPointError on non-finite inputs (naming trial and frame)
+            or a non-finite loss (naming the terms and the batch's trials), in training and
+            validation / test steps.
 
     Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
     train/elbo, anneal/*; val/loss, val/elbo (per sequence, higher is better),
@@ -129,11 +162,27 @@ class LatentFilterModule(L.LightningModule):
         terms.pop("out")
         return terms
 
+    def _check_inputs(self, batch: Mapping[str, Any], stage: str, batch_idx: int) -> None:
+        bad = nonfinite_inputs(batch) if self.check_finite else []
+        if bad:
+            raise FloatingPointError(f"non-finite input at step {self.global_step} ({stage} batch {batch_idx}): "
+                                     + "; ".join(bad))
+
+    def _check_loss(self, batch: Mapping[str, Any], stage: str, batch_idx: int, terms: Mapping[str, Tensor],
+                    loss: Tensor) -> None:
+        if not self.check_finite:
+            return
+        try:
+            check_finite(self.global_step, {k: terms[k] for k in ("nll", "kl_z", "kl_y", "entropy")}, loss)
+        except FloatingPointError as err:  # the inputs were finite (_check_inputs): name the batch
+            rows = ", ".join(_trial_label(batch, r) for r in range(batch["obs"].shape[0]))
+            raise FloatingPointError(f"{err} ({stage} batch {batch_idx}, finite inputs of {rows})") from None
+
     def training_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
+        self._check_inputs(batch, "train", batch_idx)
         terms = self._terms(batch)
         loss, logs = self.annealing(self.global_step, terms)
-        if self.check_finite:
-            check_finite(self.global_step, {k: terms[k] for k in ("nll", "kl_z", "kl_y", "entropy")}, loss)
+        self._check_loss(batch, "train", batch_idx, terms, loss)
         bs = batch["obs"].shape[0]
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
         for k in ("nll", "kl_z", "kl_y", "entropy"):
@@ -143,9 +192,11 @@ class LatentFilterModule(L.LightningModule):
             self.log(k, float(v), batch_size=bs)
         return loss
 
-    def _eval_step(self, batch: Mapping[str, Tensor], prefix: str) -> Tensor:
+    def _eval_step(self, batch: Mapping[str, Tensor], prefix: str, batch_idx: int = 0) -> Tensor:
+        self._check_inputs(batch, prefix, batch_idx)
         terms = self._terms(batch)
         loss, _ = self.annealing(self.global_step, terms)  # eval mode: no schedule state change
+        self._check_loss(batch, prefix, batch_idx, terms, loss)
         bs = batch["obs"].shape[0]
         elbo = -(terms["nll"] + terms["kl_z"] + terms["kl_y"])
         self.log(f"{prefix}/loss", loss, batch_size=bs, sync_dist=True)
@@ -155,10 +206,14 @@ class LatentFilterModule(L.LightningModule):
         return loss
 
     def validation_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
-        return self._eval_step(batch, "val")
+        return self._eval_step(batch, "val", batch_idx)
 
     def test_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
-        return self._eval_step(batch, "test")
+        return self._eval_step(batch, "test", batch_idx)
+
+    def on_fit_start(self) -> None:
+        # schedule lengths given as a fraction of the run resolve against its optimiser steps
+        self.annealing.set_total_steps(self.trainer.estimated_stepping_batches)
 
     def configure_optimizers(self):
         return self._optimizer(self.parameters())
