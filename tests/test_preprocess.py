@@ -330,11 +330,14 @@ def test_process_pool_build_equals_in_process(raw_file, tmp_path, cfg):
     assert json.loads(h5py.File(pooled["acc"], "r").attrs["sources"]) == [str(raw_file)]
 
 
-def test_duplicate_trial_names_across_files_are_skipped(raw_file, tmp_path, cfg):
+def test_duplicate_trial_names_across_files_are_an_error(raw_file, tmp_path, cfg):
+    """A trial name in two raw files is an error naming both (docs/data_format.md, trial
+    identity), never one copy cached and the other skipped; the same file twice is read once."""
     other = tmp_path / "other.h5"
     write_trial(other, make_trial(0))  # same canonical name as raw_file's first trial
-    path = build_cache([raw_file, other, raw_file], tmp_path / "cache", cfg, fields=("actions",), workers=1)["actions"]
+    with pytest.raises(TrialFormatError, match="duplicate") as info:
+        build_cache([raw_file, other, raw_file], tmp_path / "cache", cfg, fields=("actions",), workers=1)
+    assert str(raw_file) in str(info.value) and str(other) in str(info.value) and make_trial(0).name in str(info.value)
+    path = build_cache([raw_file, raw_file], tmp_path / "cache", cfg, fields=("actions",), workers=1)["actions"]
     info = cache_info(path)
-    assert info["n_trials"] == 3 and info["sources"] == [str(raw_file), str(other)]
-    assert [(e["file"], e["trial"]) for e in info["skipped"]] == [(str(other), make_trial(0).name)]
-    assert "duplicate" in info["skipped"][0]["problem"]
+    assert info["n_trials"] == 3 and info["sources"] == [str(raw_file)] and info["skipped"] == []
