@@ -1,0 +1,162 @@
+"""The end of `python train.py` / `python train.py -m`, and `python evaluate.py` without a
+path (the most recent run under <paths.log_dir>/train)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO
+
+sys.path.insert(0, str(REPO))
+import evaluate as ev  # noqa: E402
+
+from embodied_tactile.summary import (latest_run, multirun_summary_lines,  # noqa: E402
+                                      run_summary_lines)
+
+ENV = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
+
+
+def _row(step, overall, per):
+    return {"epoch": step // 2, "step": step, "train_wall_time_s": 10.0 * step, "n_test": 8,
+            "nmse": dict(zip(("spatial_frequency", "amplitude", "stiffness", "heterogeneity"), per)),
+            "nmse_overall": overall}
+
+
+def fake_run(d: Path, *, ckpt=True, rows=((6, 0.5, (0.4, 0.5, 0.6, 0.5)), (12, 0.1223, (0.1, 0.2, 0.0892, 0.1)))):
+    d.mkdir(parents=True)
+    (d / "config_resolved.yaml").write_text("seed: 0\n")
+    (d / "provenance.json").write_text("{}")
+    if ckpt:
+        (d / "checkpoints").mkdir()
+        (d / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    (d / "krr_history.jsonl").write_text("".join(json.dumps(_row(*r)) + "\n" for r in rows))
+    m = {"status": "finished", "train_wall_s": 221.4,
+         "best_checkpoint": str(d / "checkpoints" / "best-epoch011.ckpt") if ckpt else None}
+    (d / "metrics.json").write_text(json.dumps(m))
+    return d
+
+
+def test_run_summary_lines(tmp_path):
+    run = fake_run(tmp_path / "logs" / "train" / "runs" / "2026-01-01_00-00-00-000000")
+    lines = run_summary_lines(run, cwd=tmp_path)
+    text = "\n".join(lines)
+    rel = "logs/train/runs/2026-01-01_00-00-00-000000"
+    assert f"run finished: {rel}" in text
+    # the LAST alignment of the history, overall and per factor
+    assert "overall 0.1223" in text and "step 12" in text and "8 held-out sequences" in text
+    assert "spatial freq. 0.1  amplitude 0.2  stiffness 0.0892  heterogeneity 0.1" in text
+    assert "training time: 3 min 41 s" in text
+    assert f"checkpoint:    {rel}/checkpoints/best-epoch011.ckpt" in text
+    assert f"{rel}/{{metrics.json,krr_history.jsonl}}" in text
+    assert f"{rel}/evaluation/" in text
+    assert lines[-2] == f"next:          python evaluate.py {rel}"
+    # outside the cwd: absolute paths, quoted for the shell
+    odd = fake_run(tmp_path / "a run")
+    assert run_summary_lines(odd, cwd=REPO)[-2].endswith(f"python evaluate.py '{odd}'")
+
+
+def test_run_summary_without_alignment(tmp_path):
+    run = fake_run(tmp_path / "r", rows=())
+    text = "\n".join(run_summary_lines(run, cwd=tmp_path))
+    assert "no KRR alignment in this run" in text and "python evaluate.py r" in text
+
+
+def test_multirun_summary_lines(tmp_path):
+    sweep = tmp_path / "multi"
+    fake_run(sweep / "modality=acc")
+    fake_run(sweep / "modality=fsr_t", ckpt=False, rows=())
+    (sweep / "modality=fsr_t" / "metrics.json").write_text(json.dumps({"status": "failed"}))
+    lines = multirun_summary_lines(sweep, cwd=tmp_path)
+    assert lines[1] == "multirun: 2 job(s), 1 finished, 1 not: multi"
+    assert any(ln.split()[:3] == ["modality=acc", "finished", "0.1223"] for ln in lines)
+    assert any(ln.split()[:3] == ["modality=fsr_t", "failed", "n/a"] for ln in lines)
+    assert lines[-2] == "next: python evaluate.py multi"
+
+
+def test_train_ends_with_the_summary(tmp_path, tiny_data_dir):
+    run = tmp_path / "run"
+    res = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "trainer.max_epochs=2",
+                          f"paths.data_dir={tiny_data_dir}", f"hydra.run.dir={run}"],
+                         cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    tail = res.stdout.strip().splitlines()[-9:]
+    hist = [json.loads(x) for x in (run / "krr_history.jsonl").read_text().splitlines()]
+    assert tail[0].startswith("-----") and tail[-1].startswith("-----")
+    assert tail[1] == "run finished: run"
+    assert f"overall {hist[-1]['nmse_overall']:.4g}" in tail[2]
+    assert tail[3].startswith("  per factor: spatial freq. ")
+    assert tail[4].startswith("training time: ")
+    assert tail[5].startswith("checkpoint:    run/checkpoints/")
+    assert tail[-2] == "next:          python evaluate.py run"
+
+
+def test_multirun_ends_with_its_folder_and_evaluate_command(tmp_path, tiny_data_dir):
+    sweep = tmp_path / "multi"
+    res = subprocess.run([sys.executable, str(REPO / "train.py"), "-m", "debug=fast", "modality=acc",
+                          "callbacks.krr_alignment=null", f"paths.data_dir={tiny_data_dir}", f"hydra.sweep.dir={sweep}"],
+                         cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = res.stdout.strip().splitlines()
+    assert out[-2] == "next: python evaluate.py multi"
+    assert "multirun: 1 job(s), 1 finished, 0 not: multi" in out
+    assert not any(ln.startswith("run finished:") for ln in out)  # no per-job block in a multirun
+
+
+# ----------------------------------------------------------------------------- latest run
+def _age(folder: Path, t: float) -> None:
+    for f in folder.rglob("*"):
+        os.utime(f, (t, t))
+
+
+def test_latest_run_by_start_time(tmp_path):
+    train = tmp_path / "logs" / "train"
+    now = time.time()
+    old = fake_run(train / "runs" / "b_old")
+    multi = tmp_path / "logs" / "train" / "multiruns" / "m"
+    fake_run(multi / "modality=acc")
+    newest_failed = fake_run(train / "runs" / "a_newest_failed", ckpt=False)
+    _age(old, now - 300)
+    _age(multi, now - 200)
+    _age(newest_failed, now - 100)
+    (old / "evaluation").mkdir()  # evaluating an old run must not make it "recent"
+    folder, kind, passed = latest_run(train)
+    assert (folder, kind, passed) == (multi, "multirun", [newest_failed])
+    _age(old, now - 50)
+    assert latest_run(train)[:2] == (old, "run")
+
+
+def test_evaluate_without_path_picks_latest_and_says_so(tmp_path, monkeypatch, capsys):
+    log_dir = tmp_path / "mylogs"
+    run = fake_run(log_dir / "train" / "runs" / "r1")
+    seen = {}
+    monkeypatch.setattr(ev, "evaluate", lambda path, overrides: seen.update(path=path, overrides=overrides))
+    assert ev.main([f"paths.log_dir={log_dir}", "umap=false"]) == 0
+    assert seen == {"path": str(run), "overrides": ["umap=false"]}
+    assert f"evaluating the most recent run under {log_dir / 'train'}: {run}" in capsys.readouterr().out
+
+
+def test_evaluate_without_path_default_log_dir_from_train_config(tmp_path, monkeypatch, capsys):
+    """No paths.log_dir given: the one train.py composes (configs/train.yaml: logs), relative to the cwd."""
+    monkeypatch.chdir(tmp_path)
+    run = fake_run(tmp_path / "logs" / "train" / "runs" / "r1")
+    seen = {}
+    monkeypatch.setattr(ev, "evaluate", lambda path, overrides: seen.update(path=path))
+    assert ev.main([]) == 0
+    assert Path(seen["path"]).resolve() == run.resolve()
+    assert "logs/train/runs/r1" in capsys.readouterr().out
+
+
+def test_evaluate_without_path_and_no_run_is_a_clear_error(tmp_path, capsys):
+    assert ev.main([f"paths.log_dir={tmp_path}"]) == 2
+    err = capsys.readouterr().err
+    assert f"no trained run under {tmp_path}/train/runs or {tmp_path}/train/multiruns" in err
+    fake_run(tmp_path / "train" / "runs" / "killed", ckpt=False)
+    assert ev.main([f"paths.log_dir={tmp_path}"]) == 2
+    assert "none with a checkpoint" in capsys.readouterr().err
