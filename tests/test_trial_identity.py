@@ -136,3 +136,16 @@ def test_raw_trial_name_is_its_group(tiny_data_dir, names, tmp_path):
     assert rf.trial_name(tr.attrs) == names[0]
     fresh = rf.RawTrial(t=tr.t, acc=tr.acc, fsr=np.zeros(0), pose_t=np.zeros(0), pose=np.zeros(0), attrs=tr.attrs)
     assert fresh.name == names[0]  # a trial not read from a file is named by its attributes
+
+
+def test_trial_absent_from_one_cache_without_reason_is_reported(tiny_data_dir, names, tmp_path, caplog):
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    a = _copy_trials(raw, tmp_path / "a.h5", names[:4])
+    dm = _recorded(tmp_path, [a], channels=["acc"])
+    dm.prepare_data()
+    with h5py.File(dm.cache_files["actions"], "a") as f:  # a damaged cache: one trial gone, no reason listed
+        del f["trials"][names[2]]
+    dm.setup()
+    assert _used(dm) == set(names[:4]) - {names[2]}
+    assert [(e["file"], e["trial"], e["field"]) for e in dm.skipped] == [(str(a), names[2], "actions")]
+    assert "absent from the cache" in dm.skipped[0]["problem"] and names[2] in caplog.text
