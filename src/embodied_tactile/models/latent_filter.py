@@ -284,9 +284,12 @@ class LatentFilter(nn.Module):
         nll     = sum_t sum_{c,pixels} -log N(o_t; dec(z_t), sigma_c^2)
         kl_z    = KL(q(z_1) || N(0, I)) + sum_{t>=2} KL(q_filt(z_t) || p(z_t | z_{t-1}, y_t, a_t))
         kl_y    = sum_{t>=2} KL(q(y_t | .) || p(y_t | a_t, N))
+                  + w_pop * (-log p(E_seen | mu_0, tau))   (population level, ``pop``)
         entropy = sum_t H[q_filt(z_t)] + sum_{t>=2} H[q(y_t | .)]
         n_dims  = T * C * 28 * 28 (observation dimensions per sequence)
-        ELBO = -(nll + kl_z + kl_y). ``out`` holds the forward outputs.
+        pop     = the population term alone (also inside kl_y), logged for inspection
+        ELBO = -(nll + kl_z + kl_y). ``out`` holds the forward outputs. ``w_pop`` is
+        ``prior.population_weight`` (1 / training sequences; 1 / n_objects if unset).
         """
         obs, actions = batch["obs"], batch["actions"]
         out = self.forward(obs, actions, sample=sample)
@@ -301,8 +304,13 @@ class LatentFilter(nn.Module):
             ent = ent + gaussian_entropy(out["y_var"][:, 1:]).sum(1)
         else:
             kl_y = out["y_mean"].new_zeros(()).float()
+            self.prior(batch["object_id"], actions[:, :1])  # marks the objects seen in training
+        w_pop = self.prior.population_weight
+        pop = self.prior.population_nll() * (1.0 / self.prior.n_objects if w_pop is None else float(w_pop))
+        kl_y = kl_y + pop
         n_dims = torch.tensor(float(T * obs.shape[2] * 28 * 28), device=obs.device)
-        return {"nll": nll, "kl_z": kl_z, "kl_y": kl_y, "entropy": ent.mean(), "n_dims": n_dims, "out": out}
+        return {"nll": nll, "kl_z": kl_z, "kl_y": kl_y, "pop": pop.detach(), "entropy": ent.mean(), "n_dims": n_dims,
+                "out": out}
 
     # ------------------------------------------------------------------ inference
     @torch.no_grad()

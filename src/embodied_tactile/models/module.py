@@ -185,7 +185,7 @@ class LatentFilterModule(L.LightningModule):
         self._check_loss(batch, "train", batch_idx, terms, loss)
         bs = batch["obs"].shape[0]
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
-        for k in ("nll", "kl_z", "kl_y", "entropy"):
+        for k in ("nll", "kl_z", "kl_y", "pop", "entropy"):
             self.log(f"train/{k}", terms[k].detach(), batch_size=bs)
         self.log("train/elbo", -(terms["nll"] + terms["kl_z"] + terms["kl_y"]).detach(), batch_size=bs)
         for k, v in logs.items():
@@ -214,6 +214,12 @@ class LatentFilterModule(L.LightningModule):
     def on_fit_start(self) -> None:
         # schedule lengths given as a fraction of the run resolve against its optimiser steps
         self.annealing.set_total_steps(self.trainer.estimated_stepping_batches)
+        # the prior's population term counts once per dataset: 1 / (training sequences) per sequence
+        prior = self.model.prior
+        if (self.hparams.get("prior") or {}).get("population_weight") is None:
+            train_set = getattr(self.trainer.datamodule, "train_set", None)
+            if train_set is not None and getattr(train_set, "trials", None):
+                prior.population_weight = 1.0 / len(train_set.trials)
 
     def configure_optimizers(self):
         return self._optimizer(self.parameters())

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager, nullcontext
-from typing import Iterator, Sequence
+from typing import Iterator, Optional, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -247,24 +247,48 @@ class YPosterior(nn.Module):
 
 
 class HierarchicalPrior(nn.Module):
-    """Learnable hierarchical prior p(y_t | a_t, N) = N(tanh(E[N]) + W a_t, var).
+    """Hierarchical prior over the indirectly observable latent y (docs/model.md):
 
-    ``E`` is an ``nn.Embedding(n_objects, n_y)`` indexed directly by the object id
-    (collision-free: one row per object). ``W`` is a zero-initialised linear action term
-    (``action_term=False`` drops it, as in the authors' earlier code). The variance is a
-    learnable per-dimension vector ``softplus(raw) + var_floor`` initialised to
-    ``sigma_init**2`` (``learn_sigma=False`` keeps it fixed).
+    * population:  e_n ~ N(mu_0, diag tau^2)            (learned mu_0, tau^2 = softplus + floor)
+    * object n:    p(y_t | a_t, n) = N(e_n + W a_t, diag sigma^2)
+    * new object:  p(y_t | a_t)    = N(mu_0 + W a_t, diag(sigma^2 + tau^2))  (e marginalised)
+
+    ``e_n`` is one ``nn.Embedding`` row per object id (a point estimate of the object's
+    embedding, collision-free), ``W`` a zero-initialised linear action term
+    (``action_term=False`` drops it, as in the authors' earlier code), ``sigma^2`` a
+    learnable per-dimension variance ``softplus(raw) + var_floor`` initialised to
+    ``sigma_init**2`` (``learn_sigma=False`` keeps it fixed); tau^2 starts at
+    ``pop_sigma_init**2``.
+
+    The population term ``-log p(E_seen | mu_0, tau)`` over the objects met in training
+    (:meth:`population_nll`) makes the embeddings draws of one population and fits the
+    population to them; the Latent Filter adds it, scaled by ``population_weight`` (1 / the
+    number of training sequences, so that the dataset's bound counts it once), to ``kl_y``.
+    Objects are marked *seen* (a persistent buffer) when they occur in a training-mode call;
+    in evaluation an unseen object id, or id -1, gets the population marginal, so an object
+    never touched in training still has a prior.
     """
 
     def __init__(self, n_y: int, n_a: int, n_objects: int = 32, sigma_init: float = 0.5,
-                 learn_sigma: bool = True, var_floor: float = 1e-2, action_term: bool = True) -> None:
+                 learn_sigma: bool = True, var_floor: float = 1e-2, action_term: bool = True,
+                 pop_sigma_init: float = 0.5, population_weight: Optional[float] = None) -> None:
         super().__init__()
         if sigma_init ** 2 <= var_floor:
             raise ValueError(f"prior sigma_init**2={sigma_init ** 2} must exceed var_floor={var_floor}")
+        if pop_sigma_init ** 2 <= var_floor:
+            raise ValueError(f"prior pop_sigma_init**2={pop_sigma_init ** 2} must exceed var_floor={var_floor}")
+        if population_weight is not None and not population_weight >= 0:
+            raise ValueError(f"prior population_weight must be >= 0 or null, got {population_weight}")
         self.n_objects = int(n_objects)
         self.var_floor = float(var_floor)
+        #: weight of the population term per training sequence; None = 1 / n_objects until
+        #: the LightningModule sets 1 / (number of training sequences) at the start of fit
+        self.population_weight = population_weight
         self.embedding = nn.Embedding(n_objects, n_y)
-        nn.init.normal_(self.embedding.weight, std=0.5)
+        nn.init.normal_(self.embedding.weight, std=pop_sigma_init)
+        self.pop_mean = nn.Parameter(torch.zeros(n_y))
+        self.pop_raw_var = nn.Parameter(torch.full((n_y,), math.log(math.expm1(pop_sigma_init ** 2 - var_floor))))
+        self.register_buffer("seen", torch.zeros(n_objects, dtype=torch.bool))
         self.action = nn.Linear(n_a, n_y, bias=False) if action_term else None
         if self.action is not None:
             nn.init.zeros_(self.action.weight)
@@ -275,17 +299,51 @@ class HierarchicalPrior(nn.Module):
         else:
             self.register_buffer("raw_var", raw)
 
+    def _load_from_state_dict(self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                              error_msgs):
+        # checkpoints from before the population level: every object counts as seen, the
+        # population starts at N(0, pop_sigma_init^2)
+        if prefix + "embedding.weight" in state_dict:
+            if prefix + "seen" not in state_dict:
+                state_dict[prefix + "seen"] = torch.ones_like(self.seen)
+            for name in ("pop_mean", "pop_raw_var"):
+                state_dict.setdefault(prefix + name, getattr(self, name).detach().clone())
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
+                                      error_msgs)
+
+    def pop_var(self) -> Tensor:
+        return softplus_var(self.pop_raw_var, self.var_floor)
+
+    def population_nll(self) -> Tensor:
+        """``-sum_{n seen} log N(e_n; mu_0, tau^2)`` in float32 (0 before any object is seen)."""
+        with float32_region(self.pop_mean):
+            e = self.embedding.weight.float()[self.seen]
+            if e.numel() == 0:
+                return self.pop_mean.new_zeros((), dtype=torch.float32)
+            return gaussian_nll(e, self.pop_mean.float(), 0.5 * torch.log(self.pop_var())).sum()
+
     def forward(self, object_id: Tensor, actions: Tensor) -> tuple[Tensor, Tensor]:
-        """object_id (B,), actions (B, T, n_a) -> mean (B, T, n_y), var (B, T, n_y)."""
+        """object_id (B,), actions (B, T, n_a) -> mean (B, T, n_y), var (B, T, n_y).
+
+        Id -1, or (in evaluation) an object never seen in training, gets the population
+        marginal N(mu_0 + W a_t, sigma^2 + tau^2)."""
         if object_id.dtype not in (torch.int64, torch.int32):
             raise TypeError(f"object_id must be an integer tensor, got {object_id.dtype}")
-        if object_id.numel() and (int(object_id.min()) < 0 or int(object_id.max()) >= self.n_objects):
-            raise ValueError(f"object_id out of range [0, {self.n_objects}): "
+        if object_id.numel() and (int(object_id.min()) < -1 or int(object_id.max()) >= self.n_objects):
+            raise ValueError(f"object_id out of range [-1, {self.n_objects}) (-1 = a new object): "
                              f"min={int(object_id.min())} max={int(object_id.max())}")
+        oid = object_id.long()
+        known = oid >= 0
+        if self.training:
+            self.seen[oid[known]] = True
+        else:
+            known = known & self.seen[oid.clamp(min=0)]
         with float32_region(actions):
-            mean = torch.tanh(self.embedding(object_id.long())).float()[:, None, :]
-            mean = mean.expand(-1, actions.shape[1], -1)
+            obj = self.embedding(oid.clamp(min=0)).float()
+            pop = self.pop_mean.float().expand_as(obj)
+            mean = torch.where(known[:, None], obj, pop)[:, None, :].expand(-1, actions.shape[1], -1)
             if self.action is not None:
                 mean = mean + self.action(actions.float())
-            var = (F.softplus(self.raw_var.float()) + self.var_floor).expand_as(mean)
+            var_y = softplus_var(self.raw_var, self.var_floor)
+            var = torch.where(known[:, None], var_y, var_y + self.pop_var())[:, None, :].expand_as(mean)
         return mean, var
