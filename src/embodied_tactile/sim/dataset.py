@@ -120,8 +120,9 @@ def generate_dataset(
 
     Only missing trials are simulated (an interrupted run resumes); ``overwrite``
     regenerates the requested trials. The file must be new or hold simulated trials only
-    (:class:`OutputFileError` otherwise, before anything is written); a requested simulated
-    trial that lacks a field is an error too, unless ``overwrite``. Every argument is
+    (:class:`OutputFileError` otherwise, before anything is written). A simulated trial that
+    lacks a field is present, not missing: it is kept with a warning naming the field (a
+    reader that needs the field skips it), and regenerated only with ``overwrite``. Every argument is
     checked first (``SimParameterError``). Simulation runs in a pool of ``workers``
     processes (0 or 1: in this process); only the parent writes, one trial at a time, in
     deterministic order.
@@ -149,14 +150,14 @@ def generate_dataset(
             for r in range(repetitions):
                 name = trial_name(make_attrs(object_id=o, skin=skin, primitive=primitive, action_index=a, repetition=r, source="simulated", seed=seed))
                 if name in damaged and not overwrite:
-                    raise OutputFileError(
-                        path, name,
-                        f"simulated trial lacks {damaged[name]}; the simulator never deletes a trial: "
-                        "remove it yourself or pass overwrite=true to regenerate it",
+                    log.warning(
+                        "%s: trial %s lacks %s; kept as it is (the simulator never deletes a trial, and a reader "
+                        "that needs the field skips the trial): remove it or pass overwrite=true to regenerate it",
+                        path, name, damaged[name],
                     )
-                if overwrite or name not in complete:
+                elif overwrite or name not in complete:
                     jobs.append((o, skin, primitive, a, r, seed, duration, physics))
-    log.info("%s: %d trials to simulate (%d already present)", path, len(jobs), len(complete))
+    log.info("%s: %d trials to simulate (%d already present)", path, len(jobs), len(complete) + len(damaged))
     if not jobs and partial is None:
         return path
     path.parent.mkdir(parents=True, exist_ok=True)

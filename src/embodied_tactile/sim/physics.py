@@ -7,7 +7,7 @@ Pure NumPy/SciPy. Everything here is vectorised over taxels and time:
   stiffening of a thin stiff top layer.
 * :func:`qlv_relax`         -- quasi-linear viscoelasticity (standard linear solid
   branches) integrated with the EXACT exponential update for piecewise-linear input,
-  as one :func:`scipy.signal.lfilter` pass: unconditionally stable for any tau, dt.
+  as one :func:`scipy.signal.lfilter` pass: unconditionally stable for any tau > 0, dt > 0.
 * :func:`skin_transmissibility` / :func:`skin_filter` -- the silicone between the
   contact and an accelerometer node as a base-excited mass-spring-damper (a mechanical
   low-pass); analytic magnitude for quasi-stationary tones, bilinear-transformed
@@ -103,12 +103,14 @@ class PhysicsOverrides:
     Coulomb coefficient (0 switches shear and stick-slip off).
 
     ``force_scale`` multiplies the contact pressure after the preload depth is found (the
-    robot's motion is unchanged). It acts on the FSRs only where there is contact: a taxel
-    with no load stays at its offset at any scale, and a loaded one approaches full scale
-    as 4095 x / (1 + x), x = (F / 0.15 N)^0.7, within 3 counts of 4095 from about 4.5e3 N.
-    At 1e6 the taxels in contact are saturated (measured on 12 two-second trials: 97.6-100 %
-    of the samples of taxels reading > 20 counts at scale 1 are >= 4092), but taxels
-    outside the contact are not, so 9-48 % of all FSR samples equal 4095. The bottom FSR
+    robot's motion is unchanged). An FSR count follows the scaled load F of its taxel: it
+    stays at the taxel's offset while F is below the 5 mN activation force (taxels away
+    from the contact receive only the Gaussian tails of the load spreading) and approaches
+    full scale as 4095 x / (1 + x), x = ((gain F - 5 mN) / 0.15 N)^0.7, within 3 counts of
+    4095 from about 4.5e3 N. So a huge scale does not saturate every sensor. At 1e6,
+    measured on 12 two-second trials (3 primitives x 4 object/skin/action pairs): of the
+    taxels reading > 20 counts at scale 1, 97.6-100 % of the samples are >= 4092; of the
+    other taxels, 0-41 %; of all FSR samples, 9-48 % equal 4095. The bottom FSR
     map also moves with the larger shear traction; the accelerometers see the scale only
     through the contact weight of texture and stick-slip.
 

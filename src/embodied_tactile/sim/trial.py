@@ -47,7 +47,8 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
 
 def command(primitive: str, params: dict, t: np.ndarray, duration: float, physics: PhysicsOverrides):
     """Commanded offsets (x, y, z m; roll, pitch, yaw rad), each (N,), about the preload pose,
-    and the analytic translational acceleration (N, 3) in m/s^2 (paper's equations)."""
+    and the analytic translational acceleration (N, 3) in m/s^2 of the primitive (paper's
+    equations; rotations and the lift-off retraction add no acceleration)."""
     z6 = np.zeros((6, t.size))
     acc = np.zeros((t.size, 3))
     if primitive == "pressing":
@@ -127,8 +128,9 @@ def _upsample_cubic(src: np.ndarray, ratio: int, n: int) -> np.ndarray:
 
 
 def _fast_noise(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
-    """Zero-mean, unit-variance float32 noise (triangular: sum of two random bytes) at
-    a fraction of the cost of Gaussian draws; it ends in integer ADC counts anyway."""
+    """Unit-variance float32 noise (triangular: sum of two random signed bytes) at a
+    fraction of the cost of Gaussian draws; it ends in integer ADC counts anyway. Its mean
+    is -0.0096 (bytes span -128..127), i.e. -0.006 counts at the 0.6-count noise floor."""
     n = int(np.prod(shape))
     raw = np.frombuffer(rng.bytes(2 * n), dtype=np.int8)
     out = raw[:n].astype(np.float32)
@@ -138,7 +140,9 @@ def _fast_noise(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _preload_depth(mech: P.Mechanics, h_tax: np.ndarray, dz_tax: np.ndarray) -> float:
-    """TCP z (object frame) at which the relaxed contact force equals PRELOAD_N."""
+    """TCP z (object frame) at which the relaxed contact force equals PRELOAD_N, or
+    MAX_PRELOAD_DEPTH_M below first touch if the force stays below it there (a very soft
+    object: the trial then runs at a smaller preload)."""
     top = float(np.max(h_tax - dz_tax))  # TCP z at first touch
     area = _PITCH**2
 
