@@ -95,6 +95,67 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
     return opts
 
 
+SELECT_ALIASES = {"modality": "modality.name", "skin": "skin.name", "primitive": "primitive.name"}
+
+
+def split_overrides(overrides: Sequence[str]) -> tuple[list[str], dict[str, list[str]]]:
+    """-> (evaluation options: keys of configs/evaluate.yaml, run selection: every other
+    ``key=value``, e.g. ``modality=multi_l skin=hard seed=[0,1] annealing.name=dvbf``)."""
+    known = set(OmegaConf.load(DEFAULTS).keys())
+    options, selection = [], {}
+    for o in overrides:
+        key = o.split("=", 1)[0]
+        if "=" not in o or key.split(".")[0] in known:
+            options.append(o)
+            continue
+        value = OmegaConf.to_container(OmegaConf.from_dotlist([f"v={o.split('=', 1)[1]}"]))["v"]
+        selection[key] = [str(v) for v in value] if isinstance(value, list) else [str(value)]
+    return options, selection
+
+
+def _matches(have, want: list[str]) -> bool:
+    for w in want:
+        if str(have) == w:
+            return True
+        try:
+            if float(have) == float(w):
+                return True
+        except (TypeError, ValueError):
+            pass
+    return False
+
+
+def select_runs(runs: list[Run], selection: dict[str, list[str]]) -> list[Run]:
+    """The runs whose config matches every ``key=value`` of the selection (modality / skin /
+    primitive name their ``.name``; any dotted key of config_resolved.yaml works). A selection
+    picks runs; it never changes a run's scene."""
+    for key, want in selection.items():
+        path = SELECT_ALIASES.get(key, key)
+        have = [OmegaConf.select(r.cfg, path, default=None) for r in runs]
+        if all(h is None for h in have):
+            raise EvaluationError(
+                f"unknown evaluation option or run selector {key!r}: not an option of configs/evaluate.yaml "
+                f"({sorted(OmegaConf.load(DEFAULTS).keys())}) nor a key of the runs' config_resolved.yaml")
+        kept = [r for r, h in zip(runs, have) if h is not None and _matches(h, want)]
+        if not kept:
+            raise EvaluationError(f"no run matches {key}={','.join(want)} (the runs have {key} = "
+                                  f"{sorted({str(h) for h in have})}; a selection picks runs, it never changes a run's scene)")
+        runs = kept
+    if selection:
+        log.info("selected %d run(s) by %s", len(runs), selection)
+    return runs
+
+
+def _agreement_line(c: dict) -> str:
+    """One line: evaluate.py's NMSE beside the training's final alignment, and why they differ."""
+    if c.get("training_nmse_overall") is None:
+        return f"NMSE {c['evaluate_nmse_overall']:.4g} (no training-time final alignment to compare: {c['reasons'][0]})"
+    head = (f"NMSE {c['evaluate_nmse_overall']:.4g} here, {c['training_nmse_overall']:.4g} in the training's final "
+            f"alignment (metrics.json krr_final, epoch {c.get('training_epoch')}), difference {c['difference']:+.2g}")
+    return head + ("; same weights, settings and sequences" if not c["reasons"] else "; differs because: "
+                   + "; ".join(c["reasons"]))
+
+
 # ----------------------------------------------------------------------------- discovery
 @dataclass
 class Run:
@@ -219,7 +280,9 @@ def data_config(run: Run, opts: DictConfig) -> dict:
 
 
 class DataCache:
-    """One prepared DataModule (and its loaded batches) per (data config, saved split)."""
+    """The prepared DataModule (and its loaded batches) of the current (data config, saved
+    split). Only the latest one is kept: runs are evaluated grouped by data key, so a sweep
+    streams through its scenes and memory does not grow with the number of runs."""
 
     def __init__(self) -> None:
         self._dms: dict[str, Any] = {}
@@ -239,11 +302,19 @@ class DataCache:
         if k in self._dms:
             self.hits += 1
             return k, self._dms[k]
+        self.clear()  # free the previous scene before loading the next one
         dm = instantiate(OmegaConf.create(data), _convert_="all")
         dm.prepare_data()
         dm.setup("fit")
         self._dms[k] = dm
         return k, dm
+
+    def clear(self) -> None:
+        import gc
+
+        self._dms.clear()
+        self._batches.clear()
+        gc.collect()
 
     def batches(self, k: str, dm, which: str) -> list:
         if (k, which) not in self._batches:
@@ -307,15 +378,17 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     metrics = _read_json(run.run_dir / "metrics.json")
     hist_path = run.run_dir / "krr_history.jsonl"
     history = read_history(hist_path) if hist_path.exists() else []
-    train_s = metrics.get("train_wall_s")
-    if train_s is None and history:
-        train_s = history[-1].get("train_wall_time_s")
+    # one time base for every method: training wall time without data preparation and without
+    # evaluation (the last krr_history row: training minus the KRR checks; else train_wall_s)
+    train_s = history[-1].get("train_wall_time_s") if history else metrics.get("train_wall_s")
+    final_row = metrics.get("krr_final") or next((h for h in reversed(history) if h.get("final")), None)
     meta = dict(modality=modality, skin=skin, primitive=primitive, source=source)
     align = OmegaConf.to_container(opts.alignment, resolve=True)
     params = {"train_time_s": float("nan") if train_s is None else float(train_s),
               "inference_s_per_sequence": infer_s / max(1, len(te["factors"])),
               "inference_s_total_val": infer_s,
-              "train_time_excl_eval_s": history[-1].get("train_wall_time_s") if history else None,
+              "train_time_source": "krr_history.jsonl (training minus KRR checks)" if history
+              else "metrics.json train_wall_s", "data_prepare_s": metrics.get("data_prepare_s"),
               "checkpoint": str(run.ckpt), "run_dir": str(run.run_dir)}
     res, _ = evaluate_latents(tr, te, latent=opts.latent, alignment=align, params=params, **meta)
     results = [res]
@@ -336,9 +409,55 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
             "primitive": primitive, "source": source, "channels": channels, "latent": opts.latent,
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])),
             "n_frames": int(te["obs"].shape[1]), "train_wall_s": train_s, "timings": timings,
-            "baselines": list(baselines)}
+            "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"),
+            "training_final_alignment": compare_with_training(res, final_row, run.ckpt, align, opts.latent)}
     del model
     return results, history, info
+
+
+def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, latent: str) -> dict:
+    """evaluate.py's NMSE against the training's final KRR alignment (krr_final of metrics.json /
+    the ``final`` row of krr_history.jsonl): both numbers, the difference and, when they are
+    not the same measurement, why (other weights, other alignment settings, other sequences)."""
+    import inspect
+
+    from embodied_tactile.eval.krr import fit_alignment
+
+    ours = float(res.summary()["nmse_trajectory_overall"])
+    if not final_row or final_row.get("nmse_overall") is None:
+        return {"evaluate_nmse_overall": ours, "training_nmse_overall": None,
+                "reasons": ["the run has no final KRR alignment (callback off, or trained before it existed)"]}
+    defaults = {k: p.default for k, p in inspect.signature(fit_alignment).parameters.items()
+                if p.default is not inspect.Parameter.empty and k not in ("ids", "groups", "n_threads")}
+    theirs_kw = {**defaults, **{k: v for k, v in (final_row.get("alignment_settings") or {}).items() if k in defaults}}
+    ours_kw = {**defaults, **{k: v for k, v in align.items() if k in defaults}}
+    norm = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731
+    reasons = []
+    try:
+        import torch
+
+        step = int(torch.load(str(ckpt), map_location="cpu", mmap=True, weights_only=False).get("global_step", -1))
+    except Exception:  # noqa: BLE001 -- a checkpoint without a step: say so below
+        step = -1
+    if step != int(final_row.get("step", -2)):
+        reasons.append(f"other weights: {ckpt.name} (step {step}) against the final weights (step "
+                       f"{final_row.get('step')}); checkpoint=last evaluates the final weights")
+    diff = {k: (theirs_kw[k], ours_kw[k]) for k in defaults if norm(theirs_kw[k]) != norm(ours_kw[k])}
+    if "alignment_settings" not in final_row:
+        reasons.append("the training's last check used the callback's periodic settings")
+    elif diff:
+        reasons.append("alignment settings (training, evaluate.py): "
+                       + ", ".join(f"{k}=({a}, {b})" for k, (a, b) in diff.items()))
+    if final_row.get("val_frame_stride", 1) != 1:
+        reasons.append(f"training scored every {final_row['val_frame_stride']}th frame")
+    if final_row.get("latent", latent) != latent:
+        reasons.append(f"latent {final_row.get('latent')} against {latent}")
+    if (final_row.get("n_train"), final_row.get("n_test")) != (res.n_train, res.n_test):
+        reasons.append(f"sequences: training {final_row.get('n_train')} fit / {final_row.get('n_test')} scored, "
+                       f"evaluate.py {res.n_train} / {res.n_test}")
+    theirs = float(final_row["nmse_overall"])
+    return {"evaluate_nmse_overall": ours, "training_nmse_overall": theirs, "difference": ours - theirs,
+            "training_epoch": final_row.get("epoch"), "reasons": reasons}
 
 
 def _read_json(p: Path) -> dict:
@@ -352,12 +471,14 @@ def _read_json(p: Path) -> dict:
 def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     """Evaluate a run / checkpoint / multirun; return {"out": folder, "runs": [info...],
     "skipped": [...], "written": write_report's dict}. Raises EvaluationError."""
+    overrides, selection = split_overrides(overrides)
     opts = parse_options(overrides)
     if opts.torch_threads:
         import torch
 
         torch.set_num_threads(int(opts.torch_threads))
     kind, runs, skipped = discover(Path(target), opts.checkpoint)
+    runs = select_runs(runs, selection)
     baselines = list(opts.baselines) if opts.baselines is not None else list(
         BASELINES if kind == "run" else MULTIRUN_BASELINES)
     root = runs[0].run_dir if kind == "run" else Path(target)
@@ -367,31 +488,52 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
         out = root / f"evaluation-{runs[0].ckpt.stem}"
     else:
         out = root / ("evaluation" if opts.checkpoint == "best" else f"evaluation-{opts.checkpoint}")
+    if selection and not opts.out:  # a selection never overwrites the whole sweep's report
+        out = out.with_name(out.name + "-" + ",".join(f"{k}={'+'.join(v)}" for k, v in selection.items()))
 
     from embodied_tactile.eval import write_report
+    from embodied_tactile.eval.results import config_axes
+    from embodied_tactile.runtime import peak_rss_bytes
 
     t0 = time.perf_counter()
     cache = DataCache()
-    all_results, histories, infos = [], {}, []
+    # every configuration axis that differs between the runs (beyond modality / skin / primitive;
+    # the seed is the replicate axis): tables group by all of them and average over seeds only
+    axes = config_axes([OmegaConf.to_container(r.cfg, resolve=True) for r in runs], [r.name for r in runs])
     from collections import Counter
 
-    cells = Counter(_cell(r) for r in runs)
-    for i, run in enumerate(runs):
-        log.info("[%d/%d] %s (%s)", i + 1, len(runs), run.run_dir, run.ckpt.name)
+    cells = Counter((_cell(r), tuple(sorted(a.items()))) for r, a in zip(runs, axes))
+    # stream: runs sharing a data config one after the other, one DataModule in memory at a time
+    data_keys = [DataCache.key(data_config(r, opts)) for r in runs]
+    order = sorted(range(len(runs)), key=lambda i: (data_keys.index(data_keys[i]), i))
+    per_run: dict[int, tuple] = {}
+    for n, i in enumerate(order):
+        run = runs[i]
+        log.info("[%d/%d] %s (%s)", n + 1, len(runs), run.run_dir, run.ckpt.name)
         results, history, info = evaluate_run(run, opts, cache, baselines)
-        cell = (info["modality"], info["skin"], info["primitive"])
-        if cells[cell] > 1:
-            # two jobs of one scene (e.g. a seed or annealing sweep): keep them apart by folder
-            for r in results:
-                r.modality = f"{r.modality}@{run.name}"
-        label = "/".join((results[0].modality, info["skin"], info["primitive"]))
+        seed = run.cfg.get("seed")
+        cell = (_cell(run), tuple(sorted(axes[i].items())))
+        for r in results:
+            r.seed, r.axes = (None if seed is None else int(seed)), dict(axes[i])
+            if cells[cell] > 1:  # replicates of one configuration: tell them apart by seed (or folder)
+                same = [runs[j].cfg.get("seed") for j in range(len(runs)) if (_cell(runs[j]), tuple(sorted(axes[j].items()))) == cell]
+                r.replicate = f"seed={seed}" if same.count(seed) == 1 else run.name
+        label = results[0].label.split("/", 1)[1]
+        info["axes"], info["seed"] = dict(axes[i]), seed
+        per_run[i] = (results, history, info, label)
+        cmp_ = info["training_final_alignment"]
+        log.info("    %s: NMSE overall %.4g (%d train / %d held-out, %.1f s)", label,
+                 results[0].summary()["nmse_trajectory_overall"], info["n_train"], info["n_test"],
+                 info["timings"]["total_s"])
+        log.info("    %s", _agreement_line(cmp_))
+    cache.clear()
+    all_results, histories, infos = [], {}, []
+    for i in range(len(runs)):
+        results, history, info, label = per_run.pop(i)
         if history:
             histories[label] = history
         all_results.extend(results)
         infos.append(info)
-        log.info("    %s: NMSE overall %.4g (%d train / %d held-out, %.1f s)", label,
-                 results[0].summary()["nmse_trajectory_overall"], info["n_train"], info["n_test"],
-                 info["timings"]["total_s"])
     t_eval = time.perf_counter()
     sources = sorted({i["source"] for i in infos})
     split_extra = {i["run_dir"]: {"n_train": i["n_train"], "n_test": i["n_test"], "split_file": str(Path(i["run_dir"]) / "split.json")}
@@ -403,12 +545,16 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     summary = {"kind": kind, "target": str(target), "out": str(out), "options": OmegaConf.to_container(opts),
                "baselines": baselines, "runs": infos,
                "skipped": [{"run_dir": str(d), "reason": r} for d, r in skipped],
-               "datamodule_reuse": cache.hits, "timings": {"evaluate_s": t_eval - t0, "report_s": t_rep - t_eval}}
+               "selection": selection, "datamodule_reuse": cache.hits,
+               "timings": {"evaluate_s": t_eval - t0, "report_s": t_rep - t_eval},
+               "peak_rss_bytes": peak_rss_bytes()}
     (out / "evaluation.json").write_text(json.dumps(summary, indent=1, default=str))
     if opts.print_tables:
         for p in written["tables"]:
             if p.endswith(".md"):
                 print(Path(p).read_text())
+    for i in infos:
+        print(f"{Path(i['run_dir']).name}: {_agreement_line(i['training_final_alignment'])}")
     for d, r in skipped:
         print(f"SKIPPED {d}: {r}")
     print(f"evaluated {len(infos)} run(s) ({len(skipped)} skipped) in {t_rep - t0:.1f} s -> {out}")

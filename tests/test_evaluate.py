@@ -79,7 +79,7 @@ def test_run_cli_writes_everything_as_trained_modality(trained):
     # the saved split is reused: sizes equal split.json
     split = json.loads((run / "split.json").read_text())
     for r in res["runs"]:
-        assert (r["n_train"], r["n_test"]) == (len(split["train"]), len(split["val"]))
+        assert (r["n_train"], r["n_test"]) == (len(split["train"]), len(split["test"]))
         assert math.isfinite(r["nmse_trajectory_overall"]) and math.isfinite(r["nmse_last_step_overall"])
         assert all(math.isfinite(v) for v in r["nmse_trajectory"].values())
     lf = next(r for r in res["runs"] if r["method"] == "latent_filter")
@@ -88,7 +88,7 @@ def test_run_cli_writes_everything_as_trained_modality(trained):
     # every table states the NMSE definition, the split sizes and the data source
     for t in res["tables"]:
         assert res["nmse_definition"] in t["caption"]
-        assert f"{len(split['train'])} train / {len(split['val'])} held-out" in t["caption"]
+        assert f"{len(split['train'])} train / {len(split['test'])} held-out" in t["caption"]
         assert "Data source: simulated" in t["caption"]
     assert not _finite_tree(res["runs"]), _finite_tree(res["runs"])
     info = json.loads((out / "evaluation.json").read_text())["runs"][0]
@@ -105,12 +105,12 @@ def test_saved_split_reused_and_leakage_guard(trained):
     cache = ev.DataCache()
     key, dm = cache.get(ev.data_config(r, opts))
     split = json.loads((run / "split.json").read_text())
-    assert ev._names(dm, "train") == split["train"] and ev._names(dm, "val") == split["val"]
+    assert ev._names(dm, "train") == split["train"] and ev._names(dm, "test") == split["test"]
     from hydra.utils import get_class
 
     model = get_class(str(r.cfg.model._target_)).load_from_checkpoint(str(r.ckpt), map_location="cpu")
     tr, _ = ev.collect_split(model, cache.batches(key, dm, "train"), ev._names(dm, "train"), "y")
-    te, _ = ev.collect_split(model, cache.batches(key, dm, "val"), ev._names(dm, "val"), "y")
+    te, _ = ev.collect_split(model, cache.batches(key, dm, "test"), ev._names(dm, "test"), "y")
     assert not set(tr["seq_id"]) & set(te["seq_id"])  # scored ids disjoint from fitted ids
     assert tr["obs"].shape[2] == 2  # fsr_tb: two channels, from the run's config
     with pytest.raises(LeakageError):  # scoring a fitted sequence is refused
@@ -161,5 +161,53 @@ def test_folder_without_checkpoint_is_a_clear_error(trained, tmp_path, capsys):
     assert "no checkpoint" in err and str(empty) in err
     assert ev.main([str(tmp_path / "nowhere")]) == 2
     assert "no such file or folder" in capsys.readouterr().err
-    assert ev.main([str(trained / "run"), "modality=acc"]) == 2  # the scene is not an evaluation option
+    # the scene is not an evaluation option: modality= SELECTS runs (this one is fsr_tb), never overrides
+    assert ev.main([str(trained / "run"), "modality=acc"]) == 2
+    err = capsys.readouterr().err
+    assert "no run matches modality=acc" in err and "fsr_tb" in err and "never changes a run's scene" in err
+    assert ev.main([str(trained / "run"), "no_such_key=1"]) == 2
     assert "unknown evaluation option" in capsys.readouterr().err
+
+
+def test_select_runs_by_any_axis(trained, capsys):
+    multi = trained / "multi"
+    out = ev.evaluate(multi, [*FAST, "modality=acc", "umap=false", "figures=false", "baselines=[mean]"])
+    assert [i["modality"] for i in out["runs"]] == ["acc"]
+    assert Path(out["out"]).name == "evaluation-modality=acc"  # the whole sweep's report is left alone
+    out = ev.evaluate(multi, [*FAST, "modality=[acc,fsr_t]", "skin=soft", "seed=0", "figures=false", "baselines=[mean]"])
+    assert sorted(i["modality"] for i in out["runs"]) == ["acc", "fsr_t"]
+    with pytest.raises(ev.EvaluationError, match="no run matches skin=hard"):
+        ev.evaluate(multi, [*FAST, "skin=hard"])
+
+
+def test_train_then_evaluate_final_numbers_match(trained, capsys):
+    """One run, one number: the training's final KRR alignment (metrics.json krr_final, the
+    last krr_history.jsonl row, the last log line) and evaluate.py with its default alignment
+    on the final weights agree; with other settings the output says why and by how much."""
+    run = trained / "run"
+    metrics = json.loads((run / "metrics.json").read_text())
+    final = metrics["krr_final"]
+    assert final["final"] and final["val_frame_stride"] == 1
+    hist = [json.loads(line) for line in (run / "krr_history.jsonl").read_text().splitlines()]
+    assert hist[-1]["nmse_overall"] == final["nmse_overall"]
+    assert "KRR alignment (final weights, evaluate.py settings)" in (trained / "run.log").read_text()
+    # data preparation is timed apart from training
+    assert metrics["data_prepare_s"] > 0 and metrics["train_wall_s"] > 0
+    out = ev.evaluate(run, ["print_tables=false", "checkpoint=last", "baselines=[mean]", "figures=false"])
+    c = out["runs"][0]["training_final_alignment"]
+    assert c["reasons"] == [], c
+    assert c["evaluate_nmse_overall"] == pytest.approx(final["nmse_overall"], rel=1e-4)
+    printed = capsys.readouterr().out
+    assert "same weights, settings and sequences" in printed
+    res = json.loads((Path(out["out"]) / "results.json").read_text())
+    lf = next(r for r in res["runs"] if r["method"] == "latent_filter")
+    assert lf["nmse_trajectory_overall"] == pytest.approx(final["nmse_overall"], rel=1e-4)
+    # one time base: the runtime table's Latent Filter time is the history's, without data preparation
+    assert lf["params"]["train_time_s"] == pytest.approx(hist[-1]["train_wall_time_s"])
+    assert lf["params"]["data_prepare_s"] == pytest.approx(metrics["data_prepare_s"])
+    # other settings: said, with the difference
+    out = ev.evaluate(run, ["print_tables=false", "checkpoint=last", "alignment.cv=2", "alignment.frames_per_sequence=2",
+                            "baselines=[mean]", "figures=false", f"out={trained}/ev_cv2"])
+    c = out["runs"][0]["training_final_alignment"]
+    assert any("cv=(5, 2)" in r and "frames_per_sequence=(4, 2)" in r for r in c["reasons"]), c
+    assert "differs because: alignment settings" in capsys.readouterr().out
