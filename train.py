@@ -68,6 +68,7 @@ def main(cfg: DictConfig) -> float | None:
     ckpt_path = runtime.find_resume_checkpoint(run_dir) if cfg.resume else None
     if ckpt_path:
         log.info("resuming from %s", ckpt_path)
+    runtime.continue_logs(loggers, ckpt_path)  # csv/metrics.csv continues from that step
 
     metrics: dict = {"status": "running", "run_dir": run_dir, "resumed_from": str(ckpt_path) if ckpt_path else None}
     t0 = time.perf_counter()

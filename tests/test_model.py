@@ -10,7 +10,6 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
 from embodied_tactile.models import (
-    MODALITY_PRESETS,
     ConstrainedAnnealing,
     EarlyFusionLatentFilter,
     LateFusionLatentFilter,
@@ -18,6 +17,7 @@ from embodied_tactile.models import (
     LatentFilterModule,
 )
 from embodied_tactile.models.networks import ConvDecoder, ConvEncoder, fuse_gaussians, kl_diag_gaussians
+from embodied_tactile.modality import modality_names
 
 torch.set_num_threads(2)
 
@@ -56,7 +56,7 @@ def trainer(tmp_path, **kw):
 
 
 # ------------------------------------------------------------------ structure
-@pytest.mark.parametrize("name", sorted(MODALITY_PRESETS))
+@pytest.mark.parametrize("name", modality_names())
 def test_modality_builds_only_its_pathways(name):
     m = LatentFilter(name, **TINY)
     encs = [mod for mod in m.modules() if isinstance(mod, ConvEncoder)]
@@ -104,8 +104,10 @@ def test_custom_late_pathways_and_bad_configs():
     torch.testing.assert_close(rec[:, [0, 2]], m.decoders["force"](z))
     with pytest.raises(ValueError, match="fusion"):
         LatentFilter({"name": "x", "channels": ["acc"], "fusion": "mid"})
+    with pytest.raises(ValueError, match="late fusion needs a 'pathways' mapping"):  # no name-based grouping
+        LatentFilter({"name": "x", "channels": ["acc", "fsr_t", "fsr_b"], "fusion": "late"})
     with pytest.raises(ValueError, match="2 pathways"):
-        LatentFilter({"name": "x", "channels": ["fsr_t", "fsr_b"], "fusion": "late"})
+        LatentFilter({"name": "x", "channels": ["fsr_t", "fsr_b"], "fusion": "late", "pathways": {"all": ["fsr_t", "fsr_b"]}})
     with pytest.raises(ValueError, match="expects obs"):
         LatentFilter("acc", **TINY)(torch.zeros(1, 2, 3, 28, 28), torch.zeros(1, 2, 6))
     with pytest.raises(ValueError, match="EarlyFusionLatentFilter takes fusion"):
@@ -116,7 +118,7 @@ def test_custom_late_pathways_and_bad_configs():
     assert EarlyFusionLatentFilter(**TINY).model.modality["name"] == "multi_e"
 
 
-@pytest.mark.parametrize("name", sorted(MODALITY_PRESETS))
+@pytest.mark.parametrize("name", modality_names())
 def test_few_steps_decrease_loss(name):
     torch.manual_seed(0)
     m = LatentFilter(name, **TINY)

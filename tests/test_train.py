@@ -118,6 +118,129 @@ def test_resume_after_sigkill(data_dir, tmp_path):
     assert len(csv) > 1
 
 
+def _csv_rows(path: Path) -> list[dict]:
+    import csv
+
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_resume_continues_csv_history_and_krr_wall_time(data_dir, tmp_path):
+    """Train 2 epochs, restart in the same folder up to 4: csv/metrics.csv holds the rows of
+    all 4 epochs, and krr_history.jsonl's training wall time keeps increasing."""
+    run = tmp_path / "run"
+    base = (f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "modality=acc", "callbacks.krr_alignment.every_n_epochs=1")
+    run_train(*base, "trainer.max_epochs=2")
+    rows_before = _csv_rows(run / "csv" / "metrics.csv")
+    run_train(*base, "trainer.max_epochs=4")
+    rows = _csv_rows(run / "csv" / "metrics.csv")
+    assert rows[: len(rows_before)] == rows_before  # the earlier rows, unchanged, first
+    epochs = {int(float(r["epoch"])) for r in rows if r.get("epoch")}
+    assert epochs == {0, 1, 2, 3}
+    train_epochs = sorted(int(float(r["epoch"])) for r in rows if r.get("train/loss"))
+    assert train_epochs == [0, 0, 1, 1, 2, 2, 3, 3]  # debug=fast: 2 steps an epoch, none repeated
+    assert not (run / "csv" / "metrics.discarded.csv").exists()
+    history = [json.loads(line) for line in (run / "krr_history.jsonl").read_text().splitlines()]
+    assert [h["epoch"] for h in history if not h["final"]] == [0, 1, 2, 3]
+    wall = [h["train_wall_time_s"] for h in history]
+    assert all(b > a for a, b in zip(wall, wall[1:])), wall
+    cb_total = [h["callback_time_total_s"] for h in history]
+    assert all(b > a for a, b in zip(cb_total, cb_total[1:])), cb_total
+
+
+def test_resumable_csv_logger_moves_rows_of_discarded_training(tmp_path):
+    """Rows logged after the checkpoint a run resumes from (training lost to a kill) move to
+    metrics.discarded.csv; a fresh start moves them all; nothing is deleted."""
+    from embodied_tactile.runtime import ResumableCSVLogger
+
+    folder = tmp_path / "csv"
+    folder.mkdir()
+    rows = [{"epoch": str(s // 2), "step": str(s), "train/loss": str(10.0 - s)} for s in range(6)]
+    with open(folder / "metrics.csv", "w") as fh:
+        fh.write("epoch,step,train/loss\n" + "".join(f"{r['epoch']},{r['step']},{r['train/loss']}\n" for r in rows))
+    lg = ResumableCSVLogger(tmp_path, name="csv", version="", resume_step=3)
+    lg.log_metrics({"train/loss": 0.5, "val/elbo": -1.0}, step=4)
+    lg.save()
+    kept = _csv_rows(folder / "metrics.csv")
+    assert [r["step"] for r in kept] == ["0", "1", "2", "3", "4"]
+    assert kept[:4] == [{**r, "val/elbo": ""} for r in rows[:4]] and kept[4]["val/elbo"] == "-1.0"
+    assert [r["step"] for r in _csv_rows(folder / "metrics.discarded.csv")] == ["4", "5"]
+
+    fresh = ResumableCSVLogger(tmp_path, name="csv", version="", resume_step=None)
+    fresh.log_metrics({"train/loss": 7.0}, step=0)
+    fresh.save()
+    assert [r["train/loss"] for r in _csv_rows(folder / "metrics.csv")] == ["7.0"]
+    assert [r["step"] for r in _csv_rows(folder / "metrics.discarded.csv")] == ["4", "5", "0", "1", "2", "3", "4"]
+
+
+def _fake_checkpoint(path: Path, step: int, mtime: float) -> None:
+    torch.save({"state_dict": {}, "global_step": step, "epoch": step}, path)
+    os.utime(path, (mtime, mtime))
+
+
+def test_find_resume_checkpoint_skips_unreadable_files(tmp_path, caplog):
+    from embodied_tactile.runtime import find_resume_checkpoint
+
+    ck = tmp_path / "checkpoints"
+    ck.mkdir()
+    assert find_resume_checkpoint(tmp_path) is None
+    _fake_checkpoint(ck / "best-epoch000.ckpt", 1, 1000.0)
+    _fake_checkpoint(ck / "best-epoch001.ckpt", 2, 2000.0)
+    _fake_checkpoint(ck / "last.ckpt", 3, 1500.0)
+    assert find_resume_checkpoint(tmp_path) == ck / "last.ckpt"  # last.ckpt first when readable
+    data = (ck / "last.ckpt").read_bytes()
+    (ck / "last.ckpt").write_bytes(data[: len(data) // 2])  # truncated
+    (ck / "best-epoch001.ckpt").write_bytes(b"garbage" * 10)
+    with caplog.at_level("WARNING", logger="embodied_tactile.runtime"):
+        assert find_resume_checkpoint(tmp_path) == ck / "best-epoch000.ckpt"
+    text = caplog.text
+    assert str(ck / "last.ckpt") in text and str(ck / "best-epoch001.ckpt") in text
+    # the bad files are set aside, not deleted, so that Lightning writes a fresh last.ckpt
+    assert (ck / "last.ckpt.unreadable").read_bytes() == data[: len(data) // 2]
+    assert (ck / "best-epoch001.ckpt.unreadable").read_bytes() == b"garbage" * 10
+    assert sorted(p.name for p in ck.glob("*.ckpt")) == ["best-epoch000.ckpt"]
+    torch.save({"weights": 1}, ck / "best-epoch000.ckpt")  # readable, but not a Lightning checkpoint
+    (ck / "last.ckpt").write_bytes(b"")  # a second bad last.ckpt does not overwrite the first
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="embodied_tactile.runtime"):
+        assert find_resume_checkpoint(tmp_path) is None
+    assert "not a Lightning checkpoint" in caplog.text and "starts from scratch" in caplog.text
+    assert (ck / "last.ckpt.unreadable-1").read_bytes() == b""
+    assert (ck / "last.ckpt.unreadable").read_bytes() == data[: len(data) // 2]
+
+
+def test_corrupt_last_checkpoint_falls_back_or_starts_fresh(one_run, data_dir, tmp_path):
+    """A truncated last.ckpt: the restart continues from the newest readable checkpoint and
+    names the bad file; with no readable checkpoint it starts afresh, never crashes."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(one_run, run)
+    last = run / "checkpoints" / "last.ckpt"
+    best = run / "checkpoints" / "epoch001.ckpt"  # an older good checkpoint (the run's best may be absent)
+    shutil.copy2(last, best)
+    last.write_bytes(last.read_bytes()[:1000])
+    overrides = (f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "callbacks.krr_alignment=null")
+    res = run_train(*overrides, "trainer.max_epochs=3")
+    out = res.stdout + res.stderr
+    assert f"cannot resume from {last}" in out
+    assert len((run / "checkpoints" / "last.ckpt.unreadable").read_bytes()) == 1000  # kept aside
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "finished" and metrics["resumed_from"] == str(best)
+    assert _ckpt_epoch(last) == _ckpt_epoch(best) + 1  # one more epoch after the good one, into last.ckpt
+    step_best = int(torch.load(best, map_location="cpu", weights_only=False)["global_step"])
+
+    for p in (run / "checkpoints").glob("*.ckpt"):
+        p.write_bytes(b"\0" * 64)
+    res = run_train(*overrides, "trainer.max_epochs=1")
+    out = res.stdout + res.stderr
+    assert f"cannot resume from {last}" in out and "starts from scratch" in out
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "finished" and metrics["resumed_from"] is None
+    assert int(torch.load(last, map_location="cpu", weights_only=False)["global_step"]) == step_best // 2  # 1 of 2 epochs
+    assert len(list((run / "checkpoints").glob("*.unreadable*"))) == 3  # every bad file kept
+
+
 def test_multirun_two_modalities(data_dir, tmp_path):
     # logger=none as well: the default callbacks include a LearningRateMonitor, which
     # Lightning refuses without a logger; train.py must drop it
