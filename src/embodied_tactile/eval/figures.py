@@ -1,6 +1,15 @@
 """Figures (PNG, matplotlib Agg): NMSE vs interaction time, 3-D UMAP of last-step latents,
 inter-class distance matrices, error vs training wall time.
 
+Read as a paper's reader would: every curve is labelled once, in words (``METHOD_LABELS``,
+``MODALITY_LABELS``), in one legend outside the axes; titles are short and the long
+definitions (NMSE, splits, data source, scales) go into ``figures/captions.md``
+(:func:`write_figures`). NMSE axes are logarithmic (stated on the axis), so the hand-crafted
+baseline and the first frames do not squash the curves that matter. Sweeps are drawn in
+facets (one panel per modality) rather than one legend entry per run. UMAP panels are
+coloured by factor level, one panel per factor; class-distance matrices are ordered by
+object group (soft / hard / heterogeneous, the paper's Table 2) and factor levels, groups marked.
+
 Class distances use ``scipy.spatial.distance.cdist`` between the members of two classes
 (mean pairwise distance; the diagonal is the mean intra-class distance over distinct pairs)
 or between class means (``mode="centroid"``) -- never between a stacked pair of classes,
@@ -21,12 +30,35 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.distance import cdist  # noqa: E402
 
-from ..constants import FACTOR_NAMES  # noqa: E402
+from ..constants import FACTOR_NAMES, FACTOR_UNITS, get_object  # noqa: E402
 from .metrics import overall  # noqa: E402
 from .results import Results  # noqa: E402
 from .tables import FACTOR_LABELS, pooled_nmse  # noqa: E402
 
 FRAME_RATE_HZ = 30.0  # preprocessed frames per second (docs/architecture.md)
+NMSE_AXIS = "held-out NMSE (log scale)"
+METHOD_LABELS = {"latent_filter": "Latent Filter", "handcrafted_krr": "Hand-crafted + KRR", "gru": "GRU (supervised)",
+                 "mean": "Mean predictor"}
+MODALITY_LABELS = {"acc": "ACC", "fsr_t": "FSR$_t$", "fsr_b": "FSR$_b$", "fsr_tb": "FSR$_{tb}$", "multi_e": "MULTI-E",
+                   "multi_l": "MULTI-L"}
+GROUP_ORDER = ("soft", "hard", "heterogeneous")
+
+
+def readable(value: str) -> str:
+    """A method or modality key as the paper writes it ('multi_l' -> 'MULTI-L'); other
+    strings unchanged, '@replicate' kept."""
+    base, at, rep = str(value).partition("@")
+    return METHOD_LABELS.get(base, MODALITY_LABELS.get(base, base)) + (f" ({rep})" if at else "")
+
+
+def _legend_below(fig, handles, labels, ncol: int | None = None) -> None:
+    """One legend for the whole figure, under the axes, each label once."""
+    seen: dict[str, object] = {}
+    for h, lab in zip(handles, labels):
+        seen.setdefault(lab, h)
+    if seen:
+        fig.legend(list(seen.values()), list(seen), loc="lower center", ncol=ncol or min(len(seen), 4), fontsize=8,
+                   frameon=False)
 
 
 # ----------------------------------------------------------------------------- curves
@@ -40,26 +72,33 @@ def _save(fig, path: Path, *, tight: bool = True) -> Path:
     plt.close(fig)
     return path
 
-def plot_nmse_curves(curves: Mapping[str, np.ndarray], path, *, title: str = "", frame_rate: float = FRAME_RATE_HZ,
-                     note: str = "") -> Path:
-    """curves: label -> (T, 4) NMSE over time. One panel per factor + one for the mean."""
-    path = Path(path)
-    fig, axes = plt.subplots(1, 5, figsize=(18, 3.4), sharex=True)
+def nmse_curves_figure(curves: Mapping[str, np.ndarray], *, title: str = "", frame_rate: float = FRAME_RATE_HZ):
+    """curves: label -> (T, 4) NMSE over time -> Figure: one panel per factor + the mean,
+    log NMSE axis, one legend below (labels made readable)."""
+    fig, axes = plt.subplots(1, 5, figsize=(16, 3.9), sharex=True, sharey=True)
     for label, c in curves.items():
         c = np.asarray(c, dtype=float)
         t = np.arange(c.shape[0]) / frame_rate
-        for k in range(4):
-            axes[k].plot(t, c[:, k], label=label, lw=1.2)
         with np.errstate(all="ignore"):
-            axes[4].plot(t, np.nanmean(c, axis=1), label=label, lw=1.2)
+            cols = [c[:, k] for k in range(4)] + [np.nanmean(c, axis=1)]
+        for ax, y in zip(axes, cols):
+            ax.plot(t, np.where(y > 0, y, np.nan), label=readable(label), lw=1.3)
     for k, ax in enumerate(axes):
-        ax.set_title(FACTOR_LABELS[FACTOR_NAMES[k]] if k < 4 else "Overall (mean)")
+        ax.set_title(FACTOR_LABELS[FACTOR_NAMES[k]] if k < 4 else "Mean over factors", fontsize=9)
         ax.set_xlabel("interaction time (s)")
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("NMSE (held-out)")
-    axes[-1].legend(fontsize=7, loc="upper right")
-    fig.suptitle(title + (f"\n{note}" if note else ""), fontsize=8)
-    return _save(fig, path)
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+    axes[0].set_ylabel(NMSE_AXIS)
+    _legend_below(fig, *axes[0].get_legend_handles_labels(), ncol=min(len(curves), 6))
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    return fig
+
+
+def plot_nmse_curves(curves: Mapping[str, np.ndarray], path, *, title: str = "", frame_rate: float = FRAME_RATE_HZ) -> Path:
+    """:func:`nmse_curves_figure` saved as PNG."""
+    return _save(nmse_curves_figure(curves, title=title, frame_rate=frame_rate), Path(path), tight=False)
 
 
 def curves_by(results: Sequence[Results], key: str) -> dict[str, np.ndarray]:
@@ -107,17 +146,55 @@ def umap_embed(latents, *, n_components: int = 3, n_neighbors: int = 15, seed: i
     return reducer.fit_transform(x)
 
 
-def plot_umap(latents, labels, path, *, title: str = "", seed: int = 0, n_neighbors: int = 15) -> Path:
-    """3-D UMAP scatter of last-step latents colored by label (object id)."""
-    path = Path(path)
-    emb = umap_embed(latents, n_neighbors=n_neighbors, seed=seed)
-    labels = np.asarray(labels)
-    fig = plt.figure(figsize=(5.5, 5))
-    ax = fig.add_subplot(111, projection="3d")
-    sc = ax.scatter(emb[:, 0], emb[:, 1], emb[:, 2], c=labels, cmap="nipy_spectral", s=10)
-    fig.colorbar(sc, ax=ax, shrink=0.6, label="object id")
-    ax.set_title(title, fontsize=8)
-    return _save(fig, path, tight=False)
+def factor_levels(values) -> tuple[np.ndarray, list[str]]:
+    """Categorical levels of one factor column -> (level index per row, level labels);
+    NaN (unknown) becomes its own level 'unknown'."""
+    v = np.asarray(values, dtype=float)
+    levels = np.unique(v[np.isfinite(v)])
+    idx = np.full(len(v), len(levels), dtype=int)
+    for i, lv in enumerate(levels):
+        idx[v == lv] = i
+    names = [f"{lv:.3g}" for lv in levels] + (["unknown"] if (~np.isfinite(v)).any() else [])
+    return idx, names
+
+
+def umap_figure(latents, colour_by, *, title: str = "", seed: int = 0, n_neighbors: int = 15,
+                embedding: np.ndarray | None = None):
+    """3-D UMAP of last-step latents -> Figure. ``colour_by``: (n, 4) factors -> one panel per
+    factor, points coloured by the factor's level (legend in the factor's unit); (n,) labels
+    -> one panel coloured by label. Axes 'UMAP 1..3'."""
+    emb = umap_embed(latents, n_neighbors=n_neighbors, seed=seed) if embedding is None else np.asarray(embedding)
+    c = np.asarray(colour_by)
+    if c.ndim == 2:
+        panels = [(FACTOR_LABELS[f] + f" ({u})", c[:, k]) for k, (f, u) in enumerate(zip(FACTOR_NAMES, FACTOR_UNITS))]
+    else:
+        panels = [("label", c)]
+    fig = plt.figure(figsize=(4.2 * len(panels), 4.6))
+    for k, (name, vals) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), k + 1, projection="3d")
+        idx, names = factor_levels(vals)
+        cmap = plt.get_cmap("viridis" if len(names) > 2 else "coolwarm", max(len(names), 2))
+        for i, lv in enumerate(names):
+            m = idx == i
+            ax.scatter(emb[m, 0], emb[m, 1], emb[m, 2], s=9, color=cmap(i / max(len(names) - 1, 1)), label=lv,
+                       depthshade=False)
+        ax.set_xlabel("UMAP 1", fontsize=8, labelpad=-6)
+        ax.set_ylabel("UMAP 2", fontsize=8, labelpad=-6)
+        ax.set_zlabel("UMAP 3", fontsize=8, labelpad=-6)
+        ax.set_xticklabels([])
+        ax.set_yticklabels([])
+        ax.set_zticklabels([])
+        ax.set_title(name, fontsize=9)
+        ax.legend(fontsize=7, loc="upper left", title="level", title_fontsize=7, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.02, top=0.86, wspace=0.05)
+    return fig
+
+
+def plot_umap(latents, colour_by, path, *, title: str = "", seed: int = 0, n_neighbors: int = 15) -> Path:
+    """:func:`umap_figure` saved as PNG."""
+    return _save(umap_figure(latents, colour_by, title=title, seed=seed, n_neighbors=n_neighbors), Path(path), tight=False)
 
 
 def class_distances(latents, labels, *, mode: str = "pairwise") -> tuple[np.ndarray, np.ndarray]:
@@ -147,20 +224,49 @@ def class_distances(latents, labels, *, mode: str = "pairwise") -> tuple[np.ndar
     return classes, d
 
 
-def plot_distance_matrix(classes, dist, path, *, title: str = "", normalise: bool = True) -> Path:
-    """Heatmap of a class distance matrix (min-max normalised to [0, 1] like the paper)."""
-    path = Path(path)
-    d = np.asarray(dist, dtype=float)
+def object_order(classes) -> list[int]:
+    """Positions of ``classes`` (object ids) ordered by object group (soft, hard,
+    heterogeneous: the paper's Table 2) and then by spatial frequency, amplitude, stiffness."""
+    def key(i):
+        o = get_object(int(classes[i]))
+        return (GROUP_ORDER.index(o.group), *o.factors()[:3], o.object_id)
+    return sorted(range(len(classes)), key=key)
+
+
+def distance_figure(classes, dist, *, title: str = "", normalise: bool = True):
+    """Heatmap of a class distance matrix (min-max normalised to [0, 1] like the paper), rows
+    and columns in :func:`object_order`, object groups separated by lines and named."""
+    order = object_order(classes)
+    cls = [int(classes[i]) for i in order]
+    d = np.asarray(dist, dtype=float)[np.ix_(order, order)]
     if normalise and np.isfinite(d).any():
         lo, hi = np.nanmin(d), np.nanmax(d)
         d = (d - lo) / (hi - lo) if hi > lo else np.zeros_like(d)
-    fig, ax = plt.subplots(figsize=(5, 4.4))
+    fig, ax = plt.subplots(figsize=(6.2, 5.6))
     im = ax.imshow(d, cmap="viridis")
-    ax.set_xticks(range(len(classes)), [str(c) for c in classes], fontsize=5, rotation=90)
-    ax.set_yticks(range(len(classes)), [str(c) for c in classes], fontsize=5)
-    fig.colorbar(im, ax=ax, label="distance" + (" (min-max)" if normalise else ""))
-    ax.set_title(title, fontsize=8)
-    return _save(fig, path)
+    ax.set_xticks(range(len(cls)), [str(c) for c in cls], fontsize=6, rotation=90)
+    ax.set_yticks(range(len(cls)), [str(c) for c in cls], fontsize=6)
+    ax.set_xlabel("object id (ordered by group, then frequency, amplitude, stiffness)", fontsize=8)
+    ax.set_ylabel("object id", fontsize=8)
+    groups = [get_object(c).group for c in cls]
+    start = 0
+    for i in range(1, len(cls) + 1):
+        if i == len(cls) or groups[i] != groups[start]:
+            if i < len(cls):
+                for line in (ax.axhline, ax.axvline):
+                    line(i - 0.5, color="white", lw=1.5)
+            ax.text((start + i - 1) / 2, -1.0, groups[start], ha="center", va="bottom", fontsize=8)
+            start = i
+    fig.colorbar(im, ax=ax, shrink=0.8, label="distance" + (" (min-max normalised)" if normalise else ""))
+    if title:
+        ax.set_title(title, fontsize=9, pad=16)
+    fig.tight_layout()
+    return fig
+
+
+def plot_distance_matrix(classes, dist, path, *, title: str = "", normalise: bool = True) -> Path:
+    """:func:`distance_figure` saved as PNG."""
+    return _save(distance_figure(classes, dist, title=title, normalise=normalise), Path(path), tight=False)
 
 
 # ----------------------------------------------------------------------------- error vs run time
@@ -175,22 +281,121 @@ def read_history(path) -> list[dict]:
     return rows
 
 
+def _scene(label: str) -> tuple[str, str]:
+    """'modality/skin/primitive[/axis=v...][@rep]' -> (facet 'modality[@rep]', series 'skin, primitive, ...')."""
+    base, at, rep = label.partition("@")
+    parts = base.split("/")
+    return parts[0], ", ".join(parts[1:]) + (f" ({rep})" if at else "")
+
+
+def error_vs_runtime_figure(histories: Mapping[str, Sequence[Mapping]], *, title: str = "",
+                            points: Mapping[str, tuple[float, float]] | None = None):
+    """Held-out NMSE vs training time, one panel per modality (facets, not one legend entry
+    per run): colour = scene (skin, primitive, other axes), style = method.
+
+    ``histories``: 'modality/skin/primitive...' -> krr_history rows (the Latent Filter's
+    training-time alignments, a line); ``points``: 'method/modality/skin/primitive...' ->
+    (train_time_s, nmse_overall) (each method's evaluate.py result, a marker)."""
+    items = []  # (facet, series, method, kind, x, y)
+    for label, rows in histories.items():
+        f, se = _scene(label)
+        items.append((f, se, "latent_filter", "line", [r["train_wall_time_s"] for r in rows],
+                      [r["nmse_overall"] for r in rows]))
+    for label, (t, e) in (points or {}).items():
+        method, _, rest = label.partition("/")
+        f, se = _scene(rest)
+        items.append((f, se, method, "point", [t], [e]))
+    facets = sorted({it[0] for it in items}, key=lambda f: (list(MODALITY_LABELS).index(f.split("@")[0])
+                                                             if f.split("@")[0] in MODALITY_LABELS else 99, f))
+    series = sorted({it[1] for it in items})
+    methods = [m for m in METHOD_LABELS if any(it[2] == m for it in items)] + sorted(
+        {it[2] for it in items} - set(METHOD_LABELS))
+    colours = {se: plt.get_cmap("tab10")(i % 10) for i, se in enumerate(series)}
+    markers = dict(zip(methods, "o^sDvP*X"))
+    ncol = min(len(facets), 3) or 1
+    nrow = -(-max(len(facets), 1) // ncol)
+    n_labels = len(series) + 1 + len(methods)
+    leg_cols = min(n_labels, 3 if ncol == 1 else 4)
+    leg_rows = -(-n_labels // leg_cols)
+    height = 3.3 * nrow + 0.5 + 0.28 * leg_rows
+    fig, axes = plt.subplots(nrow, ncol, figsize=(max(4.3 * ncol, 8.0), height), sharex=True, sharey=True,
+                             squeeze=False)
+    for ax, f in zip(axes.flat, facets):
+        for _, se, method, kind, x, y in (it for it in items if it[0] == f):
+            y = [v if v is not None and v > 0 else np.nan for v in y]
+            if kind == "line":
+                ax.plot(x, y, color=colours[se], lw=1.2, alpha=0.8)
+            else:
+                ax.scatter(x, y, color=colours[se], marker=markers[method], s=36, edgecolor="black", lw=0.5)
+        ax.set_title(readable(f), fontsize=9)
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+    for ax in axes.flat[len(facets):]:
+        ax.set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("training time (s)")
+    for ax in axes[:, 0]:
+        ax.set_ylabel(NMSE_AXIS)
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=colours[se], lw=4) for se in series]
+    labels = list(series)
+    handles.append(Line2D([], [], color="grey", lw=1.2))
+    labels.append("Latent Filter during training (KRR checks)")
+    for m in methods:
+        handles.append(Line2D([], [], color="grey", marker=markers[m], ls="", markeredgecolor="black"))
+        labels.append(readable(m))
+    _legend_below(fig, handles, labels, ncol=leg_cols)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, (0.15 + 0.28 * leg_rows) / height, 1, 1))
+    return fig
+
+
 def plot_error_vs_runtime(histories: Mapping[str, Sequence[Mapping]], path, *, title: str = "",
                           baselines: Mapping[str, tuple[float, float]] | None = None) -> Path:
-    """NMSE (overall, held-out) vs training wall time, one line per run; ``baselines``:
-    label -> (train_time_s, nmse_overall) drawn as markers."""
-    path = Path(path)
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    for label, rows in histories.items():
-        t = [r["train_wall_time_s"] for r in rows]
-        e = [r["nmse_overall"] for r in rows]
-        ax.plot(t, e, marker="o", ms=3, label=label)
-    for label, (t, e) in (baselines or {}).items():
-        ax.scatter([t], [e], marker="x", label=label)
-    ax.set_xlabel("training wall time (s, excluding evaluation)")
-    ax.set_ylabel("held-out NMSE (mean over factors)")
-    ax.set_yscale("log")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    ax.set_title(title, fontsize=8)
-    return _save(fig, path)
+    """:func:`error_vs_runtime_figure` saved as PNG (``baselines``: its ``points``)."""
+    return _save(error_vs_runtime_figure(histories, title=title, points=baselines), Path(path), tight=False)
+
+
+# ----------------------------------------------------------------------------- captions
+def figure_caption(name: str, note: str, *, distance_mode: str = "pairwise") -> str:
+    """The caption of one figure file of :func:`~embodied_tactile.eval.report.write_report`
+    (by its file name): what is drawn, the scales, and ``note`` (NMSE definition, splits,
+    data source: :func:`~embodied_tactile.eval.tables.caption_note`)."""
+    stem = Path(name).stem
+    if stem.startswith("nmse_time_by_"):
+        by = stem[len("nmse_time_by_"):].replace("_", " ")
+        what = (f"Held-out NMSE per frame against interaction time (s), by {by}; one panel per factor and their "
+                "mean. The NMSE axis is logarithmic: the first frames (before any contact information) and the "
+                "hand-crafted baseline would otherwise squash the other curves.")
+        if by == "modality":
+            what += " Soft skin only when the runs include it (the paper's multi-modality figure)."
+        if by == "best worst action":
+            what += " Per primitive, the action set with the lowest and the highest whole-trajectory NMSE."
+    elif stem.startswith("umap_"):
+        what = ("3-D UMAP of the last-step latents of the held-out sequences, one panel per factor, each point "
+                "coloured by the level of that factor (legend: the level in the factor's unit). UMAP axes have no unit.")
+    elif stem.startswith("distances_"):
+        what = (f"Inter-class distance matrix of the last-step latents ({distance_mode}: "
+                + ("mean Euclidean distance between members of two objects; diagonal = mean within-object distance"
+                   if distance_mode == "pairwise" else "Euclidean distance between object means")
+                + "), min-max normalised. Objects ordered by group (soft, hard, heterogeneous: the paper's Table 2 "
+                  "groups, separated by white lines), then spatial frequency, amplitude and stiffness.")
+    elif stem == "error_vs_runtime":
+        what = ("Held-out NMSE (mean over factors, log scale) against training time (s); one panel per modality. "
+                "Lines: the Latent Filter's KRR checks during training; markers: each method's final evaluation. "
+                "Colour: skin and primitive (and any other axis that differs between runs).")
+    else:
+        what = stem.replace("_", " ")
+    return f"{what} {note}".strip()
+
+
+def write_captions(paths: Sequence[str | os.PathLike], note: str, out, *, distance_mode: str = "pairwise") -> Path:
+    """``captions.md``: one '**file**: caption' paragraph per figure."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    text = "# Figure captions\n\n" + "".join(
+        f"**{Path(p).name}**: {figure_caption(Path(p).name, note, distance_mode=distance_mode)}\n\n" for p in paths)
+    out.write_text(text)
+    return out

@@ -11,7 +11,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .figures import (best_worst_action_curves, class_distances, curves_by, plot_distance_matrix,
-                      plot_error_vs_runtime, plot_nmse_curves, plot_umap)
+                      plot_error_vs_runtime, plot_nmse_curves, plot_umap, readable, write_captions)
 from .metrics import NMSE_DEFINITION, overall
 from ..jsonio import to_jsonable
 from .results import Results
@@ -21,6 +21,12 @@ from .tables import (RUNTIME_DEFINITION, caption_note, runtime_points, split_siz
 
 def _safe(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", s)
+
+
+def _title(r: Results) -> str:
+    """'MULTI-L, soft skin, pressing' (+ other axes / replicate): a figure title, not a key."""
+    extra = "".join(f", {k}={v}" for k, v in sorted(r.axes.items())) + (f" ({r.replicate})" if r.replicate else "")
+    return f"{readable(r.method)}, {readable(r.modality)}, {r.skin} skin, {r.primitive}{extra}"
 
 
 def write_report(
@@ -70,8 +76,8 @@ def write_report(
         }
         for name, cv in sets.items():
             if cv:
-                p = plot_nmse_curves(cv, figs / f"nmse_time_by_{name}.png", title=f"NMSE vs interaction time by {name}",
-                                     note=f"held-out NMSE per frame; {note[:160]}...")
+                p = plot_nmse_curves(cv, figs / f"nmse_time_by_{name}.png",  # definitions: figures/captions.md
+                                     title=f"Held-out NMSE vs interaction time, by {name.replace('_', ' ')}")
                 written["figures"].append(str(p))
                 curves[name] = {k: v for k, v in cv.items()}
         for r in main:
@@ -79,11 +85,11 @@ def write_report(
                 continue
             tag = _safe(r.label)
             if umap:
-                written["figures"].append(str(plot_umap(r.latents_last, r.object_id, figs / f"umap_{tag}.png",
-                                                        title=f"UMAP last-step latents {r.label}")))
+                written["figures"].append(str(plot_umap(r.latents_last, r.factors, figs / f"umap_{tag}.png",
+                                                        title=f"UMAP of last-step latents: {_title(r)}")))
             cls, dist = class_distances(r.latents_last, r.object_id, mode=distance_mode)
             written["figures"].append(str(plot_distance_matrix(cls, dist, figs / f"distances_{tag}.png",
-                                                               title=f"class distances ({distance_mode}) {r.label}")))
+                                                               title=f"Class distances ({distance_mode}): {_title(r)}")))
             curves.setdefault("distances", {})[r.label] = {"classes": cls, "distance": dist}
         # every method's marker comes from the runtime table's points (one NMSE source: evaluate.py,
         # one time base: RUNTIME_DEFINITION); the training-time KRR checks are drawn as lines
@@ -91,8 +97,10 @@ def write_report(
                   if np.isfinite(p["train_time_s"]) and np.isfinite(p["nmse_overall"])}
         if histories or points:
             written["figures"].append(str(plot_error_vs_runtime(histories or {}, figs / "error_vs_runtime.png",
-                                                                title="held-out NMSE vs training time",
+                                                                title="Held-out NMSE vs training time",
                                                                 baselines=points)))
+        written["captions"] = [str(write_captions(written["figures"], note, figs / "captions.md",
+                                                          distance_mode=distance_mode))]
     blob = {
         "nmse_definition": NMSE_DEFINITION,
         "caption_note": note,
