@@ -142,3 +142,32 @@ def test_krr_value_shows_only_in_its_epoch_and_final_is_the_result(tmp_path):
     assert cb.final is cb.history[-1] and cb.final["final"] and cb.final["epoch"] == 2
     # after fit (metrics.json's fit_metrics) the krr/* values are the final alignment's
     assert float(trainer.callback_metrics["krr/nmse_overall"]) == pytest.approx(cb.final["nmse_overall"])
+
+
+def test_wall_time_continues_across_a_resume(tmp_path):
+    """The elapsed training / callback time travels in the checkpoint (the callback's
+    state_dict): a run resumed from it continues the clock instead of restarting at 0."""
+    torch.set_num_threads(1)
+
+    def fit(max_epochs, ckpt_path=None):
+        cb = KRRAlignmentCallback(every_n_epochs=1, latent="y", cv=2, val_frame_stride=3, n_threads=1,
+                                  run_on_train_end=False)
+        trainer = L.Trainer(max_epochs=max_epochs, default_root_dir=tmp_path, logger=False, callbacks=[cb],
+                            enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
+                            accelerator="cpu", devices=1, num_sanity_val_steps=0)
+        trainer.fit(FakeModel(), datamodule=FakeDataModule(), ckpt_path=ckpt_path)
+        return trainer, cb
+
+    trainer, first = fit(2)
+    ckpt = tmp_path / "e2.ckpt"
+    trainer.save_checkpoint(ckpt)
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["callbacks"][first.state_key]
+    assert state["elapsed_s"] > state["callback_time_s"] > 0
+    assert state["elapsed_s"] - state["callback_time_s"] >= first.history[-1]["train_wall_time_s"]
+    _, second = fit(4, ckpt)
+    rows = [json.loads(line) for line in first.history_path(trainer).read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [0, 1, 2, 3]
+    wall = [r["train_wall_time_s"] for r in rows]
+    assert all(b > a for a, b in zip(wall, wall[1:])), wall
+    assert second.history[0]["train_wall_time_s"] > state["elapsed_s"] - state["callback_time_s"]
+    assert second.history[0]["callback_time_total_s"] > state["callback_time_s"]

@@ -284,6 +284,7 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(data_dir, tmp_path):
     assert res.returncode != 0
     out = res.stdout + res.stderr
     assert "non-finite loss at step" in out and "nll=" in out
+    assert "(train batch 0, finite inputs of trial 'obj" in out  # the batch's trials, named
     assert last.read_bytes() == before
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["status"] == "failed" and "non-finite" in metrics["error"]
