@@ -353,7 +353,8 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     from hydra.utils import get_class
 
     from embodied_tactile.eval import evaluate_latents
-    from embodied_tactile.eval.baselines import MODALITY_CHANNELS, evaluate_gru, evaluate_handcrafted, evaluate_mean
+    from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
+    from embodied_tactile.modality import Modality
     from embodied_tactile.eval.figures import read_history
 
     t_run = time.perf_counter()
@@ -361,10 +362,10 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     modality, skin, primitive = str(cfg.modality.name), str(cfg.skin.name), str(cfg.primitive.name)
     data = data_config(run, opts)
     source = str(data.get("source", "simulated"))
-    channels = list(data["channels"])
-    if modality in MODALITY_CHANNELS and tuple(channels) != tuple(MODALITY_CHANNELS[modality]):
-        log.warning("%s: data channels %s differ from the %s preset %s; the run's channels are used",
-                    run.run_dir, channels, modality, MODALITY_CHANNELS[modality])
+    channels = list(Modality.from_config(cfg.modality).channels)  # the run's own modality, defined once
+    if list(data["channels"]) != channels:
+        raise EvaluationError(f"{run.run_dir}: data channels {list(data['channels'])} differ from the run's "
+                              f"modality {modality} channels {channels}; the config was edited by hand")
     key, dm = cache.get(data)
     t_data = time.perf_counter()
 

@@ -20,7 +20,8 @@ import time
 
 import torch
 
-from embodied_tactile.models import MODALITY_PRESETS, LatentFilter
+from embodied_tactile.models import LatentFilter
+from embodied_tactile.modality import modality_names
 from embodied_tactile.models.networks import gaussian_entropy, gaussian_nll, kl_diag_gaussians
 
 
@@ -99,7 +100,7 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=None, help="B (default 48, --quick 8)")
     p.add_argument("--seq", type=int, default=None, help="T (default 300, --quick 50)")
     p.add_argument("--quick", action="store_true", help="smaller shapes for a fast check")
-    p.add_argument("--modalities", nargs="+", default=sorted(MODALITY_PRESETS), choices=sorted(MODALITY_PRESETS))
+    p.add_argument("--modalities", nargs="+", default=modality_names(), choices=modality_names())
     p.add_argument("--repeats", type=int, default=3, help="timed batched steps per model (after 1 warm-up)")
     p.add_argument("--naive-repeats", type=int, default=2, help="timed naive steps per model")
     p.add_argument("--threads", type=int, default=2)

@@ -31,29 +31,9 @@ from torch.utils.data import DataLoader, Dataset
 from embodied_tactile import constants as C
 from embodied_tactile.io.rawformat import unique_paths
 from embodied_tactile.jsonio import write_json
+from embodied_tactile.modality import CHANNELS, fields_for_channels
 
 log = logging.getLogger(__name__)
-
-#: channel name -> (cached field, index into that field's channel axis or None)
-CHANNELS: Mapping[str, tuple[str, int | None]] = {
-    "acc": ("acc", None),
-    "fsr_t": ("fsr", 0),
-    "fsr_b": ("fsr", 1),
-}
-
-
-def fields_for_channels(channels: Sequence[str]) -> list[str]:
-    """Cached fields a list of observation channels needs (always with ``actions``)."""
-    unknown = [c for c in channels if c not in CHANNELS]
-    if unknown:
-        raise ValueError(f"unknown observation channel(s) {unknown}; known: {sorted(CHANNELS)}")
-    fields = []
-    for c in channels:
-        f = CHANNELS[c][0]
-        if f not in fields:
-            fields.append(f)
-    return [*fields, "actions"]
-
 
 @contextlib.contextmanager
 def data_dir_lock(data_dir: Path) -> Iterator[None]:
@@ -285,7 +265,7 @@ class TactileSequenceDataset(Dataset):
         cache: dict[str, np.ndarray] = {}
         planes = []
         for c in self.channels:
-            fld, idx = CHANNELS[c]
+            fld, idx, _ = CHANNELS[c]
             if fld not in cache:
                 cache[fld] = h[fld]["trials"][tr.name][fld][sl]
             arr = cache[fld]

@@ -25,7 +25,7 @@ __all__ = [
 _LAZY = {
     "evaluate_handcrafted": "baselines", "evaluate_gru": "baselines", "evaluate_mean": "baselines",
     "GRURegressor": "baselines", "MeanPredictor": "baselines", "handcrafted_features": "baselines",
-    "MODALITY_CHANNELS": "baselines", "write_report": "report", "KRRAlignmentCallback": "callback",
+    "write_report": "report", "KRRAlignmentCallback": "callback",
     "collect_latents": "callback",
 }
 

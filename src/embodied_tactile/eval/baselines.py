@@ -44,16 +44,6 @@ import numpy as np
 from .krr import assert_disjoint, fit_alignment
 from .results import Results
 
-#: observation channels per modality (order of the C axis of ``obs``; docs/architecture.md)
-MODALITY_CHANNELS: Mapping[str, tuple[str, ...]] = {
-    "acc": ("acc",),
-    "fsr_t": ("fsr_t",),
-    "fsr_b": ("fsr_b",),
-    "fsr_tb": ("fsr_t", "fsr_b"),
-    "multi_e": ("acc", "fsr_t", "fsr_b"),
-    "multi_l": ("acc", "fsr_t", "fsr_b"),
-}
-
 _EPS = 1e-8
 
 

@@ -11,11 +11,11 @@ from .annealing import (
     build_schedule,
     check_finite,
 )
-from .latent_filter import MODALITY_PRESETS, LatentFilter, resolve_modality
+from .latent_filter import LatentFilter, resolve_modality
 from .module import EarlyFusionLatentFilter, LateFusionLatentFilter, LatentFilterModule
 
 __all__ = [
     "SCHEDULES", "AnnealingSchedule", "ConstrainedAnnealing", "DVBFAnnealing", "GeometricKLWeights",
-    "LinearKLWarmup", "NoAnnealing", "build_schedule", "check_finite", "MODALITY_PRESETS", "LatentFilter",
+    "LinearKLWarmup", "NoAnnealing", "build_schedule", "check_finite", "LatentFilter",
     "resolve_modality", "EarlyFusionLatentFilter", "LateFusionLatentFilter", "LatentFilterModule",
 ]

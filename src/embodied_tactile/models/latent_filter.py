@@ -23,6 +23,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from embodied_tactile.modality import Modality, load_modality
+
 from .networks import (
     ConvDecoder,
     ConvEncoder,
@@ -36,19 +38,6 @@ from .networks import (
     kl_diag_gaussians,
     small_batch_convs,
 )
-
-FUSIONS = ("single", "early", "late")
-
-#: The project's modalities (docs/architecture.md); channel order = order in ``obs``.
-MODALITY_PRESETS: dict[str, dict[str, Any]] = {
-    "acc": {"name": "acc", "channels": ["acc"], "fusion": "single"},
-    "fsr_t": {"name": "fsr_t", "channels": ["fsr_t"], "fusion": "single"},
-    "fsr_b": {"name": "fsr_b", "channels": ["fsr_b"], "fusion": "single"},
-    "fsr_tb": {"name": "fsr_tb", "channels": ["fsr_t", "fsr_b"], "fusion": "single"},
-    "multi_e": {"name": "multi_e", "channels": ["acc", "fsr_t", "fsr_b"], "fusion": "early"},
-    "multi_l": {"name": "multi_l", "channels": ["acc", "fsr_t", "fsr_b"], "fusion": "late"},
-}
-
 
 def to_plain(cfg: Any) -> Any:
     """DictConfig / ListConfig / Mapping -> plain dict / list (checkpoint-safe primitives)."""
@@ -67,53 +56,15 @@ def to_plain(cfg: Any) -> Any:
 
 
 def resolve_modality(modality: Any) -> dict[str, Any]:
-    """Validate a modality config and derive its encoder pathways.
-
-    ``modality``: a preset name (``"multi_l"``) or a mapping with ``name``, ``channels``
-    (list of channel names, the order of ``obs``' C axis) and ``fusion``
-    (``single`` | ``early`` | ``late``). ``single``/``early``: one pathway over all
-    channels. ``late``: one pathway per sensor type, by default ``vibration`` = channels
-    whose name starts with ``acc`` and ``force`` = the others; an optional ``pathways``
-    mapping (pathway name -> list of channel names) overrides the grouping.
-    Returns a plain dict with an added ``pathways`` list of ``[name, [channel indices]]``.
-    """
-    if isinstance(modality, str):
-        if modality not in MODALITY_PRESETS:
-            raise ValueError(f"unknown modality {modality!r}; presets: {sorted(MODALITY_PRESETS)}")
-        modality = MODALITY_PRESETS[modality]
-    cfg = to_plain(modality)
-    if not isinstance(cfg, dict):
-        raise TypeError(f"modality must be a name or a mapping, got {type(modality).__name__}")
-    missing = [k for k in ("name", "channels", "fusion") if k not in cfg]
-    if missing:
-        raise ValueError(f"modality config is missing {missing}: {cfg}")
-    channels = [str(c) for c in cfg["channels"]]
-    if not channels or len(set(channels)) != len(channels):
-        raise ValueError(f"modality {cfg['name']!r}: channels must be non-empty and unique, got {channels}")
-    fusion = str(cfg["fusion"])
-    if fusion not in FUSIONS:
-        raise ValueError(f"modality {cfg['name']!r}: fusion must be one of {FUSIONS}, got {fusion!r}")
-    if fusion in ("single", "early"):
-        if fusion == "single" and cfg.get("pathways"):
-            raise ValueError("pathways are only meaningful for fusion='late'")
-        pathways = [["main", list(range(len(channels)))]]
-    else:
-        groups = cfg.get("pathways")
-        if groups:
-            groups = {str(k): [str(c) for c in v] for k, v in dict(groups).items()}
-        else:
-            vib = [c for c in channels if c.startswith("acc")]
-            force = [c for c in channels if not c.startswith("acc")]
-            groups = {k: v for k, v in (("vibration", vib), ("force", force)) if v}
-        used = [c for g in groups.values() for c in g]
-        if sorted(used) != sorted(channels) or len(used) != len(set(used)):
-            raise ValueError(f"modality {cfg['name']!r}: pathways {groups} must partition channels {channels}")
-        if len(groups) < 2:
-            raise ValueError(f"modality {cfg['name']!r}: late fusion needs >= 2 pathways, got {groups}")
-        pathways = [[name, [channels.index(c) for c in chans]] for name, chans in groups.items()]
-    out = {"name": str(cfg["name"]), "channels": channels, "fusion": fusion, "pathways": pathways}
-    if cfg.get("pathways"):
-        out["pathway_channels"] = {n: [channels[i] for i in idx] for n, idx in pathways}
+    """A modality (its yaml mapping, a :class:`~embodied_tactile.modality.Modality`, or the
+    name of a file in ``configs/modality/``) -> plain dict with ``name``, ``channels``,
+    ``fusion`` and ``pathways`` as ``[[pathway, [channel indices]], ...]``. The modality is
+    defined once, by its yaml (:mod:`embodied_tactile.modality`)."""
+    mod = load_modality(modality) if isinstance(modality, str) else Modality.from_config(modality)
+    out = {"name": mod.name, "channels": list(mod.channels), "fusion": mod.fusion,
+           "pathways": [[name, idx] for name, idx in mod.pathway_indices()]}
+    if mod.fusion == "late":
+        out["pathway_channels"] = {name: list(chans) for name, chans in mod.pathways}
     return out
 
 
