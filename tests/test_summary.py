@@ -86,7 +86,7 @@ def test_train_ends_with_the_summary(tmp_path, tiny_data_dir):
                           f"paths.data_dir={tiny_data_dir}", f"hydra.run.dir={run}"],
                          cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
-    tail = res.stdout.strip().splitlines()[-9:]
+    tail = res.stdout.strip().splitlines()[-10:]
     hist = [json.loads(x) for x in (run / "krr_history.jsonl").read_text().splitlines()]
     assert tail[0].startswith("-----") and tail[-1].startswith("-----")
     assert tail[1] == "run finished: run"
