@@ -600,7 +600,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
     quiet.silence_third_party()
     overrides = list(args.overrides)
-    if args.path is not None and "=" in args.path and not Path(args.path).exists():  # an option, not a path
+    if args.path is not None and "=" in args.path and "/" not in args.path.split("=", 1)[0] \
+            and not Path(args.path).exists():  # an option (key=value), not a path
         overrides.insert(0, args.path)
         args.path = None
     log_dirs = [o.split("=", 1)[1] for o in overrides if o.startswith("paths.log_dir=")]
