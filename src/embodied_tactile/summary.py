@@ -107,8 +107,8 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
         lines.append(f"error: {m['error']}")
     lines += nmse_lines(last_alignment(run))
     t = f"training time: {duration(m.get('train_wall_s'))}"
-    if m.get("data_prep_s") is not None:
-        t += f" (data preparation {duration(m.get('data_prep_s'))} on top)"
+    if m.get("data_prepare_s") is not None:
+        t += f" (data preparation {duration(m.get('data_prepare_s'))} on top)"
     lines.append(t)
     ckpt = m.get("best_checkpoint") or m.get("last_checkpoint")
     ck_dir = run / "checkpoints"
