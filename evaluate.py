@@ -475,9 +475,9 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     overrides, selection = split_overrides(overrides)
     opts = parse_options(overrides)
     if opts.torch_threads:
-        import torch
+        from embodied_tactile.runtime import set_threads
 
-        torch.set_num_threads(int(opts.torch_threads))
+        set_threads(int(opts.torch_threads))
     kind, runs, skipped = discover(Path(target), opts.checkpoint)
     runs = select_runs(runs, selection)
     baselines = list(opts.baselines) if opts.baselines is not None else list(

@@ -42,6 +42,7 @@ def main(cfg: DictConfig) -> float | None:
         settings.fail(err)
     runtime.save_provenance(cfg, run_dir)
     L.seed_everything(cfg.seed, workers=True)
+    log.info("torch threads: %d (threads=%s)", runtime.configure_threads(cfg), cfg.get("threads", "auto"))
     torch.set_float32_matmul_precision("high")
 
     datamodule: L.LightningDataModule = instantiate(cfg.data)

@@ -268,3 +268,70 @@ class PlainProgress(L.Callback):
         keys = [k for k in ("train/loss", "train/nll", "train/kl_z", "train/kl_y", "val/elbo", "krr/nmse_overall") if k in m]
         body = "  ".join(f"{k}={m[k]:.4g}" for k in keys)
         log.info("epoch %d/%d  step %d  %s  (%.0f s)", trainer.current_epoch + 1, trainer.max_epochs, trainer.global_step, body, time.perf_counter() - self.t0)
+
+
+# ----------------------------------------------------------------------------- threads
+def available_cores() -> int:
+    """CPU cores this process may run on (affinity-aware where the OS tells)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - macOS, Windows
+        return max(1, os.cpu_count() or 1)
+
+
+def concurrent_jobs(launcher_n_jobs: Any = None, processes_per_node: Any = 1, cores: int | None = None) -> int:
+    """How many training processes share this machine: the joblib launcher's ``n_jobs``
+    (joblib's convention: -1 = one per core, -2 = all but one, ...) times the DDP processes
+    per node. Anything unset counts as 1."""
+    cores = available_cores() if cores is None else int(cores)
+    jobs = 1
+    if launcher_n_jobs not in (None, "", 0):
+        n = int(launcher_n_jobs)
+        jobs = n if n > 0 else max(1, cores + 1 + n)
+    try:
+        procs = max(1, int(processes_per_node))
+    except (TypeError, ValueError):  # devices: "auto" and the like
+        procs = 1
+    return max(1, jobs * procs)
+
+
+def thread_budget(setting: Any, jobs: int, cores: int | None = None) -> int:
+    """Threads per process: ``setting`` if it is a positive integer, else (``auto`` / null)
+    the available cores divided by the concurrent jobs, at least 1. Two jobs at 2 threads
+    each on 2 cores ran 4x slower than at 1 thread each (oversubscription)."""
+    if setting not in (None, "auto", "null"):
+        n = int(setting)
+        if n < 1:
+            raise ValueError(f"threads must be a positive integer or 'auto', got {setting!r}")
+        return n
+    cores = available_cores() if cores is None else int(cores)
+    return max(1, cores // max(1, int(jobs)))
+
+
+def set_threads(n: int) -> int:
+    """The one place that sets the intra-op threads: torch, and OMP / MKL / OpenBLAS for
+    processes started later (DataLoader workers, numba, BLAS in sklearn). Returns ``n``."""
+    n = int(n)
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(n)
+    import torch
+
+    torch.set_num_threads(n)
+    return n
+
+
+def configure_threads(cfg: DictConfig) -> int:
+    """Threads for a train.py process from ``cfg.threads`` (``auto``: cores / concurrent
+    jobs, from the Hydra launcher's n_jobs and the trainer's DDP devices per node)."""
+    n_jobs = None
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        hc = HydraConfig.get()
+        if hc.mode is not None and str(hc.mode).endswith("MULTIRUN"):
+            n_jobs = OmegaConf.select(hc, "launcher.n_jobs", default=None)
+    except (ImportError, ValueError):  # not inside a Hydra app
+        pass
+    trainer = cfg.get("trainer") or {}
+    procs = trainer.get("devices", 1) if "ddp" in str(trainer.get("strategy", "")) else 1
+    return set_threads(thread_budget(cfg.get("threads", "auto"), concurrent_jobs(n_jobs, procs)))
