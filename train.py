@@ -94,13 +94,18 @@ def main(cfg: DictConfig) -> float | None:
     metrics["krr_final"] = next((c.final for c in callbacks if getattr(c, "final", None)), None)
 
     if cfg.validate_at_end and not cfg.trainer.get("fast_dev_run"):
-        val = trainer.validate(model, datamodule=datamodule, verbose=False)
+        # validation trials (training objects), final weights; recorded in metrics.json only, not
+        # as one more csv row that would carry Lightning's post-fit epoch number
+        loggers_fit, trainer.loggers = trainer.loggers, []
+        try:
+            val = trainer.validate(model, datamodule=datamodule, verbose=False)
+        finally:
+            trainer.loggers = loggers_fit
         metrics["final_val"] = {k: float(v) for k, v in (val[0] if val else {}).items()}
-        log.info("held-out ELBO per sequence (final weights): %.4g", metrics["final_val"].get("val/elbo", float("nan")))
-    ckpt_cb = trainer.checkpoint_callback
-    if ckpt_cb is not None:
-        metrics["best_checkpoint"] = ckpt_cb.best_model_path or None
-        metrics["last_checkpoint"] = ckpt_cb.last_model_path or None
+        log.info("validation ELBO per sequence (final weights): %.4g", metrics["final_val"].get("val/elbo", float("nan")))
+    for cb in trainer.checkpoint_callbacks:  # the monitored one keeps the best, the unmonitored one last.ckpt
+        key = "best_checkpoint" if getattr(cb, "monitor", None) else "last_checkpoint"
+        metrics[key] = (cb.best_model_path if key == "best_checkpoint" else cb.last_model_path or cb.best_model_path) or None
     metrics["data"] = datamodule.describe() if hasattr(datamodule, "describe") else {}
     metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
     metrics["status"] = "interrupted" if trainer.interrupted else "finished"  # Ctrl-C: Lightning returns

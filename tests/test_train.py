@@ -142,10 +142,14 @@ def test_resume_continues_csv_history_and_krr_wall_time(data_dir, tmp_path):
     assert not (run / "csv" / "metrics.discarded.csv").exists()
     history = [json.loads(line) for line in (run / "krr_history.jsonl").read_text().splitlines()]
     assert [h["epoch"] for h in history if not h["final"]] == [0, 1, 2, 3]
-    wall = [h["train_wall_time_s"] for h in history]
+    # the training clock continues across the resume; a session's closing ("final") alignment
+    # is taken after its last checkpoint, so the resumed session's clock starts before it
+    during = [h for h in history if not h["final"]]
+    wall = [h["train_wall_time_s"] for h in during]
     assert all(b > a for a, b in zip(wall, wall[1:])), wall
-    cb_total = [h["callback_time_total_s"] for h in history]
+    cb_total = [h["callback_time_total_s"] for h in during]
     assert all(b > a for a, b in zip(cb_total, cb_total[1:])), cb_total
+    assert history[-1]["final"] and history[-1]["train_wall_time_s"] >= wall[-1]
 
 
 def test_resumable_csv_logger_moves_rows_of_discarded_training(tmp_path):
@@ -230,7 +234,8 @@ def test_corrupt_last_checkpoint_falls_back_or_starts_fresh(one_run, data_dir, t
     assert _ckpt_epoch(last) == _ckpt_epoch(best) + 1  # one more epoch after the good one, into last.ckpt
     step_best = int(torch.load(best, map_location="cpu", weights_only=False)["global_step"])
 
-    for p in (run / "checkpoints").glob("*.ckpt"):
+    corrupted = list((run / "checkpoints").glob("*.ckpt"))
+    for p in corrupted:
         p.write_bytes(b"\0" * 64)
     res = run_train(*overrides, "trainer.max_epochs=1")
     out = res.stdout + res.stderr
@@ -238,7 +243,8 @@ def test_corrupt_last_checkpoint_falls_back_or_starts_fresh(one_run, data_dir, t
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["status"] == "finished" and metrics["resumed_from"] is None
     assert int(torch.load(last, map_location="cpu", weights_only=False)["global_step"]) == step_best // 2  # 1 of 2 epochs
-    assert len(list((run / "checkpoints").glob("*.unreadable*"))) == 3  # every bad file kept
+    # every bad file kept: the truncated last.ckpt set aside before, and each one corrupted here
+    assert len(list((run / "checkpoints").glob("*.unreadable*"))) == 1 + len(corrupted)
 
 
 def test_multirun_two_modalities(data_dir, tmp_path):
@@ -333,3 +339,26 @@ def test_joblib_launcher_parallel_jobs_share_a_fresh_data_dir(tmp_path):
     for name in ("modality=acc", "modality=fsr_t"):
         (job,) = [p for p in sweep.iterdir() if name in p.name.split(",")]  # folder named after its overrides
         assert json.loads((job / "metrics.json").read_text())["status"] == "finished"
+
+
+def test_last_checkpoint_follows_every_epoch_even_when_validation_worsens(data_dir, tmp_path):
+    """last.ckpt is the last epoch's state whatever val/elbo did (Lightning 2.6's save_last
+    refreshes it only together with a best checkpoint), so a resume never repeats epochs."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    run = tmp_path / "run"
+    run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "trainer.max_epochs=4", "callbacks.krr_alignment=null")
+    best = [p for p in (run / "checkpoints").glob("best-*.ckpt")]
+    assert len(best) == 1 and _ckpt_epoch(run / "checkpoints" / "last.ckpt") == 3
+    # force a best checkpoint that the next epochs cannot beat: last.ckpt must still move on
+    ck = torch.load(best[0], map_location="cpu", weights_only=False)
+    for key, state in ck["callbacks"].items():
+        if key.startswith("ModelCheckpoint") and "'monitor': 'val/elbo'" in key:
+            state["best_model_score"] = torch.tensor(1e30)
+            state["best_k_models"] = {k: torch.tensor(1e30) for k in state["best_k_models"]}
+    last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    last["callbacks"] = ck["callbacks"] | {k: v for k, v in last["callbacks"].items() if "'monitor': None" in k}
+    torch.save(last, run / "checkpoints" / "last.ckpt")
+    run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "trainer.max_epochs=6", "callbacks.krr_alignment=null")
+    assert _ckpt_epoch(run / "checkpoints" / "last.ckpt") == 5
+    assert ModelCheckpoint  # the class whose save_last behaviour this guards against

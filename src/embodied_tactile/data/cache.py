@@ -313,7 +313,7 @@ def build_cache(
                     g.create_dataset(f, data=arr, compression=compression)
                     for k, v in attrs.items():
                         g.attrs[k] = np.asarray(v) if isinstance(v, (list, tuple)) else v
-                    g.attrs["source_file"] = str(path)
+                    g.attrs["source_file"] = os.path.abspath(path)  # one identity, whatever the cwd or spelling
                     counts[f] += 1
         for f, h in files.items():
             h.attrs.update(

@@ -528,7 +528,8 @@ class TactileDataModule(L.LightningDataModule):
         mixed = []
         out = []
         for name in sorted(set().union(*per_field)):
-            sources = {fld: entries[name].get("source_file") for fld, entries in zip(self.fields, per_field) if name in entries}
+            sources = {fld: os.path.abspath(str(entries[name].get("source_file")))
+                       for fld, entries in zip(self.fields, per_field) if name in entries}
             if len(set(sources.values())) > 1:
                 mixed.append(f"'{name}': " + ", ".join(f"{fld} from {src}" for fld, src in sources.items()))
                 continue

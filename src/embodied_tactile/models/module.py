@@ -211,7 +211,12 @@ class LatentFilterModule(L.LightningModule):
     def test_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
         return self._eval_step(batch, "test", batch_idx)
 
-    def on_fit_start(self) -> None:
+    def _fit_budget(self) -> None:
+        """Resolve what depends on the run: schedule lengths given as a fraction of its
+        optimiser steps, and the prior's population weight. Called from
+        ``configure_optimizers``, where Lightning documents ``estimated_stepping_batches``."""
+        if getattr(self, "_trainer", None) is None:
+            return
         # schedule lengths given as a fraction of the run resolve against its optimiser steps
         self.annealing.set_total_steps(self.trainer.estimated_stepping_batches)
         # the prior's population term counts once per dataset: 1 / (training sequences) per sequence
@@ -222,6 +227,7 @@ class LatentFilterModule(L.LightningModule):
                 prior.population_weight = 1.0 / len(train_set.trials)
 
     def configure_optimizers(self):
+        self._fit_budget()
         return self._optimizer(self.parameters())
 
 
