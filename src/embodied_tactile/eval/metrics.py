@@ -95,3 +95,40 @@ def overall(per_factor) -> float:
     v = np.asarray(per_factor, dtype=np.float64)
     v = v[np.isfinite(v)]
     return float(v.mean()) if v.size else float("nan")
+
+
+# ----------------------------------------------------------------------------- binary factor (heterogeneity)
+def _binary(y, score) -> tuple[np.ndarray, np.ndarray]:
+    """Broadcast labels against scores, flatten, drop non-finite labels or scores."""
+    y, s = np.broadcast_arrays(np.asarray(y, dtype=np.float64), np.asarray(score, dtype=np.float64))
+    y, s = y.ravel(), s.ravel()
+    keep = np.isfinite(y) & np.isfinite(s)
+    y, s = y[keep], s[keep]
+    if np.any((y != 0) & (y != 1)):
+        raise ValueError(f"binary labels must be 0/1, got {sorted(set(np.unique(y)) - {0.0, 1.0})[:3]}")
+    return y.astype(bool), s
+
+
+def balanced_accuracy(y, score, threshold: float = 0.5) -> float:
+    """Mean of the true-positive and true-negative rates of ``score >= threshold`` against 0/1
+    labels ``y`` (broadcast: labels (n, 1) against scores (n, T) score every frame). NaN when
+    one class is absent."""
+    y, s = _binary(y, score)
+    if y.all() or not y.any():
+        return float("nan")
+    hit = s >= threshold
+    return float(0.5 * (hit[y].mean() + (~hit[~y]).mean()))
+
+
+def roc_auc(y, score) -> float:
+    """Area under the ROC curve of the continuous ``score`` against 0/1 labels ``y``: the
+    probability that a random positive scores above a random negative, ties counting one
+    half (Mann-Whitney U / (n_pos n_neg), from mid-ranks). NaN when one class is absent."""
+    from scipy.stats import rankdata
+
+    y, s = _binary(y, score)
+    n_pos, n_neg = int(y.sum()), int((~y).sum())
+    if n_pos == 0 or n_neg == 0:
+        return float("nan")
+    ranks = rankdata(s)
+    return float((ranks[y].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))

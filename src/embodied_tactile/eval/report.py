@@ -15,8 +15,9 @@ from .figures import (best_worst_action_curves, class_distances, curves_by, plot
 from .metrics import NMSE_DEFINITION, overall
 from ..jsonio import to_jsonable
 from .results import Results
-from .tables import (RUNTIME_DEFINITION, caption_note, runtime_points, split_sizes, table_actions, table_aggregate,
-                     table_groups, table_runtime, table_summary)
+from .tables import (MISSING, RUNTIME_DEFINITION, caption_note, runtime_points, split_sizes, table_actions,
+                     table_aggregate, table_groups, table_heterogeneity, table_runtime, table_summary)
+from .verdicts import verdict_tables
 
 
 def _safe(s: str) -> str:
@@ -56,9 +57,13 @@ def write_report(
             r.source = source
     written: dict[str, list[str]] = {"tables": [], "figures": [], "json": []}
     main = [r for r in results if method is None or r.method == method] or results
-    tables = [table_actions(results, method=method if main is not results else None),
-              table_groups(results, method=method if main is not results else None),
-              table_summary(results), table_aggregate(results), table_runtime(results)]
+    table_method = method if main is not results else None
+    tables = [table_actions(results, method=table_method), table_groups(results, method=table_method),
+              table_groups(results, method=table_method, norm="group"),
+              table_summary(results), table_aggregate(results), table_heterogeneity(results), table_runtime(results)]
+    verdicts = verdict_tables(results, method=method or "latent_filter")
+    if any(v not in (MISSING, "not measured") for v in (r[-1] for r in verdicts[1].rows)):
+        tables += verdicts  # the paper's findings with verdicts, once any comparison is measured
     for t in tables:
         for ext, text in (("md", t.to_markdown()), ("csv", t.to_csv()), ("tex", t.to_latex())):
             p = out / f"table_{t.name}.{ext}"

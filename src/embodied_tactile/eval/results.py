@@ -18,6 +18,7 @@ Split dict (``train`` / ``test`` arguments of :func:`evaluate_latents`)::
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
@@ -27,7 +28,7 @@ import numpy as np
 from ..constants import FACTOR_NAMES, get_object
 from ..jsonio import to_jsonable
 from .krr import Alignment, assert_disjoint, fit_alignment
-from .metrics import nmse_over_time, nmse_trajectory, overall, reference_variance
+from .metrics import balanced_accuracy, nmse_over_time, nmse_trajectory, overall, reference_variance, roc_auc
 
 
 @dataclass
@@ -51,6 +52,9 @@ class Results:
     seed: int | None = None  # the run's seed: the replicate axis, the only one tables average over
     axes: dict = field(default_factory=dict)  # other configuration axes that differ between runs
     replicate: str = ""  # tells replicates of one cell apart in labels (e.g. 'seed=1'); '' when alone
+    targets: str = "physical"  # target encoding of `factors` / `pred` (eval.targets); evaluate.py sets it
+    split: str = "unknown"  # how the held-out set was drawn: 'trial' (paper) | 'object' (unseen objects)
+    unseen_objects: bool | None = None  # True: no held-out object had a trial in training (from split.json)
 
     def __post_init__(self) -> None:
         self.pred = np.asarray(self.pred, dtype=np.float64)
@@ -97,6 +101,29 @@ class Results:
         m = np.ones(self.n_test, bool) if mask is None else np.asarray(mask, bool)
         return nmse_over_time(self.factors[m], self.pred[m], var_ref=self.var_ref)
 
+    def group_nmse(self, mask) -> np.ndarray:
+        """Whole-trajectory NMSE per factor over the masked sequences, normalised by THEIR OWN
+        variance (NaN, with a warning, for a factor constant inside the subset)."""
+        m = np.asarray(mask, bool)
+        return nmse_trajectory(self.factors[m], self.pred[m])
+
+    def heterogeneity_scores(self) -> dict:
+        """Heterogeneity as a binary decision from the continuous prediction: balanced accuracy
+        (threshold 0.5, halfway between the 0/1 classes) and ROC-AUC, on the last frame and over
+        the whole trajectory (every frame of every sequence a sample), with the class counts."""
+        k = FACTOR_NAMES.index("heterogeneity")
+        y = self.factors[:, k]
+        fin = np.isfinite(y)
+        last, traj = self.pred[:, -1, k], self.pred[:, :, k]
+        if np.any((y[fin] != 0) & (y[fin] != 1)):  # not the catalogue's 0/1 factor (synthetic targets)
+            nan = float("nan")
+            return {"n_pos": 0, "n_neg": 0, "balanced_accuracy_last": nan, "balanced_accuracy_trajectory": nan,
+                    "roc_auc_last": nan, "roc_auc_trajectory": nan}
+        return {"n_pos": int((y[fin] == 1).sum()), "n_neg": int((y[fin] == 0).sum()),
+                "balanced_accuracy_last": balanced_accuracy(y, last),
+                "balanced_accuracy_trajectory": balanced_accuracy(y[:, None], traj),
+                "roc_auc_last": roc_auc(y, last), "roc_auc_trajectory": roc_auc(y[:, None], traj)}
+
     def summary(self) -> dict:
         """The headline numbers (JSON-ready)."""
         traj = self.subset_nmse()
@@ -110,12 +137,16 @@ class Results:
             "axes": dict(self.axes),
             "seed": self.seed,
             "source": self.source,
+            "targets": self.targets,
+            "split": self.split,
+            "unseen_objects": self.unseen_objects,
             "n_train": int(self.n_train),
             "n_test": self.n_test,
             "nmse_trajectory": dict(zip(FACTOR_NAMES, _f(traj))),
             "nmse_trajectory_overall": overall(traj),
             "nmse_last_step": dict(zip(FACTOR_NAMES, _f(last))),
             "nmse_last_step_overall": overall(last),
+            "heterogeneity_classification": self.heterogeneity_scores(),
             "params": to_jsonable(self.params),
         }
 
@@ -178,6 +209,35 @@ def config_axes(configs: Sequence[Mapping], run_names: Sequence[str] = ()) -> li
             for ctx, f in zip(context, flat):
                 ctx.append(repr(f.get(k)))
     return [{k: f.get(k) for k in kept} for f in flat]
+
+
+_TRIAL_OBJECT = re.compile(r"^obj(\d+)_")
+
+
+def trial_object(name: str) -> int:
+    """The object id of a trial name (``obj07_soft_sliding_a03_r00`` -> 7, io.rawformat.trial_name)."""
+    m = _TRIAL_OBJECT.match(str(name))
+    if not m:
+        raise ValueError(f"trial name {name!r} does not start with obj<id>_ (io.rawformat.trial_name)")
+    return int(m.group(1))
+
+
+SPLIT_KINDS = {"trial": "held-out trials of training objects (the paper's split)",
+               "object": "whole objects held out (generalisation to unseen objects)"}
+
+
+def split_report(split: Mapping[str, Any]) -> dict:
+    """What a run's ``split.json`` says about generalisation: the split kind, the object ids
+    on each side and ``unseen_objects`` = no test object has a trial in training or validation
+    (checked from the trial names, whatever the kind says). ``seen_test_objects`` lists the
+    test objects that do."""
+    sides = {k: [str(n) for n in split.get(k) or []] for k in ("train", "val", "test")}
+    objs = {k: sorted({trial_object(n) for n in v}) for k, v in sides.items()}
+    fitted = set(objs["train"]) | set(objs["val"])
+    seen = sorted(set(objs["test"]) & fitted)
+    return {"kind": str(split.get("split", "trial")), "n_train": len(sides["train"]), "n_val": len(sides["val"]),
+            "n_test": len(sides["test"]), "train_objects": objs["train"], "test_objects": objs["test"],
+            "unseen_objects": bool(objs["test"]) and not seen, "seen_test_objects": seen}
 
 
 def select_latents(split: Mapping[str, Any], latent: str = "y") -> np.ndarray:

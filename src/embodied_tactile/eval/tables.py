@@ -23,8 +23,9 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..constants import ACTION_PARAM_NAMES, ACTIONS, FACTOR_NAMES, N_ACTIONS, PRIMITIVES, SKINS
-from .metrics import NMSE_DEFINITION, nmse, overall
-from .results import Results
+from .metrics import NMSE_DEFINITION, NMSEUndefinedWarning, nmse, overall
+from .results import SPLIT_KINDS, Results
+from .targets import TARGET_ENCODINGS, describe_targets
 
 FACTOR_LABELS = {"spatial_frequency": "Spatial Freq.", "amplitude": "Amplitude", "stiffness": "Stiffness",
                  "heterogeneity": "Heterogeneity"}
@@ -121,7 +122,24 @@ def caption_note(results: Sequence[Results]) -> str:
     srcs = sorted({r.source for r in results})
     sz = "; ".join(f"{a} train / {b} held-out sequences" for a, b in sizes) if sizes else "none"
     n_runs = len({(r.cell[1:], r.seed, r.replicate) for r in results})
-    return (f"{NMSE_DEFINITION} Splits ({n_runs} run(s)): {sz}. Data source: {', '.join(srcs) or 'unknown'}.")
+    return (f"{NMSE_DEFINITION} Splits ({n_runs} run(s)): {sz}. {split_note(results)} "
+            f"Data source: {', '.join(srcs) or 'unknown'}. "
+            + " ".join(describe_targets(t) if t in TARGET_ENCODINGS else f"Targets: {t}."
+                       for t in sorted({r.targets for r in results})))
+
+
+def split_note(results: Sequence[Results]) -> str:
+    """The split kind(s) of the runs and whether their held-out objects were unseen in training."""
+    parts = []
+    for kind in sorted({r.split for r in results}):
+        rs = [r for r in results if r.split == kind]
+        flags = {r.unseen_objects for r in rs}
+        seen = ("held-out objects never in training (checked from split.json)" if flags == {True}
+                else "held-out objects also in training" if flags == {False}
+                else "no split.json check" if flags == {None}
+                else "unseen-object check: " + ", ".join(sorted({str(f) for f in flags})))
+        parts.append(f"{kind} ({SPLIT_KINDS.get(kind, 'not recorded')}; {seen})")
+    return "Split kind: " + ("; ".join(parts) or "none") + "."
 
 
 def _filter(results, method=None, modality=None, skin=None, primitive=None):
@@ -158,14 +176,34 @@ def cells(results: Sequence[Results]) -> dict[tuple, list[Results]]:
     return out
 
 
-def cell_mean(runs: Sequence[Results], select: Callable[[Results], np.ndarray] | None = None) -> tuple[np.ndarray, int]:
+GROUP_NORMS = {
+    "total": "each factor's squared error divided by the variance of that factor over ALL held-out sequences "
+             "of the run (MSE / total variance, the paper's Table 2 convention: a group in which a factor is "
+             "constant still has a value, and a minority group such as the heterogeneous objects can exceed 1)",
+    "group": "each factor's squared error divided by the variance of that factor over the group's OWN held-out "
+             "sequences (NMSE within the group; undefined, printed as \u2013, where the factor is constant in "
+             "the group: heterogeneity in every group, stiffness among the heterogeneous objects)",
+}
+
+
+def cell_mean(runs: Sequence[Results], select: Callable[[Results], np.ndarray] | None = None,
+              *, norm: str = "total") -> tuple[np.ndarray, int]:
     """Per-factor NMSE of each run (its own sequences, optionally masked), averaged over the
-    runs (= seeds of one cell) -> (mean (4,), number of runs that had sequences)."""
+    runs (= seeds of one cell) -> (mean (4,), number of runs that had sequences).
+    ``norm``: 'total' (the run's reference variance) or 'group' (the masked sequences' own
+    variance), see :data:`GROUP_NORMS`."""
+    if norm not in GROUP_NORMS:
+        raise ValueError(f"norm must be one of {sorted(GROUP_NORMS)}, got {norm!r}")
     vals = []
     for r in runs:
         m = np.ones(r.n_test, bool) if select is None else np.asarray(select(r), bool)
         if r.n_test and m.any():
-            vals.append(pooled_nmse([r], select))
+            if norm == "group":
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", NMSEUndefinedWarning)
+                    vals.append(r.group_nmse(m))
+            else:
+                vals.append(pooled_nmse([r], select))
     if not vals:
         return np.full(4, np.nan), 0
     with warnings.catch_warnings():
@@ -276,9 +314,13 @@ def table_actions(results: Sequence[Results], *, method: str | None = "latent_fi
 
 
 # ----------------------------------------------------------------------------- Table 2
-def table_groups(results: Sequence[Results], *, method: str | None = "latent_filter", modality: str | None = None) -> Table:
+def table_groups(results: Sequence[Results], *, method: str | None = "latent_filter", modality: str | None = None,
+                 norm: str = "total") -> Table:
     """Table 2 analogue: NMSE per factor x object group x primitive, one block (factor rows +
-    Overall) per modality x skin (x other swept axes), as the paper writes it per modality."""
+    Overall) per modality x skin (x other swept axes), as the paper writes it per modality.
+    ``norm='total'`` (table ``environmentshape``, comparable with the paper's Table 2) divides by
+    the factor's variance over all held-out sequences of the run; ``norm='group'`` (table
+    ``environmentshape_groupvar``) by the group's own variance (:data:`GROUP_NORMS`)."""
     rs = _filter(results, method, modality)
     prims = [p for p in PRIMITIVES if any(r.primitive == p for r in rs)] or list(PRIMITIVES)
     blocks = _blocks(rs)
@@ -289,7 +331,8 @@ def table_groups(results: Sequence[Results], *, method: str | None = "latent_fil
         vals = np.full((len(GROUPS) * len(prims), 4), np.nan)
         for gi, g in enumerate(GROUPS):
             for pi, p in enumerate(prims):
-                vals[gi * len(prims) + pi] = cell_mean(_filter(runs, primitive=p), lambda r, g=g: r.group == g)[0]
+                vals[gi * len(prims) + pi] = cell_mean(_filter(runs, primitive=p), lambda r, g=g: r.group == g,
+                                                       norm=norm)[0]
         for k, f in enumerate(FACTOR_NAMES):
             rows.append([*bvals(key), f, *vals[:, k]])
         rows.append([*bvals(key), "Overall", *[overall(v) for v in vals]])
@@ -318,8 +361,30 @@ def table_groups(results: Sequence[Results], *, method: str | None = "latent_fil
     what = ", ".join(x for x in (method, modality) if x) or "all runs"
     cap = (f"NMSE over the entire interaction sequence per factor, object group (soft / hard / heterogeneous) "
            f"and primitive, one block per {', '.join(bcols).lower()} ({what}); Overall = mean over the four "
-           f"factors; lower is better. {_seeds_note(rs)} " + caption_note(rs))
-    return Table("environmentshape", cap, columns, rows, "\n".join(lines))
+           f"factors; lower is better. Normalisation: {GROUP_NORMS[norm]}. {_seeds_note(rs)} " + caption_note(rs))
+    return Table("environmentshape" if norm == "total" else "environmentshape_groupvar", cap, columns, rows,
+                 "\n".join(lines))
+
+
+def table_heterogeneity(results: Sequence[Results]) -> Table:
+    """Heterogeneity as a binary decision, one row per run and method: class counts, balanced
+    accuracy (prediction >= 0.5) and ROC-AUC of the continuous prediction, last frame and whole
+    trajectory (:meth:`Results.heterogeneity_scores`)."""
+    axes = _axis_columns(results)
+    keys = ["balanced_accuracy_last", "roc_auc_last", "balanced_accuracy_trajectory", "roc_auc_trajectory"]
+    columns = ["method", "modality", "skin", "primitive", *axes, "seed", "n_pos", "n_neg", *keys]
+    rows = []
+    for r in results:
+        h = r.heterogeneity_scores()
+        rows.append([r.method, r.modality, r.skin, r.primitive, *[r.axes.get(a, MISSING) for a in axes],
+                     MISSING if r.seed is None else r.seed, h["n_pos"], h["n_neg"], *[h[k] for k in keys]])
+    cap = ("Heterogeneity (0/1) read as a decision from the continuous predicted value: balanced accuracy = mean "
+           "of the true-positive and true-negative rates of prediction >= 0.5; ROC-AUC = probability that a "
+           "heterogeneous sequence scores above a homogeneous one (ties count 1/2), 0.5 = chance. 'last': last "
+           "frame of each held-out sequence; 'trajectory': every frame of every held-out sequence a sample. "
+           f"n_pos / n_neg: held-out heterogeneous / homogeneous sequences ({MISSING} where a class is absent). "
+           "One row per run (no averaging). " + caption_note(results))
+    return Table("heterogeneity", cap, columns, rows)
 
 
 # ----------------------------------------------------------------------------- summary / runtime
