@@ -74,8 +74,9 @@ def main(cfg: DictConfig) -> float | None:
     metrics: dict = {"status": "running", "run_dir": run_dir, "resumed_from": str(ckpt_path) if ckpt_path else None}
     t0 = time.perf_counter()
     try:
-        # data preparation (simulation, preprocessing cache, loading) is timed apart from training;
-        # the DataModule does each once, so fit() below does not repeat it
+        # data preparation is timed apart from training: prepare_data is the preparation stage
+        # (embodied_tactile.data.prepare: simulation, caches, trial listing), setup splits and
+        # loads; the DataModule does each once, so fit() below does not repeat it
         datamodule.prepare_data()
         datamodule.setup("fit")
         metrics["data_prepare_s"] = time.perf_counter() - t0

@@ -19,17 +19,32 @@ TINY_OBJECTS = [0, 8, 17, 27]
 TINY_ACTIONS = [0, 10]
 
 
-@pytest.fixture(scope="session")
-def tiny_data_dir(tmp_path_factory) -> Path:
-    """A data dir holding raw soft/pressing trials of the tiny scene (simulated once)."""
-    from embodied_tactile.sim import generate_dataset
+def tiny_scene(data_dir: Path, channels=("acc",), **kw):
+    """The tiny scene (soft / pressing, TINY_OBJECTS x TINY_ACTIONS x 2 repetitions) as the
+    preparation stage's :class:`~embodied_tactile.data.prepare.Scene`."""
+    from embodied_tactile.data.prepare import Scene
 
-    d = tmp_path_factory.mktemp("data")
-    generate_dataset(
-        d / "raw" / "soft_pressing.h5", skin="soft", primitive="pressing",
-        objects=TINY_OBJECTS, actions=TINY_ACTIONS, repetitions=2, seed=0, workers=2,
-    )
-    return d
+    args = dict(data_dir=str(data_dir), source="simulated", skin="soft", primitive="pressing",
+                channels=tuple(channels), objects=TINY_OBJECTS, actions=TINY_ACTIONS, repetitions=2,
+                sim_workers=2, preprocess_workers=1)
+    args.update(kw)
+    return Scene(**args)
+
+
+@pytest.fixture(scope="session")
+def tiny_prepared(tmp_path_factory):
+    """The tiny scene prepared once by the preparation stage (simulated raw trials, acc and
+    actions caches): ``PreparedData``."""
+    from embodied_tactile.data.prepare import prepare_scene
+
+    return prepare_scene(tiny_scene(tmp_path_factory.mktemp("data")))
+
+
+@pytest.fixture(scope="session")
+def tiny_data_dir(tiny_prepared) -> Path:
+    """A data dir holding raw soft/pressing trials of the tiny scene (simulated once, by the
+    preparation stage; its acc and actions caches are there too)."""
+    return Path(tiny_prepared.scene.data_dir)
 
 
 def tiny_datamodule(data_dir: Path, channels, **kw):

@@ -18,6 +18,8 @@ CASES = {
     "embodied_tactile.io.rawformat": ["torch", "lightning", "librosa"],
     "embodied_tactile.acquisition.recorder": ["torch", "lightning", "librosa"],
     "embodied_tactile.data.preprocess": ["torch", "lightning"],
+    "embodied_tactile.data.prepare": ["torch", "lightning"],  # the preparation stage: files only
+    "embodied_tactile.prepare": ["torch", "lightning"],
     # (librosa is not checked here: lightning -> torchmetrics.functional.audio imports it
     # whenever it is installed, which is outside this project's control.)
     "embodied_tactile.models.latent_filter": ["h5py"],

@@ -10,6 +10,7 @@ import pytest
 
 from embodied_tactile.data.cache import build_cache, cache_info, list_cached
 from embodied_tactile.data.datamodule import TactileDataModule
+from embodied_tactile.data.prepare import list_trials
 from embodied_tactile.io import rawformat as rf
 
 FAST = {"n_frames": 30}  # 1 s of each 10 s trial: the identity rules do not depend on T
@@ -85,17 +86,17 @@ def test_trial_bad_in_one_field_is_skipped_whole(tiny_data_dir, names, tmp_path)
 
 
 def test_fields_of_one_trial_from_different_files_are_refused(tiny_data_dir, names, tmp_path):
-    """The DataModule checks that every cached field of a trial came from the same raw
-    file (a guard behind the cache builder's duplicate check)."""
+    """The preparation stage's trial listing checks that every cached field of a trial came
+    from the same raw file (a guard behind the cache builder's duplicate check)."""
     raw = tiny_data_dir / "raw" / "soft_pressing.h5"
     a = _copy_trials(raw, tmp_path / "a.h5", names[:2])
     b = _copy_trials(raw, tmp_path / "b.h5", names[:2])
     acc = build_cache([a], tmp_path / "cache", fields=("acc",), workers=1, cfg=_cfg())
     rest = build_cache([b], tmp_path / "cache", fields=("fsr", "actions"), workers=1, cfg=_cfg())
     dm = _recorded(tmp_path, [a])
-    dm.cache_files = {"acc": str(acc["acc"]), "fsr": str(rest["fsr"]), "actions": str(rest["actions"])}
+    mixed = {"acc": str(acc["acc"]), "fsr": str(rest["fsr"]), "actions": str(rest["actions"])}
     with pytest.raises(RuntimeError, match="different raw files") as info:
-        dm.setup()
+        list_trials(dm.scene, mixed)
     assert str(a) in str(info.value) and str(b) in str(info.value)
 
 
@@ -145,6 +146,8 @@ def test_trial_absent_from_one_cache_without_reason_is_reported(tiny_data_dir, n
     dm.prepare_data()
     with h5py.File(dm.cache_files["actions"], "a") as f:  # a damaged cache: one trial gone, no reason listed
         del f["trials"][names[2]]
+    dm = _recorded(tmp_path, [a], channels=["acc"])  # the next preparation finds the damaged cache
+    dm.prepare_data()
     dm.setup()
     assert _used(dm) == set(names[:4]) - {names[2]}
     assert [(e["file"], e["trial"], e["field"]) for e in dm.skipped] == [(str(a), names[2], "actions")]

@@ -1,26 +1,22 @@
 """LightningDataModule over preprocessed HDF5 trajectories: the one place that knows both
 the files (raw + cache) and torch.
 
-Flow: ``prepare_data`` makes sure the raw trials exist (simulates the missing ones when
-the source is the simulator) and that the per-field preprocessing cache is built; ``setup``
-lists the cached trials of the configured skin / primitive / objects / actions and splits
-them into train / validation / test (:func:`split_trials`: by trial, the paper's split, or
-by whole object), stable for a seed. Validation trials come from training objects and
+Flow: ``prepare_data`` runs the data preparation stage (:mod:`embodied_tactile.data.prepare`:
+simulate missing trials, lock the data folder, build the per-field caches, list the
+scene's usable trials), unless a prepared scene was attached (:meth:`TactileDataModule.attach`);
+``setup`` splits the prepared trials into train / validation / test (:func:`split_trials`:
+by trial, the paper's split, or by whole object), stable for a seed. Validation trials come from training objects and
 pick checkpoints; test trials are touched only by evaluation. A modality reads only its own
 fields: ``acc`` never opens FSR data, raw or cached.
 """
 
 from __future__ import annotations
 
-import contextlib
-import glob
 import hashlib
 import json
 import logging
-import os
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import h5py
 import lightning as L
@@ -28,44 +24,14 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import unique_paths
+from embodied_tactile.data.prepare import PreparedData, Scene, TrialRef, data_dir_lock, prepare_scene
 from embodied_tactile.jsonio import write_json
 from embodied_tactile.modality import CHANNELS, fields_for_channels
 
+__all__ = ["TactileDataModule", "TactileSequenceDataset", "split_trials", "TrialRef", "PreparedData", "Scene",
+           "data_dir_lock", "fields_for_channels"]
+
 log = logging.getLogger(__name__)
-
-@contextlib.contextmanager
-def data_dir_lock(data_dir: Path) -> Iterator[None]:
-    """Exclusive advisory lock on a data folder while trials are simulated and caches built.
-
-    Parallel sweep jobs (joblib launcher, DDP ranks, several users) share ``data/``: without
-    it two jobs would append to the same raw HDF5 file at once. POSIX only; elsewhere the
-    lock is a no-op and parallel jobs need separate data folders.
-    """
-    data_dir.mkdir(parents=True, exist_ok=True)
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - Windows
-        yield
-        return
-    with open(data_dir / ".prepare.lock", "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
-
-
-@dataclass(frozen=True)
-class TrialRef:
-    name: str
-    object_id: int
-    action_index: int
-    skin: str
-    primitive: str
-    factors: tuple[float, float, float, float]
-
 
 SPLITS = ("trial", "object")
 
@@ -293,7 +259,7 @@ class TactileDataModule(L.LightningDataModule):
 
     Args:
         source: ``"simulated"`` (raw file ``<data_dir>/raw/<skin>_<primitive>.h5``, missing
-            trials simulated in ``prepare_data``) or ``"recorded"`` (``raw_files``, never
+            trials simulated by the preparation stage) or ``"recorded"`` (``raw_files``, never
             generated).
         raw_files: recorded files: paths or glob patterns, absolute, ``~`` or relative to
             the working directory (see :attr:`raw_paths`).
@@ -345,28 +311,18 @@ class TactileDataModule(L.LightningDataModule):
         pin_memory: bool = False,
     ):
         super().__init__()
-        if source not in C.SOURCES:
-            raise ValueError(f"source must be one of {C.SOURCES}, got {source!r}")
-        if skin not in C.SKINS:
-            raise ValueError(f"skin must be one of {C.SKINS}, got {skin!r}")
-        if primitive not in C.PRIMITIVES:
-            raise ValueError(f"primitive must be one of {C.PRIMITIVES}, got {primitive!r}")
-        if source == "recorded" and not raw_files:
-            raise ValueError("source='recorded' needs raw_files (paths or glob patterns of recorded HDF5 files)")
-        self.data_dir = Path(data_dir)
+        #: what the preparation stage prepares (validates source, skin, primitive, raw_files, channels)
+        self.scene = Scene(
+            data_dir=data_dir, source=source, raw_files=tuple(raw_files or ()), skin=skin, primitive=primitive,
+            channels=tuple(channels), objects=objects, actions=actions, repetitions=repetitions,
+            sim_seed=sim_seed, sim_workers=sim_workers, preprocess=preprocess or {},
+            preprocess_workers=preprocess_workers, strict=strict, include_incomplete=include_incomplete,
+        )
         self.source = source
-        self.raw_files_cfg = list(raw_files or [])
         self.skin = skin
         self.primitive = primitive
         self.channels = list(channels)
-        self.fields = fields_for_channels(self.channels)
-        self.objects = None if objects is None else sorted(int(o) for o in objects)
-        self.actions = None if actions is None else sorted(int(a) for a in actions)
-        self.repetitions = int(repetitions)
-        self.sim_seed = int(sim_seed)
-        self.sim_workers = int(sim_workers)
-        self.preprocess_kwargs = dict(preprocess or {})
-        self.preprocess_workers = int(preprocess_workers)
+        self.fields = self.scene.fields
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
         self.split = split
@@ -379,185 +335,61 @@ class TactileDataModule(L.LightningDataModule):
         self.seq_len = seq_len
         self.train_window = None if train_window is None else int(train_window)
         self.windows_per_trial = int(windows_per_trial)
-        self.strict = bool(strict)
         self.pin_memory = bool(pin_memory)
-        self.cache_files: dict[str, str] = {}
+        #: the preparation stage's result (prepare_data, or attach() with one prepared elsewhere)
+        self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
         self.val_set: TactileSequenceDataset | None = None  # model selection (training objects)
         self.test_set: TactileSequenceDataset | None = None  # held out: evaluation only
         self.train_crops: TactileSequenceDataset | None = None  # what train_dataloader serves
-        self.skipped: list[dict[str, str]] = []  # {file, trial, field, problem} of each bad trial
-        self.include_incomplete = bool(include_incomplete)
-        self.excluded_incomplete: list[str] = []  # complete=False recordings left out
 
-    # ------------------------------------------------------------------ files
+    # ------------------------------------------------------------------ preparation
     @property
     def raw_paths(self) -> list[Path]:
-        """The raw files. Recorded: each ``raw_files`` entry is a path or a glob pattern
-        (``*``, ``?``, ``[...]``, ``**``), absolute, ``~`` or relative to the working
-        directory; matches sorted, each file once, as absolute paths. A pattern that matches
-        nothing, or a path that does not exist, is an error naming it."""
-        if self.source == "simulated":
-            return [self.data_dir / "raw" / f"{self.skin}_{self.primitive}.h5"]
-        paths: list[str] = []
-        for pattern in self.raw_files_cfg:
-            expanded = os.path.expanduser(str(pattern))
-            if glob.has_magic(expanded):
-                matches = sorted(p for p in glob.glob(expanded, recursive=True) if os.path.isfile(p))
-                if not matches:
-                    raise FileNotFoundError(f"data.raw_files pattern {pattern!r} matches no file (cwd {os.getcwd()})")
-            elif not os.path.isfile(expanded):
-                raise FileNotFoundError(f"data.raw_files: recorded raw file not found: {pattern!r} (cwd {os.getcwd()})")
-            else:
-                matches = [expanded]
-            paths.extend(os.path.abspath(p) for p in matches)
-        return [Path(p) for p in unique_paths(paths)]
+        """The raw files (:attr:`Scene.raw_paths <embodied_tactile.data.prepare.Scene.raw_paths>`)."""
+        return self.scene.raw_paths
 
     @property
     def cache_dir(self) -> Path:
-        return self.data_dir / "cache"
+        return self.scene.cache_dir
 
-    def _preprocess_config(self):
-        from embodied_tactile.data.preprocess import PreprocessConfig
+    @property
+    def cache_files(self) -> dict[str, str]:
+        """``{field: cache path}`` once prepared, else empty."""
+        return self.prepared.cache_files if self.prepared else {}
 
-        cfg = PreprocessConfig(**self.preprocess_kwargs)
-        cfg.validate()
-        return cfg
+    @property
+    def skipped(self) -> list[dict[str, str]]:
+        """``{file, trial, field, problem}`` of each bad trial left out (once prepared)."""
+        return self.prepared.skipped if self.prepared else []
+
+    @property
+    def excluded_incomplete(self) -> list[str]:
+        """complete=False recordings left out (once prepared)."""
+        return self.prepared.excluded_incomplete if self.prepared else []
+
+    def attach(self, prepared: PreparedData) -> None:
+        """Serve a scene prepared elsewhere (``prepare_scene``); it must be this DataModule's
+        scene. ``prepare_data`` then has nothing left to do."""
+        if prepared.scene != self.scene:
+            raise ValueError(f"prepared scene {prepared.scene} is not this DataModule's scene {self.scene}")
+        self.prepared = prepared
 
     def prepare_data(self) -> None:
-        """Simulate missing trials (simulator source) and build the per-field caches.
-
-        Runs once per DataModule object (fit then validate reuse the caches it found)."""
-        if self.cache_files:
-            return
-        with data_dir_lock(self.data_dir):
-            self._prepare_locked()
-
-    def _prepare_locked(self) -> None:
-        if self.source == "simulated":
-            from embodied_tactile.sim import generate_dataset
-
-            raw = self.raw_paths[0]
-            raw.parent.mkdir(parents=True, exist_ok=True)
-            generate_dataset(
-                raw,
-                skin=self.skin,
-                primitive=self.primitive,
-                objects=self.objects if self.objects is not None else range(C.N_OBJECTS),
-                actions=self.actions if self.actions is not None else range(C.N_ACTIONS),
-                repetitions=self.repetitions,
-                seed=self.sim_seed,
-                workers=self.sim_workers,
-            )
-        self._build_cache()  # recorded: raw_paths raises for a missing file or an empty pattern
-
-    def _build_cache(self) -> dict[str, str]:
-        from embodied_tactile.data.cache import build_cache
-
-        files = build_cache(
-            [str(p) for p in self.raw_paths], self.cache_dir, self._preprocess_config(),
-            fields=tuple(self.fields), workers=self.preprocess_workers, strict=self.strict,
-        )
-        self.cache_files = {k: str(v) for k, v in files.items()}
-        return self.cache_files
-
-    # ------------------------------------------------------------------ trials
-    def _list_trials(self) -> list[TrialRef]:
-        """Trials present in every needed cache and matching the scene."""
-        per_field: list[dict[str, dict[str, Any]]] = []
-        for fld in self.fields:
-            with h5py.File(self.cache_files[fld], "r") as f:
-                entries = {}
-                for name, g in f["trials"].items():
-                    entries[name] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in g.attrs.items()}
-                per_field.append(entries)
-                try:
-                    listed = json.loads(f.attrs.get("skipped", "[]"))
-                except (TypeError, ValueError):
-                    listed = []
-                for entry in listed:  # a trial rejected at scan time is listed by every field's cache
-                    if entry not in self.skipped:
-                        self.skipped.append(entry)
-        names = self._whole_trials(per_field)
-        refs = []
-        incomplete: list[str] = []
-        for name in names:
-            a = per_field[0][name]
-            if str(a["skin"]) != self.skin or str(a["primitive"]) != self.primitive:
-                continue
-            if self.objects is not None and int(a["object_id"]) not in self.objects:
-                continue
-            if self.actions is not None and int(a["action_index"]) not in self.actions:
-                continue
-            if self.source == "simulated" and int(a.get("repetition", 0)) >= self.repetitions:
-                continue
-            if not bool(a.get("complete", True)):  # an interrupted recording
-                incomplete.append(name)
-                if not self.include_incomplete:
-                    continue
-            refs.append(
-                TrialRef(
-                    name=name,
-                    object_id=int(a["object_id"]),
-                    action_index=int(a["action_index"]),
-                    skin=str(a["skin"]),
-                    primitive=str(a["primitive"]),
-                    factors=tuple(float(a[k]) for k in C.FACTOR_NAMES),
-                )
-            )
-        if incomplete and not self.include_incomplete:
-            self.excluded_incomplete = incomplete
-            log.warning("excluded %d incomplete recording(s) (complete=False: interrupted), e.g. %s; "
-                        "data.include_incomplete=true uses them", len(incomplete), incomplete[:3])
-        elif incomplete:
-            log.info("using %d incomplete recording(s) (include_incomplete=true)", len(incomplete))
-        if not refs:
-            raise RuntimeError(
-                f"no usable trials for skin={self.skin} primitive={self.primitive} objects={self.objects} "
-                f"actions={self.actions} in {self.cache_files} (skipped: {self.skipped[:5]})"
-            )
-        return refs
-
-    def _whole_trials(self, per_field: Sequence[Mapping[str, Mapping[str, Any]]]) -> list[str]:
-        """Names of the trials that every needed cache holds, all from one raw file.
-
-        A trial listed as skipped for any field, or absent from a cache, is skipped whole;
-        one absent without a reason is added to ``skipped`` with a warning. Fields of one
-        name from different raw files are an error (never a stitched trial)."""
-        bad = {(e.get("file"), e.get("trial")) for e in self.skipped}
-        mixed = []
-        out = []
-        for name in sorted(set().union(*per_field)):
-            sources = {fld: os.path.abspath(str(entries[name].get("source_file")))
-                       for fld, entries in zip(self.fields, per_field) if name in entries}
-            if len(set(sources.values())) > 1:
-                mixed.append(f"'{name}': " + ", ".join(f"{fld} from {src}" for fld, src in sources.items()))
-                continue
-            src = next(iter(sources.values()))
-            if (src, name) in bad:
-                continue
-            absent = [fld for fld in self.fields if fld not in sources]
-            for fld in absent:
-                entry = {"file": str(src), "trial": name, "field": fld,
-                         "problem": f"absent from the cache {self.cache_files[fld]} (no reason listed there)"}
-                log.warning("skipping %s / %s: %s", src, name, entry["problem"])
-                self.skipped.append(entry)
-            if not absent:
-                out.append(name)
-        if mixed:
-            raise RuntimeError(f"cached fields of one trial come from different raw files: {'; '.join(mixed[:5])}"
-                               f"{' ...' if len(mixed) > 5 else ''} (caches {self.cache_files}); rebuild the caches")
-        return out
+        """The data preparation stage (:func:`embodied_tactile.data.prepare.prepare_scene`):
+        simulate missing trials (simulator source), build the per-field caches, list the
+        scene's trials. Runs once per DataModule object (fit then validate reuse it)."""
+        if self.prepared is None:
+            self.prepared = prepare_scene(self.scene)
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
             return
-        if not self.cache_files:
+        if self.prepared is None:
             # prepare_data ran in another process (DDP rank 0): the cache keys are
-            # deterministic, so rebuilding finds the existing files without recomputing.
-            with data_dir_lock(self.data_dir):
-                self._build_cache()
-        refs = self._list_trials()
+            # deterministic, so the stage finds the existing files without recomputing.
+            self.prepared = prepare_scene(self.scene, simulate=False)
+        refs = self.prepared.trials
         if self.split_file and Path(self.split_file).exists():
             train, val, test = self._load_split(refs)
         else:
@@ -662,6 +494,9 @@ class TactileDataModule(L.LightningDataModule):
             "skipped": len(self.skipped),
             "excluded_incomplete": len(self.excluded_incomplete),
         }
+        if self.prepared is not None:  # what this process's preparation stage did
+            info["simulated"] = self.prepared.simulated
+            info["cache_built"] = list(self.prepared.cache_built)
         if self.train_set is not None and self.val_set is not None and self.test_set is not None:
             everything = self.train_set.trials + self.val_set.trials + self.test_set.trials
             info["split"] = self.split

@@ -1,0 +1,338 @@
+"""Data preparation stage: raw trials -> per-field caches -> the scene's usable trials.
+
+:func:`prepare_scene` does, for one :class:`Scene` (skin x primitive x channels x objects
+x actions, simulated or recorded), under an advisory lock on the data folder
+(:func:`data_dir_lock`, so parallel sweep jobs and DDP ranks can share ``data/``):
+
+1. simulator source: simulate the missing trials into ``<data_dir>/raw/<skin>_<primitive>.h5``
+   (``sim.generate_dataset``; trials already there are kept). Recorded files are never written;
+2. build (or find) the per-field preprocessing caches (``data.cache.build_cache``; only the
+   fields of the scene's channels: an acc-only scene never reads FSR data);
+3. list the cached trials of the scene, skipping bad ones with their reason
+   (:func:`list_trials`).
+
+It returns :class:`PreparedData`: the cache files, the usable trials, the skipped trials
+with reasons, the interrupted recordings left out. The DataModule splits and serves it
+(``TactileDataModule.prepare_data`` calls this stage); ``python -m embodied_tactile.prepare``
+runs it on its own. No torch here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import glob
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import h5py
+
+from embodied_tactile import constants as C
+from embodied_tactile.io.rawformat import unique_paths
+from embodied_tactile.modality import fields_for_channels
+
+log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def data_dir_lock(data_dir: Path) -> Iterator[None]:
+    """Exclusive advisory lock on a data folder while trials are simulated and caches built.
+
+    Parallel sweep jobs (joblib launcher, DDP ranks, several users) share ``data/``: without
+    it two jobs would append to the same raw HDF5 file at once. POSIX only; elsewhere the
+    lock is a no-op and parallel jobs need separate data folders.
+    """
+    data_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    with open(data_dir / ".prepare.lock", "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+@dataclass(frozen=True)
+class TrialRef:
+    name: str
+    object_id: int
+    action_index: int
+    skin: str
+    primitive: str
+    factors: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What to prepare: the data keys of ``configs/data/*.yaml`` that decide which trials
+    exist and how they are preprocessed (not the split or the loaders).
+
+    ``source="simulated"``: raw file ``<data_dir>/raw/<skin>_<primitive>.h5``, missing trials
+    simulated; ``"recorded"``: ``raw_files`` (paths or glob patterns), never generated.
+    ``objects`` / ``actions``: subsets (None = all). ``preprocess``: ``PreprocessConfig``
+    keyword arguments. ``strict``: a bad raw trial is fatal instead of skipped.
+    ``include_incomplete``: also use recordings marked ``complete=False``.
+    """
+
+    data_dir: str = "data"
+    source: str = "simulated"
+    raw_files: tuple[str, ...] = ()
+    skin: str = "soft"
+    primitive: str = "pressing"
+    channels: tuple[str, ...] = ("acc", "fsr_t", "fsr_b")
+    objects: tuple[int, ...] | None = None
+    actions: tuple[int, ...] | None = None
+    repetitions: int = 1
+    sim_seed: int = 0
+    sim_workers: int = field(default=2, compare=False)  # how, not what: scenes equal whatever the workers
+    preprocess: Mapping[str, Any] = field(default_factory=dict)
+    preprocess_workers: int = field(default=2, compare=False)
+    strict: bool = False
+    include_incomplete: bool = False
+
+    def __post_init__(self) -> None:
+        if self.source not in C.SOURCES:
+            raise ValueError(f"source must be one of {C.SOURCES}, got {self.source!r}")
+        if self.skin not in C.SKINS:
+            raise ValueError(f"skin must be one of {C.SKINS}, got {self.skin!r}")
+        if self.primitive not in C.PRIMITIVES:
+            raise ValueError(f"primitive must be one of {C.PRIMITIVES}, got {self.primitive!r}")
+        if self.source == "recorded" and not self.raw_files:
+            raise ValueError("source='recorded' needs raw_files (paths or glob patterns of recorded HDF5 files)")
+        norm = {
+            "data_dir": str(self.data_dir),
+            "raw_files": tuple(str(f) for f in (self.raw_files or ())),
+            "channels": tuple(self.channels),
+            "objects": None if self.objects is None else tuple(sorted(int(o) for o in self.objects)),
+            "actions": None if self.actions is None else tuple(sorted(int(a) for a in self.actions)),
+            "repetitions": int(self.repetitions), "sim_seed": int(self.sim_seed),
+            "sim_workers": int(self.sim_workers), "preprocess": dict(self.preprocess or {}),
+            "preprocess_workers": int(self.preprocess_workers), "strict": bool(self.strict),
+            "include_incomplete": bool(self.include_incomplete),
+        }
+        for k, v in norm.items():
+            object.__setattr__(self, k, v)
+        fields_for_channels(self.channels)  # unknown channels fail here, naming them
+
+    @classmethod
+    def from_config(cls, data: Mapping[str, Any]) -> "Scene":
+        """The scene of a data config (``cfg.data``): its preparation keys; the split and
+        loader keys are the DataModule's and are ignored here."""
+        keys = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: data[k] for k in keys if k in data and data[k] is not None})
+
+    @property
+    def fields(self) -> list[str]:
+        """Cached fields the channels need (always with ``actions``)."""
+        return fields_for_channels(self.channels)
+
+    @property
+    def cache_dir(self) -> Path:
+        return Path(self.data_dir) / "cache"
+
+    @property
+    def raw_paths(self) -> list[Path]:
+        """The raw files. Recorded: each ``raw_files`` entry is a path or a glob pattern
+        (``*``, ``?``, ``[...]``, ``**``), absolute, ``~`` or relative to the working
+        directory; matches sorted, each file once, as absolute paths. A pattern that matches
+        nothing, or a path that does not exist, is an error naming it."""
+        if self.source == "simulated":
+            return [Path(self.data_dir) / "raw" / f"{self.skin}_{self.primitive}.h5"]
+        paths: list[str] = []
+        for pattern in self.raw_files:
+            expanded = os.path.expanduser(str(pattern))
+            if glob.has_magic(expanded):
+                matches = sorted(p for p in glob.glob(expanded, recursive=True) if os.path.isfile(p))
+                if not matches:
+                    raise FileNotFoundError(f"data.raw_files pattern {pattern!r} matches no file (cwd {os.getcwd()})")
+            elif not os.path.isfile(expanded):
+                raise FileNotFoundError(f"data.raw_files: recorded raw file not found: {pattern!r} (cwd {os.getcwd()})")
+            else:
+                matches = [expanded]
+            paths.extend(os.path.abspath(p) for p in matches)
+        return [Path(p) for p in unique_paths(paths)]
+
+    def preprocess_config(self):
+        from embodied_tactile.data.preprocess import PreprocessConfig
+
+        cfg = PreprocessConfig(**self.preprocess)
+        cfg.validate()
+        return cfg
+
+
+@dataclass
+class PreparedData:
+    """What :func:`prepare_scene` prepared.
+
+    ``cache_files``: ``{field: path}``; ``trials``: the scene's usable trials (sorted by
+    name); ``skipped``: ``{file, trial, field, problem}`` of every trial left out as bad;
+    ``excluded_incomplete``: names of interrupted recordings left out (empty with
+    ``include_incomplete``); ``simulated``: trials simulated by this call; ``cache_built``:
+    fields whose cache this call computed (the others were cache hits)."""
+
+    scene: Scene
+    raw_files: list[str]
+    cache_files: dict[str, str]
+    trials: list[TrialRef]
+    skipped: list[dict[str, str]] = field(default_factory=list)
+    excluded_incomplete: list[str] = field(default_factory=list)
+    simulated: int = 0
+    cache_built: list[str] = field(default_factory=list)
+
+    def summary(self) -> str:
+        """Multi-line report (printed by the CLI)."""
+        s = self.scene
+        lines = [f"prepared {s.source} scene skin={s.skin} primitive={s.primitive} channels={list(s.channels)} "
+                 f"in {s.data_dir}",
+                 f"raw files: {', '.join(self.raw_files)}"]
+        if s.source == "simulated":
+            lines.append(f"simulated: {self.simulated} new trial(s)")
+        lines.append(f"trials: {len(self.trials)} usable, {len(self.skipped)} skipped, "
+                     f"{len(self.excluded_incomplete)} incomplete left out")
+        lines += [f"  skipped {e.get('file')} / {e.get('trial')} ({e.get('field')}): {e.get('problem')}"
+                  for e in self.skipped]
+        if self.excluded_incomplete:
+            lines.append(f"  incomplete (data.include_incomplete=true uses them): {', '.join(self.excluded_incomplete)}")
+        lines.append("cache files:")
+        lines += [f"  {fld}: {path} ({'built' if fld in self.cache_built else 'cache hit'})"
+                  for fld, path in self.cache_files.items()]
+        return "\n".join(lines)
+
+
+def _n_raw_trials(path: Path) -> int:
+    if not path.exists():
+        return 0
+    with h5py.File(path, "r") as f:
+        return len(f["trials"]) if "trials" in f else 0
+
+
+def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
+    """Simulate the missing trials (simulator source, ``simulate=True``), build or find the
+    caches and list the usable trials, all under :func:`data_dir_lock`.
+
+    ``simulate=False`` (a DDP rank whose rank 0 prepared the scene) only finds the caches:
+    their keys are deterministic, so nothing is recomputed when they exist."""
+    from embodied_tactile.data.cache import build_cache
+
+    with data_dir_lock(Path(scene.data_dir)):
+        simulated = 0
+        if scene.source == "simulated" and simulate:
+            from embodied_tactile.sim import generate_dataset
+
+            raw = scene.raw_paths[0]
+            raw.parent.mkdir(parents=True, exist_ok=True)
+            before = _n_raw_trials(raw)
+            generate_dataset(
+                raw, skin=scene.skin, primitive=scene.primitive,
+                objects=scene.objects if scene.objects is not None else range(C.N_OBJECTS),
+                actions=scene.actions if scene.actions is not None else range(C.N_ACTIONS),
+                repetitions=scene.repetitions, seed=scene.sim_seed, workers=scene.sim_workers,
+            )
+            simulated = _n_raw_trials(raw) - before
+        raw_paths = [str(p) for p in scene.raw_paths]  # recorded: raises for a missing file or an empty pattern
+        existing = set(scene.cache_dir.glob("*.h5")) if scene.cache_dir.exists() else set()
+        files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=tuple(scene.fields),
+                            workers=scene.preprocess_workers, strict=scene.strict)
+    cache_files = {k: str(v) for k, v in files.items()}
+    trials, skipped, incomplete = list_trials(scene, cache_files)
+    return PreparedData(scene=scene, raw_files=raw_paths, cache_files=cache_files, trials=trials, skipped=skipped,
+                        excluded_incomplete=incomplete, simulated=simulated,
+                        cache_built=[k for k, v in files.items() if Path(v) not in existing])
+
+
+def list_trials(scene: Scene, cache_files: Mapping[str, str]
+                ) -> tuple[list[TrialRef], list[dict[str, str]], list[str]]:
+    """Trials present in every needed cache and matching the scene.
+
+    Returns ``(trials, skipped, excluded_incomplete)``: the usable trials, every trial left
+    out as bad (listed by a cache, or absent from one: see :func:`_whole_trials`), and the
+    interrupted recordings left out (``complete=False``; used with ``include_incomplete``).
+    RuntimeError when no trial is usable."""
+    fields = scene.fields
+    skipped: list[dict[str, str]] = []
+    per_field: list[dict[str, dict[str, Any]]] = []
+    for fld in fields:
+        with h5py.File(cache_files[fld], "r") as f:
+            entries = {}
+            for name, g in f["trials"].items():
+                entries[name] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in g.attrs.items()}
+            per_field.append(entries)
+            try:
+                listed = json.loads(f.attrs.get("skipped", "[]"))
+            except (TypeError, ValueError):
+                listed = []
+            for entry in listed:  # a trial rejected at scan time is listed by every field's cache
+                if entry not in skipped:
+                    skipped.append(entry)
+    names = _whole_trials(fields, per_field, cache_files, skipped)
+    refs = []
+    incomplete: list[str] = []
+    for name in names:
+        a = per_field[0][name]
+        if str(a["skin"]) != scene.skin or str(a["primitive"]) != scene.primitive:
+            continue
+        if scene.objects is not None and int(a["object_id"]) not in scene.objects:
+            continue
+        if scene.actions is not None and int(a["action_index"]) not in scene.actions:
+            continue
+        if scene.source == "simulated" and int(a.get("repetition", 0)) >= scene.repetitions:
+            continue
+        if not bool(a.get("complete", True)):  # an interrupted recording
+            incomplete.append(name)
+            if not scene.include_incomplete:
+                continue
+        refs.append(TrialRef(name=name, object_id=int(a["object_id"]), action_index=int(a["action_index"]),
+                             skin=str(a["skin"]), primitive=str(a["primitive"]),
+                             factors=tuple(float(a[k]) for k in C.FACTOR_NAMES)))
+    if incomplete and not scene.include_incomplete:
+        log.warning("excluded %d incomplete recording(s) (complete=False: interrupted), e.g. %s; "
+                    "data.include_incomplete=true uses them", len(incomplete), incomplete[:3])
+    elif incomplete:
+        log.info("using %d incomplete recording(s) (include_incomplete=true)", len(incomplete))
+    if not refs:
+        raise RuntimeError(
+            f"no usable trials for skin={scene.skin} primitive={scene.primitive} objects={scene.objects} "
+            f"actions={scene.actions} in {dict(cache_files)} (skipped: {skipped[:5]})"
+        )
+    return refs, skipped, (incomplete if not scene.include_incomplete else [])
+
+
+def _whole_trials(fields: Sequence[str], per_field: Sequence[Mapping[str, Mapping[str, Any]]],
+                  cache_files: Mapping[str, str], skipped: list[dict[str, str]]) -> list[str]:
+    """Names of the trials that every needed cache holds, all from one raw file.
+
+    A trial listed as skipped for any field, or absent from a cache, is skipped whole;
+    one absent without a reason is added to ``skipped`` with a warning. Fields of one
+    name from different raw files are an error (never a stitched trial)."""
+    bad = {(e.get("file"), e.get("trial")) for e in skipped}
+    mixed = []
+    out = []
+    for name in sorted(set().union(*per_field)):
+        sources = {fld: os.path.abspath(str(entries[name].get("source_file")))
+                   for fld, entries in zip(fields, per_field) if name in entries}
+        if len(set(sources.values())) > 1:
+            mixed.append(f"'{name}': " + ", ".join(f"{fld} from {src}" for fld, src in sources.items()))
+            continue
+        src = next(iter(sources.values()))
+        if (src, name) in bad:
+            continue
+        absent = [fld for fld in fields if fld not in sources]
+        for fld in absent:
+            entry = {"file": str(src), "trial": name, "field": fld,
+                     "problem": f"absent from the cache {cache_files[fld]} (no reason listed there)"}
+            log.warning("skipping %s / %s: %s", src, name, entry["problem"])
+            skipped.append(entry)
+        if not absent:
+            out.append(name)
+    if mixed:
+        raise RuntimeError(f"cached fields of one trial come from different raw files: {'; '.join(mixed[:5])}"
+                           f"{' ...' if len(mixed) > 5 else ''} (caches {dict(cache_files)}); rebuild the caches")
+    return out
