@@ -88,6 +88,10 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
         raise EvaluationError(f"checkpoint must be 'best' or 'last', got {opts.checkpoint!r}")
     if opts.latent not in ("y", "z", "both"):
         raise EvaluationError(f"latent must be 'y', 'z' or 'both', got {opts.latent!r}")
+    from embodied_tactile.eval.targets import TARGET_ENCODINGS
+
+    if opts.targets not in TARGET_ENCODINGS:
+        raise EvaluationError(f"targets must be one of {list(TARGET_ENCODINGS)}, got {opts.targets!r}")
     if opts.baselines is not None:
         unknown = [b for b in opts.baselines if b not in BASELINES]
         if unknown:
@@ -356,6 +360,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
     from embodied_tactile.modality import Modality
     from embodied_tactile.eval.figures import read_history
+    from embodied_tactile.eval.targets import encode_split
 
     t_run = time.perf_counter()
     cfg = run.cfg
@@ -374,7 +379,9 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     model.eval()
     tr, _ = collect_split(model, cache.batches(key, dm, "train"), _names(dm, "train"), opts.latent)
     te, infer_s = collect_split(model, cache.batches(key, dm, "test"), _names(dm, "test"), opts.latent)
+    tr, te = encode_split(tr, str(opts.targets)), encode_split(te, str(opts.targets))  # every method: one encoding
     t_inf = time.perf_counter()
+    split = run_split(run, data["split_file"])
 
     metrics = _read_json(run.run_dir / "metrics.json")
     hist_path = run.run_dir / "krr_history.jsonl"
@@ -405,18 +412,39 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
         timings[f"{b}_s"] = time.perf_counter() - t0
     for r in results:
         r.params.setdefault("run_dir", str(run.run_dir))
+        r.targets, r.split, r.unseen_objects = str(opts.targets), split["kind"], split["unseen_objects"]
     timings["total_s"] = time.perf_counter() - t_run
     info = {"run_dir": str(run.run_dir), "checkpoint": str(run.ckpt), "modality": modality, "skin": skin,
             "primitive": primitive, "source": source, "channels": channels, "latent": opts.latent,
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])),
             "n_frames": int(te["obs"].shape[1]), "train_wall_s": train_s, "timings": timings,
-            "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"),
-            "training_final_alignment": compare_with_training(res, final_row, run.ckpt, align, opts.latent)}
+            "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"), "targets": str(opts.targets),
+            "split": split,
+            "training_final_alignment": compare_with_training(res, final_row, run.ckpt, align, opts.latent,
+                                                              str(opts.targets))}
     del model
     return results, history, info
 
 
-def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, latent: str) -> dict:
+def run_split(run: Run, split_file: str) -> dict:
+    """The run's split from its ``split.json``: kind ('trial' | 'object'), sizes, object ids per
+    side and ``unseen_objects`` (no held-out object has a trial in training or validation).
+    An object split whose held-out objects were seen in training is an error (its numbers
+    would not measure generalisation to unseen objects)."""
+    from embodied_tactile.eval.results import split_report
+
+    try:
+        rep = split_report(json.loads(Path(split_file).read_text()))
+    except (OSError, ValueError) as err:
+        raise EvaluationError(f"{run.run_dir}: cannot read the split {split_file}: {err}") from err
+    if rep["kind"] == "object" and not rep["unseen_objects"]:
+        raise EvaluationError(f"{run.run_dir}: split.json ({split_file}) is an object split but held-out object(s) "
+                              f"{rep['seen_test_objects']} have trials in training or validation")
+    return rep
+
+
+def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, latent: str,
+                          targets: str = "design_rank") -> dict:
     """evaluate.py's NMSE against the training's final KRR alignment (krr_final of metrics.json /
     the ``final`` row of krr_history.jsonl): both numbers, the difference and, when they are
     not the same measurement, why (other weights, other alignment settings, other sequences)."""
@@ -453,6 +481,8 @@ def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, 
         reasons.append(f"training scored every {final_row['val_frame_stride']}th frame")
     if final_row.get("latent", latent) != latent:
         reasons.append(f"latent {final_row.get('latent')} against {latent}")
+    if final_row.get("targets", "physical") != targets:  # rows written before targets existed: physical units
+        reasons.append(f"targets {final_row.get('targets', 'physical')} (training) against {targets}")
     if (final_row.get("n_train"), final_row.get("n_test")) != (res.n_train, res.n_test):
         reasons.append(f"sequences: training {final_row.get('n_train')} fit / {final_row.get('n_test')} scored, "
                        f"evaluate.py {res.n_train} / {res.n_test}")

@@ -67,7 +67,7 @@ def test_every_option_composes_and_instantiates(group, option, tmp_path):
 def test_modality_sizes_flow_by_interpolation(tmp_path):
     cfg = _compose_job(["modality=fsr_tb"], tmp_path)
     assert list(cfg.data.channels) == ["fsr_t", "fsr_b"]
-    assert cfg.model.modality.name == "fsr_tb"
+    assert cfg.model.net.modality.name == "fsr_tb"
 
 
 def test_wandb_is_offline_by_default(tmp_path, monkeypatch):
@@ -93,3 +93,30 @@ def test_ablation_sweep_lists_24_jobs(tmp_path):
         c = _compose_job([f"combo={combo}"], tmp_path)
         mod, skin = combo.rsplit("_", 1)
         assert c.modality.name == mod and c.skin.name == skin
+
+
+def _sweep_jobs(name: str, tmp_path) -> list[dict]:
+    """The jobs a sweep file expands to (Hydra's basic sweeper: the product of its params)."""
+    import itertools
+
+    params = _compose([f"sweep={name}"], tmp_path).hydra.sweeper.params
+    keys = list(params)
+    return [dict(zip(keys, vals)) for vals in itertools.product(*(str(params[k]).split(",") for k in keys))]
+
+
+def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
+    cells = lambda jobs: {(c.modality.name, c.skin.name, c.primitive.name)  # noqa: E731
+                          for c in (_compose_job([f"combo={j['combo']}"] + ([f"primitive={j['primitive']}"]
+                                                 if "primitive" in j else []), tmp_path) for j in jobs)}
+    study = _sweep_jobs("study", tmp_path)
+    assert len(study) == 24 * 3 and {j["seed"] for j in study} == {"0", "1", "2"}
+    full = cells(study)
+    assert len(full) == 24  # 8 modality x skin combinations x 3 primitives, each with every seed
+    assert {(m, s) for m, s, _ in full} == {("acc", "soft"), ("fsr_t", "soft"), ("fsr_b", "soft"), ("fsr_tb", "soft"),
+                                            ("multi_e", "soft"), ("multi_l", "soft"), ("fsr_tb", "hard"),
+                                            ("multi_l", "hard")}
+    small = _sweep_jobs("study_min", tmp_path)
+    assert len(small) == 10 * 3
+    minimum = cells(small)
+    assert minimum == {c for c in full if c[2] == "pressing"} | {("multi_l", "soft", p) for p in ("precession", "sliding")}
+    assert _compose_job(["sweep=study"], tmp_path).trainer.max_epochs == 16  # the CPU budget (experiment=cpu_budget)

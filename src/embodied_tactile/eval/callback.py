@@ -38,6 +38,7 @@ import numpy as np
 
 from ..constants import FACTOR_NAMES
 from .krr import assert_disjoint, fit_alignment
+from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
 from .metrics import nmse_over_time, nmse_trajectory, overall
 from .results import select_latents
 
@@ -118,9 +119,12 @@ class KRRAlignmentCallback(Callback):
                  frames_per_sequence: int = 2, cv: int = 3, nystroem_threshold: int = 1024, n_components: int = 256,
                  alphas=(1e-3, 1e-2, 1e-1, 1.0), gammas=(0.3, 1.0, 3.0), run_on_train_end: bool = True,
                  history_name: str = "krr_history.jsonl", seed: int = 0, n_threads: int | None = None,
-                 final_alignment: Mapping[str, Any] | None = None):
+                 final_alignment: Mapping[str, Any] | None = None, targets: str = DEFAULT_TARGETS):
         if latent not in LATENT_KEYS:
             raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
+        if targets not in TARGET_ENCODINGS:
+            raise ValueError(f"targets must be one of {TARGET_ENCODINGS}, got {targets!r}")
+        self.targets = targets  # the factors' encoding (eval.targets), as evaluate.py's `targets`
         self.every_n_epochs = int(every_n_epochs)
         self.latent = latent
         self.max_train_sequences = max_train_sequences
@@ -200,6 +204,7 @@ class KRRAlignmentCallback(Callback):
         tr = collect_latents(pl_module, train_loader, latent=self.latent, max_sequences=max_train)
         te = collect_latents(pl_module, val_loader, latent=self.latent, max_sequences=max_val)
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
+        tr, te = encode_split(tr, self.targets), encode_split(te, self.targets)
         t_inf = time.perf_counter()
         align = fit_alignment(select_latents(tr, self.latent), tr["factors"], ids=tr.get("seq_id"), **align_kw)
         x_te = select_latents(te, self.latent)[:, ::-1][:, ::stride][:, ::-1]  # keep the last frame
@@ -229,7 +234,7 @@ class KRRAlignmentCallback(Callback):
             "nmse_overall": _fin(metrics["krr/nmse_overall"]), "nmse_last": {f: _fin(v) for f, v in zip(FACTOR_NAMES, curve[-1])},
             "nmse_last_overall": _fin(metrics["krr/nmse_last_overall"]),
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])), "latent": self.latent,
-            "val_frame_stride": stride, "final": bool(final),
+            "val_frame_stride": stride, "final": bool(final), "targets": self.targets,
             "alignment": {k: align.params[k] for k in ("method", "alpha", "gamma", "n_train_rows", "fit_time_s",
                                                        "final_segment", "frames_per_sequence", "cv_folds", "seed")},
         }
