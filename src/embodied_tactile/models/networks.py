@@ -86,19 +86,30 @@ def gaussian_nll(x: Tensor, mean: Tensor, log_sigma: Tensor) -> Tensor:
         return 0.5 * r * r + ls + 0.5 * LOG_2PI
 
 
+#: Largest batch at which ``small_batch_convs`` switches oneDNN off. Measured with
+#: ``benchmarks/bench_small_batch_convs.py`` (torch 2.13 CPU, 1 thread, multi_l filter_step,
+#: docs/model.md "Speed"): oneDNN off is 1.32x faster at batch 1 and 1.18x at 2, even at 4,
+#: and 0.81x (slower) at 8.
+SMALL_BATCH_ONEDNN_OFF = 2
+
+
 @contextmanager
-def small_batch_convs(n: int, threshold: int = 8) -> Iterator[None]:
-    """For a handful of frames, oneDNN's per-call overhead dominates (~3x slower than the
-    native kernels at batch 1 on CPU): disable it around the call. No-op otherwise."""
-    if n > threshold or not torch.backends.mkldnn.is_available():
+def small_batch_convs(n: int, threshold: int = SMALL_BATCH_ONEDNN_OFF) -> Iterator[None]:
+    """The one speed switch of the models (used by ``LatentFilter.filter_step``): for a batch
+    of at most ``threshold`` frames on CPU, run the convolutions with PyTorch's native
+    kernels instead of oneDNN, whose per-call overhead dominates at batch 1 (see
+    :data:`SMALL_BATCH_ONEDNN_OFF`). Uses the public ``torch.backends.mkldnn.enabled`` flag,
+    restored on exit; a no-op for larger batches or where oneDNN is not built in. Results
+    are the same either way (up to float rounding)."""
+    mkldnn = torch.backends.mkldnn
+    if n > threshold or not mkldnn.is_available() or not mkldnn.enabled:
         yield
         return
-    prev = torch._C._get_mkldnn_enabled()
-    torch._C._set_mkldnn_enabled(False)
+    mkldnn.enabled = False
     try:
         yield
     finally:
-        torch._C._set_mkldnn_enabled(prev)
+        mkldnn.enabled = True
 
 
 # --------------------------------------------------------------------------- networks

@@ -1,0 +1,64 @@
+"""The models' one speed switch (networks.small_batch_convs, docs/model.md "Speed"): oneDNN
+off only where it was measured to pay, through the public flag, restored on exit."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+from embodied_tactile.models.networks import SMALL_BATCH_ONEDNN_OFF, small_batch_convs
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "embodied_tactile"
+
+needs_onednn = pytest.mark.skipif(not torch.backends.mkldnn.is_available(), reason="torch built without oneDNN")
+
+
+@needs_onednn
+def test_onednn_off_only_up_to_the_measured_batch_and_restored():
+    assert torch.backends.mkldnn.enabled
+    for n in range(1, SMALL_BATCH_ONEDNN_OFF + 1):
+        with small_batch_convs(n):
+            assert not torch.backends.mkldnn.enabled, n
+        assert torch.backends.mkldnn.enabled, n
+    for n in (SMALL_BATCH_ONEDNN_OFF + 1, 8, 64):  # batch 8 was measured 0.81x with oneDNN off
+        with small_batch_convs(n):
+            assert torch.backends.mkldnn.enabled, n
+    with pytest.raises(RuntimeError):  # restored on an error too
+        with small_batch_convs(1):
+            raise RuntimeError("boom")
+    assert torch.backends.mkldnn.enabled
+
+
+@needs_onednn
+def test_a_user_setting_oneDNN_off_keeps_it_off():
+    torch.backends.mkldnn.enabled = False
+    try:
+        with small_batch_convs(1):
+            assert not torch.backends.mkldnn.enabled
+        assert not torch.backends.mkldnn.enabled
+    finally:
+        torch.backends.mkldnn.enabled = True
+
+
+def test_filter_step_gives_the_same_posterior_with_and_without_the_switch():
+    from embodied_tactile.models import LatentFilter
+
+    torch.manual_seed(0)
+    m = LatentFilter("multi_l").eval()
+    obs, act = torch.rand(1, 3, 28, 28), torch.randn(1, 6)
+    with torch.no_grad():
+        out, _ = m.filter_step(obs, act)  # the switch: oneDNN off at batch 1
+        ref, _ = m.step(*m.encode(obs), act, None, False)  # oneDNN as configured
+    for k in ("z_mean", "z_var", "y_mean", "y_var"):
+        torch.testing.assert_close(out[k], ref[k], rtol=1e-5, atol=1e-6)
+
+
+def test_no_private_torch_api_in_the_package():
+    """torch._C and other underscore torch attributes stay out of the code (public flags only)."""
+    hits = [f"{p.relative_to(SRC)}:{i}: {line.strip()}" for p in SRC.rglob("*.py")
+            for i, line in enumerate(p.read_text().splitlines(), 1)
+            if re.search(r"\btorch\._[A-Za-z]", line) and not line.lstrip().startswith("#")]
+    assert not hits, hits
