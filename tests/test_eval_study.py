@@ -1,0 +1,234 @@
+"""Issue 9 parts 2-4 on the evaluation side: target encodings, heterogeneity as a decision,
+group-table normalisation, split kind / unseen objects, verdicts on the paper's findings."""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+from embodied_tactile.constants import FACTOR_NAMES, OBJECTS
+from embodied_tactile.eval import Results, nmse_trajectory
+
+sys.path.insert(0, str(REPO))
+
+
+# ------------------------------------------------------------------ targets
+def test_design_rank_encoding_by_hand():
+    from embodied_tactile.eval.targets import encode_factors
+
+    f = np.array([OBJECTS[o].factors() for o in (0, 4, 8, 27)])  # EF10 5mm f10, EF50 10mm f10, PLA 20mm f10, hetero
+    r = encode_factors(f, "design_rank")
+    np.testing.assert_allclose(r, [[0, 0, 0, 0], [0, 1, 1, 0], [0, 2, 2, 0], [0, 1, 0, 1]])
+    np.testing.assert_array_equal(encode_factors(f, "physical"), f)
+    f2 = f.copy()
+    f2[0, 2] = np.nan
+    assert np.isnan(encode_factors(f2)[0, 2])
+    with pytest.raises(ValueError, match=r"stiffness.*outside the design levels"):
+        encode_factors([[10.0, 5.0, 12.0, 0.0]])
+
+
+def test_design_rank_resolves_the_two_silicones():
+    """Swapping Ecoflex 00-10 and 00-50 everywhere costs 0.004 NMSE in log10 Pa, 0.9 in ranks."""
+    from embodied_tactile.eval.targets import encode_factors
+
+    f = np.array([OBJECTS[o].factors() for o in range(27)])
+    swapped = f.copy()
+    k = FACTOR_NAMES.index("stiffness")
+    ef10, ef50 = f[0, k], f[3, k]
+    swapped[f[:, k] == ef10, k], swapped[f[:, k] == ef50, k] = ef50, ef10
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # heterogeneity is constant among objects 0..26
+        phys = nmse_trajectory(f, swapped[:, None, :])[k]
+        rank = nmse_trajectory(encode_factors(f), encode_factors(swapped)[:, None, :])[k]
+    # by hand: 18 of 27 objects off by one level; levels equally often, so the variance is that of 3 values
+    assert rank == pytest.approx(18 * 1.0 / (27 * np.var([0, 1, 2])))
+    assert phys == pytest.approx(18 * (ef50 - ef10) ** 2 / (27 * np.var([ef10, ef50, f[6, k]])))
+    assert phys < 0.01 and rank > 0.8
+
+
+# ------------------------------------------------------------------ heterogeneity as a decision
+def test_balanced_accuracy_and_auc_by_hand():
+    from sklearn.metrics import roc_auc_score
+
+    from embodied_tactile.eval.metrics import balanced_accuracy, roc_auc
+
+    y, s = np.array([0, 0, 1, 1]), np.array([0.1, 0.6, 0.4, 0.9])
+    assert roc_auc(y, s) == pytest.approx(0.75)  # 3 of the 4 (pos, neg) pairs ordered
+    assert balanced_accuracy(y, s) == pytest.approx(0.5)  # TPR 1/2, TNR 1/2
+    assert roc_auc([0, 1], [0.5, 0.5]) == pytest.approx(0.5)  # a tie counts one half
+    y2 = np.array([0, 0, 0, 0, 0, 1]); s2 = np.array([0.0, 0.2, 0.7, 0.1, 0.1, 0.6])
+    assert balanced_accuracy(y2, s2) == pytest.approx(0.5 * (1.0 + 4 / 5))
+    assert roc_auc(y2, s2) == pytest.approx(roc_auc_score(y2, s2)) == pytest.approx(4 / 5)
+    assert np.isnan(roc_auc([1, 1], [0.2, 0.3])) and np.isnan(balanced_accuracy([0, 0], [0.2, 0.3]))
+    # labels (n, 1) against every frame (n, T): each frame a sample
+    assert roc_auc(np.array([[0], [1]]), np.array([[0.1, 0.9], [0.5, 0.6]])) == pytest.approx(0.5)  # 2 of 4 pairs
+
+
+def _hand_run(pred_het_last=None):
+    """4 soft + 4 hard + 2 heterogeneous objects, 2 frames, known predictions."""
+    obj = np.array([0, 1, 3, 4, 2, 6, 7, 8, 27, 28])  # hard: EF10 20 mm + three PLA
+    f = np.array([OBJECTS[o].factors() for o in obj])
+    rng = np.random.default_rng(0)
+    pred = f[:, None, :] + rng.normal(scale=0.3, size=(len(obj), 2, 4)) * f.std(axis=0)
+    if pred_het_last is not None:
+        pred[:, -1, 3] = pred_het_last
+    return Results(pred=pred, factors=f, object_id=obj, action_index=np.zeros(len(obj), int), seed=0,
+                   primitive="pressing")
+
+
+def test_heterogeneity_scores_on_a_run():
+    r = _hand_run(pred_het_last=[0.0, 0.1, 0.2, 0.3, 0.4, 0.6, 0.0, 0.0, 0.9, 0.45])
+    h = r.heterogeneity_scores()
+    assert (h["n_pos"], h["n_neg"]) == (2, 8)
+    assert h["balanced_accuracy_last"] == pytest.approx(0.5 * (0.5 + 7 / 8))
+    assert h["roc_auc_last"] == pytest.approx((8 + 7) / 16)  # 0.9 beats all 8, 0.45 beats 7
+    assert r.summary()["heterogeneity_classification"]["roc_auc_last"] == pytest.approx(15 / 16)
+
+
+def test_group_tables_state_and_apply_their_variance():
+    from embodied_tactile.eval.tables import table_groups
+
+    r = _hand_run()
+    total, own = table_groups([r], method=None), table_groups([r], method=None, norm="group")
+    assert total.name == "environmentshape" and own.name == "environmentshape_groupvar"
+    assert "ALL held-out sequences" in total.caption and "group's OWN" in own.caption
+    col = total.columns.index("hard:pressing")
+    m = r.group == "hard"
+    err = ((r.factors[m][:, None, :] - r.pred[m]) ** 2).mean(axis=(0, 1))
+    by_total = err / r.factors.var(axis=0)
+    var_g = r.factors[m].var(axis=0)
+    by_own = np.where(var_g > 0, err / np.where(var_g > 0, var_g, 1.0), np.nan)
+    assert np.isfinite(by_own).sum() == 2  # amplitude, stiffness vary in this hard group; frequency, heterogeneity not
+    for k, name in enumerate(FACTOR_NAMES):
+        row_t = next(x for x in total.rows if x[2] == name)
+        row_o = next(x for x in own.rows if x[2] == name)
+        assert row_t[col] == pytest.approx(by_total[k])
+        if np.isnan(by_own[k]):  # constant inside the group: undefined, printed as '–'
+            assert np.isnan(row_o[col])
+        else:
+            assert row_o[col] == pytest.approx(by_own[k])
+    assert "nan" not in own.to_markdown().lower()
+
+
+# ------------------------------------------------------------------ split kind, unseen objects
+def _trial_refs():
+    from embodied_tactile.data.datamodule import TrialRef
+
+    return [TrialRef(f"obj{o:02d}_soft_pressing_a{a:02d}_r00", o, a, "soft", "pressing", tuple(OBJECTS[o].factors()))
+            for o in range(32) for a in (2, 6, 10, 14)]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_object_split_reports_unseen_objects(seed):
+    from embodied_tactile.data.datamodule import split_trials
+    from embodied_tactile.eval.results import split_report
+
+    refs = _trial_refs()
+    for by, unseen in (("object", True), ("trial", False)):
+        tr, va, te = split_trials(refs, by=by, seed=seed)
+        rep = split_report({"split": by, "train": [t.name for t in tr], "val": [t.name for t in va],
+                            "test": [t.name for t in te]})
+        assert rep["kind"] == by and rep["unseen_objects"] is unseen
+        if by == "object":  # no object has trials on both sides
+            assert rep["seen_test_objects"] == [] and not set(rep["test_objects"]) & set(rep["train_objects"])
+            assert sorted(rep["test_objects"]) == sorted({t.object_id for t in te})
+
+
+def test_evaluate_refuses_an_object_split_with_seen_objects_and_captions_say_the_kind(tmp_path):
+    import evaluate as ev
+    from embodied_tactile.eval.tables import caption_note
+
+    bad = {"split": "object", "train": ["obj01_soft_pressing_a02_r00", "obj02_soft_pressing_a02_r00"], "val": [],
+           "test": ["obj02_soft_pressing_a06_r00"]}
+    (tmp_path / "split.json").write_text(json.dumps(bad))
+    run = ev.Run(run_dir=tmp_path, ckpt=tmp_path / "x.ckpt", cfg=None, name="r")
+    with pytest.raises(ev.EvaluationError, match=r"object split.*\[2\]"):
+        ev.run_split(run, str(tmp_path / "split.json"))
+    bad["test"] = ["obj03_soft_pressing_a06_r00"]
+    (tmp_path / "split.json").write_text(json.dumps(bad))
+    rep = ev.run_split(run, str(tmp_path / "split.json"))
+    assert rep["unseen_objects"] is True and rep["test_objects"] == [3]
+    r = _hand_run()
+    r.split, r.unseen_objects, r.targets = "object", True, "design_rank"
+    note = caption_note([r])
+    assert "Split kind: object (whole objects held out" in note and "never in training" in note
+    assert "Targets: design_rank" in note
+
+
+# ------------------------------------------------------------------ verdicts
+def _run(modality, skin, primitive, seed, err, *, n=64, t=3, het_err=None):
+    """A Results with prediction error err (x the factor's std), fixed held-out set per seed."""
+    rng = np.random.default_rng([seed, abs(hash((modality, skin, primitive))) % 997])
+    obj = np.arange(n) % 32
+    f = np.array([OBJECTS[o].factors() for o in obj])
+    sd = f.std(axis=0)
+    scale = np.full(n, err)
+    if het_err is not None:
+        scale[np.isin(obj, (27, 28, 29, 30, 31))] = het_err
+    pred = f[:, None, :] + scale[:, None, None] * sd * rng.normal(size=(n, t, 4))
+    return Results(pred=pred, factors=f, object_id=obj, action_index=np.full(n, seed % 16), modality=modality,
+                   skin=skin, primitive=primitive, seed=seed, n_train=96)
+
+
+def _claim(rows, letter, words=""):
+    return next(r for r in rows if r["finding"] == letter and words in r["claim"])
+
+
+def test_verdicts_read_reproduced_contradicted_and_inconclusive():
+    from embodied_tactile.eval.verdicts import evaluate_findings, run_score, summarise, verdict_tables
+
+    seeds = range(4)
+    rs = ([_run("multi_l", "soft", "pressing", s, 0.2) for s in seeds]      # (b) late beats early: reproduced
+          + [_run("multi_e", "soft", "pressing", s, 0.6) for s in seeds]
+          + [_run("fsr_tb", "soft", "pressing", s, 0.9) for s in seeds]      # (c) fsr_tb worse than fsr_t: contradicted
+          + [_run("fsr_t", "soft", "pressing", s, 0.3) for s in seeds]
+          + [_run("fsr_b", "soft", "pressing", s, 0.3) for s in seeds]
+          + [_run("acc", "soft", "pressing", s, 0.6) for s in seeds])
+    comps = evaluate_findings(rs)
+    b = next(c for c in comps if c.finding == "b" and c.better.primitive == "pressing")
+    d = np.array([run_score(e, "overall") - run_score(l, "overall") for l, e in zip(rs[0:4], rs[4:8])])
+    from scipy.stats import t as student_t
+
+    h = student_t.ppf(0.975, 3) * d.std(ddof=1) / 2
+    assert b.stats["pairing"] == "paired by seed" and b.stats["n"] == 4
+    assert b.stats["mean"] == pytest.approx(d.mean()) and b.stats["ci95_low"] == pytest.approx(d.mean() - h)
+    assert b.verdict == "reproduced"
+    rows = summarise(comps)
+    assert _claim(rows, "b")["verdict"] == "reproduced"
+    assert _claim(rows, "c", "stiffness")["verdict"] == "contradicted"
+    assert _claim(rows, "f")["verdict"] == "not measured"  # no multi_l run on another primitive
+    # (a): multi_e (0.6) against acc (0.6) is a tie -> inconclusive; nothing contradicts multi_l -> claim inconclusive
+    a_tie = next(c for c in comps if c.finding == "a" and c.better.modality == "multi_e" and c.worse.modality == "acc"
+                 and c.better.primitive == "pressing")
+    assert a_tie.verdict == "inconclusive" and a_tie.stats["ci95_low"] < 0 < a_tie.stats["ci95_high"]
+    assert _claim(rows, "a")["verdict"] == "contradicted"  # multi_e loses to fsr_t (0.3): one contradiction is enough
+    findings, table = verdict_tables(rs)
+    assert len(findings.rows) == len(rows) and {"reproduced", "contradicted", "inconclusive"} <= {r[2] for r in findings.rows}
+    assert "nan" not in table.to_markdown().lower()
+
+
+def test_verdicts_unpaired_skins_and_fewer_than_three_seeds():
+    from embodied_tactile.eval.verdicts import difference, evaluate_findings, run_score
+
+    rs = ([_run("multi_l", "soft", p, s, 0.2, het_err=1.5) for p in ("pressing", "precession") for s in range(3)]
+          + [_run("multi_l", "hard", "pressing", s + 10, 0.2, het_err=0.3) for s in range(3)])
+    comps = evaluate_findings(rs)
+    e = next(c for c in comps if c.finding == "e" and c.better.group == "heterogeneous" and c.better.primitive == "pressing")
+    assert e.stats["pairing"] == "unpaired (Welch)" and e.verdict == "contradicted"  # hard skin better here
+    d = next(c for c in comps if c.finding == "d" and c.better.skin == "soft" and c.better.primitive == "pressing")
+    assert d.stats["pairing"] == "paired by seed" and d.verdict == "reproduced"  # within a run
+    two = difference(rs[:2], rs[3:5], lambda r: run_score(r, "overall"), lambda r: run_score(r, "overall"))
+    assert two["n"] == 2 and two["verdict"] == "inconclusive" and np.isnan(two["ci95_low"])
+
+
+def test_paper_best_primitive_from_table2():
+    from embodied_tactile.eval.verdicts import paper_all_objects, paper_best_primitive
+
+    # stiffness, soft e-Skin: pressing (12*0.032 + 15*0.112 + 5*0.023) / 32 = 0.0681 is the lowest
+    assert paper_all_objects("soft", "pressing", "stiffness") == pytest.approx((12 * 0.032 + 15 * 0.112 + 5 * 0.023) / 32)
+    assert paper_best_primitive("stiffness") == "pressing" and paper_best_primitive("heterogeneity") == "precession"
