@@ -232,3 +232,11 @@ def test_paper_best_primitive_from_table2():
     # stiffness, soft e-Skin: pressing (12*0.032 + 15*0.112 + 5*0.023) / 32 = 0.0681 is the lowest
     assert paper_all_objects("soft", "pressing", "stiffness") == pytest.approx((12 * 0.032 + 15 * 0.112 + 5 * 0.023) / 32)
     assert paper_best_primitive("stiffness") == "pressing" and paper_best_primitive("heterogeneity") == "precession"
+
+
+def test_design_rank_accepts_float32_factors():
+    """The DataModule serves factors as float32: 4.7403626 must still be Ecoflex 00-10's level."""
+    from embodied_tactile.eval.targets import encode_factors
+
+    f = np.array([OBJECTS[o].factors() for o in (0, 4, 8)], dtype=np.float32)
+    np.testing.assert_allclose(encode_factors(f)[:, 2], [0, 1, 2], atol=1e-5)

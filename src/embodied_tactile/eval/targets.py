@@ -75,7 +75,7 @@ def encode_factors(factors, encoding: str = DEFAULT_TARGETS) -> np.ndarray:
             continue
         col = f[:, k]
         ok = np.isfinite(col)
-        tol = 1e-9 * max(1.0, abs(levels[-1]))
+        tol = 1e-5 * max(1.0, abs(levels[-1]))  # factors served as float32 by the DataModule
         bad = ok & ((col < levels[0] - tol) | (col > levels[-1] + tol))
         if bad.any():
             raise ValueError(f"factor {name}: value {col[bad][0]!r} outside the design levels "
