@@ -29,10 +29,10 @@ VARIANTS: dict[str, list[str]] = {
     "default": [],  # direct y posterior, 6 x 50-frame windows, y_weight 10
     "previous_default": ["data.train_window=null", "data.windows_per_trial=1", "annealing.schedule.y_weight=1.0"],
     "whole_trials": ["data.train_window=null", "data.windows_per_trial=1"],
-    "evidence_whole": ["model.y_update=evidence", "data.train_window=null", "data.windows_per_trial=1"],
-    "evidence_windows": ["model.y_update=evidence"],
+    "evidence_whole": ["model.net.y_update=evidence", "data.train_window=null", "data.windows_per_trial=1"],
+    "evidence_windows": ["model.net.y_update=evidence"],
     "y_weight_1": ["annealing.schedule.y_weight=1.0"],
-    "prior_no_action": ["model.prior.action_term=false"],
+    "prior_no_action": ["model.net.prior.action_term=false"],
 }
 
 

@@ -111,11 +111,17 @@ def test_custom_late_pathways_and_bad_configs():
     with pytest.raises(ValueError, match="expects obs"):
         LatentFilter("acc", **TINY)(torch.zeros(1, 2, 3, 28, 28), torch.zeros(1, 2, 6))
     with pytest.raises(ValueError, match="EarlyFusionLatentFilter takes fusion"):
-        EarlyFusionLatentFilter("multi_l", **TINY)
+        EarlyFusionLatentFilter(LatentFilter("multi_l", **TINY))
     with pytest.raises(ValueError, match="LateFusionLatentFilter takes fusion"):
-        LateFusionLatentFilter("multi_e", **TINY)
-    assert LateFusionLatentFilter(**TINY).model.modality["name"] == "multi_l"
-    assert EarlyFusionLatentFilter(**TINY).model.modality["name"] == "multi_e"
+        LateFusionLatentFilter(LatentFilter("multi_e", **TINY))
+    with pytest.raises(TypeError, match="net must be a LatentFilter or its config mapping"):
+        LateFusionLatentFilter("multi_l")
+    assert LateFusionLatentFilter(LatentFilter("multi_l", **TINY)).model.modality["name"] == "multi_l"
+    # the module rebuilds the network from its config: the arguments live in LatentFilter only
+    net = LatentFilter("multi_e", **TINY)
+    rebuilt = EarlyFusionLatentFilter(net.config())
+    assert rebuilt.model.modality["name"] == "multi_e" and rebuilt.hparams["net"] == net.config()
+    assert sum(p.numel() for p in rebuilt.parameters()) == sum(p.numel() for p in net.parameters())
 
 
 @pytest.mark.parametrize("name", modality_names())
@@ -279,7 +285,7 @@ def test_checkpoint_roundtrip(tmp_path):
     torch.manual_seed(0)
     batch = make_batch(3, B=4, T=5)
     module = LateFusionLatentFilter(
-        **TINY, annealing=ConstrainedAnnealing(eps=10.0, update_every=1),
+        LatentFilter("multi_l", **TINY), annealing=ConstrainedAnnealing(eps=10.0, update_every=1),
         optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
     tr = trainer(tmp_path, max_steps=3)
     dl = DataLoader(ListDataset(batch), batch_size=2)
@@ -303,7 +309,7 @@ def test_checkpoint_roundtrip(tmp_path):
 def test_nonfinite_loss_raises_with_step_and_term(tmp_path):
     torch.manual_seed(0)
     batch = make_batch(1, B=2, T=4)
-    module = LatentFilterModule("acc", **TINY, optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
+    module = LatentFilterModule(LatentFilter("acc", **TINY), optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
     with torch.no_grad():
         module.model.prior.raw_var.fill_(float("nan"))
     tr = trainer(tmp_path, limit_val_batches=0)
@@ -316,7 +322,7 @@ def test_nonfinite_loss_in_validation_raises_with_step_term_and_batch(tmp_path):
     torch.manual_seed(0)
     batch = make_batch(1, B=2, T=4)
     batch["trial"] = ["obj05_a", "obj09_b"]
-    module = LatentFilterModule("acc", **TINY)
+    module = LatentFilterModule(LatentFilter("acc", **TINY))
     with torch.no_grad():
         module.model.prior.raw_var.fill_(float("nan"))
     with pytest.raises(FloatingPointError, match=r"non-finite loss at step 0: kl_y=nan") as err:
@@ -336,7 +342,7 @@ def test_nonfinite_input_names_trial_and_frame_in_training_and_validation(tmp_pa
     batch["obs"][2, 3, 0, 5, 5] = float("nan")
     batch["actions"][3, 1, 2] = float("inf")
     batch["actions"][3, 4, 0] = float("nan")
-    module = LatentFilterModule("acc", **TINY, optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
+    module = LatentFilterModule(LatentFilter("acc", **TINY), optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
     before = {k: v.clone() for k, v in module.state_dict().items()}
     dl = DataLoader(ListDataset(batch), batch_size=4)
     runs = {"train": lambda: trainer(tmp_path, limit_val_batches=0).fit(module, dl),
@@ -360,9 +366,10 @@ def test_hydra_instantiation_with_project_style_configs(tmp_path):
 
     cfg = OmegaConf.create({
         "_target_": "embodied_tactile.models.module.LateFusionLatentFilter",
-        "modality": {"name": "multi_l", "label": "MULTI-L", "channels": ["acc", "fsr_t", "fsr_b"],
-                     "fusion": "late", "pathways": {"vibration": ["acc"], "force": ["fsr_t", "fsr_b"]}},
-        "encoder": {"widths": [4, 8], "hidden": 32}, "transition_hidden": 32, "lstm_hidden": 32,
+        "net": {"_target_": "embodied_tactile.models.latent_filter.LatentFilter",
+                "modality": {"name": "multi_l", "label": "MULTI-L", "channels": ["acc", "fsr_t", "fsr_b"],
+                             "fusion": "late", "pathways": {"vibration": ["acc"], "force": ["fsr_t", "fsr_b"]}},
+                "encoder": {"widths": [4, 8], "hidden": 32}, "transition_hidden": 32, "lstm_hidden": 32},
         "annealing": {"_target_": "embodied_tactile.models.annealing.DVBFAnnealing", "c0": 0.01, "T_A": 100},
         "optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-5},
     })
@@ -370,7 +377,8 @@ def test_hydra_instantiation_with_project_style_configs(tmp_path):
     assert set(module.model.encoders) == {"vibration", "force"}
     assert module.hparams["annealing"] == {"name": "dvbf", "c0": 0.01, "T_A": 100.0, "fraction": None}
     assert module.hparams["optimizer"] == {"name": "Adam", "lr": 1e-5}
-    assert type(module.hparams["modality"]) is dict
+    assert type(module.hparams["net"]["modality"]) is dict and type(module.hparams["net"]["encoder"]) is dict
+    assert module.hparams["net"]["modality"]["pathways"] == {"vibration": ["acc"], "force": ["fsr_t", "fsr_b"]}
     opt = module.configure_optimizers()
     assert isinstance(opt, torch.optim.Adam) and opt.defaults["lr"] == 1e-5
 

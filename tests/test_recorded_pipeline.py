@@ -65,11 +65,12 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     np.testing.assert_allclose(sorted(batch["object_id"].tolist()), [0, 27])
     assert dm.describe()["source"] == "recorded"
 
+    from embodied_tactile.models import LatentFilter
     from embodied_tactile.models.module import LateFusionLatentFilter
 
     torch.manual_seed(0)
-    model = LateFusionLatentFilter(encoder={"widths": [4, 8], "hidden": 16}, transition_hidden=16, lstm_hidden=16,
-                                   optimizer={"name": "Adam", "lr": 1e-3})
+    net = LatentFilter("multi_l", encoder={"widths": [4, 8], "hidden": 16}, transition_hidden=16, lstm_hidden=16)
+    model = LateFusionLatentFilter(net, optimizer={"name": "Adam", "lr": 1e-3})
     trainer = L.Trainer(max_epochs=1, accelerator="cpu", logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)
     trainer.fit(model, datamodule=dm)

@@ -97,8 +97,8 @@ SCHEMA: dict[str, Spec] = {
     "data.val_fraction": Spec(("float",), lo=0, hi=1),
     "data.sim_workers": INT1,
     "data.preprocess_workers": INT1,
-    "model.n_z": INT1,
-    "model.n_y": INT1,
+    "model.net.n_z": INT1,
+    "model.net.n_y": INT1,
     "model.optimizer.lr": Spec(("float",), lo=0),
     "callbacks.krr_alignment.every_n_epochs": INT0,
 }

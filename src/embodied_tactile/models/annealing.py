@@ -334,27 +334,20 @@ SCHEDULES: dict[str, type[AnnealingSchedule]] = {
 
 
 def build_schedule(spec: Any) -> AnnealingSchedule:
-    """Schedule from an instance (returned as is), ``None`` (-> ``none``), a name, or a
-    mapping ``{"name": ..., **kwargs}`` (also accepts a Hydra ``_target_`` mapping)."""
+    """Schedule from an instance (returned as is; Hydra instantiates the ``_target_`` of
+    ``configs/annealing/*.yaml`` before it gets here), ``None`` (-> ``none``), a name, or a
+    mapping ``{"name": ..., **kwargs}`` (what :meth:`AnnealingSchedule.config` returns)."""
     if spec is None:
         return NoAnnealing()
     if isinstance(spec, AnnealingSchedule):
         return spec
     if isinstance(spec, str):
         spec = {"name": spec}
-    try:
-        from omegaconf import DictConfig, OmegaConf
-
-        if isinstance(spec, DictConfig):
-            spec = OmegaConf.to_container(spec, resolve=True)
-    except ImportError:  # pragma: no cover
-        pass
     if isinstance(spec, Mapping):
-        spec = dict(spec)
+        spec = {str(k): v for k, v in spec.items()}
         if "_target_" in spec:
-            from hydra.utils import instantiate
-
-            return instantiate(spec)
+            raise TypeError(f"annealing {spec['_target_']!r}: a _target_ mapping is built by Hydra's instantiate, "
+                            "pass the instance (or {name: ..., **kwargs})")
         name = spec.pop("name", None)
         if name not in SCHEDULES:
             raise ValueError(f"unknown annealing schedule {name!r}; choose from {sorted(SCHEDULES)}")

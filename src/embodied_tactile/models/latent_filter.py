@@ -16,7 +16,7 @@ Time indexing (t = 1..T in the docs, 0-based in code):
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, Optional
 
 import torch
@@ -40,17 +40,11 @@ from .networks import (
 )
 
 def to_plain(cfg: Any) -> Any:
-    """DictConfig / ListConfig / Mapping -> plain dict / list (checkpoint-safe primitives)."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(cfg, (DictConfig, ListConfig)):
-            return OmegaConf.to_container(cfg, resolve=True)
-    except ImportError:  # pragma: no cover
-        pass
+    """Mapping / sequence (a Hydra DictConfig or ListConfig included: they are mappings and
+    sequences) -> plain dict / list of checkpoint-safe primitives."""
     if isinstance(cfg, Mapping):
         return {str(k): to_plain(v) for k, v in cfg.items()}
-    if isinstance(cfg, (list, tuple)):
+    if isinstance(cfg, Sequence) and not isinstance(cfg, (str, bytes)):
         return [to_plain(v) for v in cfg]
     return cfg
 
@@ -66,6 +60,11 @@ def resolve_modality(modality: Any) -> dict[str, Any]:
     if mod.fusion == "late":
         out["pathway_channels"] = {name: list(chans) for name, chans in mod.pathways}
     return out
+
+
+def _modality_config(modality: Any) -> dict[str, Any]:
+    mod = load_modality(modality) if isinstance(modality, str) else Modality.from_config(modality)
+    return mod.to_config()
 
 
 _Y_STATE_KEYS = ("h", "c", "y_prec", "y_pm")
@@ -93,6 +92,13 @@ class LatentFilter(nn.Module):
         y_update: ``"direct"`` (the LSTM head is q(y_t)) or ``"evidence"`` (accumulate
             per-step Gaussian evidence about the trial-constant y); y_prior_precision:
             precision of the N(0, 1/p) start of the evidence product.
+        obs_dropout: training remedy (docs/model.md, "Observation dropout"): in training
+            mode each frame t >= 2 is hidden from the filter with this probability, so
+            q_filt(z_t) is the transition prior alone there and the likelihood of that
+            frame trains the transition. 0 (default) = off.
+        elbo_samples: training remedy (docs/model.md, "Several ELBO samples"): in training
+            mode ``elbo_terms`` averages the single-sample estimate over K independent
+            samples per sequence (K x the compute). 1 (default) = one sample.
     """
 
     def __init__(self, modality: Any, n_z: int = 16, n_y: int = 16, n_a: int = 6,
@@ -100,8 +106,17 @@ class LatentFilter(nn.Module):
                  transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
                  obs_sigma: float = 1.0, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
                  prior: Optional[Mapping] = None, y_update: str = "direct",
-                 y_prior_precision: float = 1.0) -> None:
+                 y_prior_precision: float = 1.0, obs_dropout: float = 0.0,
+                 elbo_samples: int = 1) -> None:
         super().__init__()
+        if not 0.0 <= float(obs_dropout) < 1.0:
+            raise ValueError(f"obs_dropout must be in [0, 1), got {obs_dropout}")
+        if int(elbo_samples) != elbo_samples or elbo_samples < 1:
+            raise ValueError(f"elbo_samples must be an integer >= 1, got {elbo_samples}")
+        self.obs_dropout, self.elbo_samples = float(obs_dropout), int(elbo_samples)
+        args = dict(locals())
+        self._config = {k: to_plain(v) for k, v in args.items() if k not in ("self", "__class__")}
+        self._config["modality"] = _modality_config(modality)
         self.modality = resolve_modality(modality)
         self.n_z, self.n_y, self.n_a = int(n_z), int(n_y), int(n_a)
         self.n_channels = len(self.modality["channels"])
@@ -133,6 +148,12 @@ class LatentFilter(nn.Module):
             self.obs_sigma_raw = nn.Parameter(raw)
         else:
             self.register_buffer("obs_sigma_raw", raw)
+
+    def config(self) -> dict[str, Any]:
+        """The constructor arguments as plain, checkpoint-safe values (``modality`` as its
+        mapping): ``LatentFilter(**net.config())`` rebuilds the same network. The Lightning
+        modules store this once as their ``net`` hyperparameter."""
+        return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self._config.items()}
 
     # ------------------------------------------------------------------ pieces
     def obs_log_sigma(self) -> Tensor:
@@ -182,9 +203,12 @@ class LatentFilter(nn.Module):
             return m + torch.sqrt(v) * torch.randn_like(m)
 
     def step(self, enc_m: Tensor, enc_v: Tensor, a_t: Tensor, state: Optional[dict[str, Tensor]],
-             sample: bool, prev_action: Optional[Tensor] = None) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+             sample: bool, prev_action: Optional[Tensor] = None, observed: Optional[Tensor] = None
+             ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """One recursion step given the measurement Gaussian of frame t (shared by
-        ``forward`` and ``filter_step``). ``state=None`` marks the first frame."""
+        ``forward``, ``filter_step`` and ``predict``). ``state=None`` marks the first frame.
+        ``observed`` (B,) bool: where False the frame is not seen and q_filt(z_t) is the
+        transition prior alone (N(0, I) at the first frame); None = all observed."""
         first = state is None
         if first:
             state = self.initial_state(enc_m.shape[0], enc_m.device)
@@ -201,17 +225,31 @@ class LatentFilter(nn.Module):
         else:
             zp_m, zp_v = self.transition(state["z"], y, a_t)
             z_m, z_v = fuse_gaussians(zp_m, zp_v, enc_m, enc_v)
+        if observed is not None:
+            seen = observed.view(-1, 1)
+            z_m, z_v = torch.where(seen, z_m, zp_m), torch.where(seen, z_v, zp_v)
         z = self._draw(z_m, z_v, sample)
         out = {"z_mean": z_m, "z_var": z_v, "z": z, "y_mean": y_m, "y_var": y_v, "y": y,
                "zp_mean": zp_m, "zp_var": zp_v}
         return out, _state_to(z, a_t.float(), y_state)
 
     # ------------------------------------------------------------------ batched
-    def forward(self, obs: Tensor, actions: Tensor, sample: bool = True) -> dict[str, Tensor]:
+    def observation_mask(self, B: int, T: int, device: torch.device) -> Optional[Tensor]:
+        """Observation dropout: (B, T) bool, frames t >= 2 hidden with probability
+        ``obs_dropout`` in training mode; None (all observed) otherwise."""
+        if not (self.training and self.obs_dropout > 0.0):
+            return None
+        mask = torch.rand(B, T, device=device) >= self.obs_dropout
+        mask[:, 0] = True  # z_1 has no transition prior to fall back on
+        return mask
+
+    def forward(self, obs: Tensor, actions: Tensor, sample: bool = True,
+                observed: Optional[Tensor] = None) -> dict[str, Tensor]:
         """obs (B, T, C, 28, 28), actions (B, T, n_a) -> dict of (B, T, ...) tensors:
         z_mean/z_var (q_filt), z (sample, or mean if not ``sample``), y_mean/y_var/y,
         zp_mean/zp_var (transition prior; N(0, I) at t = 1), enc_mean/enc_var and
-        recon (B, T, C, 28, 28) decoded from z."""
+        recon (B, T, C, 28, 28) decoded from z. ``observed`` (B, T) bool hides frames from
+        the filter (default: :meth:`observation_mask`; ``observed`` is returned when set)."""
         self._check_obs(obs)
         B, T = obs.shape[:2]
         if actions.shape != (B, T, self.n_a):
@@ -219,12 +257,19 @@ class LatentFilter(nn.Module):
         enc_m, enc_v = self.encode(obs.reshape(B * T, *obs.shape[2:]))
         enc_m, enc_v = enc_m.view(B, T, -1), enc_v.view(B, T, -1)
         actions = actions.float()
+        if observed is None:
+            observed = self.observation_mask(B, T, obs.device)
+        elif observed.shape != (B, T):
+            raise ValueError(f"observed must be {(B, T)}, got {tuple(observed.shape)}")
         state = None
         steps: list[dict[str, Tensor]] = []
         for t in range(T):
-            out, state = self.step(enc_m[:, t], enc_v[:, t], actions[:, t], state, sample)
+            out, state = self.step(enc_m[:, t], enc_v[:, t], actions[:, t], state, sample,
+                                   observed=None if observed is None else observed[:, t])
             steps.append(out)
         res = {k: torch.stack([s[k] for s in steps], dim=1) for k in steps[0]}
+        if observed is not None:
+            res["observed"] = observed
         res["enc_mean"], res["enc_var"] = enc_m, enc_v
         res["recon"] = self.decode(res["z"].reshape(B * T, -1)).view(B, T, *obs.shape[2:])
         return res
@@ -241,8 +286,15 @@ class LatentFilter(nn.Module):
         pop     = the population term alone (also inside kl_y), logged for inspection
         ELBO = -(nll + kl_z + kl_y). ``out`` holds the forward outputs. ``w_pop`` is
         ``prior.population_weight`` (1 / training sequences; 1 / n_objects if unset).
+        With ``elbo_samples`` K > 1 in training mode (and ``sample``) every sequence is
+        filtered K times with independent samples and the terms are averaged over all
+        B x K rows (``out`` then has B x K rows, sample-major within a sequence).
         """
         obs, actions = batch["obs"], batch["actions"]
+        if self.elbo_samples > 1 and self.training and sample:
+            k = self.elbo_samples
+            obs, actions = obs.repeat_interleave(k, 0), actions.repeat_interleave(k, 0)
+            batch = {**batch, "obs": obs, "actions": actions, "object_id": batch["object_id"].repeat_interleave(k, 0)}
         out = self.forward(obs, actions, sample=sample)
         B, T = obs.shape[:2]
         log_sigma = self.obs_log_sigma().view(1, 1, -1, 1, 1)
@@ -279,6 +331,41 @@ class LatentFilter(nn.Module):
         finally:
             self.train(was_training)
         return {k: out[k] for k in ("z_mean", "z_var", "y_mean", "y_var")}
+
+    @torch.no_grad()
+    def predict(self, obs: Tensor, actions: Tensor, horizon: int, sample: bool = False) -> dict[str, Tensor]:
+        """Open-loop prediction ("imagination"): filter the T0 frames of ``obs`` (B, T0, C,
+        28, 28), then run the same recursion ``horizon`` more steps with every frame
+        unobserved (q_filt = transition prior; the LSTM keeps running on the predicted z)
+        under ``actions`` (B, T0 + horizon, n_a). Eval mode; means unless ``sample``.
+        Returns z_mean, z_var (B, horizon, n_z), y_mean (B, horizon, n_y) and recon
+        (B, horizon, C, 28, 28), the decoded frames T0 + 1 .. T0 + horizon."""
+        self._check_obs(obs)
+        B, T0 = obs.shape[:2]
+        if T0 < 1 or horizon < 1 or actions.shape != (B, T0 + horizon, self.n_a):
+            raise ValueError(f"predict needs T0 >= 1 observed frames, horizon >= 1 and actions "
+                             f"{(B, T0 + horizon, self.n_a)}, got obs {tuple(obs.shape)}, horizon {horizon}, "
+                             f"actions {tuple(actions.shape)}")
+        was_training = self.training
+        self.eval()
+        try:
+            enc_m, enc_v = self.encode(obs.reshape(B * T0, *obs.shape[2:]))
+            enc_m, enc_v = enc_m.view(B, T0, -1), enc_v.view(B, T0, -1)
+            actions = actions.float()
+            state = None
+            for t in range(T0):
+                _, state = self.step(enc_m[:, t], enc_v[:, t], actions[:, t], state, sample)
+            hidden = torch.zeros(B, dtype=torch.bool, device=obs.device)
+            none_m, none_v = torch.zeros_like(enc_m[:, 0]), torch.ones_like(enc_v[:, 0])
+            steps = []
+            for t in range(T0, T0 + horizon):
+                out, state = self.step(none_m, none_v, actions[:, t], state, sample, observed=hidden)
+                steps.append(out)
+        finally:
+            self.train(was_training)
+        res = {k: torch.stack([s[k] for s in steps], dim=1) for k in ("z_mean", "z_var", "z", "y_mean")}
+        res["recon"] = self.decode(res.pop("z").reshape(B * horizon, -1)).view(B, horizon, *obs.shape[2:])
+        return res
 
     def filter_step(self, obs_t: Tensor, action_t: Tensor, prev_action: Optional[Tensor] = None,
                     state: Optional[dict[str, Tensor]] = None, sample: bool = False

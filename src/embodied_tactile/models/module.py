@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from .annealing import AnnealingSchedule, build_schedule, check_finite
-from .latent_filter import LatentFilter, resolve_modality, to_plain
+from .latent_filter import LatentFilter, to_plain
 
 DEFAULT_OPTIMIZER = {"name": "Adam", "lr": 1e-5}  # the paper's setting
 
@@ -78,18 +78,11 @@ def nonfinite_inputs(batch: Mapping[str, Any], max_frames: int = 8) -> list[str]
 class LatentFilterModule(L.LightningModule):
     """Latent Filter training module for any modality (``fusion`` single|early|late).
 
-    Args (Hydra-instantiable; see docs/model.md):
-        modality: preset name or ``{name, channels, fusion[, pathways]}``.
-        n_z, n_y, n_a, n_objects: sizes (16, 16, 6, 32).
-        encoder: ``{"widths": [16, 32], "hidden": 128}``.
-        transition_hidden, lstm_hidden: 128, 128.
-        min_var: variance floor of all posterior/transition heads (1e-3).
-        obs_sigma, learn_obs_sigma, obs_sigma_min: Gaussian likelihood (1.0, True, 1e-2).
-        prior: kwargs of the hierarchical prior (sigma_init 0.5, learn_sigma True,
-            var_floor 1e-2, action_term True).
-        y_update, y_prior_precision: ``"direct"`` (the LSTM head is q(y_t)) or ``"evidence"``
-            (q(y_t) = product of per-step Gaussian evidence about the trial-constant y,
-            started at N(0, 1/y_prior_precision)); see :class:`~.networks.YPosterior`.
+    Args (Hydra-instantiable; see docs/model.md and configs/model/latent_filter.yaml):
+        net: the :class:`~.latent_filter.LatentFilter` (Hydra builds it from ``model.net``
+            and injects it), or its ``config()`` mapping (how ``load_from_checkpoint``
+            rebuilds it). Its constructor arguments are defined there only and stored here
+            once, as the ``net`` hyperparameter.
         annealing: an :class:`AnnealingSchedule`, a name, or ``{name, **kwargs}``
             (None -> plain ELBO). Stored in the hyperparameters as its ``config()``.
         optimizer: ``functools.partial(torch.optim.X, **kw)`` (Hydra ``_partial_: true``)
@@ -104,42 +97,27 @@ class LatentFilterModule(L.LightningModule):
     val/nll, val/kl_z, val/kl_y (and test/* likewise).
     """
 
-    allowed_fusions: tuple[str, ...] = ("single", "early", "late")
-    default_modality: Optional[str] = None
+    #: the fusion schemes this class trains (each subclass names its own)
+    fusions: tuple[str, ...] = ("single", "early", "late")
 
-    def __init__(self, modality: Any = None, n_z: int = 16, n_y: int = 16, n_a: int = 6,
-                 n_objects: int = 32, encoder: Optional[Mapping] = None,
-                 transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
-                 obs_sigma: float = 1.0, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
-                 prior: Optional[Mapping] = None, y_update: str = "direct", y_prior_precision: float = 1.0,
-                 annealing: Any = None, optimizer: Any = None, check_finite: bool = True) -> None:
+    def __init__(self, net: LatentFilter | Mapping[str, Any], annealing: Any = None, optimizer: Any = None,
+                 check_finite: bool = True) -> None:
         super().__init__()
-        if modality is None:
-            if self.default_modality is None:
-                raise ValueError(f"{type(self).__name__} needs a modality")
-            modality = self.default_modality
-        modality_cfg = to_plain(modality)
-        resolved = resolve_modality(modality_cfg)
-        if resolved["fusion"] not in self.allowed_fusions:
-            raise ValueError(f"{type(self).__name__} takes fusion in {self.allowed_fusions}, "
-                             f"modality {resolved['name']!r} has fusion={resolved['fusion']!r}")
+        if not isinstance(net, LatentFilter):
+            if not isinstance(net, Mapping):
+                raise TypeError(f"{type(self).__name__}: net must be a LatentFilter or its config mapping, "
+                                f"got {type(net).__name__}")
+            net = LatentFilter(**to_plain(net))
+        if net.modality["fusion"] not in self.fusions:
+            raise ValueError(f"{type(self).__name__} takes fusion in {self.fusions}, "
+                             f"modality {net.modality['name']!r} has fusion={net.modality['fusion']!r}")
         schedule = build_schedule(annealing)
         self._optimizer = _optimizer_factory(optimizer)
         self.check_finite = bool(check_finite)
-        hp = {
-            "modality": modality_cfg, "n_z": n_z, "n_y": n_y, "n_a": n_a, "n_objects": n_objects,
-            "encoder": to_plain(encoder), "transition_hidden": transition_hidden, "lstm_hidden": lstm_hidden,
-            "min_var": min_var, "obs_sigma": obs_sigma, "learn_obs_sigma": learn_obs_sigma,
-            "obs_sigma_min": obs_sigma_min, "prior": to_plain(prior), "y_update": y_update,
-            "y_prior_precision": y_prior_precision, "annealing": schedule.config(), "optimizer": _optimizer_spec(optimizer),
-            "check_finite": check_finite,
-        }
-        self.save_hyperparameters(hp)
-        self.model = LatentFilter(modality_cfg, n_z=n_z, n_y=n_y, n_a=n_a, n_objects=n_objects,
-                                  encoder=encoder, transition_hidden=transition_hidden,
-                                  lstm_hidden=lstm_hidden, min_var=min_var, obs_sigma=obs_sigma,
-                                  learn_obs_sigma=learn_obs_sigma, obs_sigma_min=obs_sigma_min,
-                                  prior=prior, y_update=y_update, y_prior_precision=y_prior_precision)
+        # saved once: the network's own constructor arguments, the schedule and the optimizer
+        self.save_hyperparameters({"net": net.config(), "annealing": schedule.config(),
+                                   "optimizer": _optimizer_spec(optimizer), "check_finite": bool(check_finite)})
+        self.model = net
         self.annealing: AnnealingSchedule = schedule
 
     # ------------------------------------------------------------------ API
@@ -221,7 +199,7 @@ class LatentFilterModule(L.LightningModule):
         self.annealing.set_total_steps(self.trainer.estimated_stepping_batches)
         # the prior's population term counts once per dataset: 1 / (training sequences) per sequence
         prior = self.model.prior
-        if (self.hparams.get("prior") or {}).get("population_weight") is None:
+        if (self.hparams["net"].get("prior") or {}).get("population_weight") is None:
             train_set = getattr(self.trainer.datamodule, "train_set", None)
             if train_set is not None and getattr(train_set, "trials", None):
                 prior.population_weight = 1.0 / len(train_set.trials)
@@ -232,16 +210,15 @@ class LatentFilterModule(L.LightningModule):
 
 
 class EarlyFusionLatentFilter(LatentFilterModule):
-    """Latent Filter with ONE encoder over all stacked channels (uni-modal or early fusion;
-    default modality ``multi_e``)."""
+    """Latent Filter with ONE encoder over all stacked channels (uni-modal or early fusion):
+    the channels are fused before the encoder, by stacking."""
 
-    allowed_fusions = ("single", "early")
-    default_modality = "multi_e"
+    fusions = ("single", "early")
 
 
 class LateFusionLatentFilter(LatentFilterModule):
     """Latent Filter with one encoder/decoder pathway per sensor type, integrated in latent
-    space by a product of Gaussians (default modality ``multi_l``)."""
+    space by a product of Gaussians (:func:`~.networks.fuse_gaussians`, in the network's
+    ``encode``)."""
 
-    allowed_fusions = ("late",)
-    default_modality = "multi_l"
+    fusions = ("late",)
