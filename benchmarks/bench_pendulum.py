@@ -1,0 +1,78 @@
+"""Pendulum benchmark for the Latent Filter (issue 15; docs/model.md, "Pendulum benchmark").
+
+The driven, damped pendulum of Deep Variational Bayes Filters (Karl et al. 2017): 8
+objects (natural frequency {2, 3, 4, 5} rad/s x damping {0.1, 0.6} 1/s), random
+piecewise-constant torque, 60 frames of 50 ms rendered as noisy 28x28 images. Trains the
+project's LatentFilter (one channel, n_z = 8, n_y = 4) unsupervised with the ELBO (linear
+KL warm-up over 10 % of the steps, y_weight 1) and prints the read-outs on held-out
+sequences (linear / RBF kernel ridge R^2) and the open-loop prediction error.
+
+    python benchmarks/bench_pendulum.py                                # 2500 steps, seed 0
+    python benchmarks/bench_pendulum.py --steps 500 --seed 1 --batch-size 16
+    python benchmarks/bench_pendulum.py --remedy obs_dropout=0.5       # a training remedy
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from embodied_tactile.bench.pendulum_run import READOUTS, run
+from embodied_tactile.runtime import set_threads
+
+#: --remedy NAME=VALUE -> LatentFilter keyword (docs/model.md, "Training remedies")
+REMEDIES = {"obs_dropout": float, "elbo_samples": int}
+
+
+def parse_remedy(text: str) -> tuple[str, float]:
+    name, _, value = text.partition("=")
+    if name not in REMEDIES or not value:
+        raise argparse.ArgumentTypeError(f"--remedy {text!r}: expected NAME=VALUE with NAME in {sorted(REMEDIES)}")
+    try:
+        return name, REMEDIES[name](value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--remedy {text!r}: {value!r} is not a {REMEDIES[name].__name__}") from None
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--steps", type=int, default=2500, help="optimiser steps (default 2500)")
+    p.add_argument("--seed", type=int, default=0, help="data (train seed, test seed + 1000) and init seed")
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--y-weight", type=float, default=1.0, help="linear warm-up y_weight (1 = plain ELBO)")
+    p.add_argument("--remedy", type=parse_remedy, action="append", default=[], metavar="NAME=VALUE",
+                   help=f"training remedy, repeatable; NAME in {sorted(REMEDIES)}")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--log-every", type=int, default=0, help="print the loss every N steps (0: never)")
+    a = p.parse_args(argv)
+    set_threads(a.threads)
+    t0 = time.perf_counter()
+    res = run(a.steps, seed=a.seed, batch_size=a.batch_size, model_kwargs=dict(a.remedy),
+              annealing={"name": "linear", "beta0": 0.01, "fraction": 0.1, "y_weight": a.y_weight},
+              log_every=a.log_every)
+    print(f"pendulum: {a.steps} steps, batch {a.batch_size}, seed {a.seed}, y_weight {a.y_weight}, "
+          f"remedies {dict(a.remedy) or 'none'}")
+    print("| read-out | linear R^2 | kernel R^2 |\n|---|---|---|")
+    for k in READOUTS:
+        lin, krr = res["readouts"][k]
+        print(f"| {k} | {lin:.2f} | {krr:.2f} |")
+    dg = res["diagnostics"]
+    print(f"\nheld-out: transition weight in q_filt {dg['transition_weight']:.3f}, median variance encoder "
+          f"{dg['encoder_var']:.2e} / transition {dg['transition_var']:.2e}; per sequence nll {dg['nll']:.0f}, "
+          f"kl_z {dg['kl_z']:.1f}, kl_y {dg['kl_y']:.2f}")
+    ol = res["open_loop"]
+    print("\nopen loop after 20 filtered frames, image MSE x 1e3 against the noiseless frame")
+    print("| horizon | model | last frame | last frame (noiseless) | mean image |\n|---|---|---|---|---|")
+    for h in (1, 2, 5, 10, 15, 20, 30, 40):
+        print(f"| {h} | {1e3 * ol['model'][h - 1]:.2f} | {1e3 * ol['last_frame'][h - 1]:.2f} | "
+              f"{1e3 * ol['last_clean'][h - 1]:.2f} | {1e3 * ol['mean_image'][h - 1]:.2f} |")
+    beats = ol["model"] < ol["last_clean"]
+    first_loss = next((h + 1 for h, b in enumerate(beats) if not b), None)
+    print(f"model beats the noiseless last frame up to horizon "
+          f"{len(beats) if first_loss is None else first_loss - 1}")
+    print(f"wall time: train {res['train_s']:.0f} s, read-outs {res['eval_s']:.0f} s, "
+          f"total {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Standard benchmarks for the Latent Filter outside the tactile scene (numpy only)."""

@@ -1,0 +1,125 @@
+"""Driven, damped pendulum benchmark (Karl et al. 2017, Deep Variational Bayes Filters),
+NumPy only (no torch): the data side of ``benchmarks/bench_pendulum.py`` (docs/model.md,
+"Pendulum benchmark").
+
+Dynamics of the angle theta (rad, 0 = bob straight down), with natural frequency w0
+(rad/s), damping coefficient d (1/s) and the action u (angular acceleration, rad/s^2):
+
+    theta'' = -w0^2 sin(theta) - d theta' + u
+
+integrated with classical RK4, ``substeps`` substeps per 50 ms frame, u held constant over
+a frame. The 8 "objects" are w0 in {2, 3, 4, 5} x d in {0.1, 0.6} (object id =
+4 * damping index + frequency index): hidden parameters that only the dynamics reveal, as
+the tactile objects' properties. Actions are piecewise constant, a new uniform value in
+[-u_max, u_max] every ``hold`` frames. Each frame is a 28x28 image of the bob (a Gaussian
+blob of ``blob_sigma`` pixels at radius ``radius`` from the pivot at the image centre) plus
+Gaussian pixel noise of standard deviation ``noise``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+FREQUENCIES = (2.0, 3.0, 4.0, 5.0)  # natural frequency w0, rad/s
+DAMPINGS = (0.1, 0.6)  # damping coefficient d, 1/s
+N_OBJECTS = len(FREQUENCIES) * len(DAMPINGS)
+DT = 0.05  # s per frame
+SIZE = 28  # image side, pixels
+
+
+def object_params(object_id: int) -> tuple[float, float]:
+    """Object id 0..7 -> (w0, d)."""
+    if not 0 <= int(object_id) < N_OBJECTS:
+        raise ValueError(f"pendulum object_id must be in [0, {N_OBJECTS}), got {object_id}")
+    return FREQUENCIES[int(object_id) % len(FREQUENCIES)], DAMPINGS[int(object_id) // len(FREQUENCIES)]
+
+
+def _accel(theta: np.ndarray, omega: np.ndarray, w0: np.ndarray, d: np.ndarray, u: np.ndarray) -> np.ndarray:
+    return -w0 * w0 * np.sin(theta) - d * omega + u
+
+
+def integrate(theta0: np.ndarray, omega0: np.ndarray, w0: np.ndarray, d: np.ndarray, u: np.ndarray,
+              dt: float = DT, substeps: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """RK4 integration of a batch of pendulums.
+
+    theta0, omega0, w0, d: (N,); u: (N, T) the action held over frame t. Returns theta, omega
+    (N, T): the state at the start of each frame, i.e. frame 0 is (theta0, omega0) and frame
+    t + 1 follows from frame t under u[:, t] (the last action drives past the sequence).
+    """
+    u = np.asarray(u, dtype=np.float64)
+    n, t_len = u.shape
+    th = np.asarray(theta0, dtype=np.float64).copy()
+    om = np.asarray(omega0, dtype=np.float64).copy()
+    w0, d = np.asarray(w0, dtype=np.float64), np.asarray(d, dtype=np.float64)
+    h = float(dt) / int(substeps)
+    thetas, omegas = np.empty((n, t_len)), np.empty((n, t_len))
+    for t in range(t_len):
+        thetas[:, t], omegas[:, t] = th, om
+        ut = u[:, t]
+        for _ in range(int(substeps)):
+            k1t, k1o = om, _accel(th, om, w0, d, ut)
+            k2t, k2o = om + 0.5 * h * k1o, _accel(th + 0.5 * h * k1t, om + 0.5 * h * k1o, w0, d, ut)
+            k3t, k3o = om + 0.5 * h * k2o, _accel(th + 0.5 * h * k2t, om + 0.5 * h * k2o, w0, d, ut)
+            k4t, k4o = om + h * k3o, _accel(th + h * k3t, om + h * k3o, w0, d, ut)
+            th = th + h / 6.0 * (k1t + 2 * k2t + 2 * k3t + k4t)
+            om = om + h / 6.0 * (k1o + 2 * k2o + 2 * k3o + k4o)
+    return thetas, omegas
+
+
+def render(theta: np.ndarray, radius: float = 10.0, blob_sigma: float = 1.5) -> np.ndarray:
+    """Angles (...,) -> noiseless images (..., 28, 28) in [0, 1]: the bob at
+    (row, col) = (c + r cos theta, c + r sin theta) around the centre c = 13.5."""
+    theta = np.asarray(theta, dtype=np.float64)
+    c = (SIZE - 1) / 2.0
+    rows = c + radius * np.cos(theta)
+    cols = c + radius * np.sin(theta)
+    grid = np.arange(SIZE, dtype=np.float64)
+    gr = np.exp(-0.5 * ((grid - rows[..., None]) / blob_sigma) ** 2)  # (..., 28)
+    gc = np.exp(-0.5 * ((grid - cols[..., None]) / blob_sigma) ** 2)
+    return gr[..., :, None] * gc[..., None, :]
+
+
+@dataclass
+class PendulumData:
+    """A set of pendulum sequences (N sequences of T frames).
+
+    obs (N, T, 1, 28, 28) float32 (noisy images), actions (N, T, 1) float32 (u held over
+    frame t), theta, omega (N, T) float64 (state at each frame), object_id (N,) int64,
+    w0, damping (N,) float64.
+    """
+
+    obs: np.ndarray
+    actions: np.ndarray
+    theta: np.ndarray
+    omega: np.ndarray
+    object_id: np.ndarray
+    w0: np.ndarray
+    damping: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.obs.shape[0])
+
+
+def generate(n_per_object: int, seed: int, n_steps: int = 60, hold: int = 5, u_max: float = 3.0,
+             noise: float = 0.05, substeps: int = 10, omega0_max: float = 2.0) -> PendulumData:
+    """``n_per_object`` sequences of each of the 8 objects (object-major order), fully
+    determined by ``seed``. Initial angle uniform in [-pi, pi), initial angular velocity
+    uniform in [-omega0_max, omega0_max] rad/s."""
+    if n_per_object < 1 or n_steps < 1 or hold < 1 or substeps < 1:
+        raise ValueError(f"pendulum generate: n_per_object={n_per_object}, n_steps={n_steps}, hold={hold}, "
+                         f"substeps={substeps} must all be >= 1")
+    rng = np.random.default_rng(seed)
+    ids = np.repeat(np.arange(N_OBJECTS), n_per_object)
+    n = len(ids)
+    params = np.array([object_params(i) for i in ids])
+    w0, d = params[:, 0], params[:, 1]
+    n_blocks = -(-n_steps // hold)
+    u = np.repeat(rng.uniform(-u_max, u_max, size=(n, n_blocks)), hold, axis=1)[:, :n_steps]
+    theta0 = rng.uniform(-np.pi, np.pi, size=n)
+    omega0 = rng.uniform(-omega0_max, omega0_max, size=n)
+    theta, omega = integrate(theta0, omega0, w0, d, u, DT, substeps)
+    img = render(theta) + noise * rng.standard_normal((n, n_steps, SIZE, SIZE))
+    return PendulumData(obs=img[:, :, None].astype(np.float32), actions=u[..., None].astype(np.float32),
+                        theta=theta, omega=omega, object_id=ids.astype(np.int64), w0=w0, damping=d)

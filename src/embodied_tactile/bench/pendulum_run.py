@@ -1,0 +1,190 @@
+"""Train the project's :class:`~embodied_tactile.models.LatentFilter` on the pendulum
+benchmark (:mod:`embodied_tactile.bench.pendulum`) and read it out (docs/model.md,
+"Pendulum benchmark"). Used by ``benchmarks/bench_pendulum.py`` and tests/test_pendulum.py.
+
+Read-outs on held-out sequences, each fitted on the training sequences only, linear
+(least squares) and RBF kernel ridge (:func:`embodied_tactile.eval.krr.fit_alignment`,
+grid-searched on training rows, folds grouped by sequence), scored by R^2 (averaged over
+outputs):
+
+* ``z_angle``: q_filt mean z_t -> (cos theta_t, sin theta_t), frames t >= ``skip``;
+* ``z_velocity``: z_t -> theta'_t, frames t >= ``skip``;
+* ``y_frequency`` / ``y_damping``: q(y_T) mean at the last frame -> w0 / d.
+
+Open-loop prediction: filter the first ``n_filter`` frames, then
+:meth:`LatentFilter.predict` the next ``horizon`` frames under the known actions; image MSE
+per horizon against the noiseless rendering, next to copying the last observed (noisy)
+frame and copying its noiseless rendering (the stricter baseline).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+import torch
+from sklearn.linear_model import LinearRegression
+from sklearn.metrics import r2_score
+
+from embodied_tactile.eval.krr import fit_alignment
+from embodied_tactile.models import LatentFilter, build_schedule
+
+from .pendulum import N_OBJECTS, PendulumData, generate, render
+
+#: the benchmark's modality: one image channel (the channel name is only a label here)
+MODALITY = {"name": "pendulum", "channels": ["fsr_t"], "fusion": "single"}
+READOUTS = ("z_angle", "z_velocity", "y_frequency", "y_damping")
+
+
+@dataclass
+class PendulumRun:
+    model: LatentFilter
+    steps: int
+    train_s: float
+    losses: list = field(default_factory=list)
+
+
+def build_model(n_z: int = 8, n_y: int = 4, **kwargs: Any) -> LatentFilter:
+    """The benchmark's Latent Filter: one channel, 1-D action, 8 objects, the likelihood
+    sigma starting at 0.1 as in configs/model/latent_filter.yaml; ``kwargs`` go to
+    :class:`LatentFilter` (remedies such as ``obs_dropout``)."""
+    kwargs = {"obs_sigma": 0.1, **kwargs}
+    return LatentFilter(MODALITY, n_z=n_z, n_y=n_y, n_a=1, n_objects=N_OBJECTS, **kwargs)
+
+
+def _batch(data: PendulumData, idx: np.ndarray) -> dict[str, torch.Tensor]:
+    return {"obs": torch.from_numpy(data.obs[idx]), "actions": torch.from_numpy(data.actions[idx]),
+            "object_id": torch.from_numpy(data.object_id[idx])}
+
+
+def train(model: LatentFilter, data: PendulumData, steps: int, batch_size: int = 16, seed: int = 0,
+          lr: float = 1e-3, annealing: Any = None, log_every: int = 0) -> PendulumRun:
+    """Unsupervised training with the project's annealing schedule (default: linear KL
+    warm-up over the first 10 % of the steps, y_weight 1 = the plain ELBO afterwards)
+    and Adam; the object label goes to the prior only, as in training on the tactile data."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    schedule = build_schedule(annealing if annealing is not None else
+                              {"name": "linear", "beta0": 0.01, "fraction": 0.1, "y_weight": 1.0})
+    schedule.set_total_steps(steps)
+    model.prior.population_weight = 1.0 / len(data)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    model.train()
+    schedule.train()
+    losses = []
+    t0 = time.perf_counter()
+    for step in range(steps):
+        terms = model.elbo_terms(_batch(data, rng.integers(0, len(data), batch_size)))
+        loss, _ = schedule(step, terms)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+        if log_every and (step + 1) % log_every == 0:
+            print(f"step {step + 1}: loss {float(loss.detach()):.1f} nll {float(terms['nll']):.1f} "
+                  f"kl_z {float(terms['kl_z']):.1f} kl_y {float(terms['kl_y']):.2f}", flush=True)
+    return PendulumRun(model, steps, time.perf_counter() - t0, losses)
+
+
+@torch.no_grad()
+def latents(model: LatentFilter, data: PendulumData, chunk: int = 64) -> dict[str, np.ndarray]:
+    """z_mean (N, T, n_z) and y_mean (N, T, n_y) of the filter (eval mode, no sampling)."""
+    outs = [model.infer_latents(_batch(data, np.arange(s, min(s + chunk, len(data)))))
+            for s in range(0, len(data), chunk)]
+    return {k: torch.cat([o[k] for o in outs]).numpy() for k in ("z_mean", "y_mean")}
+
+
+def _r2_pair(x_tr: np.ndarray, t_tr: np.ndarray, x_te: np.ndarray, t_te: np.ndarray, groups: np.ndarray,
+             seed: int) -> tuple[float, float]:
+    """(linear R^2, RBF kernel ridge R^2) of rows x -> targets t, fitted on the training rows."""
+    lin = LinearRegression().fit(x_tr, t_tr)
+    r2_lin = r2_score(t_te, lin.predict(x_te))
+    # one row per "sequence" for fit_alignment; CV folds grouped by the true sequence
+    align = fit_alignment(x_tr[:, None, :], t_tr, groups=groups, final_segment=1, frames_per_sequence=1,
+                          seed=seed, n_threads=1)
+    r2_krr = r2_score(t_te, align.predict(x_te)[:, 0, :])
+    return float(r2_lin), float(r2_krr)
+
+
+def readouts(model: LatentFilter, train_data: PendulumData, test_data: PendulumData, skip: int = 5,
+             max_rows: int = 1500, seed: int = 0) -> dict[str, tuple[float, float]]:
+    """{read-out: (linear R^2, kernel R^2)} on ``test_data``, fitted on ``train_data``
+    (z rows: frames t >= ``skip``, at most ``max_rows`` training rows drawn at random)."""
+    lat_tr, lat_te = latents(model, train_data), latents(model, test_data)
+    rng = np.random.default_rng(seed)
+    n, t_len = train_data.theta.shape
+    seq = np.repeat(np.arange(n), t_len - skip)
+
+    def zrows(lat, d):
+        return lat["z_mean"][:, skip:].reshape(-1, lat["z_mean"].shape[-1])
+
+    z_tr, z_te = zrows(lat_tr, train_data), zrows(lat_te, test_data)
+    pick = rng.choice(len(z_tr), size=min(max_rows, len(z_tr)), replace=False)
+    th_tr, th_te = train_data.theta[:, skip:].ravel(), test_data.theta[:, skip:].ravel()
+    ang_tr = np.stack([np.cos(th_tr), np.sin(th_tr)], -1)
+    ang_te = np.stack([np.cos(th_te), np.sin(th_te)], -1)
+    om_tr, om_te = train_data.omega[:, skip:].reshape(-1, 1), test_data.omega[:, skip:].reshape(-1, 1)
+    res = {
+        "z_angle": _r2_pair(z_tr[pick], ang_tr[pick], z_te, ang_te, seq[pick], seed),
+        "z_velocity": _r2_pair(z_tr[pick], om_tr[pick], z_te, om_te, seq[pick], seed),
+    }
+    y_tr, y_te = lat_tr["y_mean"][:, -1], lat_te["y_mean"][:, -1]
+    groups = np.arange(len(y_tr))
+    res["y_frequency"] = _r2_pair(y_tr, train_data.w0[:, None], y_te, test_data.w0[:, None], groups, seed)
+    res["y_damping"] = _r2_pair(y_tr, train_data.damping[:, None], y_te, test_data.damping[:, None], groups, seed)
+    return res
+
+
+@torch.no_grad()
+def diagnostics(model: LatentFilter, data: PendulumData) -> dict[str, float]:
+    """Where the filter's information comes from, on ``data`` (eval mode, means):
+    ``transition_weight`` = mean over t >= 2 and dimensions of s2 / (s2 + v2), the weight of
+    the transition mean p_t in q_filt's mean (0: q_filt follows the encoder), the median
+    encoder and transition variances, and the ELBO terms per sequence (one sample)."""
+    model.eval()
+    b = _batch(data, np.arange(len(data)))
+    out = model(b["obs"], b["actions"], sample=False)
+    enc_v, zp_v = out["enc_var"][:, 1:], out["zp_var"][:, 1:]
+    terms = model.elbo_terms(b, sample=True)
+    return {"transition_weight": float((enc_v / (enc_v + zp_v)).mean()),
+            "encoder_var": float(enc_v.median()), "transition_var": float(zp_v.median()),
+            **{k: float(terms[k]) for k in ("nll", "kl_z", "kl_y")}}
+
+
+@torch.no_grad()
+def open_loop(model: LatentFilter, data: PendulumData, n_filter: int = 20, horizon: int = 40
+              ) -> dict[str, np.ndarray]:
+    """Image MSE per horizon h = 1..horizon (arrays of length ``horizon``) against the
+    noiseless rendering of frame n_filter + h: ``model`` (:meth:`LatentFilter.predict`),
+    ``last_frame`` (the last observed, noisy frame) and ``last_clean`` (its noiseless
+    rendering)."""
+    if data.obs.shape[1] < n_filter + horizon:
+        raise ValueError(f"open-loop prediction needs {n_filter + horizon} frames, the data has {data.obs.shape[1]}")
+    obs = torch.from_numpy(data.obs[:, :n_filter])
+    acts = torch.from_numpy(data.actions[:, :n_filter + horizon])
+    pred = model.predict(obs, acts, horizon)["recon"][:, :, 0].numpy()
+    target = render(data.theta[:, n_filter:n_filter + horizon])
+    last = data.obs[:, n_filter - 1, 0][:, None].astype(np.float64)
+    last_clean = render(data.theta[:, n_filter - 1])[:, None]
+    mean_image = render(data.theta).mean(axis=(0, 1))
+    mse = lambda x: ((x - target) ** 2).mean(axis=(0, 2, 3))  # noqa: E731
+    return {"model": mse(pred), "last_frame": mse(last), "last_clean": mse(last_clean),
+            "mean_image": mse(mean_image)}
+
+
+def run(steps: int, seed: int = 0, batch_size: int = 16, n_train: int = 32, n_test: int = 8, n_steps: int = 60,
+        model_kwargs: Optional[dict] = None, annealing: Any = None, log_every: int = 0,
+        n_filter: int = 20, horizon: int = 40, max_rows: int = 1500) -> dict[str, Any]:
+    """Generate (train seed ``seed``, test seed ``seed + 1000``), train, read out, predict."""
+    train_data = generate(n_train, seed=seed, n_steps=n_steps)
+    test_data = generate(n_test, seed=seed + 1000, n_steps=n_steps)
+    torch.manual_seed(seed)
+    model = build_model(**(model_kwargs or {}))
+    fit = train(model, train_data, steps, batch_size, seed, annealing=annealing, log_every=log_every)
+    t0 = time.perf_counter()
+    res = readouts(model, train_data, test_data, max_rows=max_rows, seed=seed)
+    pred = open_loop(model, test_data, n_filter, horizon) if n_steps >= n_filter + horizon else None
+    return {"readouts": res, "open_loop": pred, "diagnostics": diagnostics(model, test_data), "train_s": fit.train_s, "eval_s": time.perf_counter() - t0,
+            "model": model, "losses": fit.losses}

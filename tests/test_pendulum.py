@@ -1,0 +1,193 @@
+"""Pendulum benchmark (issue 15): the generator's physics, the Latent Filter's observation
+mask / open-loop prediction, and a short training run with its read-outs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from embodied_tactile.bench.pendulum import DT, N_OBJECTS, generate, integrate, object_params, render
+
+
+def _energy(theta, omega, w0):
+    return 0.5 * omega ** 2 + np.asarray(w0)[:, None] ** 2 * (1.0 - np.cos(theta))
+
+
+def test_generator_shapes_objects_and_determinism():
+    a = generate(2, seed=3, n_steps=12)
+    assert a.obs.shape == (2 * N_OBJECTS, 12, 1, 28, 28) and a.obs.dtype == np.float32
+    assert a.actions.shape == (2 * N_OBJECTS, 12, 1) and a.theta.shape == a.omega.shape == (2 * N_OBJECTS, 12)
+    assert sorted(set(zip(a.w0.tolist(), a.damping.tolist()))) == sorted(object_params(i) for i in range(N_OBJECTS))
+    assert [object_params(i) for i in a.object_id] == list(zip(a.w0, a.damping))
+    # piecewise-constant actions: a new value every 5 frames
+    assert np.all(a.actions[:, 0:5] == a.actions[:, :1]) and not np.all(a.actions[:, 5] == a.actions[:, 0])
+    b, c = generate(2, seed=3, n_steps=12), generate(2, seed=4, n_steps=12)
+    assert np.array_equal(a.obs, b.obs) and np.array_equal(a.theta, b.theta)
+    assert not np.array_equal(a.theta, c.theta)
+    with pytest.raises(ValueError, match="object_id must be in"):
+        object_params(N_OBJECTS)
+
+
+def test_energy_is_conserved_undamped_and_decays_with_damping():
+    n, t_len = 6, 60
+    rng = np.random.default_rng(0)
+    th0, om0 = rng.uniform(-2.5, 2.5, n), rng.uniform(-2, 2, n)
+    w0 = np.full(n, 4.0)
+    u = np.zeros((n, t_len))
+    th, om = integrate(th0, om0, w0, np.zeros(n), u)
+    e = _energy(th, om, w0)
+    assert np.abs(e - e[:, :1]).max() < 1e-5 * e.max()  # RK4 with 10 substeps per 50 ms frame
+    for d in (0.1, 0.6):
+        th, om = integrate(th0, om0, w0, np.full(n, d), u)
+        e = _energy(th, om, w0)
+        assert np.all(np.diff(e, axis=1) < 0)
+        # dE/dt = -d omega^2: the loss over the sequence matches the integral of d omega^2
+        loss = d * np.trapezoid(om ** 2, dx=DT, axis=1)
+        np.testing.assert_allclose(e[:, 0] - e[:, -1], loss, rtol=2e-2)
+    decay = lambda d: _energy(*integrate(th0, om0, w0, np.full(n, d), u), w0)[:, -1]  # noqa: E731
+    assert np.all(decay(0.6) < decay(0.1))
+
+
+@pytest.mark.parametrize("w0,d", [(2.0, 0.0), (5.0, 0.0), (3.0, 0.6)])
+def test_small_oscillation_frequency(w0, d):
+    t_len = 1500  # 15 s: at least 3 periods of the slowest pendulum
+    th, _ = integrate(np.array([0.02]), np.array([0.0]), np.array([w0]), np.array([d]), np.zeros((1, t_len)),
+                      dt=0.01)
+    s = th[0]
+    up = np.nonzero((s[:-1] < 0) & (s[1:] >= 0))[0]
+    cross = up + (-s[up]) / (s[up + 1] - s[up])  # linear interpolation of the upward zero crossings
+    period = np.diff(cross).mean() * 0.01
+    np.testing.assert_allclose(2 * np.pi / period, np.sqrt(w0 ** 2 - d ** 2 / 4), rtol=1e-3)
+
+
+def test_render_puts_the_bob_where_the_angle_says():
+    img = render(np.array([0.0, np.pi / 2]))
+    r, c = np.unravel_index(img[0].argmax(), img[0].shape)
+    assert r > 20 and 12 <= c <= 15  # theta = 0: straight down
+    r, c = np.unravel_index(img[1].argmax(), img[1].shape)
+    assert c > 20 and 12 <= r <= 15  # theta = pi / 2: to the right
+    assert img.max() <= 1.0
+
+
+# ----------------------------------------------------------------------------- model side
+
+
+def _model(**kw):
+    from embodied_tactile.bench.pendulum_run import build_model
+
+    torch.manual_seed(0)
+    return build_model(n_z=4, n_y=2, encoder={"widths": [4, 8], "hidden": 16}, transition_hidden=16,
+                       lstm_hidden=16, **kw)
+
+
+def test_hidden_frames_take_the_transition_prior_and_cost_no_kl():
+    m = _model()
+    obs, act = torch.rand(3, 6, 1, 28, 28), torch.randn(3, 6, 1)
+    observed = torch.ones(3, 6, dtype=torch.bool)
+    observed[:, 2:] = False
+    out = m(obs, act, sample=False, observed=observed)
+    torch.testing.assert_close(out["z_mean"][:, 2:], out["zp_mean"][:, 2:])
+    torch.testing.assert_close(out["z_var"][:, 2:], out["zp_var"][:, 2:])
+    full = m(obs, act, sample=False)
+    torch.testing.assert_close(out["z_mean"][:, :2], full["z_mean"][:, :2])
+    assert not torch.allclose(out["z_mean"][:, 2:], full["z_mean"][:, 2:])
+    with pytest.raises(ValueError, match="observed must be"):
+        m(obs, act, observed=observed[:, :4])
+
+
+def test_observation_dropout_masks_frames_in_training_only():
+    with pytest.raises(ValueError, match="obs_dropout must be in"):
+        _model(obs_dropout=1.0)
+    m = _model(obs_dropout=0.5)
+    obs, act = torch.rand(8, 20, 1, 28, 28), torch.randn(8, 20, 1)
+    torch.manual_seed(1)
+    out = m(obs, act)
+    mask = out["observed"]
+    assert mask[:, 0].all() and 0.3 < (~mask[:, 1:]).float().mean() < 0.7
+    torch.testing.assert_close(out["z_mean"][~mask], out["zp_mean"][~mask])
+    terms = m.elbo_terms({"obs": obs, "actions": act, "object_id": torch.zeros(8, dtype=torch.long)})
+    assert torch.isfinite(terms["nll"] + terms["kl_z"] + terms["kl_y"])
+    m.eval()
+    assert "observed" not in m(obs, act) and m.observation_mask(8, 20, obs.device) is None
+    assert "observed" not in _model()(obs, act)  # off by default
+
+
+def test_predict_is_the_filter_with_the_future_hidden():
+    m = _model()
+    m.eval()
+    obs, act = torch.rand(2, 9, 1, 28, 28), torch.randn(2, 9, 1)
+    pred = m.predict(obs[:, :4], act, horizon=5)
+    assert pred["recon"].shape == (2, 5, 1, 28, 28) and pred["z_mean"].shape == (2, 5, 4)
+    observed = torch.zeros(2, 9, dtype=torch.bool)
+    observed[:, :4] = True
+    ref = m(obs, act, sample=False, observed=observed)
+    torch.testing.assert_close(pred["z_mean"], ref["z_mean"][:, 4:])
+    torch.testing.assert_close(pred["recon"], ref["recon"][:, 4:])
+    with pytest.raises(ValueError, match="predict needs"):
+        m.predict(obs[:, :4], act[:, :8], horizon=5)
+
+
+# ----------------------------------------------------------------------------- training
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    from embodied_tactile.bench.pendulum_run import run
+
+    torch.set_num_threads(1)
+    return run(steps=120, seed=0, batch_size=16, n_train=8, n_test=4, n_steps=30, n_filter=10, horizon=20,
+               max_rows=600)
+
+
+def test_short_training_learns_the_angle(short_run):
+    r = short_run["readouts"]
+    assert set(r) == {"z_angle", "z_velocity", "y_frequency", "y_damping"}
+    assert all(np.isfinite(v).all() for v in r.values())
+    assert r["z_angle"][1] >= 0.9, r  # the per-frame code is learnt quickly (0.999 at 120 steps, seed 0)
+    ol = short_run["open_loop"]
+    assert ol["model"].shape == (20,) and np.all(ol["model"] < ol["last_frame"][0] * 10)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 15: z is close to a per-frame code and y does not identify the "
+                   "pendulum's frequency / damping; flips when the Latent Filter filters")
+def test_short_training_meets_the_issue_targets(short_run):
+    r = short_run["readouts"]
+    assert r["z_velocity"][1] >= 0.9, r
+    assert r["y_frequency"][1] >= 0.8, r
+    assert r["y_damping"][1] >= 0.6, r
+
+
+def test_several_elbo_samples_average_independent_samples():
+    with pytest.raises(ValueError, match="elbo_samples must be an integer >= 1"):
+        _model(elbo_samples=0)
+    obs, act = torch.rand(2, 5, 1, 28, 28), torch.randn(2, 5, 1)
+    batch = {"obs": obs, "actions": act, "object_id": torch.tensor([0, 3])}
+
+    def spread(m, n=40):
+        torch.manual_seed(2)
+        with torch.no_grad():
+            vals = [float(sum(m.elbo_terms(batch)[k] for k in ("nll", "kl_z", "kl_y"))) for _ in range(n)]
+        return np.std(vals), np.mean(vals)
+
+    one, four = _model(), _model(elbo_samples=4)
+    four.load_state_dict(one.state_dict())
+    (s1, m1), (s4, m4) = spread(one), spread(four)
+    assert 0.3 < s4 / s1 < 0.75  # independent samples: std / sqrt(4)
+    assert abs(m4 - m1) < 3 * s1 / np.sqrt(40)
+    assert four.elbo_terms(batch)["out"]["z"].shape[0] == 8
+    four.eval()  # evaluation keeps one sample per sequence
+    assert four.elbo_terms(batch)["out"]["z"].shape[0] == 2
+
+
+def test_remedies_are_config_switches(tmp_path):
+    from hydra.utils import instantiate
+    from test_configs import _compose_job
+
+    cfg = _compose_job(["model.net.obs_dropout=0.25", "model.net.elbo_samples=2"], tmp_path)
+    module = instantiate(cfg.model)
+    net = next(m for m in module.modules() if type(m).__name__ == "LatentFilter")
+    assert (net.obs_dropout, net.elbo_samples) == (0.25, 2)
+    assert net.config()["obs_dropout"] == 0.25 and net.config()["elbo_samples"] == 2
+    default = _compose_job([], tmp_path)
+    assert (default.model.net.obs_dropout, default.model.net.elbo_samples) == (0.0, 1)
