@@ -98,28 +98,64 @@ def test_batched_equals_single(trial, cfg, processed):
         np.testing.assert_allclose(batch[k][1], v, atol=1e-6)
 
 
-def _direct_librosa(acc_ij: np.ndarray) -> np.ndarray:
-    """One sensor by hand with the default parameters: (T, 49) scaled log-mel."""
+def _direct_librosa(acc_ij: np.ndarray, combine: str = "axes") -> np.ndarray:
+    """One sensor by hand with the default parameters: (T, 49) scaled log-mel of |a|
+    (``magnitude``) or of the three axes' mel powers summed (``axes``)."""
     import librosa
 
-    mag = np.sqrt((acc_ij.astype(np.float64) ** 2).sum(axis=-1))
-    mag = (mag - mag.mean()) / 2.0  # static part removed, / 2 g
-    y = scipy.signal.resample_poly(mag, 6, 7)
-    assert y.shape == (6000,)
-    yp = np.pad(y, (54, 54))  # 54 = 128/2 - 20/2: frame k is centred on sample 20k + 10
-    s = librosa.feature.melspectrogram(y=yp, sr=600, n_fft=128, hop_length=20, win_length=128, window="hann",
-                                       center=False, power=2.0, n_mels=49, fmin=0.0, fmax=300.0)
+    a = acc_ij.astype(np.float64)
+    sigs = [np.sqrt((a**2).sum(axis=-1))] if combine == "magnitude" else [a[:, k] for k in range(3)]
+    s = 0.0
+    for sig in sigs:
+        sig = (sig - sig.mean()) / 2.0  # static part removed, / 2 g
+        y = scipy.signal.resample_poly(sig, 6, 7)
+        assert y.shape == (6000,)
+        yp = np.pad(y, (54, 54))  # 54 = 128/2 - 20/2: frame k is centred on sample 20k + 10
+        s = s + librosa.feature.melspectrogram(y=yp, sr=600, n_fft=128, hop_length=20, win_length=128,
+                                               window="hann", center=False, power=2.0, n_mels=49, fmin=0.0,
+                                               fmax=300.0)
     assert s.shape == (49, T)
     db = librosa.power_to_db(s, ref=1.0, amin=1e-10, top_db=None)
     return ((db + 100.0) / 120.0).T
 
 
+@pytest.mark.parametrize("combine", ["axes", "magnitude"])
 @pytest.mark.parametrize("backend", ["numpy", "librosa"])
-def test_acc_channel_equals_direct_librosa(trial, backend):
-    out = preprocess_trial(trial, PreprocessConfig(stft_backend=backend), fields=("acc",))["acc"]
+def test_acc_channel_equals_direct_librosa(trial, backend, combine):
+    out = preprocess_trial(trial, PreprocessConfig(stft_backend=backend, acc_combine=combine), fields=("acc",))["acc"]
     i, j = 1, 2
     tile = out[:, 7 * i : 7 * i + 7, 7 * j : 7 * j + 7].reshape(T, 49)
-    np.testing.assert_allclose(tile, _direct_librosa(trial.acc[:, i, j]), atol=1e-5, rtol=0)
+    np.testing.assert_allclose(tile, _direct_librosa(trial.acc[:, i, j], combine), atol=1e-5, rtol=0)
+
+
+def _lateral_trial(amp_g: float, seed: int = 0) -> RawTrial:
+    """make_trial's sensor grid at rest under gravity (z), plus a 90 Hz vibration of
+    ``amp_g`` along x on every sensor and 3 mg noise (the simulator's ACC_NOISE_G)."""
+    tr = make_trial(seed)
+    rng = np.random.default_rng(seed)
+    t = tr.t - tr.t[0]
+    acc = np.zeros((len(t), 4, 4, 3))
+    acc[..., 2] = 1.0
+    acc[..., 0] += amp_g * np.sin(2 * np.pi * 90.0 * t)[:, None, None]
+    acc += rng.normal(0, 3e-3, acc.shape)
+    return RawTrial(t=tr.t, acc=acc.astype(np.float32), fsr=tr.fsr, pose_t=tr.pose_t, pose=tr.pose, attrs=tr.attrs)
+
+
+def test_lateral_vibration_reaches_the_acc_image():
+    """Vibration across gravity (the stick-slip and shear of sliding, mostly in the skin
+    plane) must reach the image: a 30 mg lateral tone raises its mel bins by many dB over
+    the noise-only trial. |a| (acc_combine=magnitude) keeps it only as (a_x^2 / 2) / 1 g,
+    0.45 mg at twice the frequency, under the 3 mg noise: that path cannot tell them apart."""
+    quiet, loud = _lateral_trial(0.0), _lateral_trial(0.03, seed=1)
+
+    def gain(cfg):  # largest rise of a time-averaged pixel, scaled dB (0.05 = 6 dB)
+        q = preprocess_trial(quiet, cfg, fields=("acc",))["acc"].mean(0)
+        return float((preprocess_trial(loud, cfg, fields=("acc",))["acc"].mean(0) - q).max())
+
+    default = gain(PreprocessConfig())
+    assert default > 0.1, f"default acc path: a 30 mg lateral tone raised the image by only {default:.3f}"
+    mag = gain(PreprocessConfig(acc_combine="magnitude"))
+    assert mag < 0.02, f"magnitude path: expected the lateral tone under the noise, got a rise of {mag:.3f}"
 
 
 def test_vectorised_equals_naive_loop(trial, cfg, processed):
@@ -273,8 +309,8 @@ def test_cache_invalidates_on_config_change(raw_file, tmp_path, cfg, counter):
 def test_cache_invalidates_on_source_change(raw_file, tmp_path, cfg, counter):
     first = build_cache([raw_file], tmp_path / "cache", cfg, workers=1)
     tr = make_trial(2)
-    tr.acc[:, 0, 0, 2] += np.float32(0.01)
-    write_trial(raw_file, tr, overwrite=True)  # acc data changed, fsr / pose identical
+    tr.acc[:, 0, 0, 2] += (0.01 * np.sin(2 * np.pi * 50.0 * tr.t)).astype(np.float32)  # (a constant offset is
+    write_trial(raw_file, tr, overwrite=True)  # the static part preprocessing removes) acc changed, fsr / pose identical
     second = build_cache([raw_file], tmp_path / "cache", cfg, workers=1)
     assert second["acc"] != first["acc"]
     assert second["fsr"] == first["fsr"] and second["actions"] == first["actions"]

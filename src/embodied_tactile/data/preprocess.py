@@ -5,7 +5,8 @@ T = 300 frame grid (30 Hz over the 10 s trial); frame ``k`` covers
 ``[t0 + k/30, t0 + (k+1)/30)`` on the tactile clock (``t0 = tactile t[0]``) and its
 centre ``t0 + (k + 0.5)/30`` is the frame's time stamp for every field:
 
-``acc``     (T, 28, 28) float32  log-mel image of the 16 accelerometers, ~[0, 1]
+``acc``     (T, 28, 28) float32  log-mel image of the 16 accelerometers (power summed
+            over the 3 axes), ~[0, 1]
 ``fsr``     (T, 2, 28, 28) float32  block-averaged, /4095, bilinear 16x16 -> 28x28
 ``actions`` (T, 6) float32  end-effector pose relative to the first pose sample,
             positions in mm / 10, angles in degrees / 10
@@ -37,6 +38,8 @@ from embodied_tactile.io.rawformat import RawTrial
 PREPROCESS_VERSION = 1
 
 FIELDS = ("acc", "fsr", "actions")
+#: How the three accelerometer axes become one spectrum per sensor (PreprocessConfig.acc_combine).
+ACC_COMBINE = ("axes", "magnitude")
 
 #: Raw fields (``rawformat.read_trial`` names) each processed field needs. ``t`` is the
 #: tactile clock (a 56 kB vector): actions read it too, to align the pose to the tactile
@@ -57,8 +60,13 @@ class PreprocessConfig:
     n_frames: int = 300  # T
     frame_rate: float = 30.0  # Hz -> 10 s trials
 
-    # -- accelerometers: magnitude -> remove mean -> / scale -> 700 -> 600 Hz
-    acc_remove_mean: bool = True  # drop the static (gravity + offset) part of |a|
+    # -- accelerometers: remove mean -> / scale -> 700 -> 600 Hz -> power summed over axes
+    #: "axes": each axis' static part (gravity + offset) removed, the STFT power of the three
+    #: axes summed (the power spectrum of the vibration vector, rotation invariant);
+    #: "magnitude": |a| first, then its mean removed (keeps, to first order, only the
+    #: component along gravity: lateral vibration enters |a| squared, docs/modalities.md)
+    acc_combine: str = "axes"
+    acc_remove_mean: bool = True  # drop the static (gravity + offset) part
     acc_scale_g: float = C.ACC_RANGE_G  # fixed scale (g), never per-trial
     fs_resample: float = 600.0
     # -- log-mel. The paper's "window 800, 128 FFT points" cannot both hold (win <= n_fft).
@@ -160,6 +168,8 @@ class PreprocessConfig:
         img = (C.ACC_GRID[0] * th, C.ACC_GRID[1] * tw)
         if img != tuple(self.resize_hw):
             bad(f"acc image {img} (4x4 sensors x tile {self.tile_shape}) != FSR resize_hw {self.resize_hw}: modalities must share H x W")
+        if self.acc_combine not in ACC_COMBINE:
+            bad(f"acc_combine must be one of {ACC_COMBINE}, got {self.acc_combine!r}")
         if self.stft_backend not in ("numpy", "librosa"):
             bad(f"stft_backend must be 'numpy' or 'librosa', got {self.stft_backend!r}")
         if self.fsr_spatial_kernel % 2 != 1:
@@ -179,7 +189,7 @@ class PreprocessConfig:
 _COMMON_KEYS = ("n_frames", "frame_rate")
 _FIELD_KEYS: dict[str, tuple[str, ...]] = {
     "acc": _COMMON_KEYS
-    + ("acc_remove_mean", "acc_scale_g", "fs_resample", "n_fft", "win_length", "hop_length", "window", "n_mels",
+    + ("acc_combine", "acc_remove_mean", "acc_scale_g", "fs_resample", "n_fft", "win_length", "hop_length", "window", "n_mels",
        "fmin", "fmax", "mel_htk", "mel_norm", "db_amin", "db_min", "db_max", "tile_shape"),
     "fsr": _COMMON_KEYS + ("fsr_subtract_baseline", "fsr_spatial_kernel", "fsr_max_count", "resize_hw"),
     "actions": _COMMON_KEYS + ("pose_pos_scale", "pose_ang_scale"),
@@ -295,8 +305,30 @@ def acc_magnitude(acc: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
     return mag
 
 
-def _logmel_from_resampled(y: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
-    """(..., n) resampled signals -> (..., n_mels, n_frames) scaled log-mel, float32."""
+def acc_axes(acc: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
+    """(..., N, 4, 4, 3) g -> (..., 16, 3, N) float64: each axis per sensor, its static part
+    (gravity + offset) removed, divided by the fixed ``acc_scale_g``."""
+    a = np.asarray(acc, dtype=np.float64)
+    a = a.reshape(*a.shape[:-3], -1, a.shape[-1])  # (..., N, 16, 3)
+    a = np.ascontiguousarray(np.moveaxis(a, -3, -1))  # (..., 16, 3, N), time contiguous
+    if cfg.acc_remove_mean:
+        a -= a.mean(axis=-1, keepdims=True)
+    a /= cfg.acc_scale_g
+    return a
+
+
+def acc_signals(acc: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
+    """(..., N, 4, 4, 3) g -> (..., 16, A, N): the A signals per sensor whose mel powers are
+    summed (``acc_combine``: "axes" A = 3, "magnitude" A = 1)."""
+    if cfg.acc_combine == "magnitude":
+        return acc_magnitude(acc, cfg)[..., None, :]
+    return acc_axes(acc, cfg)
+
+
+def _logmel_from_resampled(y: np.ndarray, cfg: PreprocessConfig, sum_axis: int | None = None) -> np.ndarray:
+    """(..., n) resampled signals -> (..., n_mels, n_frames) scaled log-mel, float32.
+    ``sum_axis``: an axis of ``y`` (negative, before the last) whose mel powers are summed
+    before the dB (the accelerometer axes), removed from the output."""
     left, right = stft_padding(cfg, y.shape[-1])
     yp = _pad_last(y, left, right)
     if cfg.stft_backend == "librosa":
@@ -312,6 +344,8 @@ def _logmel_from_resampled(y: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
         spec = np.fft.rfft(frames * _stft_window(cfg.window, cfg.win_length, cfg.n_fft), axis=-1)
         pw = spec.real**2 + spec.imag**2  # (..., n_frames, n_fft//2+1)
         power = np.swapaxes(pw @ _mel_basis(cfg._mel_key()).T, -1, -2)  # (..., n_mels, n_frames)
+    if sum_axis is not None:
+        power = power.sum(axis=sum_axis - 1)  # y's last axis became (n_mels, n_frames)
     # = librosa.power_to_db(ref=1, amin=db_amin, top_db=None); the log in float32 (the
     # power's float32 rounding is < 1e-6 dB) - the FFT itself stays float64.
     power = np.maximum(power[..., : cfg.n_frames], cfg.db_amin).astype(np.float32)
@@ -322,11 +356,11 @@ def _logmel_from_resampled(y: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
 def acc_logmel(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float = C.FS_TACTILE) -> np.ndarray:
     """Vectorised accelerometer path. ``acc`` (B, N, 4, 4, 3) on a uniform grid of
     ``duration * fs_tactile`` samples -> (B, T, 28, 28) float32. One resample_poly call and
-    one STFT + mel product over all B x 16 channels."""
-    mag = acc_magnitude(acc, cfg)  # (B, 16, N)
+    one STFT + mel product over all B x 16 x A channels (A: ``acc_signals``)."""
+    sig = acc_signals(acc, cfg)  # (B, 16, A, N)
     up, down = _resample_ratio(fs_tactile, cfg.fs_resample)
-    y = scipy.signal.resample_poly(mag, up, down, axis=-1)  # (B, 16, 6000)
-    mel = _logmel_from_resampled(y, cfg)  # (B, 16, n_mels, T)
+    y = scipy.signal.resample_poly(sig, up, down, axis=-1)  # (B, 16, A, 6000)
+    mel = _logmel_from_resampled(y, cfg, sum_axis=-2)  # (B, 16, n_mels, T)
     b = mel.shape[0]
     mel = mel.reshape(b, C.ACC_GRID[0], C.ACC_GRID[1], cfg.n_mels, cfg.n_frames)
     mel = np.moveaxis(mel, (1, 2, 4), (3, 4, 1))  # (B, T, n_mels, 4, 4)
@@ -334,8 +368,8 @@ def acc_logmel(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float = C.FS_
 
 
 def acc_logmel_naive(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float = C.FS_TACTILE) -> np.ndarray:
-    """Reference loop: per sensor, its own resample_poly and its own librosa
-    melspectrogram + power_to_db call. (N, 4, 4, 3) -> (T, 28, 28) float32. Benchmark and
+    """Reference loop: per sensor and signal (axis, or |a|), its own resample_poly and
+    librosa melspectrogram; powers summed per sensor, one power_to_db call. (N, 4, 4, 3) -> (T, 28, 28) float32. Benchmark and
     test use only."""
     import librosa
 
@@ -344,16 +378,21 @@ def acc_logmel_naive(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float =
     out = np.zeros((cfg.n_frames, cfg.n_mels, *C.ACC_GRID))
     for i in range(C.ACC_GRID[0]):
         for j in range(C.ACC_GRID[1]):
-            mag = np.sqrt((a[:, i, j, :] ** 2).sum(axis=-1))
-            if cfg.acc_remove_mean:
-                mag = mag - mag.mean()
-            y = scipy.signal.resample_poly(mag / cfg.acc_scale_g, up, down)
-            left, right = stft_padding(cfg, len(y))
-            s = librosa.feature.melspectrogram(
-                y=_pad_last(y, left, right), sr=cfg.fs_resample, n_fft=cfg.n_fft, hop_length=cfg.hop_length,
-                win_length=cfg.win_length, window=cfg.window, center=False, n_mels=cfg.n_mels, fmin=cfg.fmin,
-                fmax=cfg.fmax_hz, htk=cfg.mel_htk, norm=cfg.mel_norm,
-            )[:, : cfg.n_frames]
+            if cfg.acc_combine == "magnitude":
+                sigs = [np.sqrt((a[:, i, j, :] ** 2).sum(axis=-1))]
+            else:
+                sigs = [a[:, i, j, k] for k in range(a.shape[-1])]
+            s = 0.0
+            for sig in sigs:  # mel powers summed over the signals (axes)
+                if cfg.acc_remove_mean:
+                    sig = sig - sig.mean()
+                y = scipy.signal.resample_poly(sig / cfg.acc_scale_g, up, down)
+                left, right = stft_padding(cfg, len(y))
+                s = s + librosa.feature.melspectrogram(
+                    y=_pad_last(y, left, right), sr=cfg.fs_resample, n_fft=cfg.n_fft, hop_length=cfg.hop_length,
+                    win_length=cfg.win_length, window=cfg.window, center=False, n_mels=cfg.n_mels, fmin=cfg.fmin,
+                    fmax=cfg.fmax_hz, htk=cfg.mel_htk, norm=cfg.mel_norm,
+                )[:, : cfg.n_frames]
             db = librosa.power_to_db(s, ref=1.0, amin=cfg.db_amin, top_db=None)
             out[:, :, i, j] = ((db - cfg.db_min) / (cfg.db_max - cfg.db_min)).T
     return tile_layout(out, cfg.tile_shape).astype(np.float32)
