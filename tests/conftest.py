@@ -57,3 +57,15 @@ def tiny_datamodule(data_dir: Path, channels, **kw):
     )
     args.update(kw)
     return TactileDataModule(**args)
+
+
+@pytest.fixture(scope="session")
+def fast_data_dir(tiny_data_dir, tmp_path_factory) -> Path:
+    """A copy of the tiny scene's raw file for train.py runs with ``debug=fast``, which
+    simulate that scene's extra action into it: the shared ``tiny_data_dir`` stays exactly
+    the tiny scene, whatever order the tests run in."""
+    import shutil
+
+    d = tmp_path_factory.mktemp("fast_data")
+    shutil.copytree(tiny_data_dir / "raw", d / "raw")
+    return d

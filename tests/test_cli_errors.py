@@ -164,8 +164,8 @@ def test_litlogger_tip_dropped_other_lightning_info_kept(caplog):
     assert "litlogger" not in text and "GPU available" in text
 
 
-def test_default_train_run_prints_none_of_the_known_messages(tmp_path, tiny_data_dir):
-    res = train(tmp_path, f"paths.data_dir={tiny_data_dir}", f"hydra.run.dir={tmp_path / 'run'}")
+def test_default_train_run_prints_none_of_the_known_messages(tmp_path, fast_data_dir):
+    res = train(tmp_path, f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={tmp_path / 'run'}")
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
     for noise in ("litlogger", "LeafSpec", "litmodels"):

@@ -80,10 +80,10 @@ def test_multirun_summary_lines(tmp_path):
     assert lines[-2] == "next: python evaluate.py multi"
 
 
-def test_train_ends_with_the_summary(tmp_path, tiny_data_dir):
+def test_train_ends_with_the_summary(tmp_path, fast_data_dir):
     run = tmp_path / "run"
     res = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "trainer.max_epochs=2",
-                          f"paths.data_dir={tiny_data_dir}", f"hydra.run.dir={run}"],
+                          f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={run}"],
                          cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     tail = res.stdout.strip().splitlines()[-10:]
@@ -97,10 +97,10 @@ def test_train_ends_with_the_summary(tmp_path, tiny_data_dir):
     assert tail[-2] == "next:          python evaluate.py run"
 
 
-def test_multirun_ends_with_its_folder_and_evaluate_command(tmp_path, tiny_data_dir):
+def test_multirun_ends_with_its_folder_and_evaluate_command(tmp_path, fast_data_dir):
     sweep = tmp_path / "multi"
     res = subprocess.run([sys.executable, str(REPO / "train.py"), "-m", "debug=fast", "modality=acc",
-                          "callbacks.krr_alignment=null", f"paths.data_dir={tiny_data_dir}", f"hydra.sweep.dir={sweep}"],
+                          "callbacks.krr_alignment=null", f"paths.data_dir={fast_data_dir}", f"hydra.sweep.dir={sweep}"],
                          cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     out = res.stdout.strip().splitlines()

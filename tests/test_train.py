@@ -34,8 +34,8 @@ def run_train(*overrides: str, timeout: int = 300, check: bool = True) -> subpro
 
 
 @pytest.fixture(scope="module")
-def data_dir(tiny_data_dir) -> Path:
-    return tiny_data_dir
+def data_dir(fast_data_dir) -> Path:
+    return fast_data_dir
 
 
 @pytest.fixture(scope="module")
@@ -61,6 +61,10 @@ def test_run_folder_contents(one_run):
     assert split["train"] and split["val"] and not set(split["train"]) & set(split["val"])
     history = [json.loads(line) for line in (one_run / "krr_history.jsonl").read_text().splitlines()]
     assert history and "train_wall_time_s" in history[-1]
+    # error against run time starts at t = 0 (the untrained network); 2 epochs, points: 8 ->
+    # a check after epoch 1 and the final alignment after epoch 2
+    assert history[0]["initial"] and history[0]["train_wall_time_s"] == 0.0 and history[0]["epoch"] == -1
+    assert [(h["epoch"], h["final"]) for h in history] == [(-1, False), (0, False), (1, True)]
 
 
 def test_checkpoint_round_trip(one_run):
@@ -141,7 +145,7 @@ def test_resume_continues_csv_history_and_krr_wall_time(data_dir, tmp_path):
     assert train_epochs == [0, 0, 1, 1, 2, 2, 3, 3]  # debug=fast: 2 steps an epoch, none repeated
     assert not (run / "csv" / "metrics.discarded.csv").exists()
     history = [json.loads(line) for line in (run / "krr_history.jsonl").read_text().splitlines()]
-    assert [h["epoch"] for h in history if not h["final"]] == [0, 1, 2, 3]
+    assert [h["epoch"] for h in history if not h["final"]] == [-1, 0, 1, 2, 3]  # one t = 0 row: the resume adds none
     # the training clock continues across the resume; a session's closing ("final") alignment
     # is taken after its last checkpoint, so the resumed session's clock starts before it
     during = [h for h in history if not h["final"]]
@@ -325,7 +329,7 @@ def test_ablation_sweep_composes_all_24_jobs(tmp_path):
             trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
             assert trainer.fast_dev_run
             assert dm.primitive == prim and dm.skin == combo.rsplit("_", 1)[1]
-            assert model.hparams.modality["name"] == combo.rsplit("_", 1)[0]
+            assert model.hparams.net["modality"]["name"] == combo.rsplit("_", 1)[0]
             seen.add((cfg.modality.name, cfg.skin.name, prim))
         assert len(seen) == 24
 
