@@ -60,6 +60,8 @@ def main(argv=None) -> None:
     print(f"\nheld-out: transition weight in q_filt {dg['transition_weight']:.3f}, median variance encoder "
           f"{dg['encoder_var']:.2e} / transition {dg['transition_var']:.2e}; per sequence nll {dg['nll']:.0f}, "
           f"kl_z {dg['kl_z']:.1f}, kl_y {dg['kl_y']:.2f}")
+    print("gradient SNR (median |mean| / std over 16 samples, one batch): "
+          + ", ".join(f"{k} {v:.2f}" for k, v in res["gradient_snr"].items()))
     ol = res["open_loop"]
     print("\nopen loop after 20 filtered frames, image MSE x 1e3 against the noiseless frame")
     print("| horizon | model | last frame | last frame (noiseless) | mean image |\n|---|---|---|---|---|")

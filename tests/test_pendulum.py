@@ -137,7 +137,7 @@ def short_run():
 
     torch.set_num_threads(1)
     return run(steps=120, seed=0, batch_size=16, n_train=8, n_test=4, n_steps=30, n_filter=10, horizon=20,
-               max_rows=600)
+               max_rows=600, snr_draws=4)
 
 
 def test_short_training_learns_the_angle(short_run):
@@ -145,6 +145,9 @@ def test_short_training_learns_the_angle(short_run):
     assert set(r) == {"z_angle", "z_velocity", "y_frequency", "y_damping"}
     assert all(np.isfinite(v).all() for v in r.values())
     assert r["z_angle"][1] >= 0.9, r  # the per-frame code is learnt quickly (0.999 at 120 steps, seed 0)
+    assert set(short_run["gradient_snr"]) == {"encoder", "decoder", "transition", "y_posterior", "prior"}
+    assert all(np.isfinite(v) and v > 0 for v in short_run["gradient_snr"].values())
+    assert 0.0 <= short_run["diagnostics"]["transition_weight"] <= 1.0
     ol = short_run["open_loop"]
     assert ol["model"].shape == (20,) and np.all(ol["model"] < ol["last_frame"][0] * 10)
 

@@ -153,6 +153,36 @@ def diagnostics(model: LatentFilter, data: PendulumData) -> dict[str, float]:
             **{k: float(terms[k]) for k in ("nll", "kl_z", "kl_y")}}
 
 
+def gradient_snr(model: LatentFilter, data: PendulumData, n_draws: int = 16, batch_size: int = 16,
+                 seed: int = 0) -> dict[str, float]:
+    """One-sample ELBO noise: gradients of the negative ELBO on ONE fixed batch for
+    ``n_draws`` independent samples; per network (encoder, decoder, transition, y
+    posterior, prior) the median over its parameters of |mean| / std of the gradient
+    (< 1: a single sample's gradient is mostly noise; K samples scale it by sqrt(K))."""
+    model.train()
+    batch = _batch(data, np.random.default_rng(seed).integers(0, len(data), batch_size))
+    parts = {"encoder": model.encoders, "decoder": model.decoders, "transition": model.transition,
+             "y_posterior": model.y_posterior, "prior": model.prior}
+    grads: dict[str, list] = {k: [] for k in parts}
+    torch.manual_seed(seed)
+    saved, model.obs_dropout, model.elbo_samples = (model.obs_dropout, model.elbo_samples), 0.0, 1
+    try:
+        for _ in range(n_draws):
+            model.zero_grad(set_to_none=True)
+            t = model.elbo_terms(batch)
+            (t["nll"] + t["kl_z"] + t["kl_y"]).backward()
+            for k, mod in parts.items():
+                grads[k].append(torch.cat([p.grad.flatten() for p in mod.parameters() if p.grad is not None]))
+    finally:
+        model.obs_dropout, model.elbo_samples = saved
+        model.zero_grad(set_to_none=True)
+    out = {}
+    for k, g in grads.items():
+        g = torch.stack(g)
+        out[k] = float((g.mean(0).abs() / (g.std(0) + 1e-12)).median())
+    return out
+
+
 @torch.no_grad()
 def open_loop(model: LatentFilter, data: PendulumData, n_filter: int = 20, horizon: int = 40
               ) -> dict[str, np.ndarray]:
@@ -176,7 +206,7 @@ def open_loop(model: LatentFilter, data: PendulumData, n_filter: int = 20, horiz
 
 def run(steps: int, seed: int = 0, batch_size: int = 16, n_train: int = 32, n_test: int = 8, n_steps: int = 60,
         model_kwargs: Optional[dict] = None, annealing: Any = None, log_every: int = 0,
-        n_filter: int = 20, horizon: int = 40, max_rows: int = 1500) -> dict[str, Any]:
+        n_filter: int = 20, horizon: int = 40, max_rows: int = 1500, snr_draws: int = 16) -> dict[str, Any]:
     """Generate (train seed ``seed``, test seed ``seed + 1000``), train, read out, predict."""
     train_data = generate(n_train, seed=seed, n_steps=n_steps)
     test_data = generate(n_test, seed=seed + 1000, n_steps=n_steps)
@@ -186,5 +216,6 @@ def run(steps: int, seed: int = 0, batch_size: int = 16, n_train: int = 32, n_te
     t0 = time.perf_counter()
     res = readouts(model, train_data, test_data, max_rows=max_rows, seed=seed)
     pred = open_loop(model, test_data, n_filter, horizon) if n_steps >= n_filter + horizon else None
-    return {"readouts": res, "open_loop": pred, "diagnostics": diagnostics(model, test_data), "train_s": fit.train_s, "eval_s": time.perf_counter() - t0,
+    return {"readouts": res, "open_loop": pred, "diagnostics": diagnostics(model, test_data),
+            "gradient_snr": gradient_snr(model, train_data, snr_draws, seed=seed), "train_s": fit.train_s, "eval_s": time.perf_counter() - t0,
             "model": model, "losses": fit.losses}
