@@ -82,12 +82,14 @@ def test_callback_writes_history_and_logs(tmp_path):
     trainer = L.Trainer(max_epochs=2, default_root_dir=tmp_path, logger=logger, callbacks=[cb], enable_progress_bar=False,
                         enable_model_summary=False, enable_checkpointing=False, accelerator="cpu", devices=1,
                         log_every_n_steps=1, num_sanity_val_steps=0)
+    torch.manual_seed(0)  # the t = 0 row scores the untrained network: fix its weights
     trainer.fit(FakeModel(), datamodule=FakeDataModule())
     path = cb.history_path(trainer)
     assert path.name == "krr_history.jsonl" and path.exists()
     rows = [json.loads(line) for line in path.read_text().splitlines()]
-    # every epoch, then the final alignment (evaluate.py's settings: all training sequences, every frame)
-    assert [(r["epoch"], r["final"]) for r in rows] == [(0, False), (1, False), (1, True)]
+    # t = 0, every epoch, then the final alignment (evaluate.py's settings: all training sequences, every frame)
+    assert [(r["epoch"], r["final"]) for r in rows] == [(-1, False), (0, False), (1, False), (1, True)]
+    assert rows[0]["initial"] and rows[0]["train_wall_time_s"] == 0 and rows[0]["step"] == 0
     assert rows[-1]["val_frame_stride"] == 1 and rows[-1]["alignment"]["frames_per_sequence"] == 4
     assert rows[-1]["alignment"]["cv_folds"] == 5 and cb.final == rows[-1]
     for r in rows:
@@ -137,7 +139,8 @@ def test_krr_value_shows_only_in_its_epoch_and_final_is_the_result(tmp_path):
                         enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
                         accelerator="cpu", devices=1, num_sanity_val_steps=0)
     trainer.fit(FakeModel(), datamodule=FakeDataModule())
-    periodic = cb.history[0]
+    assert cb.history[0]["initial"]
+    periodic = cb.history[1]
     assert probe.seen == [None, pytest.approx(periodic["nmse_overall"]), None]  # no stale value in epoch 3
     assert cb.final is cb.history[-1] and cb.final["final"] and cb.final["epoch"] == 2
     # after fit (metrics.json's fit_metrics) the krr/* values are the final alignment's
@@ -166,8 +169,81 @@ def test_wall_time_continues_across_a_resume(tmp_path):
     assert state["elapsed_s"] - state["callback_time_s"] >= first.history[-1]["train_wall_time_s"]
     _, second = fit(4, ckpt)
     rows = [json.loads(line) for line in first.history_path(trainer).read_text().splitlines()]
-    assert [r["epoch"] for r in rows] == [0, 1, 2, 3]
+    assert [r["epoch"] for r in rows] == [-1, 0, 1, 2, 3]  # the resumed fit adds no second t = 0 row
     wall = [r["train_wall_time_s"] for r in rows]
     assert all(b > a for a, b in zip(wall, wall[1:])), wall
     assert second.history[0]["train_wall_time_s"] > state["elapsed_s"] - state["callback_time_s"]
     assert second.history[0]["callback_time_total_s"] > state["callback_time_s"]
+
+
+def test_check_epochs_spread_points_over_the_run():
+    from embodied_tactile.eval.callback import check_epochs
+
+    assert check_epochs(16, 8) == [1, 3, 5, 7, 9, 11, 13]  # + the final alignment after epoch 16
+    assert check_epochs(16, 8, final=False) == [1, 3, 5, 7, 9, 11, 13, 15]
+    assert check_epochs(500, 8)[:2] == [61, 124] and len(check_epochs(500, 8)) == 7
+    assert check_epochs(3, 8) == [0, 1]  # fewer epochs than points: every epoch
+    with pytest.raises(ValueError, match="points must be >= 1"):
+        check_epochs(10, 0)
+
+
+class _CountingData(FakeData):
+    def __init__(self, n, seed):
+        super().__init__(n, seed)
+        self.reads = 0
+
+    def __getitem__(self, i):
+        self.reads += 1
+        return super().__getitem__(i)
+
+
+class _CountingDataModule(FakeDataModule):
+    def __init__(self):
+        super().__init__()
+        self.eval_ds, self.test_set = _CountingData(48, 0), _CountingData(16, 1)
+
+    def train_eval_dataloader(self):
+        return torch.utils.data.DataLoader(self.eval_ds, batch_size=8, shuffle=False)
+
+    def test_dataloader(self):  # the held-out split the callback scores
+        return torch.utils.data.DataLoader(self.test_set, batch_size=8, shuffle=False)
+
+
+class _BatchSizeModel(FakeModel):
+    def __init__(self):
+        super().__init__()
+        self.eval_batches = []
+
+    def infer_latents(self, batch):  # the callback's calls (validation_step below bypasses it)
+        self.eval_batches.append(len(batch["obs"]))
+        return super().infer_latents(batch)
+
+    def training_step(self, batch, _):
+        return (FakeModel.infer_latents(self, batch)["z_mean"] ** 2).mean()
+
+    def validation_step(self, batch, _):
+        self.log("val/loss", (FakeModel.infer_latents(self, batch)["z_mean"] ** 2).mean())
+
+
+def test_points_give_a_t0_row_and_8_points_reading_inputs_once(tmp_path):
+    """Error against run time: a row before training (t = 0, the untrained network), then
+    `points` = 8 checks over an 8-epoch run (the final alignment the last), inputs read from
+    the loaders once and inferred in batches of infer_batch_size sequences."""
+    torch.set_num_threads(1)
+    cb = KRRAlignmentCallback(latent="y", cv=2, val_frame_stride=3, n_threads=1, points=8, infer_batch_size=32)
+    assert cb.every_n_epochs is None  # the default spreads `points` over the run
+    dm, model = _CountingDataModule(), _BatchSizeModel()
+    trainer = L.Trainer(max_epochs=8, default_root_dir=tmp_path, logger=False, callbacks=[cb],
+                        enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
+                        accelerator="cpu", devices=1, num_sanity_val_steps=0, limit_train_batches=1)
+    trainer.fit(model, datamodule=dm)
+    rows = [json.loads(line) for line in cb.history_path(trainer).read_text().splitlines()]
+    assert len(rows) >= 9
+    assert rows[0]["initial"] and rows[0]["epoch"] == -1 and rows[0]["train_wall_time_s"] == 0.0
+    assert [r["epoch"] for r in rows] == [-1, 0, 1, 2, 3, 4, 5, 6, 7] and rows[-1]["final"]
+    assert sum(not r["final"] for r in rows) == 8 and not any(r["initial"] for r in rows[1:])
+    wall = [r["train_wall_time_s"] for r in rows]
+    assert all(b > a for a, b in zip(wall, wall[1:])), wall
+    # read once (the final alignment reuses the cache: it holds every sequence), batched by 32
+    assert dm.eval_ds.reads == 48 and dm.test_set.reads == 16
+    assert model.eval_batches == [32, 16, 16] * 9

@@ -100,7 +100,8 @@ SCHEMA: dict[str, Spec] = {
     "model.net.n_z": INT1,
     "model.net.n_y": INT1,
     "model.optimizer.lr": Spec(("float",), lo=0),
-    "callbacks.krr_alignment.every_n_epochs": INT0,
+    "callbacks.krr_alignment.every_n_epochs": Spec(("int",), lo=0, nullable=True),  # null = spread `points`
+    "callbacks.krr_alignment.points": INT1,
 }
 
 

@@ -1,4 +1,5 @@
-"""Lightning callback: KRR alignment of the latents every N training epochs (and at the end).
+"""Lightning callback: KRR alignment of the latents before training, at ``points`` times
+spread over the run (or every N training epochs), and at the end.
 
 Each evaluation (i) runs ``pl_module.infer_latents(batch)`` (no grad, eval mode) over the
 datamodule's non-shuffled training loader (``train_eval_dataloader()`` when the datamodule
@@ -24,6 +25,16 @@ sequence and every held-out frame, on the final weights, so ``python evaluate.py
 ``val_frame_stride``, ``max_train_sequences``): they trace the curve, they are not the result.
 A ``krr/*`` value shows in ``trainer.callback_metrics`` (hence in the per-epoch progress
 lines) only in the epoch it was computed.
+
+When it runs (error against run time): with ``initial`` a row at t = 0 (``on_train_start``
+of a run that does not resume; ``"epoch": -1``), then either every ``every_n_epochs`` epochs
+or, with ``every_n_epochs=None``, at ``points`` epochs spread evenly over ``max_epochs``
+(:func:`check_epochs`; the final alignment is the last of the ``points``), so a run's curve
+has ``points + 1`` rows whatever its length (fewer when it has fewer epochs than points).
+The periodic checks read their inputs once: the training and held-out sequences are fixed
+for the run, so the first check keeps them (CPU tensors, the keys ``collect_latents`` reads)
+and every later check only runs the latent inference, in batches of ``infer_batch_size``
+sequences (one recursion loop per batch instead of one per loader batch).
 """
 
 from __future__ import annotations
@@ -50,6 +61,59 @@ except ImportError:  # pragma: no cover
 log = logging.getLogger(__name__)
 
 LATENT_KEYS = {"y": ("y_mean",), "z": ("z_mean",), "both": ("z_mean", "y_mean")}
+
+#: the batch keys the callback keeps between checks (what ``infer_latents`` and
+#: :func:`collect_latents` read)
+CACHED_KEYS = ("obs", "actions", "factors", "object_id", "action_index", "seq_id")
+
+
+def check_epochs(max_epochs: int, points: int, final: bool = True) -> list[int]:
+    """0-based epochs after which a run of ``max_epochs`` epochs runs a periodic check so
+    that its ``points`` checks are spread evenly: epoch counts ``round(k * max_epochs /
+    points)``, k = 1 .. points, without duplicates; with ``final`` the last point is the
+    final alignment (after the last epoch), so the last epoch gets no periodic check."""
+    if points < 1:
+        raise ValueError(f"KRRAlignmentCallback points must be >= 1, got {points}")
+    if max_epochs < 1:
+        return []
+    counts = {max(1, round(k * max_epochs / points)) for k in range(1, points + 1)}
+    if final:
+        counts.discard(max_epochs)
+    return sorted(c - 1 for c in counts if c <= max_epochs)
+
+
+def rebatch(batches, batch_size: int) -> list[dict]:
+    """Merge consecutive cached batches whose tensors agree in all but the first dimension
+    into batches of up to ``batch_size`` sequences (lists are concatenated)."""
+    import torch
+
+    out: list[dict] = []
+    for b in batches:
+        last = out[-1] if out else None
+        if (last is not None and last.keys() == b.keys() and len(last["factors"]) + len(b["factors"]) <= batch_size
+                and all(not isinstance(v, torch.Tensor) or v.shape[1:] == last[k].shape[1:] for k, v in b.items())):
+            out[-1] = {k: torch.cat([last[k], v]) if isinstance(v, torch.Tensor) else list(last[k]) + list(v)
+                       for k, v in b.items()}
+        else:
+            out.append(dict(b))
+    return out
+
+
+def cache_batches(loader, max_sequences: int | None) -> tuple[list[dict], bool]:
+    """The first ``max_sequences`` sequences of ``loader`` as CPU batches with the
+    :data:`CACHED_KEYS` only -> (batches, whether they are the whole loader)."""
+    import torch
+
+    batches, n = [], 0
+    for batch in loader:
+        take = len(batch["factors"]) if max_sequences is None else min(len(batch["factors"]), max_sequences - n)
+        batches.append({k: (v[:take].cpu() if isinstance(v, torch.Tensor) else list(v)[:take])
+                        for k, v in batch.items() if k in CACHED_KEYS})
+        n += take
+        if max_sequences is not None and n >= max_sequences:
+            dataset = getattr(loader, "dataset", None)
+            return batches, dataset is not None and hasattr(dataset, "__len__") and len(dataset) == n
+    return batches, True
 
 
 def _to_device(batch, device):
@@ -109,23 +173,32 @@ def collect_latents(pl_module, loader, *, latent: str = "y", max_sequences: int 
 
 
 class KRRAlignmentCallback(Callback):
-    """See module docstring. Defaults aim at <= 10 % of training time: evaluation every
-    ``every_n_epochs`` epochs on at most ``max_train_sequences`` training sequences,
-    ``frames_per_sequence`` final-segment frames each, Nystroem above ``nystroem_threshold``
-    rows, held-out frames subsampled by ``val_frame_stride``."""
+    """See module docstring. Defaults aim at <= 10 % of training time: a check at t = 0
+    (``initial``) and ``points`` checks over the run (``every_n_epochs=None``; an int
+    checks every that many epochs instead), each on at most ``max_train_sequences`` training
+    sequences, ``frames_per_sequence`` final-segment frames each, Nystroem above
+    ``nystroem_threshold`` rows, held-out frames subsampled by ``val_frame_stride``; inputs
+    read once and inferred ``infer_batch_size`` sequences at a time."""
 
-    def __init__(self, every_n_epochs: int = 10, latent: str = "y", max_train_sequences: int | None = 512,
+    def __init__(self, every_n_epochs: int | None = None, latent: str = "y", max_train_sequences: int | None = 512,
                  max_val_sequences: int | None = None, val_frame_stride: int = 2, final_segment: float | int = 0.1,
                  frames_per_sequence: int = 2, cv: int = 3, nystroem_threshold: int = 1024, n_components: int = 256,
                  alphas=(1e-3, 1e-2, 1e-1, 1.0), gammas=(0.3, 1.0, 3.0), run_on_train_end: bool = True,
                  history_name: str = "krr_history.jsonl", seed: int = 0, n_threads: int | None = None,
-                 final_alignment: Mapping[str, Any] | None = None, targets: str = DEFAULT_TARGETS):
+                 final_alignment: Mapping[str, Any] | None = None, targets: str = DEFAULT_TARGETS,
+                 points: int = 8, initial: bool = True, infer_batch_size: int = 64):
         if latent not in LATENT_KEYS:
             raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
         if targets not in TARGET_ENCODINGS:
             raise ValueError(f"targets must be one of {TARGET_ENCODINGS}, got {targets!r}")
         self.targets = targets  # the factors' encoding (eval.targets), as evaluate.py's `targets`
-        self.every_n_epochs = int(every_n_epochs)
+        self.every_n_epochs = None if every_n_epochs is None else int(every_n_epochs)
+        if int(points) < 1 or int(infer_batch_size) < 1:
+            raise ValueError(f"KRRAlignmentCallback points and infer_batch_size must be >= 1, "
+                             f"got points={points}, infer_batch_size={infer_batch_size}")
+        self.points, self.initial, self.infer_batch_size = int(points), bool(initial), int(infer_batch_size)
+        # inputs kept between checks (per fit): split -> (batches, whether the whole loader)
+        self._cache: dict[str, tuple[list[dict], bool]] = {}
         self.latent = latent
         self.max_train_sequences = max_train_sequences
         self.max_val_sequences = max_val_sequences
@@ -149,6 +222,21 @@ class KRRAlignmentCallback(Callback):
     def on_train_start(self, trainer, pl_module) -> None:
         self._t_start = time.perf_counter()
         self._cb_time = 0.0
+        self._cache = {}
+        if self.initial and trainer.global_step == 0 and self._elapsed_before == 0.0:
+            metrics = self._evaluate(trainer, pl_module, initial=True)  # t = 0: the untrained network
+            if metrics:
+                self._log_to_loggers(trainer, metrics)
+
+    def due(self, trainer) -> bool:
+        """Whether the epoch that just ended (``trainer.current_epoch``) gets a periodic check."""
+        epoch = int(trainer.current_epoch)
+        if self.every_n_epochs is not None:
+            return self.every_n_epochs > 0 and (epoch + 1) % self.every_n_epochs == 0
+        max_epochs = trainer.max_epochs
+        if max_epochs is None or max_epochs < 1:  # open-ended run: no length to spread points over
+            return (epoch + 1) % 10 == 0
+        return epoch in check_epochs(int(max_epochs), self.points, final=self.run_on_train_end)
 
     def state_dict(self) -> dict[str, float]:
         """Elapsed wall time and callback time so far, so that a resumed run continues them."""
@@ -166,7 +254,7 @@ class KRRAlignmentCallback(Callback):
                 del store[k]
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
-        if self.every_n_epochs > 0 and (trainer.current_epoch + 1) % self.every_n_epochs == 0:
+        if self.due(trainer):
             metrics = self._evaluate(trainer, pl_module)
             if metrics:
                 for k, v in metrics.items():
@@ -192,17 +280,29 @@ class KRRAlignmentCallback(Callback):
         held_out = dm.test_dataloader() if hasattr(dm, "test_set") else dm.val_dataloader()
         return train, held_out
 
-    def _evaluate(self, trainer, pl_module, final: bool = False) -> dict[str, float]:
+    def _inputs(self, trainer, final: bool):
+        """(train, held-out) batches: the cached ones (read at the first check of this fit),
+        or for the final alignment the loaders when the cache holds only part of a split."""
+        loaders = self._loaders(trainer)
+        out = []
+        for key, loader, cap in zip(("train", "held_out"), loaders, (self.max_train_sequences, self.max_val_sequences)):
+            if key not in self._cache:
+                self._cache[key] = cache_batches(loader, cap)
+            batches, whole = self._cache[key]
+            out.append(loader if final and not whole else rebatch(batches, self.infer_batch_size))
+        return out
+
+    def _evaluate(self, trainer, pl_module, final: bool = False, initial: bool = False) -> dict[str, float]:
         t0 = time.perf_counter()
         if self._t_start is None:
             self._t_start = t0
-        train_wall = self._elapsed_before + (t0 - self._t_start) - self._cb_before - self._cb_time
-        train_loader, val_loader = self._loaders(trainer)
+        train_wall = 0.0 if initial else self._elapsed_before + (t0 - self._t_start) - self._cb_before - self._cb_time
+        train_batches, val_batches = self._inputs(trainer, final)
         max_train, max_val, stride = (None, None, 1) if final else (
             self.max_train_sequences, self.max_val_sequences, self.val_frame_stride)
         align_kw = self.final_kw if final else self.align_kw
-        tr = collect_latents(pl_module, train_loader, latent=self.latent, max_sequences=max_train)
-        te = collect_latents(pl_module, val_loader, latent=self.latent, max_sequences=max_val)
+        tr = collect_latents(pl_module, train_batches, latent=self.latent, max_sequences=max_train)
+        te = collect_latents(pl_module, val_batches, latent=self.latent, max_sequences=max_val)
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
         tr, te = encode_split(tr, self.targets), encode_split(te, self.targets)
         t_inf = time.perf_counter()
@@ -225,7 +325,8 @@ class KRRAlignmentCallback(Callback):
         })
         row = {
             # at train end Lightning has already counted the last epoch: report the epoch trained last
-            "epoch": max(0, int(trainer.current_epoch) - 1) if final else int(trainer.current_epoch),
+            # before training (t = 0) no epoch has been trained: -1
+            "epoch": -1 if initial else max(0, int(trainer.current_epoch) - 1) if final else int(trainer.current_epoch),
             "step": int(trainer.global_step),
             "train_wall_time_s": float(train_wall), "callback_time_s": float(cb),
             "callback_infer_s": float(t_inf - t0), "callback_krr_s": float(cb - (t_inf - t0)),
@@ -234,7 +335,7 @@ class KRRAlignmentCallback(Callback):
             "nmse_overall": _fin(metrics["krr/nmse_overall"]), "nmse_last": {f: _fin(v) for f, v in zip(FACTOR_NAMES, curve[-1])},
             "nmse_last_overall": _fin(metrics["krr/nmse_last_overall"]),
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])), "latent": self.latent,
-            "val_frame_stride": stride, "final": bool(final), "targets": self.targets,
+            "val_frame_stride": stride, "final": bool(final), "initial": bool(initial), "targets": self.targets,
             "alignment": {k: align.params[k] for k in ("method", "alpha", "gamma", "n_train_rows", "fit_time_s",
                                                        "final_segment", "frames_per_sequence", "cv_folds", "seed")},
         }
@@ -248,7 +349,8 @@ class KRRAlignmentCallback(Callback):
             with open(path, "a") as fh:
                 fh.write(json.dumps(row) + "\n")
         log.info("KRR alignment %sepoch %d: nmse_overall=%.4f (callback %.2fs, %.1f%% of elapsed)",
-                 "(final weights, evaluate.py settings) " if final else "(periodic check) ", row["epoch"],
+                 "(final weights, evaluate.py settings) " if final else "(before training) " if initial else "(periodic check) ",
+                 row["epoch"],
                  metrics["krr/nmse_overall"], cb, 100 * metrics["krr/callback_fraction"])
         return metrics
 
