@@ -1,0 +1,89 @@
+"""One Latent Filter training step at paper shapes against the same-run fp32 matmul ceiling.
+
+For each mode (fp32; bf16 = CPU autocast to bfloat16, the float32 regions of
+``networks.float32_region`` kept; compile = torch.compile of encoders and decoders, not the
+time loop): FLOPs of one step counted with ``torch.utils.flop_counter``, the step time (min
+over repeats, all listed), GFLOP/s, and the 2048x2048 fp32 matmul rate measured just before
+and after in the same process, so that machine load is visible next to every figure.
+
+    python benchmarks/bench_step_ceiling.py --modality multi_l --modes fp32 bf16 --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import sys
+import time
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+sys.path.insert(0, os.path.dirname(__file__))
+from bench_training import make_batch  # noqa: E402
+
+from embodied_tactile.models import LatentFilter  # noqa: E402
+
+
+def matmul_ceiling(n: int = 2048, repeats: int = 3) -> float:
+    """GFLOP/s of an n x n fp32 matmul (best of ``repeats``)."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    a @ b
+    best = min(_timed(lambda: a @ b) for _ in range(repeats))
+    return 2 * n ** 3 / best / 1e9
+
+
+def _timed(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def step(m: LatentFilter, batch: dict, opt, ctx) -> float:
+    def run():
+        opt.zero_grad(set_to_none=True)
+        with ctx():
+            terms = m.elbo_terms(batch)
+        (terms["nll"] + terms["kl_z"] + terms["kl_y"]).backward()
+        opt.step()
+    return _timed(run)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--modality", default="multi_l")
+    p.add_argument("--modes", nargs="+", default=["fp32", "bf16"], choices=["fp32", "bf16", "compile"])
+    p.add_argument("--batch", type=int, default=48)
+    p.add_argument("--seq", type=int, default=300)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--repeats", type=int, default=2)
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    print(f"torch {torch.__version__}, cpu capability {torch.backends.cpu.get_cpu_capability()}, "
+          f"{torch.get_num_threads()} threads, B={args.batch} T={args.seq} 28x28, load {os.getloadavg()[0]:.1f}")
+    for mode in args.modes:
+        torch.manual_seed(0)
+        m = LatentFilter(args.modality)
+        batch = make_batch(m.n_channels, args.batch, args.seq)
+        ctx = (lambda: torch.autocast("cpu", dtype=torch.bfloat16)) if mode == "bf16" else contextlib.nullcontext
+        if mode == "compile":
+            for group in (m.encoders, m.decoders):
+                for k in list(group):
+                    group[k] = torch.compile(group[k], dynamic=False)
+        opt = torch.optim.Adam(m.parameters(), lr=1e-5)
+        with FlopCounterMode(display=False) as fc:  # also the warm-up (and compilation)
+            step(m, batch, opt, ctx)
+        flops = fc.get_total_flops()
+        c0 = matmul_ceiling()
+        ts = [step(m, batch, opt, ctx) for _ in range(args.repeats)]
+        c1 = matmul_ceiling()
+        t = min(ts)
+        rate = flops / t / 1e9
+        print(f"{args.modality} {mode:<8} step {t:6.2f} s (all {', '.join(f'{x:.2f}' for x in ts)}) "
+              f"{flops / 1e9:6.1f} GFLOP {rate:6.1f} GFLOP/s | matmul ceiling before/after {c0:.0f}/{c1:.0f} GFLOP/s "
+              f"-> {100 * rate / max(c0, c1):.1f} % | load {os.getloadavg()[0]:.1f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
