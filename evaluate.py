@@ -4,6 +4,7 @@
     python evaluate.py logs/train/runs/<run>                        # one run (best checkpoint)
     python evaluate.py logs/train/runs/<run>/checkpoints/last.ckpt  # one checkpoint
     python evaluate.py logs/train/multiruns/<time>                  # every job of a sweep
+    python evaluate.py logs/train/study                             # a study run in parts (sub-multiruns), merged
     python evaluate.py <run> latent=both baselines=[handcrafted,gru,mean] gru.epochs=5 out=/tmp/ev
     python evaluate.py <run> checkpoint=last umap=false
 
@@ -33,7 +34,8 @@ The recipe, per run (docs/evaluation.md, "evaluate.py"):
 7. ``write_report`` into ``<run>/evaluation`` (or ``<multirun>/evaluation``, aggregating
    every job) and the Markdown tables printed to the terminal.
 
-A multirun folder: every sub-folder holding a ``config_resolved.yaml`` is a job; jobs
+A multirun folder: every sub-folder holding a ``config_resolved.yaml`` is a job (a study
+folder: also every job of its sub-folders, so parts of a sweep run apart are merged); jobs
 without a checkpoint are skipped with a message. DataModules are shared between jobs with
 the same data config and the same saved split, and the GRU baseline is off by default for
 multiruns (``baselines=[handcrafted,gru,mean]`` turns it on).
@@ -209,6 +211,21 @@ def load_run(run_dir: Path, which: str, ckpt: Path | None = None) -> Run:
     return Run(run_dir=run_dir, ckpt=ckpt or find_checkpoint(run_dir, which), cfg=cfg, name=run_dir.name)
 
 
+def job_dirs(folder: Path) -> list[Path]:
+    """The training jobs under a multirun folder (its sub-folders holding a
+    ``config_resolved.yaml``) or under a study folder whose sub-folders are multiruns run as
+    separate parts (e.g. one per seed or primitive: ``hydra.sweep.dir=<study>/<part>``); both
+    levels are searched, so ``evaluate.py <study>`` merges the parts."""
+    jobs = []
+    for d in sorted((p for p in folder.iterdir() if p.is_dir()), key=lambda p: p.name):
+        if (d / "config_resolved.yaml").exists():
+            jobs.append(d)
+        else:
+            jobs += sorted((j for j in d.iterdir() if j.is_dir() and (j / "config_resolved.yaml").exists()),
+                           key=lambda j: j.name)
+    return jobs
+
+
 def discover(target: Path, which: str) -> tuple[str, list[Run], list[tuple[Path, str]]]:
     """-> (kind 'run' | 'multirun', runs, skipped (folder, reason))."""
     target = Path(target)
@@ -220,8 +237,7 @@ def discover(target: Path, which: str) -> tuple[str, list[Run], list[tuple[Path,
         return "run", [load_run(target.resolve().parent.parent, which, ckpt=target.resolve())], []
     if (target / "config_resolved.yaml").exists():
         return "run", [load_run(target, which)], []
-    jobs = sorted((d for d in target.iterdir() if d.is_dir() and (d / "config_resolved.yaml").exists()),
-                  key=lambda d: d.name)
+    jobs = job_dirs(target)
     if not jobs:
         raise EvaluationError(f"{target} holds no training run: no config_resolved.yaml in it nor in its "
                               "sub-folders (expected a run folder, a checkpoint or a multirun folder)")
@@ -229,6 +245,7 @@ def discover(target: Path, which: str) -> tuple[str, list[Run], list[tuple[Path,
     for d in jobs:
         try:
             runs.append(load_run(d, which))
+            runs[-1].name = d.relative_to(target).as_posix()  # 'seed1/3' for a job of a study part
         except EvaluationError as err:
             skipped.append((d, str(err)))
             log.warning("skipping %s", err)

@@ -240,3 +240,52 @@ def test_design_rank_accepts_float32_factors():
 
     f = np.array([OBJECTS[o].factors() for o in (0, 4, 8)], dtype=np.float32)
     np.testing.assert_allclose(encode_factors(f)[:, 2], [0, 1, 2], atol=1e-5)
+
+
+# ------------------------------------------------------------------ docs/results.md generator
+def test_group_summary_uses_the_runs_total_variance():
+    r = _run("multi_l", "soft", "pressing", 0, 0.3)
+    g = r.summary()["nmse_trajectory_by_group"]
+    assert set(g) == {"soft", "hard", "heterogeneous"}
+    for name, row in g.items():
+        by_hand = r.subset_nmse(r.group == name)  # the run's reference variance, not the group's
+        np.testing.assert_allclose([row[f] for f in FACTOR_NAMES], by_hand)
+        assert row["overall"] == pytest.approx(float(np.mean(by_hand)))
+        assert row["n"] == int((r.group == name).sum())
+
+
+def test_study_report_table2_intervals_verdicts_and_what_was_not_run(tmp_path):
+    from scipy.stats import t as student_t
+
+    from embodied_tactile.eval.report import write_report
+    from embodied_tactile.eval.study_report import main, render, load
+
+    rs = ([_run("multi_l", "soft", "pressing", s, 0.2) for s in range(3)]
+          + [_run("multi_e", "soft", "pressing", s, 0.6) for s in range(3)]
+          + [_run("fsr_t", "soft", "pressing", s, 0.3) for s in range(2)])
+    write_report(rs, tmp_path / "evaluation", figures=False)
+    text = render(load(tmp_path / "evaluation"))
+    # the Table 2 cell soft skin / soft objects / pressing / Overall: mean and t interval over the 3 seeds
+    vals = np.array([r.summary()["nmse_trajectory_by_group"]["soft"]["overall"] for r in rs[:3]])
+    h = student_t.ppf(0.975, 2) * vals.std(ddof=1) / np.sqrt(3)
+    row = next(ln for ln in text.splitlines() if ln.startswith("| Overall | soft |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert float(cells[2]) == pytest.approx(vals.mean(), abs=1e-4)
+    assert cells[3] == f"[{vals.mean() - h:.3f}, {vals.mean() + h:.3f}]"
+    assert cells[4] == "3" and float(cells[5]) == pytest.approx(0.017)  # the paper's soft/soft/pressing overall
+    # (b) late beats early: measured on 3 paired seeds -> a verdict row
+    assert "## The paper's findings and their verdicts" in text and "reproduced" in text
+    # not run: 24 cells minus multi_l and multi_e soft pressing (3 seeds each); fsr_t has only 2 seeds
+    not_run = text.split("## What was not run", 1)[1]
+    assert "(22 of 24)" in not_run
+    assert "| fsr_t | soft | pressing | 2 | 0,1 |" in not_run
+    assert "| multi_l | soft | pressing |" not in not_run
+    out = tmp_path / "results.md"
+    assert main([str(tmp_path / "evaluation"), "--out", str(out)]) == 0 and out.read_text() == text
+
+
+def test_study_report_names_a_missing_results_file(tmp_path, capsys):
+    from embodied_tactile.eval.study_report import main
+
+    assert main([str(tmp_path)]) == 2
+    assert f"{tmp_path / 'results.json'} does not exist" in capsys.readouterr().err

@@ -152,6 +152,21 @@ def test_multirun_aggregate_and_skip(trained, capsys):
     shutil.rmtree(broken)
 
 
+def test_study_parts_are_merged(trained, tmp_path):
+    """A study run in parts (one multirun folder each, under one study folder) evaluates as one."""
+    study = tmp_path / "study"
+    for part, job in (("seed0", "modality=acc"), ("seed1", "modality=fsr_t")):
+        shutil.copytree(trained / "multi" / job, study / part / job)
+    (study / "evaluation" / "figures").mkdir(parents=True)  # an earlier report is not a job
+    assert [d.relative_to(study).as_posix() for d in ev.job_dirs(study)] == ["seed0/modality=acc",
+                                                                              "seed1/modality=fsr_t"]
+    out = ev.evaluate(study, [*FAST, "baselines=[mean]", "umap=false", "figures=false"])
+    assert Path(out["out"]) == study / "evaluation"
+    assert sorted(i["modality"] for i in out["runs"]) == ["acc", "fsr_t"]
+    res = json.loads((study / "evaluation" / "results.json").read_text())
+    assert {r["modality"] for r in res["runs"] if r["method"] == "latent_filter"} == {"acc", "fsr_t"}
+
+
 def test_folder_without_checkpoint_is_a_clear_error(trained, tmp_path, capsys):
     empty = tmp_path / "no_ckpt_run"
     empty.mkdir()

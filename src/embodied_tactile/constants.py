@@ -77,6 +77,8 @@ AMPLITUDES_MM = (5.0, 10.0, 20.0)  # peak-to-peak, mm
 
 SOFT_OBJECTS = (0, 1, 3, 4, 9, 10, 12, 13, 18, 19, 21, 22)
 HETEROGENEOUS_OBJECTS = (27, 28, 29, 30, 31)
+#: the paper's Table 2 object groups, in its column order (``WaveObject.group``)
+OBJECT_GROUPS = ("soft", "hard", "heterogeneous")
 N_OBJECTS = 32
 
 

@@ -22,14 +22,14 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..constants import ACTION_PARAM_NAMES, ACTIONS, FACTOR_NAMES, N_ACTIONS, PRIMITIVES, SKINS
+from ..constants import ACTION_PARAM_NAMES, ACTIONS, FACTOR_NAMES, N_ACTIONS, OBJECT_GROUPS, PRIMITIVES, SKINS
 from .metrics import NMSE_DEFINITION, NMSEUndefinedWarning, nmse, overall
 from .results import SPLIT_KINDS, Results
 from .targets import TARGET_ENCODINGS, describe_targets
 
 FACTOR_LABELS = {"spatial_frequency": "Spatial Freq.", "amplitude": "Amplitude", "stiffness": "Stiffness",
                  "heterogeneity": "Heterogeneity"}
-GROUPS = ("soft", "hard", "heterogeneous")
+GROUPS = OBJECT_GROUPS
 MISSING = "\u2013"  # en dash: a cell that was not measured
 MISSING_NOTE = f"{MISSING} = not measured in these runs."
 PARAM_LATEX = {"A_z_mm": r"$A_{z}$\,(mm)", "omega_z_hz": r"$\omega_z$\,(Hz)",

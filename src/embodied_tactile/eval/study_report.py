@@ -1,0 +1,256 @@
+"""``docs/results.md`` from an evaluated study, generated, never typed by hand (issue 9 part 5).
+
+    python train.py -m sweep=study_min hydra.sweeper.params.seed=0 hydra.sweep.dir=logs/train/study/seed0
+    ...                                                              # further parts: seed1, seed2, ...
+    python evaluate.py logs/train/study                             # merges the parts -> logs/train/study/evaluation
+    python -m embodied_tactile.eval.study_report logs/train/study/evaluation --out docs/results.md
+
+Reads ``results.json`` (written by :func:`~embodied_tactile.eval.report.write_report`) and, when
+present, ``evaluation.json`` and each evaluated run's ``config_resolved.yaml`` /
+``metrics.json`` / ``provenance.json`` for the budget, the commands and the wall time. Writes:
+
+* what was run: the parts and their commands (each job's Hydra overrides), the budget, the
+  wall time (training and data preparation apart), the code commit;
+* the Table 2 analogue for MULTI-L: per e-Skin, object group and primitive, the mean over
+  seeds with its 95 % t interval beside the paper's value (:data:`~.verdicts.PAPER_TABLE2`);
+* the per-cell statistics over seeds for every modality (the ``aggregate`` table);
+* the paper's findings with their verdicts and every comparison behind them;
+* what was not run: every cell of the paper's 24 (8 modality x e-Skin combinations x 3
+  primitives) with fewer than the protocol's 3 seeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..constants import FACTOR_NAMES, OBJECT_GROUPS, PRIMITIVES
+from .tables import FACTOR_LABELS, MISSING, Table, _fmt, seed_stats
+from .verdicts import MIN_SEEDS, PAPER_TABLE2, SCORES, SOFT_SKIN_MODALITIES
+
+#: the paper's 8 modality x e-Skin combinations (configs/combo/); x 3 primitives = its 24 cells
+PAPER_COMBOS: tuple[tuple[str, str], ...] = (*((m, "soft") for m in SOFT_SKIN_MODALITIES),
+                                             ("fsr_tb", "hard"), ("multi_l", "hard"))
+METHOD = "latent_filter"
+
+
+class StudyReportError(ValueError):
+    """An evaluation folder that cannot make a study report (names the file)."""
+
+
+def _read_json(p: Path) -> dict:
+    try:
+        return json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise StudyReportError(f"{p}: cannot read ({err})") from None
+
+
+def load(eval_dir: str | Path) -> dict:
+    """The evaluation's ``results.json`` (required) and ``evaluation.json`` (optional)."""
+    d = Path(eval_dir)
+    res = d / "results.json"
+    if not res.exists():
+        raise StudyReportError(f"{res} does not exist: run `python evaluate.py <study folder>` first")
+    blob = _read_json(res)
+    if "runs" not in blob or "tables" not in blob:
+        raise StudyReportError(f"{res}: not an evaluate.py results.json (no 'runs' / 'tables')")
+    ev = d / "evaluation.json"
+    blob["_evaluation"] = _read_json(ev) if ev.exists() else {}
+    blob["_dir"] = str(d)
+    return blob
+
+
+def _ci(st: Mapping[str, float]) -> str:
+    if not (np.isfinite(st["ci95_low"]) and np.isfinite(st["ci95_high"])):
+        return MISSING
+    return f"[{_fmt(st['ci95_low'], 3)}, {_fmt(st['ci95_high'], 3)}]"
+
+
+def _latent_runs(runs: Sequence[Mapping], modality: str | None = None) -> list[Mapping]:
+    return [r for r in runs if r.get("method") == METHOD and (modality is None or r.get("modality") == modality)]
+
+
+def table2_with_intervals(runs: Sequence[Mapping], modality: str = "multi_l") -> list[Table]:
+    """One table per e-Skin: rows factor (and Overall) x object group, columns the primitives;
+    a cell is 'mean [95 % CI] (paper p)' over the seeds of that (skin, primitive) cell, the
+    group's held-out sequences normalised by the run's total variance (Table 2's convention)."""
+    rs = _latent_runs(runs, modality)
+    tables = []
+    for skin in ("soft", "hard"):
+        mine = [r for r in rs if r.get("skin") == skin and not r.get("axes")]
+        if not mine:
+            continue
+        prims = [p for p in PRIMITIVES if any(r.get("primitive") == p for r in mine)]
+        rows = []
+        for score in SCORES:
+            for g in OBJECT_GROUPS:
+                row: list[Any] = [FACTOR_LABELS.get(score, "Overall"), g]
+                for p in prims:
+                    vals = [r.get("nmse_trajectory_by_group", {}).get(g, {}).get(score) for r in mine
+                            if r.get("primitive") == p]
+                    st = seed_stats([np.nan if v is None else v for v in vals])
+                    paper = PAPER_TABLE2[(skin, g)][p][SCORES.index(score)]
+                    row += [st["mean"], _ci(st), st["n"], paper]
+                rows.append(row)
+        cols = ["Factor", "group"] + [c for p in prims for c in (f"{p} mean", f"{p} 95% CI", f"{p} n", f"{p} paper")]
+        cap = (f"Table 2 analogue, {modality.upper().replace('_', '-')} on the {skin} e-Skin: held-out "
+               "whole-trajectory NMSE per factor and object group, the group's sequences normalised by the "
+               "run's total variance (the paper's convention); mean over seeds, 95 % Student t interval "
+               f"(n >= {MIN_SEEDS}, {MISSING} otherwise), n = seeds; paper = the paper's Table 2 (real e-Skin, "
+               "real objects, its own budget: a reference, not a target).")
+        tables.append(Table(f"table2_{modality}_{skin}", cap, cols, rows))
+    return tables
+
+
+def coverage(runs: Sequence[Mapping]) -> tuple[list[list], list[list]]:
+    """(measured, missing): per paper cell (modality, skin, primitive), the seeds of its
+    Latent Filter runs; missing = cells with fewer than the protocol's 3 seeds."""
+    seeds: dict[tuple, list] = defaultdict(list)
+    for r in _latent_runs(runs):
+        seeds[(r.get("modality"), r.get("skin"), r.get("primitive"))].append(r.get("seed"))
+    measured, missing = [], []
+    for m, s in PAPER_COMBOS:
+        for p in PRIMITIVES:
+            got = sorted(x for x in seeds.get((m, s, p), []) if x is not None)
+            row = [m, s, p, len(got), ",".join(str(x) for x in got) or MISSING]
+            if got:
+                measured.append(row)
+            if len(got) < MIN_SEEDS:
+                missing.append(row)
+    return measured, missing
+
+
+def _run_files(blob: Mapping) -> list[dict]:
+    """Per evaluated run: its folder, config (budget keys), metrics and provenance, as far as they exist."""
+    out = []
+    for info in blob.get("_evaluation", {}).get("runs", []):
+        d = Path(info.get("run_dir", ""))
+        entry: dict[str, Any] = {"run_dir": d, "seed": info.get("seed")}
+        for key, name in (("metrics", "metrics.json"), ("provenance", "provenance.json")):
+            p = d / name
+            entry[key] = _read_json(p) if p.exists() else {}
+        ov = d / ".hydra" / "overrides.yaml"
+        entry["overrides"] = ([ln[2:].strip() for ln in ov.read_text().splitlines() if ln.startswith("- ")]
+                              if ov.exists() else None)
+        cfg = d / "config_resolved.yaml"
+        if cfg.exists():
+            from omegaconf import OmegaConf
+
+            entry["config"] = OmegaConf.to_container(OmegaConf.load(cfg), resolve=False)
+        out.append(entry)
+    return out
+
+
+def _budget_lines(files: Sequence[Mapping], blob: Mapping) -> list[str]:
+    lines = []
+    cfgs = [f["config"] for f in files if f.get("config")]
+    if cfgs:
+        budgets = sorted({(c.get("trainer", {}).get("max_epochs"), c.get("data", {}).get("batch_size"),
+                           str(c.get("data", {}).get("actions")), c.get("data", {}).get("train_window"),
+                           c.get("data", {}).get("windows_per_trial"), c.get("data", {}).get("split"))
+                          for c in cfgs}, key=str)
+        for ep, bs, acts, win, wpt, split in budgets:
+            lines.append(f"- Budget: {ep} epochs, batch {bs}, action indices {acts}, {wpt} windows of {win} frames "
+                         f"per training trial and epoch, split `{split}`"
+                         + (" (every run)." if len(budgets) == 1 else "."))
+    sizes = blob.get("split_sizes") or {}
+    if sizes:
+        lines.append(f"- Split sizes (train / held-out trials per run): {json.dumps(sizes)}.")
+    train = [f["metrics"].get("train_wall_s") for f in files if f["metrics"].get("train_wall_s") is not None]
+    prep = [f["metrics"].get("data_prepare_s") for f in files if f["metrics"].get("data_prepare_s") is not None]
+    if train:
+        lines.append(f"- Wall time: training {sum(train) / 3600:.2f} h summed over {len(train)} runs "
+                     f"(per run {np.min(train):.0f} to {np.max(train):.0f} s, median {np.median(train):.0f} s); "
+                     f"data preparation {sum(prep):.0f} s summed (simulation and caching, once per skin x primitive).")
+    ev = blob.get("_evaluation", {}).get("timings", {})
+    if ev:
+        lines.append(f"- evaluate.py: {ev.get('evaluate_s', 0) + ev.get('report_s', 0):.0f} s.")
+    commits = sorted({str(f["provenance"].get("git_commit") or "")[:12] for f in files} - {""})
+    dirty = sum(bool(f["provenance"].get("git_dirty")) for f in files)
+    if commits:
+        lines.append(f"- Code commit(s) of the runs: {', '.join(commits)}"
+                     + (f" ({dirty} run(s) with uncommitted changes: their git.diff is in the run folder)." if dirty else "."))
+    return lines
+
+
+def _command_lines(files: Sequence[Mapping]) -> list[str]:
+    """One `python train.py ...` line per part (runs grouped by their sweep folder), with the
+    overrides the jobs of that part share and those that vary listed."""
+    parts: dict[str, list[list[str]]] = defaultdict(list)
+    for f in files:
+        if f.get("overrides") is not None:
+            parts[str(Path(f["run_dir"]).parent)].append(f["overrides"])
+    lines = []
+    for part, ovs in sorted(parts.items()):
+        common = [o for o in ovs[0] if all(o in other for other in ovs[1:])]
+        varying = sorted({o for ov in ovs for o in ov if o not in common})
+        lines.append(f"- `{part}` ({len(ovs)} jobs): `python train.py {' '.join(common)}`"
+                     + (f", varying: {', '.join(f'`{v}`' for v in varying)}" if varying else ""))
+    return lines
+
+
+def _json_table(blob: Mapping, name: str) -> Table | None:
+    for t in blob.get("tables", []):
+        if t.get("name") == name:
+            rows = [[MISSING if v is None else v for v in r] for r in t["rows"]]
+            return Table(name, t.get("caption", ""), list(t["columns"]), rows)
+    return None
+
+
+def render(blob: Mapping, source: str = "") -> str:
+    runs = blob["runs"]
+    files = _run_files(blob)
+    out = ["# Simulated study: results", "",
+           "Generated by `python -m embodied_tactile.eval.study_report "
+           f"{source or blob.get('_dir', '<evaluation folder>')} --out docs/results.md` from that folder's "
+           "`results.json` (evaluate.py's numbers); not edited by hand. Data: the project's simulator, "
+           "not the paper's recordings: these numbers test the pipeline and the simulated physics, they do "
+           "not re-measure the paper's robot.", "", "## What was run", ""]
+    out += _command_lines(files) or ["- (no run folders readable from evaluation.json: commands not listed)"]
+    out += _budget_lines(files, blob)
+    out += [f"- {blob.get('nmse_definition', '')}", ""]
+    for t in table2_with_intervals(runs):
+        out += ["## " + t.name.replace("_", " "), "", t.to_markdown()]
+    agg = _json_table(blob, "aggregate")
+    if agg is not None:
+        out += ["## Every cell (all methods), statistics over seeds", "", agg.to_markdown()]
+    for name, head in (("findings", "The paper's findings and their verdicts"), ("comparisons", "Comparisons")):
+        t = _json_table(blob, name)
+        out += [f"## {head}", ""]
+        out += [t.to_markdown()] if t is not None else [
+            "Not measured: no comparison of the findings had runs on both sides in this evaluation.", ""]
+    measured, missing = coverage(runs)
+    out += ["## What was not run", "",
+            f"Cells of the paper's 24 (8 modality x e-Skin combinations x 3 primitives) with fewer than "
+            f"{MIN_SEEDS} seeds of the Latent Filter ({len(missing)} of {len(PAPER_COMBOS) * len(PRIMITIVES)}):", ""]
+    out += [Table("not_run", "modality, e-Skin, primitive, seeds run.", ["modality", "skin", "primitive", "n seeds", "seeds"],
+                  missing).to_markdown()] if missing else ["None: every cell has at least 3 seeds.", ""]
+    return "\n".join(out).rstrip() + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="Write the study's results page (Markdown) from evaluate.py's output.")
+    ap.add_argument("evaluation", help="the evaluation folder evaluate.py wrote for the study (holds results.json)")
+    ap.add_argument("--out", default=None, help="write here (e.g. docs/results.md); default: print")
+    args = ap.parse_args(argv)
+    try:
+        text = render(load(args.evaluation), source=args.evaluation)
+    except StudyReportError as err:
+        print(f"study_report: error: {err}", file=sys.stderr)
+        return 2
+    if args.out:
+        Path(args.out).write_text(text)
+        print(f"wrote {args.out}")
+    else:
+        print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
