@@ -1,0 +1,93 @@
+"""A :class:`~embodied_tactile.active.model.PalpationModel` from a trained run folder, with
+``evaluate.py``'s own run handling (checkpoint choice, the run's data config with its saved
+split, the prepared DataModule, latent collection) and its alignment settings
+(``configs/evaluate.yaml``): the alignment an episode is scored with is the one evaluate.py
+reports for that run.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .model import PalpationModel
+
+
+class PalpationError(RuntimeError):
+    """A run that cannot be palpated with (missing folder, checkpoint, split, action)."""
+
+
+def _evaluate_module():
+    """The repository's ``evaluate.py`` (a script at the repository root, importable when the
+    working directory is the root; else found next to ``src/``)."""
+    try:
+        return importlib.import_module("evaluate")
+    except ImportError:
+        root = Path(__file__).resolve().parents[3]
+        if not (root / "evaluate.py").exists():
+            raise PalpationError(f"evaluate.py not found (looked in the working directory and {root})") from None
+        sys.path.insert(0, str(root))
+        return importlib.import_module("evaluate")
+
+
+def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_overrides: Sequence[str] = (),
+                         threads: int = 1) -> tuple[PalpationModel, dict[str, Any]]:
+    """-> (model, info). ``info``: run_dir, checkpoint, split kind, test object ids (from the
+    run's ``split.json`` test trials), training object ids, the training split's per-action
+    single-touch NMSE (used to order the fixed baseline's first touch)."""
+    import torch
+    from hydra.utils import get_class
+
+    from embodied_tactile.eval.krr import fit_alignment
+    from embodied_tactile.eval.metrics import reference_variance
+    from embodied_tactile.eval.targets import encode_split
+
+    ev = _evaluate_module()
+    run_dir = Path(run)
+    if not run_dir.exists():
+        raise PalpationError(f"no such run folder: {run_dir} (give a folder made by train.py, e.g. "
+                             "logs/train/runs/<date>)")
+    try:
+        kind, runs, _ = ev.discover(run_dir, checkpoint)
+    except ev.EvaluationError as err:
+        raise PalpationError(str(err)) from err
+    if kind != "run":
+        raise PalpationError(f"{run_dir} is a multirun folder; give one of its job folders")
+    r = runs[0]
+    opts = ev.parse_options([f"checkpoint={checkpoint}", *eval_overrides])
+    try:
+        data = ev.data_config(r, opts)
+    except ev.EvaluationError as err:
+        raise PalpationError(str(err)) from err
+    torch.set_num_threads(int(threads))
+    cache = ev.DataCache()
+    key, dm = cache.get(data)
+    module = get_class(str(r.cfg.model._target_)).load_from_checkpoint(str(r.ckpt), map_location="cpu")
+    module.eval()
+    tr, _ = ev.collect_split(module, cache.batches(key, dm, "train"), ev._names(dm, "train"), "y")
+    tr = encode_split(tr, str(opts.targets))
+    align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"], **dict(opts.alignment))
+    nominal = {int(a): tr["actions"][tr["action_index"] == a].mean(axis=0) for a in np.unique(tr["action_index"])}
+    from embodied_tactile import constants as C
+    from embodied_tactile.data.prepare import Scene
+    from embodied_tactile.eval.targets import encode_factors
+
+    catalogue = encode_factors(np.stack([o.factors() for o in C.OBJECTS]), str(opts.targets))
+    scene = Scene.from_config(data)
+    model = PalpationModel(net=module.model, channels=tuple(data["channels"]), preprocess=scene.preprocess_config(),
+                           alignment=align, ref_var=reference_variance(catalogue), nominal_actions=nominal,
+                           skin=str(r.cfg.skin.name), primitive=str(r.cfg.primitive.name), targets=str(opts.targets))
+    split = ev.run_split(r, data["split_file"])
+    test_objects = sorted({int(t.object_id) for t in dm.test_set.trials})
+    train_objects = sorted({int(t.object_id) for t in dm.train_set.trials})
+    info = {"run_dir": str(r.run_dir), "checkpoint": str(r.ckpt), "split": split.get("kind"),
+            "test_objects": test_objects, "train_objects": train_objects,
+            "unseen_test_objects": split.get("unseen_objects"), "alignment": align.params,
+            "n_train_sequences": int(len(tr["factors"]))}
+    model.info = info
+    cache.clear()
+    return model, info
