@@ -123,3 +123,13 @@ def test_scene_from_a_data_config_ignores_split_and_loader_keys(tmp_path):
     assert Scene.from_config(cfg) == scene
     with pytest.raises(ValueError, match="unknown observation channel"):
         tiny_scene(tmp_path, channels=("gyro",))
+
+
+def test_each_simulator_seed_has_its_own_raw_file(tmp_path):
+    """The study varies the simulated dataset with the seed: one raw file per simulator seed,
+    seed 0 keeping the plain name (trial names do not hold the seed)."""
+    from embodied_tactile.data.prepare import Scene
+
+    assert Scene(data_dir=str(tmp_path)).raw_paths == [tmp_path / "raw" / "soft_pressing.h5"]
+    assert Scene(data_dir=str(tmp_path), skin="hard", primitive="sliding", sim_seed=2).raw_paths == [
+        tmp_path / "raw" / "hard_sliding_sim2.h5"]

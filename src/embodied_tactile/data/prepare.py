@@ -143,9 +143,12 @@ class Scene:
         """The raw files. Recorded: each ``raw_files`` entry is a path or a glob pattern
         (``*``, ``?``, ``[...]``, ``**``), absolute, ``~`` or relative to the working
         directory; matches sorted, each file once, as absolute paths. A pattern that matches
-        nothing, or a path that does not exist, is an error naming it."""
+        nothing, or a path that does not exist, is an error naming it. Simulated:
+        ``raw/<skin>_<primitive>.h5`` for simulator seed 0, ``raw/<skin>_<primitive>_sim<seed>.h5``
+        for another (one file per simulated dataset: the trial names do not hold the seed)."""
         if self.source == "simulated":
-            return [Path(self.data_dir) / "raw" / f"{self.skin}_{self.primitive}.h5"]
+            suffix = "" if int(self.sim_seed) == 0 else f"_sim{int(self.sim_seed)}"
+            return [Path(self.data_dir) / "raw" / f"{self.skin}_{self.primitive}{suffix}.h5"]
         paths: list[str] = []
         for pattern in self.raw_files:
             expanded = os.path.expanduser(str(pattern))
