@@ -24,6 +24,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from bench_training import make_batch  # noqa: E402
 
 from embodied_tactile.models import LatentFilter  # noqa: E402
+from embodied_tactile.models.networks import ConvDecoder, ConvEncoder  # noqa: E402
 
 
 def matmul_ceiling(n: int = 2048, repeats: int = 3) -> float:
@@ -68,9 +69,10 @@ def main() -> None:
         batch = make_batch(m.n_channels, args.batch, args.seq)
         ctx = (lambda: torch.autocast("cpu", dtype=torch.bfloat16)) if mode == "bf16" else contextlib.nullcontext
         if mode == "compile":
-            for group in (m.encoders, m.decoders):
-                for k in list(group):
-                    group[k] = torch.compile(group[k], dynamic=False)
+            for parent in list(m.observation.modules()):  # every encoder and decoder, in place
+                for k, child in list(parent.named_children()):
+                    if isinstance(child, (ConvEncoder, ConvDecoder)):
+                        setattr(parent, k, torch.compile(child, dynamic=False))
         opt = torch.optim.Adam(m.parameters(), lr=1e-5)
         with FlopCounterMode(display=False) as fc:  # also the warm-up (and compilation)
             step(m, batch, opt, ctx)

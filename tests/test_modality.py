@@ -71,7 +71,7 @@ def test_a_new_modality_is_one_yaml_file(tmp_path, tiny_data_dir):
     batch = next(iter(dm.train_dataloader()))
     assert batch["obs"].shape[2] == 2
     model = instantiate(cfg.model)
-    assert set(model.model.encoders) == {"force", "vibration"}
+    assert set(model.model.observation.encoders) == {"force", "vibration"}
     assert model.model.modality["pathways"] == [["force", [0]], ["vibration", [1]]]
     terms = model.model.elbo_terms(batch)
     assert all(torch.isfinite(terms[k]) for k in ("nll", "kl_z", "kl_y"))

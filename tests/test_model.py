@@ -11,12 +11,20 @@ from torch.utils.data import DataLoader, Dataset
 
 from embodied_tactile.models import (
     ConstrainedAnnealing,
+    EarlyFusion,
     EarlyFusionLatentFilter,
+    LateFusion,
     LateFusionLatentFilter,
     LatentFilter,
     LatentFilterModule,
 )
-from embodied_tactile.models.networks import ConvDecoder, ConvEncoder, fuse_gaussians, kl_diag_gaussians
+from embodied_tactile.models.networks import (
+    ConvDecoder,
+    ConvEncoder,
+    TransitionNet,
+    fuse_gaussians,
+    kl_diag_gaussians,
+)
 from embodied_tactile.modality import modality_names
 
 torch.set_num_threads(2)
@@ -62,11 +70,14 @@ def test_modality_builds_only_its_pathways(name):
     encs = [mod for mod in m.modules() if isinstance(mod, ConvEncoder)]
     decs = [mod for mod in m.modules() if isinstance(mod, ConvDecoder)]
     if name == "multi_l":
-        assert set(m.encoders) == {"vibration", "force"}
+        assert isinstance(m.observation, LateFusion)
+        assert set(m.observation.encoders) == {"vibration", "force"}
         assert sorted(e.in_channels for e in encs) == [1, 2]
         assert sorted(d.out_channels for d in decs) == [1, 2]
-        assert m.encoders["vibration"].in_channels == 1 and m.decoders["force"].out_channels == 2
+        assert m.observation.encoders["vibration"].in_channels == 1
+        assert m.observation.decoders["force"].out_channels == 2
     else:
+        assert isinstance(m.observation, EarlyFusion)
         assert len(encs) == len(decs) == 1
         assert encs[0].in_channels == decs[0].out_channels == N_CH[name]
         first_conv = next(mod for mod in encs[0].modules() if isinstance(mod, nn.Conv2d))
@@ -80,8 +91,8 @@ def test_late_fusion_channel_routing():
     torch.manual_seed(0)
     m = LatentFilter("multi_l", **TINY).eval()
     o = torch.rand(2, 3, 28, 28)
-    mv, vv = m.encoders["vibration"](o[:, :1])
-    mf, vf = m.encoders["force"](o[:, 1:])
+    mv, vv = m.observation.encoders["vibration"](o[:, :1])
+    mf, vf = m.observation.encoders["force"](o[:, 1:])
     mu, var = m.encode(o)
     mu_ref = (vf * mv + vv * mf) / (vv + vf)
     torch.testing.assert_close(mu, mu_ref)
@@ -89,8 +100,8 @@ def test_late_fusion_channel_routing():
     # decoder output: channel 0 from the vibration decoder, 1-2 from the force decoder
     z = torch.randn(2, 16)
     rec = m.decode(z)
-    torch.testing.assert_close(rec[:, :1], m.decoders["vibration"](z))
-    torch.testing.assert_close(rec[:, 1:], m.decoders["force"](z))
+    torch.testing.assert_close(rec[:, :1], m.observation.decoders["vibration"](z))
+    torch.testing.assert_close(rec[:, 1:], m.observation.decoders["force"](z))
 
 
 def test_custom_late_pathways_and_bad_configs():
@@ -100,8 +111,8 @@ def test_custom_late_pathways_and_bad_configs():
     assert m.modality["pathways"] == [["force", [0, 2]], ["vibration", [1]]]
     z = torch.randn(2, 16)
     rec = m.decode(z)
-    torch.testing.assert_close(rec[:, 1:2], m.decoders["vibration"](z))
-    torch.testing.assert_close(rec[:, [0, 2]], m.decoders["force"](z))
+    torch.testing.assert_close(rec[:, 1:2], m.observation.decoders["vibration"](z))
+    torch.testing.assert_close(rec[:, [0, 2]], m.observation.decoders["force"](z))
     with pytest.raises(ValueError, match="fusion"):
         LatentFilter({"name": "x", "channels": ["acc"], "fusion": "mid"})
     with pytest.raises(ValueError, match="late fusion needs a 'pathways' mapping"):  # no name-based grouping
@@ -110,10 +121,6 @@ def test_custom_late_pathways_and_bad_configs():
         LatentFilter({"name": "x", "channels": ["fsr_t", "fsr_b"], "fusion": "late", "pathways": {"all": ["fsr_t", "fsr_b"]}})
     with pytest.raises(ValueError, match="expects obs"):
         LatentFilter("acc", **TINY)(torch.zeros(1, 2, 3, 28, 28), torch.zeros(1, 2, 6))
-    with pytest.raises(ValueError, match="EarlyFusionLatentFilter takes fusion"):
-        EarlyFusionLatentFilter(LatentFilter("multi_l", **TINY))
-    with pytest.raises(ValueError, match="LateFusionLatentFilter takes fusion"):
-        LateFusionLatentFilter(LatentFilter("multi_e", **TINY))
     with pytest.raises(TypeError, match="net must be a LatentFilter or its config mapping"):
         LateFusionLatentFilter("multi_l")
     assert LateFusionLatentFilter(LatentFilter("multi_l", **TINY)).model.modality["name"] == "multi_l"
@@ -122,6 +129,76 @@ def test_custom_late_pathways_and_bad_configs():
     rebuilt = EarlyFusionLatentFilter(net.config())
     assert rebuilt.model.modality["name"] == "multi_e" and rebuilt.hparams["net"] == net.config()
     assert sum(p.numel() for p in rebuilt.parameters()) == sum(p.numel() for p in net.parameters())
+
+
+@pytest.mark.parametrize(("module_cls", "name", "built", "use"), [
+    (EarlyFusionLatentFilter, "multi_l", "LateFusion", "LateFusionLatentFilter"),
+    (EarlyFusionLatentFilter, "custom_late", "LateFusion", "LateFusionLatentFilter"),
+    (LateFusionLatentFilter, "multi_e", "EarlyFusion", "EarlyFusionLatentFilter"),
+    (LateFusionLatentFilter, "acc", "EarlyFusion", "EarlyFusionLatentFilter"),
+])
+def test_module_refuses_the_other_fusion(module_cls, name, built, use):
+    """Each Lightning module trains its own observation model and names the one to use."""
+    mod = {"name": "custom_late", "channels": ["fsr_t", "acc"], "fusion": "late",
+           "pathways": {"force": ["fsr_t"], "vibration": ["acc"]}} if name == "custom_late" else name
+    net = LatentFilter(mod, **TINY)
+    msg = (f"{module_cls.__name__} trains the {module_cls.fusion.__name__} observation model; modality "
+           f"'{name}' \\(fusion='{net.modality['fusion']}'\\) builds {built}: use {use}")
+    with pytest.raises(ValueError, match=msg):
+        module_cls(net)
+    with pytest.raises(ValueError, match=msg):  # the config path (load_from_checkpoint) too
+        module_cls(net.config())
+    assert LatentFilterModule(net).model is net  # the generic module takes either
+
+
+@pytest.mark.parametrize("name", modality_names())
+def test_module_fusion_class_is_the_one_that_encodes(name, monkeypatch):
+    """The module's ``fusion`` class is the network's observation model, and its encode /
+    decode are what the filter's encode / decode and forward run."""
+    net = LatentFilter(name, **TINY)
+    module_cls = LateFusionLatentFilter if net.modality["fusion"] == "late" else EarlyFusionLatentFilter
+    module = module_cls(net)
+    assert type(module.model.observation) is module_cls.fusion
+    assert module_cls.fusion is (LateFusion if name == "multi_l" else EarlyFusion)
+    calls = []
+    for method in ("encode", "decode"):
+        orig = getattr(module_cls.fusion, method)
+        monkeypatch.setattr(module_cls.fusion, method,
+                            lambda self, x, _o=orig, _m=method: calls.append(_m) or _o(self, x))
+    o = make_batch(N_CH[name], B=2, T=3)["obs"]
+    out = module(o, torch.zeros(2, 3, 6))
+    assert calls == ["encode", "decode"] and out["recon"].shape == o.shape
+    enc_m, enc_v = module.model.encode(o[:, 0])
+    torch.testing.assert_close(enc_m, out["enc_mean"][:, 0])
+    torch.testing.assert_close(enc_v, out["enc_var"][:, 0])
+    assert enc_m.dtype == enc_v.dtype == torch.float32
+
+
+@pytest.mark.parametrize("name", modality_names())
+def test_same_seed_same_initial_parameters(name):
+    """The observation model draws its parameters first (encoder then decoder per pathway),
+    then the transition: the order the fused-in-LatentFilter code used, so a seed keeps
+    giving the same network and the same training."""
+    torch.manual_seed(0)
+    net = LatentFilter(name, **TINY)
+    torch.manual_seed(0)
+    encs, decs = [], []
+    for _, idx in net.modality["pathways"]:  # drawn in this order
+        encs.append(ConvEncoder(len(idx), 16, [4, 8], 32, 1e-3))
+        decs.append(ConvDecoder(len(idx), 16, [4, 8], 32))
+    transition = TransitionNet(16, 16, 6, 32, 1e-3)
+    got = [*net.observation.parameters(), *net.transition.parameters()]
+    want = [p for m in (*encs, *decs, transition) for p in m.parameters()]  # registered: encoders, then decoders
+    assert len(got) == len(want)
+    for g, w in zip(got, want):
+        assert torch.equal(g, w)
+
+
+def test_fusion_models_refuse_bad_pathways():
+    with pytest.raises(ValueError, match="late fusion needs >= 2 pathways partitioning the channels 0..C-1"):
+        LateFusion([("all", [0, 1])], 4, [4, 8], 16, 1e-3)
+    with pytest.raises(ValueError, match="late fusion needs >= 2 pathways partitioning the channels 0..C-1"):
+        LateFusion([("a", [0]), ("b", [2])], 4, [4, 8], 16, 1e-3)
 
 
 @pytest.mark.parametrize("name", modality_names())
@@ -374,7 +451,7 @@ def test_hydra_instantiation_with_project_style_configs(tmp_path):
         "optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-5},
     })
     module = instantiate(cfg)
-    assert set(module.model.encoders) == {"vibration", "force"}
+    assert set(module.model.observation.encoders) == {"vibration", "force"}
     assert module.hparams["annealing"] == {"name": "dvbf", "c0": 0.01, "T_A": 100.0, "fraction": None}
     assert module.hparams["optimizer"] == {"name": "Adam", "lr": 1e-5}
     assert type(module.hparams["net"]["modality"]) is dict and type(module.hparams["net"]["encoder"]) is dict

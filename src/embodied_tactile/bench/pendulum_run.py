@@ -25,11 +25,13 @@ from typing import Any, Optional
 
 import numpy as np
 import torch
+from torch import nn
 from sklearn.linear_model import LinearRegression
 from sklearn.metrics import r2_score
 
 from embodied_tactile.eval.krr import fit_alignment
 from embodied_tactile.models import LatentFilter, build_schedule
+from embodied_tactile.models.networks import ConvDecoder, ConvEncoder
 
 from .pendulum import N_OBJECTS, PendulumData, generate, render
 
@@ -161,7 +163,9 @@ def gradient_snr(model: LatentFilter, data: PendulumData, n_draws: int = 16, bat
     (< 1: a single sample's gradient is mostly noise; K samples scale it by sqrt(K))."""
     model.train()
     batch = _batch(data, np.random.default_rng(seed).integers(0, len(data), batch_size))
-    parts = {"encoder": model.encoders, "decoder": model.decoders, "transition": model.transition,
+    nets = list(model.observation.modules())  # one encoder/decoder, or one per late-fusion pathway
+    parts = {"encoder": nn.ModuleList(m for m in nets if isinstance(m, ConvEncoder)),
+             "decoder": nn.ModuleList(m for m in nets if isinstance(m, ConvDecoder)), "transition": model.transition,
              "y_posterior": model.y_posterior, "prior": model.prior}
     grads: dict[str, list] = {k: [] for k in parts}
     torch.manual_seed(seed)

@@ -25,9 +25,8 @@ from torch.nn import functional as F
 
 from embodied_tactile.modality import Modality, load_modality
 
+from .fusion import ObservationModel, observation_model
 from .networks import (
-    ConvDecoder,
-    ConvEncoder,
     HierarchicalPrior,
     TransitionNet,
     YPosterior,
@@ -79,8 +78,10 @@ class LatentFilter(nn.Module):
     observable) latents; see the module docstring for the time indexing.
 
     Args:
-        modality: preset name or mapping (see :func:`resolve_modality`). Only the
-            encoders/decoders of this modality are built.
+        modality: preset name or mapping (see :func:`resolve_modality`). Its ``fusion``
+            picks the observation model ``observation`` (:class:`~.fusion.EarlyFusion` or
+            :class:`~.fusion.LateFusion`, :mod:`.fusion`); only this modality's encoders and
+            decoders are built.
         n_z, n_y, n_a: latent and action sizes. n_objects: rows of the prior embedding.
         encoder: ``{"widths": [w1, w2], "hidden": h}`` for every encoder and its decoder.
         transition_hidden, lstm_hidden: widths of the transition MLP and LSTM.
@@ -125,17 +126,10 @@ class LatentFilter(nn.Module):
         unknown = set(enc) - {"widths", "hidden"}
         if unknown:
             raise ValueError(f"unknown encoder options {sorted(unknown)}")
-        self.encoders = nn.ModuleDict()
-        self.decoders = nn.ModuleDict()
-        self._pathway_index: list[tuple[str, list[int]]] = []
-        for name, idx in self.modality["pathways"]:
-            self.encoders[name] = ConvEncoder(len(idx), n_z, enc["widths"], enc["hidden"], min_var)
-            self.decoders[name] = ConvDecoder(len(idx), n_z, enc["widths"], enc["hidden"])
-            self._pathway_index.append((name, list(idx)))
-            self.register_buffer(f"_idx_{name}", torch.tensor(idx, dtype=torch.long), persistent=False)
-        order = [i for _, idx in self._pathway_index for i in idx]
-        self._identity_order = order == list(range(self.n_channels))
-        self.register_buffer("_inv_order", torch.argsort(torch.tensor(order)), persistent=False)
+        # built first: the same seed gives the same initial parameters as before the
+        # fusion code moved to models/fusion.py
+        self.observation: ObservationModel = observation_model(
+            self.modality["fusion"], self.modality["pathways"], n_z, enc["widths"], enc["hidden"], min_var)
         self.transition = TransitionNet(n_z, n_y, n_a, transition_hidden, min_var)
         self.y_posterior = YPosterior(n_z, n_y, n_a, lstm_hidden, min_var, update=y_update,
                                       prior_precision=y_prior_precision)
@@ -166,29 +160,15 @@ class LatentFilter(nn.Module):
                              f"for channels {self.modality['channels']}, got {tuple(obs.shape)}")
 
     def encode(self, o: Tensor) -> tuple[Tensor, Tensor]:
-        """q(z | o) for frames o (N, C, 28, 28) -> mean, var (N, n_z) in float32.
-
-        Late fusion: each pathway gives its own Gaussian; they are multiplied
-        (precision-weighted, computed in variance form) into one measurement Gaussian.
-        """
+        """q(z | o) for frames o (N, C, 28, 28) -> mean, var (N, n_z) in float32, by the
+        observation model (:mod:`.fusion`: one encoder over the stacked channels, or per
+        pathway Gaussians multiplied in latent space)."""
         self._check_obs(o)
-        m = v = None
-        for name, idx in self._pathway_index:
-            if len(self._pathway_index) == 1:
-                x = o
-            elif idx == list(range(idx[0], idx[-1] + 1)):
-                x = o[:, idx[0]:idx[-1] + 1]  # contiguous channels: a view
-            else:
-                x = o.index_select(1, getattr(self, f"_idx_{name}"))
-            mi, vi = self.encoders[name](x)
-            m, v = (mi, vi) if m is None else fuse_gaussians(m, v, mi, vi)
-        return m, v
+        return self.observation.encode(o)
 
     def decode(self, z: Tensor) -> Tensor:
         """Observation means for z (N, n_z) -> (N, C, 28, 28), channels in ``obs`` order."""
-        outs = [self.decoders[name](z) for name, _ in self._pathway_index]
-        x = outs[0] if len(outs) == 1 else torch.cat(outs, dim=1)
-        return x if self._identity_order else x.index_select(1, self._inv_order)
+        return self.observation.decode(z)
 
     def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, Tensor]:
         z = torch.zeros(batch, self.n_z, device=device, dtype=dtype)

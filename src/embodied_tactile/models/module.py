@@ -8,9 +8,10 @@ from typing import Any, Callable, Optional
 
 import lightning as L
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .annealing import AnnealingSchedule, build_schedule, check_finite
+from .fusion import EarlyFusion, LateFusion
 from .latent_filter import LatentFilter, to_plain
 
 DEFAULT_OPTIMIZER = {"name": "Adam", "lr": 1e-5}  # the paper's setting
@@ -76,7 +77,9 @@ def nonfinite_inputs(batch: Mapping[str, Any], max_frames: int = 8) -> list[str]
 
 
 class LatentFilterModule(L.LightningModule):
-    """Latent Filter training module for any modality (``fusion`` single|early|late).
+    """Latent Filter training module for any modality (``fusion`` single|early|late); the
+    subclasses :class:`EarlyFusionLatentFilter` and :class:`LateFusionLatentFilter` each
+    train one observation model (:mod:`.fusion`), named by their ``fusion`` attribute.
 
     Args (Hydra-instantiable; see docs/model.md and configs/model/latent_filter.yaml):
         net: the :class:`~.latent_filter.LatentFilter` (Hydra builds it from ``model.net``
@@ -97,8 +100,8 @@ class LatentFilterModule(L.LightningModule):
     val/nll, val/kl_z, val/kl_y (and test/* likewise).
     """
 
-    #: the fusion schemes this class trains (each subclass names its own)
-    fusions: tuple[str, ...] = ("single", "early", "late")
+    #: the observation model (:mod:`.fusion`) this class trains; None = any
+    fusion: Optional[type[nn.Module]] = None
 
     def __init__(self, net: LatentFilter | Mapping[str, Any], annealing: Any = None, optimizer: Any = None,
                  check_finite: bool = True) -> None:
@@ -108,9 +111,10 @@ class LatentFilterModule(L.LightningModule):
                 raise TypeError(f"{type(self).__name__}: net must be a LatentFilter or its config mapping, "
                                 f"got {type(net).__name__}")
             net = LatentFilter(**to_plain(net))
-        if net.modality["fusion"] not in self.fusions:
-            raise ValueError(f"{type(self).__name__} takes fusion in {self.fusions}, "
-                             f"modality {net.modality['name']!r} has fusion={net.modality['fusion']!r}")
+        if self.fusion is not None and not isinstance(net.observation, self.fusion):
+            raise ValueError(f"{type(self).__name__} trains the {self.fusion.__name__} observation model; modality "
+                             f"{net.modality['name']!r} (fusion={net.modality['fusion']!r}) builds "
+                             f"{type(net.observation).__name__}: use {_module_for(net.observation)}")
         schedule = build_schedule(annealing)
         self._optimizer = _optimizer_factory(optimizer)
         self.check_finite = bool(check_finite)
@@ -211,14 +215,22 @@ class LatentFilterModule(L.LightningModule):
 
 class EarlyFusionLatentFilter(LatentFilterModule):
     """Latent Filter with ONE encoder over all stacked channels (uni-modal or early fusion):
-    the channels are fused before the encoder, by stacking."""
+    the channels are fused before the encoder, by stacking (:class:`~.fusion.EarlyFusion`)."""
 
-    fusions = ("single", "early")
+    fusion = EarlyFusion
 
 
 class LateFusionLatentFilter(LatentFilterModule):
     """Latent Filter with one encoder/decoder pathway per sensor type, integrated in latent
-    space by a product of Gaussians (:func:`~.networks.fuse_gaussians`, in the network's
-    ``encode``)."""
+    space by a product of Gaussians (:class:`~.fusion.LateFusion`, float32
+    :func:`~.networks.fuse_gaussians`)."""
 
-    fusions = ("late",)
+    fusion = LateFusion
+
+
+def _module_for(observation: nn.Module) -> str:
+    """The Lightning module class that trains this observation model."""
+    for cls in (EarlyFusionLatentFilter, LateFusionLatentFilter):
+        if isinstance(observation, cls.fusion):
+            return cls.__name__
+    return LatentFilterModule.__name__
