@@ -61,14 +61,14 @@ def _check(cfg: DictConfig) -> None:
         raise SettingError(f"policy must be active, random, fixed or single, got {cfg.policy!r}")
 
 
-def _fixed_order(cfg: DictConfig, model, info: dict) -> list[int]:
+def _fixed_order(cfg: DictConfig, model, info: dict, cache) -> list[int]:
     from embodied_tactile.active.evaluation import fit_fixed_order
 
     if cfg.fixed_order:
         return [int(a) for a in cfg.fixed_order]
     n = int(cfg.calibration_touches or len(model.actions))
     t0 = time.perf_counter()
-    order, table = fit_fixed_order(model, info["train_objects"], n)
+    order, table = fit_fixed_order(model, info["train_objects"], n, cache=cache)
     print(f"fixed order fitted on calibration episodes of {len(info['train_objects'])} training objects: "
           f"{order} (candidate NMSE per step {np.round(table, 3).tolist()}, {time.perf_counter() - t0:.0f} s)",
           flush=True)
@@ -118,15 +118,27 @@ def run(cfg: DictConfig) -> int:
     active = OmegaConf.to_container(cfg.active, resolve=True)
     needs_fixed = cfg.mode == "evaluate" and "fixed" in cfg.evaluate.policies or cfg.policy == "fixed" \
         or cfg.first_action is None
-    fixed = _fixed_order(cfg, model, info) if needs_fixed else []
+    from embodied_tactile.active.evaluation import calibration_cache, fit_error_score
+
+    calib = calibration_cache(model)
+    fixed = _fixed_order(cfg, model, info, calib) if needs_fixed else []
+    error_score = None
+    if active.get("criterion") == "learned" and (cfg.mode == "evaluate" or cfg.policy == "active"):
+        t0 = time.perf_counter()
+        error_score = fit_error_score(model, info["train_objects"], cache=calib)
+        print(f"learned error score fitted on calibration episodes of {len(info['train_objects'])} training objects "
+              f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    del calib
     first = int(cfg.first_action) if cfg.first_action is not None else fixed[0]
-    for name, a in (("first_action", first), ("single_action", int(cfg.single_action))):
+    used = [str(cfg.policy)] if cfg.mode == "episode" else [str(p) for p in cfg.evaluate.policies]
+    checks = [("first_action", first)] + ([("single_action", int(cfg.single_action))] if "single" in used else [])
+    for name, a in checks:
         if a not in model.actions:
             raise SettingError(f"{name}={a} is not an action of the run (trained on actions {list(model.actions)})")
 
     if cfg.mode == "episode":
         pol = make_policy(str(cfg.policy), model=model, first_action=first, single_action=int(cfg.single_action),
-                          fixed_order=fixed, active=active)
+                          fixed_order=fixed, active=active, error_score=error_score)
         truth = model.true_factors([cfg.object])[0]
         png = out / f"episode_obj{cfg.object:02d}_{cfg.policy}_s{cfg.seed}.png"
         hist: dict[str, list] = {"a": [], "e": [], "s": []}
@@ -156,7 +168,7 @@ def run(cfg: DictConfig) -> int:
     t0 = time.perf_counter()
     res = evaluate_policies(model, objects, budget=int(cfg.budget), seeds=seeds, policies=pols, fixed_order=fixed,
                             first_action=first, single_action=int(cfg.single_action), active=active,
-                            n_factor_samples=int(cfg.n_factor_samples))
+                            n_factor_samples=int(cfg.n_factor_samples), error_score=error_score)
     summ = summarise(res["curves"])
     unseen = info.get("unseen_test_objects")
     caption = (f"NMSE (sum of squared errors / (n x catalogue variance) per factor, mean over the 4 factors; "

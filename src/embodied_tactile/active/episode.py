@@ -101,9 +101,10 @@ def run_episodes(model: PalpationModel, source: TouchSource, object_ids: Sequenc
     std = np.zeros((B, K, 4))
     uses: list[dict[int, int]] = [{} for _ in range(B)]
     state = None
+    posterior = None
     scores = []
     for k in range(K):
-        a = np.asarray(policy.choose(k, actions[:, :k], state, model, rng), dtype=np.int64)
+        a = np.asarray(policy.choose(k, actions[:, :k], state, model, rng, posterior=posterior), dtype=np.int64)
         if getattr(policy, "last_scores", None) is not None and k > 0:
             scores.append(policy.last_scores)
         actions[:, k] = a
@@ -120,6 +121,7 @@ def run_episodes(model: PalpationModel, source: TouchSource, object_ids: Sequenc
         out, state = filter_touch(model.net, torch.from_numpy(np.stack(obs_l)), torch.from_numpy(np.stack(act_l)),
                                   state)
         y_m, y_v = out["y_mean"].float().numpy(), out["y_var"].float().numpy()
+        posterior = (y_m, y_v)
         est[:, k] = model.factors_of(y_m)
         _, var = model.factor_moments(y_m, y_v, n_factor_samples, mc_rng)
         std[:, k] = np.sqrt(var)

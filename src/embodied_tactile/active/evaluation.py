@@ -40,13 +40,17 @@ def nmse_curve(log: EpisodeLog, ref_var: np.ndarray) -> np.ndarray:
                      for k in range(log.estimates.shape[1])])
 
 
+def calibration_cache(model: PalpationModel, calibration_seed: int = CALIBRATION_SEED) -> TouchCache:
+    """Touches of the calibration episodes (simulated under the calibration seed)."""
+    return TouchCache(model, SimulatedTouchSource(model.skin, model.primitive, calibration_seed))
+
+
 def fit_fixed_order(model: PalpationModel, objects: Sequence[int], n_touches: int, *,
-                    calibration_seed: int = CALIBRATION_SEED) -> tuple[list[int], list[list[float]]]:
+                    cache: Optional[TouchCache] = None) -> tuple[list[int], list[list[float]]]:
     """Greedy fixed order: touch k is the action that, after the k touches chosen so far,
     gives the lowest mean NMSE over calibration episodes on ``objects`` (the run's training
     objects). Returns (order, NMSE of every candidate at every step)."""
-    src = SimulatedTouchSource(model.skin, model.primitive, calibration_seed)
-    cache = TouchCache(model, src)
+    cache = cache or calibration_cache(model)
     obj = np.asarray(objects, dtype=np.int64)
     truth = model.true_factors(obj)
     order: list[int] = []
@@ -71,9 +75,43 @@ def fit_fixed_order(model: PalpationModel, objects: Sequence[int], n_touches: in
     return order, table
 
 
+def fit_error_score(model: PalpationModel, objects: Sequence[int], *, cache: Optional[TouchCache] = None,
+                    cv: int = 5) -> dict[int, Any]:
+    """The learned score of the active policy (docs/active.md, eq. 6), from calibration
+    episodes on ``objects`` (the run's training objects): for every first touch a1 and next
+    touch a2, the posterior mean y after a1 (features) and the normalised squared factor
+    error after a2, e = mean_k (f_hat_k - f_k)^2 / var_ref_k (target). One KRR per a2
+    (:func:`~embodied_tactile.eval.krr.fit_alignment`, CV folds grouped by object)."""
+    from embodied_tactile.eval.krr import fit_alignment
+
+    cache = cache or calibration_cache(model)
+    obj = np.asarray(objects, dtype=np.int64)
+    truth = model.true_factors(obj)
+    xs: dict[int, list] = {a: [] for a in model.actions}
+    es: dict[int, list] = {a: [] for a in model.actions}
+
+    def touch(a, use, state):
+        batch = [cache.get(int(o), a, use) for o in obj]
+        return filter_touch(model.net, torch.from_numpy(np.stack([b[0] for b in batch])),
+                            torch.from_numpy(np.stack([b[1] for b in batch])), state)
+
+    for a1 in model.actions:
+        out1, st1 = touch(a1, 0, None)
+        y1 = out1["y_mean"].float().numpy()
+        for a2 in model.actions:
+            out2, _ = touch(a2, 1 if a2 == a1 else 0, st1)
+            est = model.factors_of(out2["y_mean"].float().numpy())
+            xs[a2].append(y1)
+            es[a2].append(((est - truth) ** 2 / model.ref_var).mean(axis=1))
+    groups = np.tile(obj, len(model.actions))
+    return {a: fit_alignment(np.concatenate(xs[a]), np.concatenate(es[a])[:, None], groups=groups, cv=cv, n_threads=1)
+            for a in model.actions}
+
+
 def evaluate_policies(model: PalpationModel, objects: Sequence[int], *, budget: int, seeds: Sequence[int],
                       policies: Sequence[str], fixed_order: Sequence[int], first_action: int, single_action: int,
-                      active: Optional[dict] = None, n_factor_samples: int = 64, log=print) -> dict[str, Any]:
+                      active: Optional[dict] = None, n_factor_samples: int = 64, error_score: Optional[dict] = None,
+                      log=print) -> dict[str, Any]:
     """Run every policy on every object for every seed. -> {"curves": {policy: (S, K)},
     "actions": {policy: [(B, K) per seed]}, "decision_s": [...], "touches_simulated": n}."""
     if CALIBRATION_SEED in seeds:
@@ -86,7 +124,7 @@ def evaluate_policies(model: PalpationModel, objects: Sequence[int], *, budget: 
         cache = TouchCache(model, SimulatedTouchSource(model.skin, model.primitive, int(s)))
         for p in policies:
             pol = make_policy(p, model=model, first_action=first_action, single_action=single_action,
-                              fixed_order=fixed_order, active=active)
+                              fixed_order=fixed_order, active=active, error_score=error_score)
             t0 = time.perf_counter()
             ep = run_episodes(model, cache.source, objects, pol, budget, seed=int(s), n_factor_samples=n_factor_samples,
                               cache=cache)

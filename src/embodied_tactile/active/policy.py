@@ -22,7 +22,7 @@ class Policy(Protocol):
     name: str
 
     def choose(self, k: int, history: np.ndarray, state: Optional[dict], model: PalpationModel,
-               rng: np.random.Generator) -> np.ndarray: ...
+               rng: np.random.Generator, posterior: Optional[tuple] = None) -> np.ndarray: ...
 
 
 class FixedOrderPolicy:
@@ -33,7 +33,7 @@ class FixedOrderPolicy:
             raise ValueError("a fixed order needs at least one action")
         self.order, self.name = [int(a) for a in order], name
 
-    def choose(self, k, history, state, model, rng):
+    def choose(self, k, history, state, model, rng, posterior=None):
         a = self.order[k % len(self.order)]
         if a not in model.actions:
             raise ValueError(f"{self.name}: action {a} unknown to the model (actions {list(model.actions)})")
@@ -56,7 +56,7 @@ class RandomPolicy:
     def __init__(self) -> None:
         self._perm: Optional[np.ndarray] = None
 
-    def choose(self, k, history, state, model, rng):
+    def choose(self, k, history, state, model, rng, posterior=None):
         acts = np.asarray(model.actions)
         n = len(acts)
         if k % n == 0:  # a new block: one permutation per episode
@@ -85,7 +85,7 @@ def imagine_touch(net: Any, state: dict, actions: torch.Tensor, sample: bool) ->
     return out["y_mean"], out["y_var"]
 
 
-CRITERIA = ("variance", "spread")
+CRITERIA = ("variance", "spread", "learned")
 
 
 def expected_variance_reduction(model: PalpationModel, state: dict, candidates: Sequence[int], *,
@@ -104,8 +104,8 @@ def expected_variance_reduction(model: PalpationModel, state: dict, candidates: 
 
     M = ``n_rollouts`` imagined touches per candidate (M = 1: the mean rollout, no
     sampling; M > 1: sampled rollouts, torch seeded by ``seed``)."""
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    if criterion not in CRITERIA[:2]:
+        raise ValueError(f"criterion must be one of {CRITERIA[:2]} (imagined rollouts), got {criterion!r}")
     if criterion == "spread" and int(n_rollouts) < 2:
         raise ValueError("criterion 'spread' needs n_rollouts >= 2 sampled futures")
     B = state["z"].shape[0]
@@ -130,6 +130,17 @@ def expected_variance_reduction(model: PalpationModel, state: dict, candidates: 
     return -model.normalised_variance(var).reshape(B, A, M).mean(axis=2)
 
 
+def predicted_error(error_score: dict, y_mean: np.ndarray, candidates: Sequence[int]) -> np.ndarray:
+    """The learned score (docs/active.md, eq. 6): predicted normalised squared factor error
+    after one more touch with each candidate, from the current posterior mean y (B, n_y);
+    ``error_score[a]`` is a KRR alignment y -> error fitted on calibration episodes. -> (B, A)."""
+    missing = [a for a in candidates if a not in error_score]
+    if missing:
+        raise ValueError(f"no learned error score for action(s) {missing}")
+    y = np.asarray(y_mean, dtype=np.float64)
+    return np.stack([error_score[a].predict(y)[:, 0, 0] for a in candidates], axis=1)
+
+
 class ActivePolicy:
     """Choose the action maximising the expected reduction of the normalised factor variance
     (:func:`expected_variance_reduction`, ``criterion``). The first touch, with no
@@ -139,22 +150,35 @@ class ActivePolicy:
     name = "active"
 
     def __init__(self, first_action: int, n_rollouts: int = 4, horizon: Optional[int] = None,
-                 n_y_samples: int = 32, criterion: str = "variance") -> None:
+                 n_y_samples: int = 32, criterion: str = "variance", error_score: Optional[dict] = None) -> None:
         if criterion not in CRITERIA:
             raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+        if criterion == "learned" and not error_score:
+            raise ValueError("criterion 'learned' needs an error score fitted on calibration episodes "
+                             "(embodied_tactile.active.evaluation.fit_error_score)")
+        self.error_score = error_score
         self.first_action, self.n_rollouts, self.horizon = int(first_action), int(n_rollouts), horizon
         self.criterion = criterion
         self.n_y_samples = int(n_y_samples)
         self.decision_s: list[float] = []
         self.last_scores: Optional[np.ndarray] = None
 
-    def choose(self, k, history, state, model, rng):
-        if k == 0 or state is None:
+    def choose(self, k, history, state, model, rng, posterior=None):
+        if k == 0 or (state is None and posterior is None):
             if self.first_action not in model.actions:
                 raise ValueError(f"first action {self.first_action} unknown to the model (actions {list(model.actions)})")
             return np.full(len(history), self.first_action, dtype=np.int64)
         t0 = time.perf_counter()
         cand = list(model.actions)
+        if self.criterion == "learned":
+            if posterior is None:
+                raise ValueError("criterion 'learned' needs the current posterior (y_mean, y_var)")
+            scores = -predicted_error(self.error_score, posterior[0], cand)
+            self.decision_s.append(time.perf_counter() - t0)
+            self.last_scores = scores
+            return np.asarray(cand, dtype=np.int64)[np.argmax(scores, axis=1)]
+        if state is None:
+            raise ValueError(f"criterion {self.criterion!r} needs the filter state after the previous touch")
         scores = expected_variance_reduction(model, state, cand, n_rollouts=self.n_rollouts, horizon=self.horizon,
                                              n_y_samples=self.n_y_samples, seed=int(rng.integers(2**31)),
                                              criterion=self.criterion)
@@ -164,10 +188,11 @@ class ActivePolicy:
 
 
 def make_policy(name: str, *, model: PalpationModel, first_action: int, single_action: int,
-                fixed_order: Optional[Sequence[int]] = None, active: Optional[dict] = None) -> Any:
+                fixed_order: Optional[Sequence[int]] = None, active: Optional[dict] = None,
+                error_score: Optional[dict] = None) -> Any:
     """A policy by name: active | random | fixed (needs ``fixed_order``) | single."""
     if name == "active":
-        return ActivePolicy(first_action, **(active or {}))
+        return ActivePolicy(first_action, error_score=error_score, **(active or {}))
     if name == "random":
         return RandomPolicy()
     if name == "fixed":
