@@ -83,6 +83,22 @@ def main() -> None:
                                             n_y_samples=32, seed=r, criterion=crit)
                 times.append(1e3 * (time.perf_counter() - t0))
             print(f"| {m} | {h} | {crit} | {statistics.median(times):.0f} | {max(times):.0f} |")
+    # the learned score: one KRR per candidate on the posterior mean (synthetic score of the
+    # same size as fit_error_score's: 4 first touches x 32 objects rows per candidate)
+    from embodied_tactile.active.policy import predicted_error
+    from embodied_tactile.eval.krr import fit_alignment
+
+    rng = np.random.default_rng(0)
+    n_y = int(state["z"].shape[1]) if not hasattr(model.net, "n_y") else int(model.net.n_y)
+    ys = rng.standard_normal((128, n_y))
+    score = {a: fit_alignment(ys, rng.random((128, 1)), cv=2, n_threads=1) for a in model.actions}
+    y_now = rng.standard_normal((1, n_y))
+    times = []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        predicted_error(score, y_now, list(model.actions))
+        times.append(1e3 * (time.perf_counter() - t0))
+    print(f"| - | - | learned | {statistics.median(times):.1f} | {max(times):.1f} |")
 
 
 if __name__ == "__main__":
