@@ -105,6 +105,28 @@ def test_contact_law_finite_over_extremes():
                 assert np.all(np.diff(p[2:]) > 0)  # monotone in indentation
 
 
+@pytest.mark.filterwarnings("error")
+def test_contact_front_finite_on_stiff_and_extreme_cases():
+    from embodied_tactile.sim import physics as P
+
+    with np.errstate(divide="raise", over="raise", invalid="raise"):
+        shares = [P.local_skin_share(mechanics(C.get_object(oid), skin, PhysicsOverrides(youngs_modulus=e)))
+                  for e in (V.YOUNGS_MODULUS_RANGE_PA[0], 1e5, V.YOUNGS_MODULUS_RANGE_PA[1]) for skin in C.SKINS for oid in (0, 6)]
+        assert all(0.0 < s <= 1.0 for s in shares) and max(shares) > 0.999 and min(shares) < 1e-4
+        # a fast, deep press (2 m/s: far beyond any action) on a fully stiff surface: every
+        # sample crosses terraces; the kicks stay finite and bounded by share v dz dens / dt
+        rng = np.random.default_rng(1)
+        z = np.cumsum(rng.uniform(-2.0, 2.0, (700, 16)) / 700, axis=0)
+        dens = P.front_density(rng.normal(0, 1e-3, (700, 16, 64)))
+        acc = P.front_acceleration(z, dens, 1.0, 1 / 700)
+        bound = 2.0 * (np.abs(np.diff(np.floor(z / P.LAYER_HEIGHT_M), axis=0)).max() + 1) * P.LAYER_HEIGHT_M * dens.max() * 700
+        assert np.isfinite(acc).all() and np.abs(acc).max() <= bound
+        # PLA at the largest amplitude with the hard skin (share 1, 317 Hz node): in range
+        for prim in C.PRIMITIVES:
+            tr = simulate_trial(6, "hard", prim, 15, duration=1.0, physics=PhysicsOverrides(amplitude_mm=V.MAX_AMPLITUDE_MM))
+            _check(tr)
+
+
 def test_continuity_without_lift_off():
     tr = simulate_trial(4, "soft", "pressing", 15, duration=2.0, physics=PhysicsOverrides(relaxation_time=1e-5))
     total = tr.fsr.astype(np.float64).sum(axis=(2, 3))[:, 0]

@@ -78,7 +78,10 @@ def test_full_trial_shapes_ranges_and_clock():
 
 
 def attrs_ok(attrs) -> bool:
-    return attrs["source"] == "simulated" and attrs["object_id"] == 5 and attrs["skin"] == "soft"
+    from embodied_tactile.sim.physics import PHYSICS_VERSION
+
+    return (attrs["source"] == "simulated" and attrs["object_id"] == 5 and attrs["skin"] == "soft"
+            and attrs["sim_physics_version"] == PHYSICS_VERSION)
 
 
 def test_determinism_and_independent_streams():
@@ -174,6 +177,80 @@ def test_sliding_vibration_grows_with_spatial_frequency_and_roughness():
     # pressing (no sliding) excites far less high-frequency vibration than sliding
     press = hf_energy(simulate_trial(20, "hard", "pressing", PRESS_DEEP, duration=2.0))
     assert press < 0.5 * e[20]
+
+
+def press_hf_z(trial, f_lo: float = 30.0, window=None) -> float:
+    """rms (g) of the skin-normal acceleration above f_lo Hz, all nodes, optional time window."""
+    z = trial.acc[..., 2].reshape(len(trial.t), -1).astype(np.float64)
+    b, a_ = signal.butter(4, f_lo, "high", fs=C.FS_TACTILE)
+    x = signal.filtfilt(b, a_, z - z.mean(0), axis=0)
+    return float(np.sqrt((x[window if window is not None else slice(None)] ** 2).mean()))
+
+
+def test_pressing_contact_front_transients_follow_their_physical_drivers(monkeypatch):
+    """Pressing: the printed layer lines engaging at the advancing contact front
+    (physics.front_acceleration) put surface-dependent vibration on the skin normal."""
+    from embodied_tactile.sim import physics as P
+
+    press = {o: press_hf_z(simulate_trial(o, "soft", "pressing", PRESS_DEEP, duration=2.0)) for o in (0, 1, 6, 27)}
+    assert press[6] > 1.8 * press[0], press  # PLA vs Ecoflex 00-10, same geometry: stiffer surface, larger share
+    assert press[27] > 1.5 * press[1], press  # Dragon Skin top layer vs plain Ecoflex 00-10, same geometry
+    # same stroke (2 mm), 4x slower (0.2 vs 0.8 Hz, one vs four cycles): impulses v dz density
+    # at a rate v / dz, so far less energy (at the amplitude, not the speed: a deeper
+    # stroke keeps each cell at its contact front a smaller part of the cycle)
+    slow, fast = (press_hf_z(simulate_trial(6, "soft", "pressing", a, duration=5.0)) for a in (0, 3))
+    assert slow < 0.4 * fast, (slow, fast)
+    # the mechanism is what carries it: without it pressing PLA is at the 3 mg noise floor
+    monkeypatch.setattr(P, "front_acceleration", lambda z, *a, **k: np.zeros_like(z))
+    off = press_hf_z(simulate_trial(6, "soft", "pressing", PRESS_DEEP, duration=2.0))
+    assert off < 0.006 and press[6] > 3 * off, (off, press[6])
+
+
+def test_no_contact_front_transients_without_contact():
+    lift = simulate_trial(6, "hard", "pressing", PRESS_DEEP, duration=3.0, physics=PhysicsOverrides(lift_off=True))
+    up = (lift.t > 1.35) & (lift.t < 1.65)  # retracted 30 mm: no contact
+    down = lift.t < 0.9
+    assert press_hf_z(lift, window=up) < 0.005 < 2 * 0.005 < press_hf_z(lift, window=down)
+
+
+def test_front_density_and_acceleration_by_hand():
+    from embodied_tactile.sim import physics as P
+
+    dz = P.LAYER_HEIGHT_M
+    # density: a cell whose points all sit at the skin's level -> 1 / (width sqrt(2 pi));
+    # out of contact or entirely pressed in -> 0
+    assert P.front_density(np.zeros((1, 64)))[0] == pytest.approx(1 / (dz * np.sqrt(2 * np.pi)))
+    assert P.front_density(np.full((1, 64), -5e-3))[0] < 1e-100 and P.front_density(np.full((1, 64), 5e-3))[0] < 1e-100
+    # a node moving down at 10 mm/s over terraces 0.2 mm high crosses one every 20 ms:
+    # velocity steps share * v * dz * density, minus their mean (zero-mean train)
+    dt, v, dens, share = 1e-3, 10e-3, 500.0, 0.4
+    z = 1e-4 - v * dt * np.arange(200)
+    acc = P.front_acceleration(z[:, None], np.full((200, 1), dens), share, dt)[:, 0]
+    steps = np.abs(np.diff(np.floor(z / dz), prepend=np.floor(z[0] / dz))) > 0
+    assert steps.sum() == 10
+    np.testing.assert_allclose(acc[steps], share * v * dens * (dz - v * dt) / dt)
+    np.testing.assert_allclose(acc[~steps], -share * v * dens * v)
+    assert abs(acc.mean()) < 0.02 * acc.max()
+    # unloading crosses the same terraces: the same positive kicks (the compression rate
+    # drops in magnitude); no motion or no surface at the skin's level: nothing
+    up = P.front_acceleration(z[::-1, None], np.full((200, 1), dens), share, dt)[:, 0]
+    assert (up > 0).sum() == 10
+    np.testing.assert_allclose(up[up > 0], acc[steps])
+    assert not P.front_acceleration(np.full((50, 1), 1e-4), np.full((50, 1), dens), share, dt).any()
+    assert not P.front_acceleration(z[:, None], np.zeros((200, 1)), share, dt).any()
+    assert not P.front_acceleration(z[:, None], np.full((200, 1), dens), 0.0, dt).any()
+
+
+def test_local_skin_share_follows_the_surface_material():
+    from embodied_tactile.sim import physics as P
+
+    share = {(o, s): P.local_skin_share(mechanics(C.get_object(o), s)) for o in (0, 13, 6, 27) for s in C.SKINS}
+    for s in C.SKINS:
+        assert share[(0, s)] < share[(13, s)] < share[(27, s)] < share[(6, s)] <= 1.0  # 00-10 < 00-50 < DS30 < PLA
+        assert share[(6, s)] > 0.999
+    # Ecoflex 00-10 (69 kPa instantaneous) against the soft skin's Ecoflex 00-31 (84 kPa)
+    assert share[(0, "soft")] == pytest.approx(55e3 * 1.25 / (55e3 * 1.25 + 69e3 * 1.22))
+    assert share[(0, "hard")] < share[(0, "soft")]  # the stiffer skin takes less of the step
 
 
 def test_soft_skin_attenuates_high_frequency_vibration():
@@ -321,6 +398,61 @@ def test_file_with_recorded_trials_is_never_modified(tmp_path, drop, overwrite):
                              workers=1, overwrite=overwrite)
         assert str(path) in str(info.value) and name in str(info.value) and "recorded" in str(info.value)
         assert _digest(path) == before
+
+
+def _set_version(path, name: str, version: int | None) -> None:
+    with h5py.File(path, "a") as f:
+        g = f["trials"][name]
+        if version is None:
+            del g.attrs["sim_physics_version"]  # written before the attribute existed
+        else:
+            g.attrs["sim_physics_version"] = version
+
+
+def test_trials_of_an_older_physics_are_resimulated(tmp_path, monkeypatch, caplog):
+    from embodied_tactile.sim import dataset as D
+    from embodied_tactile.sim.physics import PHYSICS_VERSION
+
+    path = tmp_path / "raw.h5"
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0], actions=[1, 2, 3], duration=0.5, workers=1)
+    _set_version(path, "obj00_hard_pressing_a01_r00", None)
+    _set_version(path, "obj00_hard_pressing_a02_r00", PHYSICS_VERSION - 1)
+    with h5py.File(path, "a") as f:  # an old trial lacking a field is redone too
+        del f["trials/obj00_hard_pressing_a02_r00/tactile/fsr"]
+    calls = []
+    real = D.simulate_trial
+    monkeypatch.setattr(D, "simulate_trial", lambda *a, **k: calls.append(a[:5]) or real(*a, **k))
+    with caplog.at_level(logging.WARNING, logger="embodied_tactile.sim.dataset"):
+        generate_dataset(path, skin="hard", primitive="pressing", objects=[0], actions=[1, 2, 3], duration=0.5, workers=1)
+    assert calls == [(0, "hard", "pressing", 1, 0), (0, "hard", "pressing", 2, 0)]  # not a03 (current)
+    assert any(str(path) in r.getMessage() and "re-simulating 2 trial(s)" in r.getMessage() for r in caplog.records), caplog.text
+    with h5py.File(path, "r") as f:
+        assert {int(g.attrs["sim_physics_version"]) for g in f["trials"].values()} == {PHYSICS_VERSION}
+    good, errors = scan_raw(path)
+    assert errors == [] and len(good) == 3
+
+
+def test_unrequested_trial_of_an_older_physics_refuses_the_file(tmp_path):
+    from embodied_tactile.sim.physics import PHYSICS_VERSION
+
+    path = tmp_path / "raw.h5"
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 8], actions=[1], duration=0.5, workers=1)
+    _set_version(path, "obj08_hard_pressing_a01_r00", None)
+    before = _digest(path)
+    with pytest.raises(OutputFileError) as info:
+        generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 3], actions=[1], duration=0.5, workers=1)
+    msg = str(info.value)
+    assert str(path) in msg and "obj08_hard_pressing_a01_r00" in msg and f"version 1" in msg and f"version {PHYSICS_VERSION}" in msg
+    assert _digest(path) == before  # nothing written, not even the requested new trial
+    # a recorded trial is never touched, stale simulated trials or not
+    rec = tmp_path / "rec.h5"
+    _write_trial_as(rec, "recorded")
+    _write_trial_as(rec, "simulated", object_id=8)
+    _set_version(rec, "obj08_hard_pressing_a01_r00", None)
+    before = _digest(rec)
+    with pytest.raises(OutputFileError, match="recorded"):
+        generate_dataset(rec, skin="hard", primitive="pressing", objects=[0, 8], actions=[1], duration=0.5, workers=1)
+    assert _digest(rec) == before
 
 
 def test_unmarked_incomplete_group_is_not_deleted(tmp_path):

@@ -88,6 +88,7 @@ OPTIONAL_ATTRS: Mapping[str, type] = {
     "device": str,
     "notes": str,
 }
+    "sim_physics_version": int,  # simulator: version of its physics (sim.physics.PHYSICS_VERSION); absent = 1
 
 _DTYPES: Mapping[str, tuple[np.dtype, ...]] = {
     "t": (np.dtype("float64"),),

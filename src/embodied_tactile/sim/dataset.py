@@ -18,7 +18,7 @@ import h5py
 
 from embodied_tactile import constants as C
 from embodied_tactile.io.rawformat import make_attrs, trial_name, write_trial
-from embodied_tactile.sim.physics import PhysicsOverrides
+from embodied_tactile.sim.physics import PHYSICS_VERSION, VERSION_ATTR, PhysicsOverrides
 from embodied_tactile.sim.trial import simulate_trial
 from embodied_tactile.sim.validation import SimParameterError, check_choice, check_duration, check_int, check_overrides
 
@@ -47,28 +47,32 @@ def _text(v: object) -> str | None:
     return v.decode() if isinstance(v, bytes) else (None if v is None else str(v))
 
 
-def _inventory(path: Path, seed: int) -> tuple[set[str], dict[str, str], str | None]:
+def _inventory(path: Path, seed: int) -> tuple[set[str], dict[str, str], str | None, dict[str, int]]:
     """Read ``path`` (read-only) and return (complete simulated trials, damaged simulated
-    trials -> what they lack, the simulator's own interrupted group or None).
+    trials -> what they lack, the simulator's own interrupted group or None, stale trials
+    -> their physics version). A stale trial is a simulated trial, complete or not, whose
+    ``sim_physics_version`` (absent = 1) is not :data:`PHYSICS_VERSION`; it is in neither
+    of the first two.
 
     Raises :class:`OutputFileError` if the file holds anything the simulator did not write
     and mark: a trial whose ``source`` is not ``"simulated"`` (recorded, or no attributes),
     or content outside ``/trials``. Such a file is never opened for writing.
     """
     if not path.exists():
-        return set(), {}, None
+        return set(), {}, None, {}
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
         raise OutputFileError(path, "*", f"cannot be opened as HDF5 ({exc}); simulated trials are only written into a new or a simulated raw file") from None
     complete: set[str] = set()
     damaged: dict[str, str] = {}
+    stale: dict[str, int] = {}
     with f:
         other = sorted(k for k in f.keys() if k != "trials")
         if other:
             raise OutputFileError(path, "*", f"holds {other}, not only /trials: not a simulated raw file; choose another output file")
         if "trials" not in f:
-            return complete, damaged, None
+            return complete, damaged, None, stale
         pending = _text(f.attrs.get(PENDING_ATTR))
         for name in f["trials"].keys():
             if name == pending:
@@ -81,6 +85,10 @@ def _inventory(path: Path, seed: int) -> tuple[set[str], dict[str, str], str | N
                     f"source={source!r}, not 'simulated': the file holds trials the simulator did not write, "
                     "and simulated trials are never written into such a file (it is left unchanged); choose another output file",
                 )
+            version = int(g.attrs.get(VERSION_ATTR, 1))
+            if version != PHYSICS_VERSION:
+                stale[name] = version  # damaged or not: it is redone, or the file is refused
+                continue
             lacks = [p for p in _NEEDED if p not in g] + (["attrs/seed"] if "seed" not in g.attrs else [])
             if lacks:
                 damaged[name] = ", ".join(lacks)
@@ -88,7 +96,7 @@ def _inventory(path: Path, seed: int) -> tuple[set[str], dict[str, str], str | N
             complete.add(name)
             if int(g.attrs["seed"]) != int(seed):
                 log.warning("%s: trial %s was simulated with seed %s, not %s", path, name, g.attrs["seed"], seed)
-        return complete, damaged, pending if pending is not None and pending in f["trials"] else None
+        return complete, damaged, pending if pending is not None and pending in f["trials"] else None, stale
 
 
 def _job(args: tuple) -> object:
@@ -119,7 +127,11 @@ def generate_dataset(
     """Simulate objects x actions x repetitions trials of one skin and primitive into ``path``.
 
     Only missing trials are simulated (an interrupted run resumes); ``overwrite``
-    regenerates the requested trials. The file must be new or hold simulated trials only
+    regenerates the requested trials. A requested trial simulated by an older physics
+    (``sim_physics_version`` attribute absent or not :data:`PHYSICS_VERSION`) is
+    re-simulated with a warning; an older trial that is not requested makes the run refuse
+    the file (:class:`OutputFileError` naming file and trial, nothing written), so one file
+    never holds two physics. The file must be new or hold simulated trials only
     (:class:`OutputFileError` otherwise, before anything is written). A simulated trial that
     lacks a field is present, not missing: it is kept with a warning naming the field (a
     reader that needs the field skips it), and regenerated only with ``overwrite``. Every argument is
@@ -143,21 +155,35 @@ def generate_dataset(
     if not isinstance(overwrite, bool):
         raise SimParameterError("overwrite", overwrite, "true or false")
     path = Path(path)
-    complete, damaged, partial = _inventory(path, seed)
+    complete, damaged, partial, stale = _inventory(path, seed)
     jobs = []
+    requested: set[str] = set()
     for o in objects:
         for a in actions:
             for r in range(repetitions):
                 name = trial_name(make_attrs(object_id=o, skin=skin, primitive=primitive, action_index=a, repetition=r, source="simulated", seed=seed))
+                requested.add(name)
                 if name in damaged and not overwrite:
                     log.warning(
                         "%s: trial %s lacks %s; kept as it is (the simulator never deletes a trial, and a reader "
                         "that needs the field skips the trial): remove it or pass overwrite=true to regenerate it",
                         path, name, damaged[name],
                     )
-                elif overwrite or name not in complete:
+                elif overwrite or name not in complete or name in stale:
                     jobs.append((o, skin, primitive, a, r, seed, duration, physics))
-    log.info("%s: %d trials to simulate (%d already present)", path, len(jobs), len(complete) + len(damaged))
+    kept_stale = sorted(set(stale) - requested)
+    if kept_stale:
+        raise OutputFileError(
+            path, kept_stale[0],
+            f"simulated by physics version {stale[kept_stale[0]]}, the simulator is at version {PHYSICS_VERSION}, "
+            f"and this run does not regenerate it ({len(kept_stale)} such trial(s), not among the requested objects, "
+            "actions and repetitions); one file never mixes two physics: request those trials too (they are then "
+            "re-simulated) or write to another file. The file is left unchanged",
+        )
+    if stale:
+        log.warning("%s: re-simulating %d trial(s) simulated by an older physics version (first: %s, version %d; now %d)",
+                    path, len(stale), min(stale), stale[min(stale)], PHYSICS_VERSION)
+    log.info("%s: %d trials to simulate (%d already present)", path, len(jobs), len(complete) + len(damaged) + len(stale))
     if not jobs and partial is None:
         return path
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -171,7 +197,7 @@ def generate_dataset(
         def write(trial) -> None:
             f.attrs[PENDING_ATTR] = trial.name
             f.flush()  # the mark reaches the file before the group does
-            write_trial(f, trial, overwrite=overwrite)
+            write_trial(f, trial, overwrite=overwrite or trial.name in stale)
             del f.attrs[PENDING_ATTR]
 
         if workers <= 1:

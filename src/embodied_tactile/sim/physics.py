@@ -56,6 +56,19 @@ STICKSLIP_G = 0.6
 STICKSLIP_REF_HZ = 100.0
 SLIP_VELOCITY_M_S = 2e-3  # regularisation of Coulomb friction (elastic pre-slip)
 
+#: Version of the simulated physics, written to every simulated trial as the attribute
+#: ``sim_physics_version`` (absent = 1). Bump it whenever a change alters the simulated
+#: signals: ``generate_dataset`` re-simulates requested trials of an older version and
+#: refuses a file that would keep unrequested ones (never one dataset of two physics).
+#: 1: up to the contact-front transients; 2: contact-front transients at the printed
+#: layer lines (:func:`front_density`, :func:`front_acceleration`).
+PHYSICS_VERSION = 2
+VERSION_ATTR = "sim_physics_version"
+#: Contact front: each accelerometer cell (10 x 10 mm) is sampled on FRONT_SUB x FRONT_SUB
+#: points (1.25 mm apart) to find the area of its surface at the skin's level; the
+#: density is a Gaussian kernel estimate of width one layer height.
+FRONT_SUB = 8
+
 #: Accelerometer node: chip + flex island + the silicone cell co-moving with it.
 NODE_MASS_KG = 1.0e-3
 NODE_AREA_M2 = 9e-6  # load path above the 3 x 3 mm chip
@@ -146,6 +159,7 @@ class Mechanics:
     e_top: float  # 0 when homogeneous
     t_top: float  # m
     friction: float
+    g_top: float = 0.0  # relaxation strength of the top layer (instantaneous modulus only)
 
     @property
     def bridging_length(self) -> float:
@@ -175,6 +189,7 @@ def mechanics(obj: C.WaveObject, skin: str, physics: PhysicsOverrides | None = N
         e_top=top.youngs_modulus if top else 0.0,
         t_top=obj.top_thickness_mm * 1e-3,
         friction=float(physics.friction) if physics.friction is not None else min(surface.friction, sk.friction),
+        g_top=top.relaxation_strength if top else 0.0,
     )
 
 
@@ -235,6 +250,56 @@ def qlv_relax(p_elastic: np.ndarray, dt: float, branches: list[tuple[float, floa
         b = float(-np.expm1(-x) / x) if x > 1e-12 else 1.0
         out += g * signal.lfilter([b], [1.0, -a], dp, axis=0)
     return np.maximum(out, 0.0)
+
+
+def local_skin_share(m: Mechanics) -> float:
+    """Share of a small (mm-scale) indentation taken by the skin when pressed against the
+    object's surface material: two elastic half-spaces in contact deform in proportion to
+    their compliances (1 - nu^2) / E (Hertz theory, Johnson 1985, Contact Mechanics, ch. 4); with the
+    same Poisson ratio the skin's share is E_o / (E_o + E_s). Instantaneous moduli
+    E (1 + g): the transients last milliseconds, far below the relaxation times. At a
+    layer step the deformed zone is as deep as the step's contact band is wide (< 2 mm),
+    i.e. inside the cover and, for heterogeneous objects, inside the Dragon Skin top layer,
+    which is why the surface material (the top layer if any, else the bulk, with its
+    override) sets the share. In [0, 1] for every allowed modulus."""
+    e_s = m.e_skin * (1 + m.g_skin)
+    e_o = m.e_top * (1 + m.g_top) if m.t_top > 0 else m.e_obj * (1 + m.g_obj)
+    return float(e_o / (e_o + e_s))
+
+
+def front_density(penetration: np.ndarray, width: float = LAYER_HEIGHT_M) -> np.ndarray:
+    """Area fraction per unit height (1/m) of a cell's surface at the skin's level: a
+    Gaussian kernel estimate at penetration 0 over the cell's sample points (last axis).
+    By the coarea formula this is the contact-front length over the cell divided by the
+    surface slope there, per cell area; zero where the cell is out of contact or entirely
+    in contact (no surface at the skin's level)."""
+    u = np.asarray(penetration, dtype=np.float64) / width
+    return np.exp(-0.5 * u * u).mean(axis=-1) / (width * np.sqrt(2 * np.pi))
+
+
+def front_acceleration(z: np.ndarray, density: np.ndarray, share: float, dt: float,
+                       layer: float = LAYER_HEIGHT_M) -> np.ndarray:
+    """Base acceleration (m/s^2, along the skin normal) of the cover under each node from
+    the printed layer lines engaging as the contact front advances (``z``: skin-surface
+    height at the node, m, time on axis 0; ``density``: :func:`front_density` at the same
+    samples).
+
+    The printed surface is a staircase of terraces ``layer`` high. The skin's mean
+    compression under a cell grows at share |dz/dt| A(z), A the cell's area fraction in
+    contact. On a staircase A jumps by dA = layer x density each time the skin's level
+    crosses a terrace (loading or unloading alike), so the compression rate jumps: a
+    velocity step share |dz/dt| dA of the cover's surface, i.e. an acceleration impulse.
+    The smooth surface's share (share |dz/dt|^2 density, already in the quasi-static
+    compression term) is subtracted, leaving the zero-mean transient train: its rate is
+    |dz/dt| / layer, its size grows with the indentation rate, the local contact stiffness
+    (``share``) and the area the surface offers at the skin's level (flat crests: few
+    large impulses; steep flanks: many small ones). Zero without contact (density 0)
+    and when the skin does not move along its normal."""
+    z = np.asarray(z, dtype=np.float64)
+    speed = np.abs(np.gradient(z, dt, axis=0))
+    level = np.floor(z / layer)
+    crossings = np.abs(np.diff(level, axis=0, prepend=level[:1]))
+    return share * speed * density * (layer * crossings - speed * dt) / dt
 
 
 def node_resonance(skin: str) -> tuple[float, float]:

@@ -22,6 +22,10 @@ _TY, _TX = np.meshgrid(_TAX, _TAX, indexing="ij")  # row = y, column = x
 _NODE_PITCH = C.FSR_GRID[0] * _PITCH / C.ACC_GRID[0]
 _NAX = (np.arange(C.ACC_GRID[0]) - (C.ACC_GRID[0] - 1) / 2) * _NODE_PITCH
 _NY, _NX = np.meshgrid(_NAX, _NAX, indexing="ij")
+# contact-front sample points: P.FRONT_SUB^2 per accelerometer cell, (16, FRONT_SUB^2)
+_SUB = (np.arange(P.FRONT_SUB) - (P.FRONT_SUB - 1) / 2) * (_NODE_PITCH / P.FRONT_SUB)
+_SY, _SX = (a.reshape(1, -1) for a in np.meshgrid(_SUB, _SUB, indexing="ij"))
+_FY, _FX = _NY.reshape(-1, 1) + _SY, _NX.reshape(-1, 1) + _SX
 
 
 def _rot(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
@@ -341,11 +345,20 @@ def simulate_trial(
     acc[..., 2] += amp_step * np.sin(2 * np.pi * h_n / P.LAYER_HEIGHT_M + phase0[0])
     acc[..., 2] += amp_inf * np.sin(2 * np.pi * wn_[..., 0] / P.INFILL_PITCH_M + phase0[1])
 
+    # contact front: the printed layer lines engage as the skin presses into the surface;
+    # each terrace crossed under a node is a velocity step of the cover (physics.front_acceleration)
+    wf = _world_points(pose_p, _FX, _FY, -H)  # (n_p, 16 * FRONT_SUB^2, 3)
+    pen_f = (O.sample(h_con, wf[..., 0], wf[..., 1]) - wf[..., 2]).reshape(n_p, 16, -1)
+    dens = _upsample(P.front_density(pen_f), ratio, n_t).astype(np.float64)
+    share = P.local_skin_share(mech)
+    a_front = P.front_acceleration(wn_[..., 2], dens, share, dtt)
+    b, a = P.skin_filter(fn, zeta)
+    acc[..., 2] += signal.lfilter(b, a, a_front, axis=0) / 9.81
+
     # stick-slip: broadband bursts, rate ~ crossing rate, filtered by the skin
     slip = np.tanh(np.linalg.norm(np.gradient(wn_[..., :2], dtt, axis=0), axis=-1) / P.SLIP_VELOCITY_M_S)
     rate = f_step + P.INFILL_WEIGHT * f_inf
     inten = P.STICKSLIP_G * mech.friction * rough * w_node * slip * np.sqrt(rate / P.STICKSLIP_REF_HZ)
-    b, a = P.skin_filter(fn, zeta)
     burst = rng["stickslip"].standard_normal((n_t, 16, 3)) * inten[..., None] * np.array([1.0, 1.0, 0.5])
     acc += signal.lfilter(b, a, burst, axis=0)
 
@@ -372,6 +385,7 @@ def simulate_trial(
         repetition=repetition,
         source="simulated",
         seed=seed,
+        **{P.VERSION_ATTR: P.PHYSICS_VERSION},
     )
     return RawTrial(t=t_tac, acc=acc, fsr=fsr, pose_t=t_pose, pose=pose, attrs=attrs)
 
