@@ -226,3 +226,29 @@ def test_scan_refuses_a_trial_name_in_two_files(tmp_path):
         with pytest.raises(rf.TrialFormatError, match="duplicate trial") as info:
             rf.scan_raw([a, c, b], strict=strict)
         assert str(a) in str(info.value) and str(b) in str(info.value) and make_trial(object_id=1).name in str(info.value)
+
+
+def test_new_files_use_blosc_and_gzip_files_stay_readable(tmp_path, monkeypatch):
+    """New raw files store Blosc-LZ4 (HDF5 filter 32001); a file written before the switch
+    (gzip-1 + shuffle) reads back bit-identical, also mixed with a Blosc trial in one file,
+    and caches build from both."""
+    from embodied_tactile.data.cache import build_cache, load_cached
+    from embodied_tactile.data.preprocess import preprocess_trial
+
+    old, new = make_trial(object_id=0, seed=0), make_trial(object_id=1, seed=1)
+    path = tmp_path / "mixed.h5"
+    monkeypatch.setattr(rf, "_COMPRESSION", {"compression": "gzip", "compression_opts": 1, "shuffle": True})
+    rf.write_trial(path, old)
+    monkeypatch.undo()
+    rf.write_trial(path, new)
+    with h5py.File(path) as f:
+        g_old, g_new = f["trials"][old.name], f["trials"][new.name]
+        assert g_old["tactile/fsr"].compression == "gzip"
+        assert "32001" in g_new["tactile/fsr"]._filters and "32001" in g_new["tactile/acc"]._filters
+    for tr in (old, new):
+        back = rf.read_trial(path, tr.name)
+        for fld in ("t", "acc", "fsr", "pose_t", "pose"):
+            np.testing.assert_array_equal(getattr(back, fld), getattr(tr, fld))
+    paths = build_cache([path], tmp_path / "cache", fields=("acc",), workers=1)
+    for tr in (old, new):
+        np.testing.assert_allclose(load_cached(paths["acc"], tr.name, "acc"), preprocess_trial(tr, fields=("acc",))["acc"], atol=1e-6)
