@@ -5,7 +5,7 @@ or computes FSR data. ``key`` hashes
 
 * that field's part of :class:`PreprocessConfig` (``cfg.field_dict(field)``),
 * ``PREPROCESS_VERSION`` and ``CACHE_FORMAT_VERSION``,
-* per raw file: its trial names, each trial's attributes and a blake2b digest of the
+* per raw file: its trial names, each trial's attributes and a SHA-256 digest of the
   *stored* bytes (compressed chunks, read without decompressing) of exactly the raw
   datasets the field reads and validates (``preprocess.RAW_FIELDS`` with their clocks and
   lost-packet positions; an absent ``lost_at`` adds nothing, so older files keep their keys).
@@ -57,20 +57,22 @@ CACHE_FORMAT_VERSION = 1
 
 # ============================================================================ fingerprints
 def _dataset_digest(ds: h5py.Dataset, fh: BinaryIO | None = None) -> str:
-    """blake2b of a dataset's stored bytes: its compressed chunks exactly as stored in the
+    """SHA-256 (first 128 bits) of a dataset's stored bytes: its compressed chunks exactly as stored in the
     file (no decompression; adjacent chunks read in one go from ``fh``), or the data of a
-    contiguous dataset; plus shape, dtype, filters and the chunk index."""
-    h = hashlib.blake2b(digest_size=16)
+    contiguous dataset; plus shape, dtype, filters and the chunk index. SHA-256: hardware
+    accelerated (SHA-NI), 1.4 GB/s against blake2b's 0.74 on the development box; this hash
+    runs over every stored byte, serially, before a build."""
+    h = hashlib.sha256()
     h.update(repr((ds.shape, str(ds.dtype), ds.chunks, ds.compression, ds.compression_opts)).encode())
     if ds.chunks is None or fh is None:
         h.update(np.ascontiguousarray(ds[()]).tobytes())
-        return h.hexdigest()
+        return h.hexdigest()[:32]
     spans: list[tuple[int, int, tuple, int]] = []
     try:
         ds.id.chunk_iter(lambda i: spans.append((i.byte_offset, i.size, tuple(i.chunk_offset), i.filter_mask)))
     except (AttributeError, NotImplementedError):  # HDF5 < 1.12.3: hash the decoded data
         h.update(np.ascontiguousarray(ds[()]).tobytes())
-        return h.hexdigest()
+        return h.hexdigest()[:32]
     spans.sort()  # by position in the file: adjacent chunks are read in one go
     blobs: dict[int, bytes] = {}
     i = 0
@@ -89,7 +91,7 @@ def _dataset_digest(ds: h5py.Dataset, fh: BinaryIO | None = None) -> str:
     for off, size, chunk, mask in sorted(spans, key=lambda s: s[2]):  # hash in logical order
         h.update(repr((chunk, mask, size)).encode())
         h.update(blobs[off])
-    return h.hexdigest()
+    return h.hexdigest()[:32]
 
 
 def _raw_datasets(field: str) -> list[str]:
