@@ -62,3 +62,42 @@ def test_no_private_torch_api_in_the_package():
             for i, line in enumerate(p.read_text().splitlines(), 1)
             if re.search(r"\btorch\._[A-Za-z]", line) and not line.lstrip().startswith("#")]
     assert not hits, hits
+
+
+def test_infer_latents_skips_the_decoders_with_the_same_latents():
+    from embodied_tactile.models import LatentFilter
+
+    torch.manual_seed(0)
+    m = LatentFilter("multi_l").eval()
+    obs, act = torch.rand(2, 5, 3, 28, 28), torch.randn(2, 5, 6)
+    calls = []
+    for dec in m.observation.decoders.values():
+        dec.register_forward_hook(lambda *a: calls.append(1))
+    with torch.no_grad():
+        full = m.forward(obs, act, sample=False)
+    assert len(calls) == 2 and full["recon"].shape == (2, 5, 3, 28, 28)
+    calls.clear()
+    lat = m.infer_latents({"obs": obs, "actions": act})
+    assert calls == []  # no decoder ran
+    for k in ("z_mean", "z_var", "y_mean", "y_var"):
+        torch.testing.assert_close(lat[k], full[k], rtol=0, atol=0)
+    assert "recon" not in m.forward(obs, act, sample=False, decode=False)
+
+
+def test_compile_convs_switch_counts_nets_and_leaves_eval_eager():
+    import copy
+
+    from embodied_tactile.models import LatentFilter
+    from embodied_tactile.models.networks import ConvDecoder, ConvEncoder, compile_convs
+
+    m = LatentFilter("multi_l")
+    assert compile_convs(m) == 4  # two pathways x (encoder, decoder)
+    nets = [mod for mod in m.modules() if getattr(mod, "compiled", False)]
+    assert len(nets) == 4
+    m.eval()
+    with torch.no_grad():
+        m.infer_latents({"obs": torch.rand(1, 3, 3, 28, 28), "actions": torch.randn(1, 3, 6)})
+    assert all("_compiled_body" not in n.__dict__ for n in nets)  # eval / no grad: never compiled
+    copied = [n for n in copy.deepcopy(m).modules() if isinstance(n, (ConvEncoder, ConvDecoder))]
+    assert len(copied) == 4 and all(n.compiled for n in copied)  # the switch survives a copy
+    assert compile_convs(m, False) == 4 and not any(n.compiled for n in nets)

@@ -224,12 +224,14 @@ class LatentFilter(nn.Module):
         return mask
 
     def forward(self, obs: Tensor, actions: Tensor, sample: bool = True,
-                observed: Optional[Tensor] = None) -> dict[str, Tensor]:
+                observed: Optional[Tensor] = None, decode: bool = True) -> dict[str, Tensor]:
         """obs (B, T, C, 28, 28), actions (B, T, n_a) -> dict of (B, T, ...) tensors:
         z_mean/z_var (q_filt), z (sample, or mean if not ``sample``), y_mean/y_var/y,
         zp_mean/zp_var (transition prior; N(0, I) at t = 1), enc_mean/enc_var and
         recon (B, T, C, 28, 28) decoded from z. ``observed`` (B, T) bool hides frames from
-        the filter (default: :meth:`observation_mask`; ``observed`` is returned when set)."""
+        the filter (default: :meth:`observation_mask`; ``observed`` is returned when set).
+        ``decode=False`` leaves out ``recon`` (and the decoders' compute, about half of a
+        forward pass): the latents do not depend on it."""
         self._check_obs(obs)
         B, T = obs.shape[:2]
         if actions.shape != (B, T, self.n_a):
@@ -251,7 +253,8 @@ class LatentFilter(nn.Module):
         if observed is not None:
             res["observed"] = observed
         res["enc_mean"], res["enc_var"] = enc_m, enc_v
-        res["recon"] = self.decode(res["z"].reshape(B * T, -1)).view(B, T, *obs.shape[2:])
+        if decode:  # infer_latents skips it: the latents never depend on the decoders
+            res["recon"] = self.decode(res["z"].reshape(B * T, -1)).view(B, T, *obs.shape[2:])
         return res
 
     def elbo_terms(self, batch: Mapping[str, Tensor], sample: bool = True) -> dict[str, Tensor]:
@@ -307,7 +310,7 @@ class LatentFilter(nn.Module):
         was_training = self.training
         self.eval()
         try:
-            out = self.forward(obs, actions, sample=False)
+            out = self.forward(obs, actions, sample=False, decode=False)
         finally:
             self.train(was_training)
         return {k: out[k] for k in ("z_mean", "z_var", "y_mean", "y_var")}

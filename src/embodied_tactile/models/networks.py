@@ -114,6 +114,49 @@ def small_batch_convs(n: int, threshold: int = SMALL_BATCH_ONEDNN_OFF) -> Iterat
 
 # --------------------------------------------------------------------------- networks
 
+#: Batches of at least this many frames run the conv encoders / decoders in channels_last
+#: on CPU (oneDNN's fast layout; docs/model.md "Speed").
+CHANNELS_LAST_MIN_FRAMES = 64
+
+
+def _run(net: nn.Module, x: Tensor) -> Tensor:
+    """``net.body(x)``, through its ``torch.compile``d copy where :func:`compile_convs`
+    switched it on, the module is in training mode, autograd records and x is on the CPU
+    (the training step); eager everywhere else (validation, inference, online filtering),
+    so that their other batch shapes never trigger a recompilation."""
+    if net.compiled and net.training and x.device.type == "cpu" and torch.is_grad_enabled():
+        fn = net.__dict__.get("_compiled_body")
+        if fn is None:
+            fn = net.__dict__["_compiled_body"] = torch.compile(net.body)
+        return fn(x)
+    return net.body(x)
+
+
+def compile_convs(model: nn.Module, enabled: bool = True) -> int:
+    """The speed switch of the training step (train.py's ``compile_convs``, default on;
+    docs/model.md "Speed"): ``torch.compile`` (inductor) of the body of every
+    :class:`ConvEncoder` and :class:`ConvDecoder` in ``model``, used for training steps on
+    CPU only; the time loop stays eager. The same weights and the same function, float
+    rounding aside (fused elementwise kernels). Returns the number of networks switched."""
+    n = 0
+    for mod in model.modules():
+        if isinstance(mod, (ConvEncoder, ConvDecoder)):
+            mod.compiled = bool(enabled)
+            n += 1
+    return n
+
+
+class _CompilableBody(nn.Module):
+    """Shared by the conv encoder and decoder: a ``compiled`` flag (:func:`compile_convs`)
+    and a compiled copy of ``body`` that is never pickled or copied (rebuilt on use)."""
+
+    compiled: bool = False
+
+    def __getstate__(self):
+        state = dict(super().__getstate__())
+        state.pop("_compiled_body", None)
+        return state
+
 
 def _check_widths(widths: Sequence[int]) -> tuple[int, int]:
     widths = tuple(int(w) for w in widths)
@@ -122,7 +165,7 @@ def _check_widths(widths: Sequence[int]) -> tuple[int, int]:
     return widths  # type: ignore[return-value]
 
 
-class ConvEncoder(nn.Module):
+class ConvEncoder(_CompilableBody):
     """Inverse measurement model q(z_t | o_t): two stride-2 convs 28->14->7, MLP head.
 
     Input (N, C, 28, 28), output mean (N, n_z) and variance (N, n_z) (softplus + floor,
@@ -146,13 +189,18 @@ class ConvEncoder(nn.Module):
     def forward(self, o: Tensor) -> tuple[Tensor, Tensor]:
         if o.shape[-3:] != (self.in_channels, 28, 28):
             raise ValueError(f"encoder expects (N, {self.in_channels}, 28, 28), got {tuple(o.shape)}")
-        if o.shape[0] >= 64 and o.device.type == "cpu":
+        if o.shape[0] >= CHANNELS_LAST_MIN_FRAMES and o.device.type == "cpu":
             o = o.contiguous(memory_format=torch.channels_last)  # ~2-3x faster oneDNN convs
-        m, raw = self.head(self.conv(o)).chunk(2, dim=-1)
+        m, raw = _run(self, o).chunk(2, dim=-1)
         return m.float(), softplus_var(raw, self.min_var)
 
+    def body(self, o: Tensor) -> Tensor:
+        """Convs and MLP: (N, C, 28, 28) -> (N, 2 n_z) raw head output (what
+        :func:`compile_convs` compiles)."""
+        return self.head(self.conv(o))
 
-class ConvDecoder(nn.Module):
+
+class ConvDecoder(_CompilableBody):
     """Observation model mean: mirror of :class:`ConvEncoder` (transposed convs 7->14->28).
 
     Input z (N, n_z), output (N, C, 28, 28) means; the Gaussian sigma lives in the model.
@@ -171,8 +219,12 @@ class ConvDecoder(nn.Module):
         )
 
     def forward(self, z: Tensor) -> Tensor:
+        return _run(self, z)
+
+    def body(self, z: Tensor) -> Tensor:
+        """MLP and transposed convs (what :func:`compile_convs` compiles)."""
         h = self.fc(z).view(z.shape[0], self.w2, 7, 7)
-        if z.shape[0] >= 64 and z.device.type == "cpu":
+        if z.shape[0] >= CHANNELS_LAST_MIN_FRAMES and z.device.type == "cpu":
             h = h.contiguous(memory_format=torch.channels_last)  # ~2x faster transposed convs
         return self.deconv(h)
 
