@@ -47,6 +47,8 @@ def main(cfg: DictConfig) -> float | None:
 
     datamodule: L.LightningDataModule = instantiate(cfg.data)
     model: L.LightningModule = instantiate(cfg.model)
+    if runtime.configure_compile(cfg, model):
+        log.info("compile_convs: the conv encoders / decoders of training steps run through torch.compile")
 
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]

@@ -101,3 +101,17 @@ def test_compile_convs_switch_counts_nets_and_leaves_eval_eager():
     copied = [n for n in copy.deepcopy(m).modules() if isinstance(n, (ConvEncoder, ConvDecoder))]
     assert len(copied) == 4 and all(n.compiled for n in copied)  # the switch survives a copy
     assert compile_convs(m, False) == 4 and not any(n.compiled for n in nets)
+
+
+def test_train_config_switch_compile_convs():
+    from omegaconf import OmegaConf
+
+    from embodied_tactile import runtime
+    from embodied_tactile.models import LatentFilter
+
+    root = Path(__file__).resolve().parents[1]
+    assert OmegaConf.load(root / "configs" / "train.yaml").compile_convs is False  # the measured default
+    m = LatentFilter("fsr_tb")
+    assert runtime.configure_compile(OmegaConf.create({"compile_convs": False}), m) == 0
+    assert not any(getattr(n, "compiled", False) for n in m.modules())
+    assert runtime.configure_compile(OmegaConf.create({"compile_convs": True}), m) == 2

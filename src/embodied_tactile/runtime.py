@@ -335,3 +335,16 @@ def configure_threads(cfg: DictConfig) -> int:
     trainer = cfg.get("trainer") or {}
     procs = trainer.get("devices", 1) if "ddp" in str(trainer.get("strategy", "")) else 1
     return set_threads(thread_budget(cfg.get("threads", "auto"), concurrent_jobs(n_jobs, procs)))
+
+
+def configure_compile(cfg: DictConfig, model) -> int:
+    """``cfg.compile_convs`` (default false): :func:`~embodied_tactile.models.networks.compile_convs`
+    on the model's conv encoders / decoders (training steps on CPU only). Off by default:
+    at the default budget it was measured no faster and its compilation took longer than
+    a default run's training (docs/model.md "Speed", ``benchmarks/bench_step_levers.py``).
+    Returns the number of networks switched on."""
+    if not bool(cfg.get("compile_convs", False)):
+        return 0
+    from .models.networks import compile_convs
+
+    return compile_convs(model, True)
