@@ -2,9 +2,13 @@
 
     python benchmarks/bench_preprocess.py [--trials 64] [--workers 2]
 
-Prints one table: vectorised acc path vs the naive per-sensor loop, in-memory
-throughput of the full pipeline (acc + fsr + actions) on ``workers`` processes, and the
-end-to-end cache build from a raw HDF5 file (read + decompress + preprocess + write).
+Prints two tables. Raw-format codecs: file size, write and read (decode) CPU time per
+trial for the candidates (gzip-1 + shuffle, the format's old default; lzf; Blosc-LZ4 with
+byte or bit shuffle, the current default; uncompressed). Stages: vectorised acc path vs
+the naive loop (a plain librosa call per channel), the same vectorised path with
+librosa's melspectrogram instead of the package's STFT, in-memory throughput of the full
+pipeline (acc + fsr + actions) on ``workers`` processes, and the end-to-end cache build
+from a raw HDF5 file (read + decompress + preprocess + write).
 """
 
 from __future__ import annotations
@@ -22,8 +26,67 @@ import numpy as np
 
 from embodied_tactile import constants as C
 from embodied_tactile.data import cache as cache_mod
+import h5py
+import hdf5plugin
+import scipy.signal
+
+from embodied_tactile.data import preprocess as P
 from embodied_tactile.data.preprocess import PreprocessConfig, acc_logmel, acc_logmel_naive, preprocess_trials
 from embodied_tactile.io.rawformat import RawTrial, make_attrs, read_trial, write_trial
+
+CODECS = {
+    "gzip-1 + shuffle (old default)": {"compression": "gzip", "compression_opts": 1, "shuffle": True},
+    "lzf": {"compression": "lzf"},
+    "lzf + shuffle": {"compression": "lzf", "shuffle": True},
+    "blosc-lz4 + shuffle": dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE)),
+    "blosc-lz4 + bitshuffle (default)": dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.BITSHUFFLE)),
+    "uncompressed": {},
+}
+
+
+def codec_rows(trials: list[RawTrial], path: Path) -> list[tuple[str, float, float, float]]:
+    """(codec, MB/trial, write CPU ms/trial, best read CPU ms/trial) for tactile acc + fsr in
+    the format's one-second chunks (the bulk of a trial: 1.3 + 7.2 MB raw)."""
+    rows = []
+    for name, opts in CODECS.items():
+        if path.exists():
+            path.unlink()
+        c0 = time.process_time()
+        with h5py.File(path, "w") as f:
+            for i, tr in enumerate(trials):
+                g = f.create_group(str(i))
+                for fld in ("acc", "fsr"):
+                    a = getattr(tr, fld)
+                    g.create_dataset(fld, data=a, chunks=(int(C.FS_TACTILE), *a.shape[1:]), **opts)
+        write = time.process_time() - c0
+        read = float("inf")
+        for _ in range(3):
+            c0 = time.process_time()
+            with h5py.File(path, "r") as f:
+                for i in range(len(trials)):
+                    f[str(i)]["acc"][()], f[str(i)]["fsr"][()]
+            read = min(read, time.process_time() - c0)
+        n = len(trials)
+        rows.append((name, path.stat().st_size / n / 1e6, 1000 * write / n, 1000 * read / n))
+    return rows
+
+
+def acc_logmel_librosa(acc: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
+    """The vectorised path with librosa's melspectrogram (one call on all channels, float64)
+    in place of the package's STFT: the comparison behind "one STFT" in the docs."""
+    import librosa
+
+    sig = P.acc_signals(acc, cfg)
+    y = scipy.signal.resample_poly(sig, 6, 7, axis=-1)
+    left, right = P.stft_padding(cfg, y.shape[-1])
+    power = librosa.feature.melspectrogram(
+        y=P._pad_last(y, left, right), sr=cfg.fs_resample, n_fft=cfg.n_fft, hop_length=cfg.hop_length,
+        win_length=cfg.win_length, window=cfg.window, center=False, n_mels=cfg.n_mels, fmin=cfg.fmin,
+        fmax=cfg.fmax_hz, htk=cfg.mel_htk, norm=cfg.mel_norm,
+    ).sum(axis=-3)
+    db = 10 * np.log10(np.maximum(power, cfg.db_amin))
+    mel = ((db - cfg.db_min) / (cfg.db_max - cfg.db_min)).reshape(len(acc), 4, 4, cfg.n_mels, -1)
+    return P.tile_layout(np.moveaxis(mel, (1, 2, 4), (3, 4, 1)), cfg.tile_shape).astype(np.float32)
 
 
 def synthetic_trial(i: int, seed: int = 0) -> RawTrial:
@@ -107,9 +170,16 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=64)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--chunk", type=int, default=8)
+    ap.add_argument("--raw", default=None, help="take the trials from this raw HDF5 file (e.g. a simulated scene) instead of synthesising them")
     args = ap.parse_args()
     cfg = PreprocessConfig().validate()
-    trials = [synthetic_trial(i) for i in range(args.trials)]
+    if args.raw:
+        with h5py.File(args.raw, "r") as f:
+            names = sorted(f["trials"])[: args.trials]
+        trials = [read_trial(args.raw, n) for n in names]
+        args.trials = len(trials)
+    else:
+        trials = [synthetic_trial(i) for i in range(args.trials)]
     rows = []  # (stage, n_trials, wall s, cpu s, naive cpu s or None)
     load0 = os.getloadavg()[0]
     w = args.workers
@@ -117,13 +187,12 @@ def main() -> None:
     # -- acc: vectorised vs naive, same process, same trials
     k = min(8, args.trials)
     acc = np.stack([tr.acc for tr in trials[:k]])
-    cfg_l = PreprocessConfig(stft_backend="librosa")
     with _one_blas_thread():
-        acc_logmel(acc[:1], cfg); acc_logmel(acc[:1], cfg_l); acc_logmel_naive(trials[0].acc, cfg)  # warm-up
-        naive = _best(lambda: [acc_logmel_naive(tr.acc, cfg) for tr in trials[:k]], 1)
-        rows.append(("acc naive per-sensor loop, 1 proc", k, *naive, naive))
-        rows.append(("acc vectorised, librosa STFT, 1 proc", k, *_best(lambda: acc_logmel(acc, cfg_l)), naive))
-        rows.append(("acc vectorised, numpy STFT (default), 1 proc", k, *_best(lambda: acc_logmel(acc, cfg)), naive))
+        acc_logmel(acc[:1], cfg); acc_logmel_librosa(acc[:1], cfg); acc_logmel_naive(trials[0].acc, cfg)  # warm-up
+        naive = _best(lambda: [acc_logmel_naive(tr.acc, cfg) for tr in trials[:k]], 2)
+        rows.append(("acc naive loop (librosa per channel), 1 proc", k, *naive, naive))
+        rows.append(("acc vectorised, librosa melspectrogram, 1 proc", k, *_best(lambda: acc_logmel_librosa(acc, cfg), 3), naive))
+        rows.append(("acc vectorised, package STFT (f32), 1 proc", k, *_best(lambda: acc_logmel(acc, cfg), 3), naive))
         rows.append(("fsr only, 1 proc", k, *_best(lambda: preprocess_trials(trials[:k], cfg, ("fsr",))), None))
         rows.append(("actions only, 1 proc", k, *_best(lambda: preprocess_trials(trials[:k], cfg, ("actions",))), None))
         rows.append(("full pipeline in memory, 1 proc", k, *_best(lambda: preprocess_trials(trials[:k], cfg)), None))
@@ -144,15 +213,22 @@ def main() -> None:
         names = [tr.name for tr in trials]
         tasks = [(raw, names[i : i + args.chunk]) for i in range(0, len(names), args.chunk)]
         with mp.get_context("fork").Pool(w) as pool:
-            rows.append((f"read raw HDF5 only (gzip), {w} procs", len(trials), *_pool_best(pool, _read, tasks, 1), None))
+            rows.append((f"read raw HDF5 only (blosc-lz4), {w} procs", len(trials), *_pool_best(pool, _read, tasks, 1), None))
         for label in (f"build_cache raw -> 3 caches, {w} workers", "build_cache again (reuse: fingerprint only)"):
             t0, c0 = time.perf_counter(), _cpu_all()
             cache_mod.build_cache([raw], tmp / "cache", cfg, workers=w, chunk_size=args.chunk)
             rows.append((label, len(trials), time.perf_counter() - t0, _cpu_all() - c0, None))
+        codecs = codec_rows(trials[: min(8, len(trials))], tmp / "codec.h5")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
-    print(f"\n{args.trials} synthetic 10 s trials, {os.cpu_count()} CPUs, {w} workers, chunk {args.chunk}, "
+    src = f"trials of {args.raw}" if args.raw else "synthetic 10 s trials"
+    print(f"\nraw-format codecs, tactile acc + fsr of {min(8, len(trials))} {src}, one-second chunks, 1 proc (CPU time)\n")
+    print(f"| {'codec':<34} | {'MB/trial':>8} | {'write CPU ms/trial':>18} | {'read CPU ms/trial':>17} |")
+    print(f"|{'-' * 36}|{'-' * 10}|{'-' * 20}|{'-' * 19}|")
+    for name, mb, wr, rd in codecs:
+        print(f"| {name:<34} | {mb:8.2f} | {wr:18.1f} | {rd:17.1f} |")
+    print(f"\n{args.trials} {src}, {os.cpu_count()} CPUs, {w} workers, chunk {args.chunk}, "
           f"load average {load0:.1f} -> {os.getloadavg()[0]:.1f}")
     print("wall trials/s = as measured on this (possibly shared) box; CPU ms/trial = CPU time of all our")
     print(f"processes; idle-box estimate = trials/s if each process had its own core (min(procs, {w}) / CPU per trial)\n")
