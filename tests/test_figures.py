@@ -125,3 +125,48 @@ def test_captions_hold_the_long_definitions(tmp_path):
                                              ("acc@seed=1", "ACC (seed=1)"), ("soft", "soft")])
 def test_readable(value, expected):
     assert F.readable(value) == expected
+
+
+def test_log_axis_clipped_when_a_few_values_are_near_zero_and_plain_tick_labels():
+    c = np.full((30, 4), 0.5)
+    c[1, 1] = 1e-11  # one frame of a tiny held-out set: would stretch the axis over ten decades
+    fig = F.nmse_curves_figure({"multi_l": c, "acc": c * 2})
+    try:
+        ax = fig.axes[0]
+        assert ax.get_ylabel() == "held-out NMSE (log scale, clipped at 0.01)"
+        assert ax.get_ylim()[0] == pytest.approx(0.01)
+        fig.canvas.draw()
+        labels = [t.get_text() for t in ax.get_yticklabels() if t.get_text()]
+        assert labels and all("times" not in lab and "^" not in lab for lab in labels)  # 0.1, 1: not 10^-1
+        ys = np.concatenate([line.get_ydata() for line in fig.axes[1].get_lines()])
+        assert np.nanmin(ys) == pytest.approx(0.01)  # the near-zero frame drawn at the clip
+    finally:
+        plt.close(fig)
+    fig = F.nmse_curves_figure({"multi_l": np.full((30, 4), 0.5), "acc": np.full((30, 4), 0.05)})
+    try:
+        assert fig.axes[0].get_ylabel() == "held-out NMSE (log scale)"  # nothing cut: nothing said
+    finally:
+        plt.close(fig)
+
+
+def test_distance_group_names_sit_on_the_matrix_not_over_the_title():
+    classes = np.array([0, 8, 17, 27])
+    fig = F.distance_figure(classes, np.ones((4, 4)), title="t")
+    try:
+        ax = fig.axes[0]
+        assert [t.get_position()[1] for t in ax.texts] == [1.01] * len(ax.texts)  # axes fraction, just above
+        assert ax.get_title() == "t"
+    finally:
+        plt.close(fig)
+
+
+def test_umap_colours_are_physical_levels_and_curves_in_paper_order():
+    fac = F.physical_factors([0, 8, 17, 27])
+    np.testing.assert_allclose(fac, np.stack([get_object(o).factors() for o in (0, 8, 17, 27)]))
+    assert set(fac[:, 0]) <= {10.0, 30.0, 50.0}  # 1/m, not the design ranks 0 / 1 / 2
+    from embodied_tactile.eval.results import Results
+
+    rs = [Results(method="latent_filter", modality=m, skin="soft", primitive="pressing", factors=fac,
+                  object_id=np.array([0, 8, 17, 27]), action_index=np.zeros(4, int), pred=np.repeat(fac[:, None], 3, 1))
+          for m in ("multi_l", "fsr_b", "acc", "fsr_t")]
+    assert list(F.curves_by(rs, "modality")) == ["acc", "fsr_t", "fsr_b", "multi_l"]

@@ -61,6 +61,34 @@ def _legend_below(fig, handles, labels, ncol: int | None = None) -> None:
                    frameon=False)
 
 
+def log_nmse_axes(axes, values) -> float | None:
+    """Logarithmic NMSE axis (shared by ``axes``) with plain decimal tick labels (0.5, 1, 2
+    rather than 5x10^-1). A few near-zero values (e.g. one frame of a tiny held-out set)
+    would otherwise stretch the axis over ten decades: the axis is clipped one decade
+    below the decade of the 5th percentile of the positive values, and the y label says so
+    (values below are drawn at the clip). Returns the clip, or None when nothing is cut."""
+    from matplotlib.ticker import FuncFormatter
+
+    v = np.asarray([x for x in np.ravel(np.asarray(values, dtype=float)) if np.isfinite(x) and x > 0])
+    floor = None
+    if v.size:
+        cand = 10.0 ** (np.floor(np.log10(np.percentile(v, 5))) - 1)
+        if v.min() < cand:
+            floor = float(cand)
+    for ax in axes:
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
+        ax.yaxis.set_minor_formatter(FuncFormatter(lambda y, _: ""))
+        if floor is not None:
+            ax.set_ylim(bottom=floor)
+    return floor
+
+
+def nmse_axis_label(floor: float | None) -> str:
+    """The NMSE axis label, naming the clip of :func:`log_nmse_axes` when there is one."""
+    return NMSE_AXIS if floor is None else f"held-out NMSE (log scale, clipped at {floor:g})"
+
+
 # ----------------------------------------------------------------------------- curves
 
 def _save(fig, path: Path, *, tight: bool = True) -> Path:
@@ -76,19 +104,23 @@ def nmse_curves_figure(curves: Mapping[str, np.ndarray], *, title: str = "", fra
     """curves: label -> (T, 4) NMSE over time -> Figure: one panel per factor + the mean,
     log NMSE axis, one legend below (labels made readable)."""
     fig, axes = plt.subplots(1, 5, figsize=(16, 3.9), sharex=True, sharey=True)
+    drawn = []
     for label, c in curves.items():
         c = np.asarray(c, dtype=float)
         t = np.arange(c.shape[0]) / frame_rate
         with np.errstate(all="ignore"):
             cols = [c[:, k] for k in range(4)] + [np.nanmean(c, axis=1)]
+        drawn.append((label, t, cols))
+    floor = log_nmse_axes(axes, [y for _, _, cols in drawn for y in cols])
+    for label, t, cols in drawn:
         for ax, y in zip(axes, cols):
-            ax.plot(t, np.where(y > 0, y, np.nan), label=readable(label), lw=1.3)
+            y = np.where(y > 0, y, np.nan)
+            ax.plot(t, y if floor is None else np.maximum(y, floor), label=readable(label), lw=1.3)
     for k, ax in enumerate(axes):
         ax.set_title(FACTOR_LABELS[FACTOR_NAMES[k]] if k < 4 else "Mean over factors", fontsize=9)
         ax.set_xlabel("interaction time (s)")
-        ax.set_yscale("log")
         ax.grid(alpha=0.3, which="both")
-    axes[0].set_ylabel(NMSE_AXIS)
+    axes[0].set_ylabel(nmse_axis_label(floor))
     _legend_below(fig, *axes[0].get_legend_handles_labels(), ncol=min(len(curves), 6))
     if title:
         fig.suptitle(title, fontsize=10)
@@ -102,9 +134,12 @@ def plot_nmse_curves(curves: Mapping[str, np.ndarray], path, *, title: str = "",
 
 
 def curves_by(results: Sequence[Results], key: str) -> dict[str, np.ndarray]:
-    """Pool runs by one attribute ('modality', 'skin', 'primitive', 'method') -> label -> (T, 4)."""
+    """Pool runs by one attribute ('modality', 'skin', 'primitive', 'method') -> label -> (T, 4),
+    in the paper's order (modalities ACC, FSR_t, FSR_b, FSR_tb, MULTI-E, MULTI-L; methods
+    Latent Filter first), else alphabetical."""
+    order = list(MODALITY_LABELS) + list(METHOD_LABELS)
     out = {}
-    for v in sorted({getattr(r, key) for r in results}):
+    for v in sorted({getattr(r, key) for r in results}, key=lambda v: (order.index(v) if v in order else len(order), v)):
         out[str(v)] = pooled_nmse([r for r in results if getattr(r, key) == v], curve=True)
     return out
 
@@ -144,6 +179,12 @@ def umap_embed(latents, *, n_components: int = 3, n_neighbors: int = 15, seed: i
     reducer = umap.UMAP(n_components=n_components, n_neighbors=nn, random_state=seed,
                         init="random" if n < n_components + 2 else "spectral")
     return reducer.fit_transform(x)
+
+
+def physical_factors(object_ids) -> np.ndarray:
+    """(n,) object ids -> (n, 4) the catalogue's factors in physical units (FACTOR_UNITS),
+    whatever target encoding the alignment used: figure legends name real levels."""
+    return np.stack([get_object(int(o)).factors() for o in np.asarray(object_ids)]).astype(float)
 
 
 def factor_levels(values) -> tuple[np.ndarray, list[str]]:
@@ -236,6 +277,8 @@ def object_order(classes) -> list[int]:
 def distance_figure(classes, dist, *, title: str = "", normalise: bool = True):
     """Heatmap of a class distance matrix (min-max normalised to [0, 1] like the paper), rows
     and columns in :func:`object_order`, object groups separated by lines and named."""
+    from matplotlib.transforms import blended_transform_factory
+
     order = object_order(classes)
     cls = [int(classes[i]) for i in order]
     d = np.asarray(dist, dtype=float)[np.ix_(order, order)]
@@ -244,8 +287,10 @@ def distance_figure(classes, dist, *, title: str = "", normalise: bool = True):
         d = (d - lo) / (hi - lo) if hi > lo else np.zeros_like(d)
     fig, ax = plt.subplots(figsize=(6.2, 5.6))
     im = ax.imshow(d, cmap="viridis")
-    ax.set_xticks(range(len(cls)), [str(c) for c in cls], fontsize=6, rotation=90)
-    ax.set_yticks(range(len(cls)), [str(c) for c in cls], fontsize=6)
+    tick_size = 6 if len(cls) > 16 else 8
+    ax.set_xticks(range(len(cls)), [str(c) for c in cls], fontsize=tick_size, rotation=90)
+    ax.set_yticks(range(len(cls)), [str(c) for c in cls], fontsize=tick_size)
+    above = blended_transform_factory(ax.transData, ax.transAxes)
     ax.set_xlabel("object id (ordered by group, then frequency, amplitude, stiffness)", fontsize=8)
     ax.set_ylabel("object id", fontsize=8)
     groups = [get_object(c).group for c in cls]
@@ -255,7 +300,8 @@ def distance_figure(classes, dist, *, title: str = "", normalise: bool = True):
             if i < len(cls):
                 for line in (ax.axhline, ax.axvline):
                     line(i - 0.5, color="white", lw=1.5)
-            ax.text((start + i - 1) / 2, -1.0, groups[start], ha="center", va="bottom", fontsize=8)
+            ax.text((start + i - 1) / 2, 1.01, groups[start], ha="center", va="bottom", fontsize=8,
+                    transform=above)  # just above the matrix, under the title
             start = i
     fig.colorbar(im, ax=ax, shrink=0.8, label="distance" + (" (min-max normalised)" if normalise else ""))
     if title:
@@ -320,22 +366,23 @@ def error_vs_runtime_figure(histories: Mapping[str, Sequence[Mapping]], *, title
     height = 3.3 * nrow + 0.5 + 0.28 * leg_rows
     fig, axes = plt.subplots(nrow, ncol, figsize=(max(4.3 * ncol, 8.0), height), sharex=True, sharey=True,
                              squeeze=False)
+    floor = log_nmse_axes(axes.flat, [v for it in items for v in it[5] if v is not None])
     for ax, f in zip(axes.flat, facets):
         for _, se, method, kind, x, y in (it for it in items if it[0] == f):
             y = [v if v is not None and v > 0 else np.nan for v in y]
+            y = y if floor is None else list(np.maximum(y, floor))
             if kind == "line":
                 ax.plot(x, y, color=colours[se], lw=1.2, alpha=0.8)
             else:
                 ax.scatter(x, y, color=colours[se], marker=markers[method], s=36, edgecolor="black", lw=0.5)
         ax.set_title(readable(f), fontsize=9)
-        ax.set_yscale("log")
         ax.grid(alpha=0.3, which="both")
     for ax in axes.flat[len(facets):]:
         ax.set_visible(False)
     for ax in axes[-1]:
         ax.set_xlabel("training time (s)")
     for ax in axes[:, 0]:
-        ax.set_ylabel(NMSE_AXIS)
+        ax.set_ylabel(nmse_axis_label(floor))
     from matplotlib.lines import Line2D
 
     handles = [Line2D([], [], color=colours[se], lw=4) for se in series]

@@ -10,7 +10,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .figures import (best_worst_action_curves, class_distances, curves_by, plot_distance_matrix,
+from .figures import (best_worst_action_curves, class_distances, curves_by, physical_factors, plot_distance_matrix,
                       plot_error_vs_runtime, plot_nmse_curves, plot_umap, readable, write_captions)
 from .metrics import NMSE_DEFINITION, overall
 from ..jsonio import to_jsonable
@@ -81,8 +81,9 @@ def write_report(
         }
         for name, cv in sets.items():
             if cv:
+                by = "best and worst action set per primitive" if name == "best_worst_action" else name
                 p = plot_nmse_curves(cv, figs / f"nmse_time_by_{name}.png",  # definitions: figures/captions.md
-                                     title=f"Held-out NMSE vs interaction time, by {name.replace('_', ' ')}")
+                                     title=f"Held-out NMSE vs interaction time, by {by}")
                 written["figures"].append(str(p))
                 curves[name] = {k: v for k, v in cv.items()}
         for r in main:
@@ -90,7 +91,10 @@ def write_report(
                 continue
             tag = _safe(r.label)
             if umap:
-                written["figures"].append(str(plot_umap(r.latents_last, r.factors, figs / f"umap_{tag}.png",
+                # coloured by the catalogue's levels in physical units (the legend's unit), not by
+                # the alignment's target encoding (design_rank would label every level 0 / 1 / 2)
+                written["figures"].append(str(plot_umap(r.latents_last, physical_factors(r.object_id),
+                                                        figs / f"umap_{tag}.png",
                                                         title=f"UMAP of last-step latents: {_title(r)}")))
             cls, dist = class_distances(r.latents_last, r.object_id, mode=distance_mode)
             written["figures"].append(str(plot_distance_matrix(cls, dist, figs / f"distances_{tag}.png",
