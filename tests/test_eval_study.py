@@ -282,6 +282,8 @@ def test_study_report_table2_intervals_verdicts_and_what_was_not_run(tmp_path):
     assert "| multi_l | soft | pressing |" not in not_run
     out = tmp_path / "results.md"
     assert main([str(tmp_path / "evaluation"), "--out", str(out)]) == 0 and out.read_text() == text
+    assert main([str(tmp_path / "evaluation"), "--out", str(out), "--note", "parts ran on two commits"]) == 0
+    assert "- Note: parts ran on two commits" in out.read_text()
 
 
 def test_study_report_names_a_missing_results_file(tmp_path, capsys):

@@ -203,7 +203,7 @@ def _json_table(blob: Mapping, name: str) -> Table | None:
     return None
 
 
-def render(blob: Mapping, source: str = "") -> str:
+def render(blob: Mapping, source: str = "", notes: Sequence[str] = ()) -> str:
     runs = blob["runs"]
     files = _run_files(blob)
     out = ["# Simulated study: results", "",
@@ -214,6 +214,7 @@ def render(blob: Mapping, source: str = "") -> str:
            "not re-measure the paper's robot.", "", "## What was run", ""]
     out += _command_lines(files) or ["- (no run folders readable from evaluation.json: commands not listed)"]
     out += _budget_lines(files, blob)
+    out += [f"- Note: {n}" for n in notes]
     out += [f"- {blob.get('nmse_definition', '')}", ""]
     for t in table2_with_intervals(runs):
         out += ["## " + t.name.replace("_", " "), "", t.to_markdown()]
@@ -238,9 +239,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="Write the study's results page (Markdown) from evaluate.py's output.")
     ap.add_argument("evaluation", help="the evaluation folder evaluate.py wrote for the study (holds results.json)")
     ap.add_argument("--out", default=None, help="write here (e.g. docs/results.md); default: print")
+    ap.add_argument("--note", action="append", default=[],
+                    help="a line for 'What was run' (e.g. how the parts were run); repeatable")
     args = ap.parse_args(argv)
     try:
-        text = render(load(args.evaluation), source=args.evaluation)
+        text = render(load(args.evaluation), source=args.evaluation, notes=args.note)
     except StudyReportError as err:
         print(f"study_report: error: {err}", file=sys.stderr)
         return 2
