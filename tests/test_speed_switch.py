@@ -115,3 +115,21 @@ def test_train_config_switch_compile_convs():
     assert runtime.configure_compile(OmegaConf.create({"compile_convs": False}), m) == 0
     assert not any(getattr(n, "compiled", False) for n in m.modules())
     assert runtime.configure_compile(OmegaConf.create({"compile_convs": True}), m) == 2
+
+
+def test_no_grad_passes_run_the_convs_in_chunks_with_the_same_result(monkeypatch):
+    from embodied_tactile.models import LatentFilter, networks
+
+    torch.manual_seed(0)
+    m = LatentFilter("fsr_tb").eval()
+    obs, act = torch.rand(3, 40, 2, 28, 28), torch.randn(3, 40, 6)
+    with torch.no_grad():
+        whole = m.forward(obs, act, sample=False)  # 120 frames <= 1024: one call
+        monkeypatch.setattr(networks, "CONV_CHUNK_FRAMES", 50)
+        calls = []
+        net = next(n for n in m.modules() if isinstance(n, networks.ConvEncoder))
+        net.conv.register_forward_hook(lambda *a: calls.append(a[1][0].shape[0]))
+        chunked = m.forward(obs, act, sample=False)
+    assert calls == [50, 50, 20]
+    for k in ("z_mean", "z_var", "y_mean", "recon"):
+        torch.testing.assert_close(chunked[k], whole[k], rtol=1e-5, atol=1e-5)
