@@ -246,7 +246,7 @@ def write_trial(target: str | os.PathLike | h5py.File, trial: RawTrial, *, overw
         if arr is None:
             continue
         opts = _COMPRESSION if arr.ndim > 1 else {}
-        # One-second chunks along time: few, large gzip blocks decode much faster than
+        # One-second chunks along time: few, large compressed blocks decode much faster than
         # h5py's automatic small chunks, and a modality reads whole trials anyway.
         chunks = (min(arr.shape[0], int(trial.attrs.get("fs_tactile", C.FS_TACTILE))), *arr.shape[1:]) if opts and arr.shape[0] else None
         g.create_dataset(path, data=arr, chunks=chunks, **opts)
