@@ -147,6 +147,14 @@ def test_log_axis_clipped_when_a_few_values_are_near_zero_and_plain_tick_labels(
         assert fig.axes[0].get_ylabel() == "held-out NMSE (log scale)"  # nothing cut: nothing said
     finally:
         plt.close(fig)
+    fig = F.nmse_curves_figure({"multi_l": np.full((30, 4), 1.2), "acc": np.full((30, 4), 1.6)})
+    try:  # less than a decade: minor ticks labelled, so the axis is readable
+        fig.canvas.draw()
+        ax = fig.axes[0]
+        shown = [t.get_text() for t in ax.get_yticklabels(minor=True) + ax.get_yticklabels() if t.get_text()]
+        assert len(shown) >= 2 and all("^" not in s for s in shown)
+    finally:
+        plt.close(fig)
 
 
 def test_distance_group_names_sit_on_the_matrix_not_over_the_title():

@@ -78,10 +78,22 @@ def log_nmse_axes(axes, values) -> float | None:
     for ax in axes:
         ax.set_yscale("log")
         ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:g}"))
-        ax.yaxis.set_minor_formatter(FuncFormatter(lambda y, _: ""))
+        ax.yaxis.set_minor_formatter(FuncFormatter(_minor_label(ax)))
         if floor is not None:
             ax.set_ylim(bottom=floor)
     return floor
+
+
+def _minor_label(ax):
+    """Minor tick labels 0.2 / 0.5 / 2 / 5 ... when the axis spans at most two decades (a
+    narrow log axis would otherwise show one labelled tick or none)."""
+    def label(y, _):
+        lo, hi = ax.get_ylim()
+        if y <= 0 or lo <= 0 or hi / lo > 100:
+            return ""
+        mant = y / 10.0 ** np.floor(np.log10(y) + 1e-9)
+        return f"{y:g}" if round(mant) in (2, 5) else ""
+    return label
 
 
 def nmse_axis_label(floor: float | None) -> str:
