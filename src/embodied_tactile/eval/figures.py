@@ -85,14 +85,14 @@ def log_nmse_axes(axes, values) -> float | None:
 
 
 def _minor_label(ax):
-    """Minor tick labels 0.2 / 0.5 / 2 / 5 ... when the axis spans at most two decades (a
-    narrow log axis would otherwise show one labelled tick or none)."""
+    """Minor tick labels 0.2 / 0.5 / 2 / 5 ... when the axis spans at most two decades, every
+    minor tick under one decade (a narrow log axis would otherwise show one labelled tick or none)."""
     def label(y, _):
         lo, hi = ax.get_ylim()
         if y <= 0 or lo <= 0 or hi / lo > 100:
             return ""
         mant = y / 10.0 ** np.floor(np.log10(y) + 1e-9)
-        return f"{y:g}" if round(mant) in (2, 5) else ""
+        return f"{y:.2g}" if hi / lo <= 10 or round(mant) in (2, 5) else ""  # under a decade: every tick
     return label
 
 
