@@ -3,6 +3,8 @@
     python benchmarks/bench_evaluate.py                          # builds the multirun, then times
     python benchmarks/bench_evaluate.py --multirun <folder>      # times an existing multirun
     python benchmarks/bench_evaluate.py --work /tmp/bench --repeat 2 -- umap=false
+    python benchmarks/bench_evaluate.py --multirun <folder> modality=multi_l skin=soft primitive=pressing  # one job
+    python benchmarks/bench_evaluate.py --multirun logs/train/runs/<run>   # one run folder (all baselines)
 
 Building: ``python train.py -m sweep=ablation debug=fast paths.data_dir=<work>/data
 hydra.sweep.dir=<work>/multi`` (8 modality x skin combos x 3 primitives; the tiny scene of
@@ -52,7 +54,8 @@ def main() -> None:
     if args.multirun is None:
         args.work.mkdir(parents=True, exist_ok=True)
         args.multirun, build_s = build(args.work, args.train_args)
-    n_jobs = sum(1 for d in args.multirun.iterdir() if (d / "config_resolved.yaml").exists())
+    n_jobs = 1 if (args.multirun / "config_resolved.yaml").exists() else sum(  # a run folder: one job
+        1 for d in args.multirun.iterdir() if (d / "config_resolved.yaml").exists())
     walls, peaks = [], []
     for _ in range(args.repeat):
         t0 = time.perf_counter()
