@@ -427,7 +427,9 @@ def figure_caption(name: str, note: str, *, distance_mode: str = "pairwise") -> 
         by = stem[len("nmse_time_by_"):].replace("_", " ")
         what = (f"Held-out NMSE per frame against interaction time (s), by {by}; one panel per factor and their "
                 "mean. The NMSE axis is logarithmic: the first frames (before any contact information) and the "
-                "hand-crafted baseline would otherwise squash the other curves.")
+                "hand-crafted baseline would otherwise squash the other curves. When a few near-zero frames would "
+                "stretch it over many decades, it is clipped one decade below the 5th percentile of the values "
+                "(the axis label gives the clip; values below are drawn at it).")
         if by == "modality":
             what += " Soft skin only when the runs include it (the paper's multi-modality figure)."
         if by == "best worst action":
