@@ -47,6 +47,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass, field
@@ -200,6 +201,29 @@ def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
     raise EvaluationError(
         f"no {'checkpoint' if which == 'best' else 'last.ckpt'} in run folder {run_dir} "
         f"(looked in {ck_dir}; found {have or 'nothing'}). Did training finish or get killed before its first epoch?")
+
+
+def load_module(run: Run):
+    """The run's LightningModule (class from ``cfg.model._target_``) from its checkpoint, on
+    the CPU, in eval mode. A checkpoint whose weights do not fit this code's network (written
+    by an older model layout) is an :class:`EvaluationError` naming the file, the commit that
+    wrote it and the first mismatching key."""
+    from hydra.utils import get_class
+
+    cls = get_class(str(run.cfg.model._target_))
+    try:
+        model = cls.load_from_checkpoint(str(run.ckpt), map_location="cpu")
+    except RuntimeError as err:
+        if "state_dict" not in str(err):
+            raise
+        keys = re.findall(r'"([^"]+)"', str(err))
+        commit = _read_json(run.run_dir / "provenance.json").get("git_commit") or "unknown"
+        raise EvaluationError(
+            f"{run.ckpt}: its weights do not fit this code's {cls.__name__} (first mismatching key "
+            f"{keys[0] if keys else '?'}): it was written by commit {commit[:12]}, whose network layout differs; "
+            "evaluate it with that commit's code or retrain") from None
+    model.eval()
+    return model
 
 
 def load_run(run_dir: Path, which: str, ckpt: Path | None = None) -> Run:
@@ -371,8 +395,6 @@ def collect_split(model, batches: list, names: list[str], latent: str) -> tuple[
 
 def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequence[str]) -> tuple[list, list[dict], dict]:
     """-> (Results of every method, krr history rows, info dict)."""
-    from hydra.utils import get_class
-
     from embodied_tactile.eval import evaluate_latents
     from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
     from embodied_tactile.modality import Modality
@@ -391,9 +413,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     key, dm = cache.get(data)
     t_data = time.perf_counter()
 
-    cls = get_class(str(cfg.model._target_))
-    model = cls.load_from_checkpoint(str(run.ckpt), map_location="cpu")
-    model.eval()
+    model = load_module(run)
     tr, _ = collect_split(model, cache.batches(key, dm, "train"), _names(dm, "train"), opts.latent)
     te, infer_s = collect_split(model, cache.batches(key, dm, "test"), _names(dm, "test"), opts.latent)
     tr, te = encode_split(tr, str(opts.targets)), encode_split(te, str(opts.targets))  # every method: one encoding

@@ -167,6 +167,22 @@ def test_study_parts_are_merged(trained, tmp_path):
     assert {r["modality"] for r in res["runs"] if r["method"] == "latent_filter"} == {"acc", "fsr_t"}
 
 
+def test_checkpoint_of_an_older_network_layout_is_a_clear_error(trained, tmp_path, capsys):
+    import torch
+
+    run = tmp_path / "old_layout"
+    shutil.copytree(trained / "run", run, ignore=shutil.ignore_patterns("evaluation*"))
+    ckpt = sorted((run / "checkpoints").glob("*.ckpt"))[0]
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    state["state_dict"] = {k.replace("model.observation.", "model.encoders_v0."): v
+                           for k, v in state["state_dict"].items()}
+    torch.save(state, ckpt)
+    assert ev.main([str(ckpt), "baselines=[mean]", "figures=false"]) == 2
+    err = capsys.readouterr().err
+    assert "weights do not fit this code's" in err and str(run / "checkpoints") in err
+    assert "model.observation." in err or "model.encoders_v0." in err  # the first mismatching key
+
+
 def test_folder_without_checkpoint_is_a_clear_error(trained, tmp_path, capsys):
     empty = tmp_path / "no_ckpt_run"
     empty.mkdir()

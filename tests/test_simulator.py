@@ -432,18 +432,26 @@ def test_trials_of_an_older_physics_are_resimulated(tmp_path, monkeypatch, caplo
     assert errors == [] and len(good) == 3
 
 
-def test_unrequested_trial_of_an_older_physics_refuses_the_file(tmp_path):
+def test_file_with_unrequested_trials_of_an_older_physics_moves_aside_unchanged(tmp_path, caplog):
     from embodied_tactile.sim.physics import PHYSICS_VERSION
 
     path = tmp_path / "raw.h5"
     generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 8], actions=[1], duration=0.5, workers=1)
     _set_version(path, "obj08_hard_pressing_a01_r00", None)
     before = _digest(path)
-    with pytest.raises(OutputFileError) as info:
+    with caplog.at_level(logging.WARNING, logger="embodied_tactile.sim.dataset"):
         generate_dataset(path, skin="hard", primitive="pressing", objects=[0, 3], actions=[1], duration=0.5, workers=1)
-    msg = str(info.value)
-    assert str(path) in msg and "obj08_hard_pressing_a01_r00" in msg and f"version 1" in msg and f"version {PHYSICS_VERSION}" in msg
-    assert _digest(path) == before  # nothing written, not even the requested new trial
+    aside = tmp_path / "raw.physics-v1.h5"
+    assert _digest(aside) == before  # kept whole and unchanged
+    msg = caplog.text
+    assert str(path) in msg and str(aside) in msg and "obj08_hard_pressing_a01_r00" in msg and f"version {PHYSICS_VERSION}" in msg
+    with h5py.File(path, "r") as f:  # the new file: the requested trials only, all of this physics
+        assert sorted(f["trials"]) == ["obj00_hard_pressing_a01_r00", "obj03_hard_pressing_a01_r00"]
+        assert {int(g.attrs["sim_physics_version"]) for g in f["trials"].values()} == {PHYSICS_VERSION}
+    # a second move finds a free name
+    _set_version(path, "obj03_hard_pressing_a01_r00", None)
+    generate_dataset(path, skin="hard", primitive="pressing", objects=[0], actions=[1], duration=0.5, workers=1)
+    assert (tmp_path / "raw.physics-v1.1.h5").exists() and _digest(aside) == before
     # a recorded trial is never touched, stale simulated trials or not
     rec = tmp_path / "rec.h5"
     _write_trial_as(rec, "recorded")

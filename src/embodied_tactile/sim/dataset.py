@@ -110,6 +110,14 @@ def _init_worker() -> None:
         os.environ[var] = "1"
 
 
+def _aside_path(path: Path, version: int) -> Path:
+    """A free name next to ``path`` for a file of an older physics: ``<stem>.physics-v<N>[.k].h5``."""
+    aside, k = path.with_name(f"{path.stem}.physics-v{version}{path.suffix}"), 1
+    while aside.exists():
+        aside, k = path.with_name(f"{path.stem}.physics-v{version}.{k}{path.suffix}"), k + 1
+    return aside
+
+
 def generate_dataset(
     path: str | os.PathLike,
     *,
@@ -129,9 +137,10 @@ def generate_dataset(
     Only missing trials are simulated (an interrupted run resumes); ``overwrite``
     regenerates the requested trials. A requested trial simulated by an older physics
     (``sim_physics_version`` attribute absent or not :data:`PHYSICS_VERSION`) is
-    re-simulated with a warning; an older trial that is not requested makes the run refuse
-    the file (:class:`OutputFileError` naming file and trial, nothing written), so one file
-    never holds two physics. The file must be new or hold simulated trials only
+    re-simulated with a warning; when the file also holds older trials that are not requested,
+    it is moved aside whole and unchanged (``<stem>.physics-v<N>.h5``, a warning names both)
+    and the requested trials go into a new file: one file never holds two physics and
+    nothing is deleted. The file must be new or hold simulated trials only
     (:class:`OutputFileError` otherwise, before anything is written). A simulated trial that
     lacks a field is present, not missing: it is kept with a warning naming the field (a
     reader that needs the field skips it), and regenerated only with ``overwrite``. Every argument is
@@ -156,13 +165,23 @@ def generate_dataset(
         raise SimParameterError("overwrite", overwrite, "true or false")
     path = Path(path)
     complete, damaged, partial, stale = _inventory(path, seed)
+    requested = {trial_name(make_attrs(object_id=o, skin=skin, primitive=primitive, action_index=a, repetition=r,
+                                       source="simulated", seed=seed))
+                 for o in objects for a in actions for r in range(repetitions)}
+    kept_stale = sorted(set(stale) - requested)
+    if kept_stale:  # older trials this run would not redo: the file moves aside whole, unchanged
+        aside = _aside_path(path, min(stale.values()))
+        path.rename(aside)
+        log.warning("%s holds %d trial(s) simulated by physics version %s that this run does not regenerate "
+                    "(first: %s); the simulator is at version %d and one file never mixes two physics: the file "
+                    "is kept unchanged as %s and the requested trials are simulated into a new %s",
+                    path, len(kept_stale), stale[kept_stale[0]], kept_stale[0], PHYSICS_VERSION, aside, path.name)
+        complete, damaged, partial, stale = _inventory(path, seed)
     jobs = []
-    requested: set[str] = set()
     for o in objects:
         for a in actions:
             for r in range(repetitions):
                 name = trial_name(make_attrs(object_id=o, skin=skin, primitive=primitive, action_index=a, repetition=r, source="simulated", seed=seed))
-                requested.add(name)
                 if name in damaged and not overwrite:
                     log.warning(
                         "%s: trial %s lacks %s; kept as it is (the simulator never deletes a trial, and a reader "
@@ -171,15 +190,6 @@ def generate_dataset(
                     )
                 elif overwrite or name not in complete or name in stale:
                     jobs.append((o, skin, primitive, a, r, seed, duration, physics))
-    kept_stale = sorted(set(stale) - requested)
-    if kept_stale:
-        raise OutputFileError(
-            path, kept_stale[0],
-            f"simulated by physics version {stale[kept_stale[0]]}, the simulator is at version {PHYSICS_VERSION}, "
-            f"and this run does not regenerate it ({len(kept_stale)} such trial(s), not among the requested objects, "
-            "actions and repetitions); one file never mixes two physics: request those trials too (they are then "
-            "re-simulated) or write to another file. The file is left unchanged",
-        )
     if stale:
         log.warning("%s: re-simulating %d trial(s) simulated by an older physics version (first: %s, version %d; now %d)",
                     path, len(stale), min(stale), stale[min(stale)], PHYSICS_VERSION)
