@@ -40,7 +40,6 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
     run's ``split.json`` test trials), training object ids, the training split's per-action
     single-touch NMSE (used to order the fixed baseline's first touch)."""
     import torch
-    from hydra.utils import get_class
 
     from embodied_tactile.eval.krr import fit_alignment
     from embodied_tactile.eval.metrics import reference_variance
@@ -66,8 +65,10 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
     torch.set_num_threads(int(threads))
     cache = ev.DataCache()
     key, dm = cache.get(data)
-    module = get_class(str(r.cfg.model._target_)).load_from_checkpoint(str(r.ckpt), map_location="cpu")
-    module.eval()
+    try:
+        module = ev.load_module(r)  # eval mode; an older network layout is a clear error
+    except ev.EvaluationError as err:
+        raise PalpationError(str(err)) from err
     tr, _ = ev.collect_split(module, cache.batches(key, dm, "train"), ev._names(dm, "train"), "y")
     tr = encode_split(tr, str(opts.targets))
     align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"], **dict(opts.alignment))
