@@ -509,3 +509,36 @@ def test_population_term_enters_kl_y_and_old_checkpoints_load():
     q = HierarchicalPrior(n_y=3, n_a=2, n_objects=4)
     q.load_state_dict(old)
     assert bool(q.seen.all())
+
+
+@pytest.mark.parametrize("name", ["fsr_tb", "multi_l"])
+def test_checkpoint_of_the_pre_fusion_module_layout_loads(name, tmp_path):
+    """Weights saved as model.encoders.<pathway>.* (before models/fusion.py) load into the
+    current layout unchanged; an unknown layout still fails."""
+    import lightning as L
+
+    net = LatentFilter(name, **TINY)
+    module_cls = LateFusionLatentFilter if net.modality["fusion"] == "late" else EarlyFusionLatentFilter
+    module = module_cls(net)
+    late = module_cls is LateFusionLatentFilter
+
+    def old_key(k: str) -> str:
+        for part in ("encoder", "decoder"):
+            if late and k.startswith(f"model.observation.{part}s."):
+                return k.replace(f"model.observation.{part}s.", f"model.{part}s.")
+            if not late and k.startswith(f"model.observation.{part}."):
+                return k.replace(f"model.observation.{part}.", f"model.{part}s.main.")
+        return k
+
+    state = {old_key(k): v for k, v in module.state_dict().items()}
+    assert any(k.startswith("model.encoders.") for k in state) and not any("observation" in k for k in state)
+    ckpt = tmp_path / "old.ckpt"
+    torch.save({"state_dict": state, "hyper_parameters": dict(module.hparams),
+                "pytorch-lightning_version": L.__version__}, ckpt)
+    loaded = module_cls.load_from_checkpoint(str(ckpt), map_location="cpu")
+    for k, v in module.state_dict().items():
+        assert torch.equal(loaded.state_dict()[k], v), k
+    torch.save({"state_dict": {k.replace("model.observation.", "model.other."): v for k, v in module.state_dict().items()},
+                "hyper_parameters": dict(module.hparams), "pytorch-lightning_version": L.__version__}, ckpt)
+    with pytest.raises(RuntimeError, match="state_dict"):
+        module_cls.load_from_checkpoint(str(ckpt), map_location="cpu")

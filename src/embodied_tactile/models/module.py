@@ -208,6 +208,28 @@ class LatentFilterModule(L.LightningModule):
             if train_set is not None and getattr(train_set, "trials", None):
                 prior.population_weight = 1.0 / len(train_set.trials)
 
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Checkpoints written before the fusion code moved into :mod:`.fusion` (commit
+        3c3e49b) hold the same weights under ``model.encoders.<pathway>.*`` /
+        ``model.decoders.<pathway>.*``; they are renamed to this layout
+        (``model.observation.encoder.*`` for early fusion, ``model.observation.encoders.<pathway>.*``
+        for late fusion) before the state dict loads. Any other mismatch still fails."""
+        state = checkpoint.get("state_dict") or {}
+        if not any(k.startswith(("model.encoders.", "model.decoders.")) for k in state):
+            return
+        late = isinstance(self.model.observation, LateFusion)
+
+        def rename(key: str) -> str:
+            for part in ("encoders", "decoders"):
+                prefix = f"model.{part}."
+                if key.startswith(prefix):
+                    pathway, rest = key[len(prefix):].split(".", 1)
+                    return (f"model.observation.{part}.{pathway}.{rest}" if late
+                            else f"model.observation.{part[:-1]}.{rest}")
+            return key
+
+        checkpoint["state_dict"] = {rename(k): v for k, v in state.items()}
+
     def configure_optimizers(self):
         self._fit_budget()
         return self._optimizer(self.parameters())
