@@ -159,9 +159,10 @@ def _budget_lines(files: Sequence[Mapping], blob: Mapping) -> list[str]:
             lines.append(f"- Budget: {ep} epochs, batch {bs}, action indices {acts}, {wpt} windows of {win} frames "
                          f"per training trial and epoch, split `{split}`"
                          + (" (every run)." if len(budgets) == 1 else "."))
-    sizes = blob.get("split_sizes") or {}
+    sizes = sorted({(r.get("n_train"), r.get("n_test")) for r in _latent_runs(blob["runs"])}, key=str)
     if sizes:
-        lines.append(f"- Split sizes (train / held-out trials per run): {json.dumps(sizes)}.")
+        lines.append("- Split (training / held-out test trials per run): "
+                     + ", ".join(f"{a} / {b}" for a, b in sizes) + (" in every run." if len(sizes) == 1 else "."))
     train = [f["metrics"].get("train_wall_s") for f in files if f["metrics"].get("train_wall_s") is not None]
     prep = [f["metrics"].get("data_prepare_s") for f in files if f["metrics"].get("data_prepare_s") is not None]
     if train:
@@ -190,7 +191,8 @@ def _command_lines(files: Sequence[Mapping]) -> list[str]:
     for part, ovs in sorted(parts.items()):
         common = [o for o in ovs[0] if all(o in other for other in ovs[1:])]
         varying = sorted({o for ov in ovs for o in ov if o not in common})
-        lines.append(f"- `{part}` ({len(ovs)} jobs): `python train.py {' '.join(common)}`"
+        multirun = " -m" if (Path(part) / "multirun.yaml").exists() else ""
+        lines.append(f"- `{part}` ({len(ovs)} jobs): `python train.py{multirun} {' '.join(common)}`"
                      + (f", varying: {', '.join(f'`{v}`' for v in varying)}" if varying else ""))
     return lines
 
