@@ -356,13 +356,35 @@ def test_acc_only_build_never_reads_fsr(raw_file, tmp_path, cfg, monkeypatch):
 
 
 def test_process_pool_build_equals_in_process(raw_file, tmp_path, cfg):
+    """The pool (fingerprints hashed per chunk in the workers, arrays handed back through
+    shared slots that are reused across chunks, attrs from the scan) writes the same caches
+    as the in-process build: keys, arrays bit for bit, trial attrs with their types, skips."""
+    for rep in range(3, 7):
+        write_trial(raw_file, make_trial(rep))
+    bad = make_trial(4).name
+    with h5py.File(raw_file, "a") as f:
+        f["trials"][bad]["tactile/fsr"][3, 0, 0, 0] = 5000  # fsr skipped, acc and actions kept
     serial = build_cache([raw_file], tmp_path / "a", cfg, workers=1)
-    pooled = build_cache([raw_file], tmp_path / "b", cfg, workers=2, chunk_size=1)
+    pooled = build_cache([raw_file], tmp_path / "b", cfg, workers=2, chunk_size=1)  # 7 chunks, 4 slots
     for f in serial:
         assert serial[f].name == pooled[f].name  # same key
-        for name, _ in list_cached(serial[f]):
-            np.testing.assert_array_equal(load_cached(serial[f], name, f), load_cached(pooled[f], name, f))
+        listed = list_cached(serial[f])
+        assert len(listed) == (6 if f == "fsr" else 7)
+        assert [n for n, _ in listed] == [n for n, _ in list_cached(pooled[f])]
+        with h5py.File(serial[f], "r") as a, h5py.File(pooled[f], "r") as b:
+            for name, _ in listed:
+                ga, gb = a["trials"][name], b["trials"][name]
+                assert ga[f][()].tobytes() == gb[f][()].tobytes()
+                assert list(ga.attrs) == list(gb.attrs)
+                for k in ga.attrs:
+                    assert ga.attrs.get_id(k).get_type() == gb.attrs.get_id(k).get_type(), k
+                    assert type(ga.attrs[k]) is type(gb.attrs[k]) and np.array_equal(ga.attrs[k], gb.attrs[k]), k
+        assert cache_info(serial[f])["skipped"] == cache_info(pooled[f])["skipped"]
+    assert [s["trial"] for s in cache_info(pooled["fsr"])["skipped"]] == [bad]
     assert json.loads(h5py.File(pooled["acc"], "r").attrs["sources"]) == [str(raw_file)]
+    assert cache_mod.fingerprint_file(raw_file, [n for n, _ in list_cached(serial["acc"])], ("acc",))["acc"] == (
+        cache_info(serial["acc"])["source_digests"][0]
+    )  # the serial fingerprint and the pool's per-chunk one agree
 
 
 def test_duplicate_trial_names_across_files_are_an_error(raw_file, tmp_path, cfg):

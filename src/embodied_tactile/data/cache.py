@@ -30,10 +30,12 @@ the final name is always complete; an existing one is reused as is.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import hashlib
 import json
 import logging
+import mmap
 import multiprocessing as mp
 import os
 import uuid
@@ -43,7 +45,14 @@ from typing import Any, BinaryIO, Iterable, Iterator, Sequence
 import h5py
 import numpy as np
 
-from embodied_tactile.data.preprocess import FIELDS, PREPROCESS_VERSION, RAW_FIELDS, PreprocessConfig, preprocess_trials
+from embodied_tactile.data.preprocess import (
+    FIELDS,
+    PREPROCESS_VERSION,
+    RAW_FIELDS,
+    PreprocessConfig,
+    output_shape,
+    preprocess_trials,
+)
 from embodied_tactile.io import rawformat
 from embodied_tactile.jsonio import to_jsonable
 from embodied_tactile.io.rawformat import FIELDS as RAW_PATHS
@@ -61,7 +70,7 @@ def _dataset_digest(ds: h5py.Dataset, fh: BinaryIO | None = None) -> str:
     file (no decompression; adjacent chunks read in one go from ``fh``), or the data of a
     contiguous dataset; plus shape, dtype, filters and the chunk index. SHA-256: hardware
     accelerated (SHA-NI), 1.4 GB/s against blake2b's 0.74 on the development box; this hash
-    runs over every stored byte, serially, before a build."""
+    runs over every stored byte before a build (chunk by chunk on the build's worker pool)."""
     h = hashlib.sha256()
     h.update(repr((ds.shape, str(ds.dtype), ds.chunks, ds.compression, ds.compression_opts)).encode())
     if ds.chunks is None or fh is None:
@@ -74,7 +83,7 @@ def _dataset_digest(ds: h5py.Dataset, fh: BinaryIO | None = None) -> str:
         h.update(np.ascontiguousarray(ds[()]).tobytes())
         return h.hexdigest()[:32]
     spans.sort()  # by position in the file: adjacent chunks are read in one go
-    blobs: dict[int, bytes] = {}
+    blobs: dict[int, memoryview] = {}
     i = 0
     while i < len(spans):
         j, end = i + 1, spans[i][0] + spans[i][1]
@@ -85,8 +94,9 @@ def _dataset_digest(ds: h5py.Dataset, fh: BinaryIO | None = None) -> str:
         data = fh.read(end - spans[i][0])
         if len(data) != end - spans[i][0]:
             raise OSError(f"truncated file: chunk bytes {spans[i][0]}..{end} missing")
+        view = memoryview(data)  # slices without copying
         for off, size, _, _ in spans[i:j]:
-            blobs[off] = data[off - spans[i][0] : off - spans[i][0] + size]
+            blobs[off] = view[off - spans[i][0] : off - spans[i][0] + size]
         i = j
     for off, size, chunk, mask in sorted(spans, key=lambda s: s[2]):  # hash in logical order
         h.update(repr((chunk, mask, size)).encode())
@@ -102,36 +112,64 @@ def _raw_datasets(field: str) -> list[str]:
 _LOST_PATHS = {RAW_PATHS[f] for f in rawformat.LOST_FIELDS}
 
 
+def _trial_digests(f: h5py.File, fh: BinaryIO, name: str, dpaths: Iterable[str]) -> dict[str, str]:
+    """``{dataset path: digest}`` of one trial's datasets ``dpaths`` (``"missing"`` /
+    ``"unreadable: ..."`` for a dataset that is absent / cannot be read; an absent optional
+    lost-packet dataset is left out: it adds nothing to the fingerprint)."""
+    out: dict[str, str] = {}
+    try:
+        g: h5py.Group | None = f["trials"][name]
+    except (OSError, KeyError, RuntimeError):
+        g = None
+    for dpath in dpaths:
+        if dpath in _LOST_PATHS and g is not None and dpath not in g:
+            continue  # optional, newer than the format: absent adds nothing
+        try:
+            out[dpath] = "missing" if g is None or dpath not in g else _dataset_digest(g[dpath], fh)
+        except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
+            out[dpath] = f"unreadable: {type(exc).__name__}: {exc}"
+    return out
+
+
+def _attrs_json(attrs: dict[str, Any]) -> str:
+    return json.dumps(to_jsonable(attrs), sort_keys=True)
+
+
+def _combine_fingerprint(
+    names: Iterable[str], attrs_json: dict[str, str], digests: dict[str, dict[str, str]], fields: Sequence[str]
+) -> dict[str, str]:
+    """``{field: digest}`` of one raw file from its trials' attrs (JSON) and dataset digests
+    (:func:`_trial_digests`), trials in sorted name order."""
+    hs = {f: hashlib.blake2b(digest_size=16) for f in fields}
+    for name in sorted(names):
+        for fld in fields:
+            hs[fld].update(f"{name}\0{attrs_json[name]}\0".encode())
+            for dpath in _raw_datasets(fld):
+                if dpath in digests[name]:
+                    hs[fld].update(f"{dpath}={digests[name][dpath]}\0".encode())
+    return {fld: h.hexdigest() for fld, h in hs.items()}
+
+
+def _fields_datasets(fields: Iterable[str]) -> list[str]:
+    return list(dict.fromkeys(d for f in fields for d in _raw_datasets(f)))
+
+
 def fingerprint_file(path: str | os.PathLike, names: Sequence[str], fields: Iterable[str]) -> dict[str, str]:
     """``{field: digest}`` of one raw file: trial names, attrs and the stored bytes of the
-    datasets each field reads. Datasets of other fields are never opened."""
+    datasets each field reads. Datasets of other fields are never opened. (``build_cache``
+    computes the same digests chunk by chunk on its worker pool.)"""
     fields = list(fields)
-    per_ds: dict[tuple[str, str], str] = {}
-    hs = {f: hashlib.blake2b(digest_size=16) for f in fields}
+    dpaths = _fields_datasets(fields)
+    attrs_json: dict[str, str] = {}
+    digests: dict[str, dict[str, str]] = {}
     with rawformat.open_raw(path) as f, open(path, "rb") as fh:
-        trials = f["trials"]
-        for name in sorted(names):
-            g: h5py.Group | None = None
+        for name in names:
             try:
-                g = trials[name]
-                attrs = json.dumps(to_jsonable(rawformat.read_attrs(g)), sort_keys=True)
+                attrs_json[name] = _attrs_json(rawformat.read_attrs(f["trials"][name]))
             except (OSError, KeyError, RuntimeError) as exc:
-                attrs = f"unreadable: {exc}"
-            for fld in fields:
-                hs[fld].update(f"{name}\0{attrs}\0".encode())
-                for dpath in _raw_datasets(fld):
-                    if dpath in _LOST_PATHS and g is not None and dpath not in g:
-                        continue  # optional, newer than the format: absent adds nothing
-                    if (name, dpath) not in per_ds:
-                        try:
-                            if g is None or dpath not in g:
-                                per_ds[(name, dpath)] = "missing"
-                            else:
-                                per_ds[(name, dpath)] = _dataset_digest(g[dpath], fh)
-                        except (OSError, KeyError, RuntimeError, ValueError, TypeError) as exc:
-                            per_ds[(name, dpath)] = f"unreadable: {type(exc).__name__}: {exc}"
-                    hs[fld].update(f"{dpath}={per_ds[(name, dpath)]}\0".encode())
-    return {fld: h.hexdigest() for fld, h in hs.items()}
+                attrs_json[name] = f"unreadable: {exc}"
+            digests[name] = _trial_digests(f, fh, name, dpaths)
+    return _combine_fingerprint(names, attrs_json, digests, fields)
 
 
 def cache_key(field: str, cfg: PreprocessConfig, source_digests: Sequence[str]) -> str:
@@ -158,53 +196,95 @@ def _err(file: str, trial: str, field: str, problem: str) -> dict[str, str]:
     return {"file": str(file), "trial": trial, "field": field, "problem": problem}
 
 
-def _process_chunk(task: tuple[str, list[str], tuple[str, ...], dict[str, Any]]) -> tuple[list, list]:
-    """Read one chunk of trials (only the raw fields needed) and preprocess it batched.
+#: The parent's output buffer (an anonymous shared mapping), inherited by the forked pool
+#: workers: they place the processed arrays of a chunk in a slot of it instead of pickling
+#: ~2.8 MB per trial through the pool's pipe (about 3 CPU ms per trial, both ends).
+_OUT: mmap.mmap | None = None
 
-    Returns ``(results, errors)``: results ``[(name, attrs, {field: array})]``, errors as
-    dicts (TrialFormatError does not survive pickling)."""
-    path, names, fields, cfg_dict = task
+
+def _slot_layout(cfg: PreprocessConfig, fields: Sequence[str]) -> tuple[int, dict[str, tuple[int, tuple[int, ...]]]]:
+    """``(bytes per trial, {field: (offset in a trial's span, shape)})`` of a slot of ``_OUT``."""
+    layout, off = {}, 0
+    for f in fields:
+        shape = output_shape(cfg, f)
+        layout[f] = (off, shape)
+        off += 4 * int(np.prod(shape))  # float32
+    return off, layout
+
+
+def _slot_array(slot: int, slot_bytes: int, pos: int, trial_bytes: int, off: int, shape: tuple[int, ...]) -> np.ndarray:
+    assert _OUT is not None
+    return np.frombuffer(_OUT, np.float32, int(np.prod(shape)), slot * slot_bytes + pos * trial_bytes + off).reshape(shape)
+
+
+def _digest_chunk(task: tuple[str, list[str], list[str]]) -> dict[str, dict[str, str]]:
+    """Worker: ``{trial: {dataset path: digest}}`` of one chunk of one raw file."""
+    path, names, dpaths = task
+    with rawformat.open_raw(path) as f, open(path, "rb") as fh:
+        return {name: _trial_digests(f, fh, name, dpaths) for name in names}
+
+
+def _process_chunk(task: tuple) -> tuple[list, list]:
+    """Read one chunk of trials (one open of the file, only the raw fields needed, the
+    attrs ``scan_raw`` read) and preprocess it batched.
+
+    Returns ``(results, errors)``: results ``[(name, {field: array or None})]`` (None: in
+    ``slot`` of ``_OUT`` at the trial's position in the chunk), errors as dicts
+    (TrialFormatError does not survive pickling)."""
+    path, names, attrs, fields, cfg_dict, slot, slot_bytes = task
     cfg = PreprocessConfig.from_dict(cfg_dict)
     raw_union = sorted({r for f in fields for r in RAW_FIELDS[f]})
-    results: dict[str, tuple[dict, dict]] = {}
+    results: dict[str, dict[str, np.ndarray]] = {}
     errors: list[dict] = []
     groups: dict[tuple[str, ...], list] = {}  # fields that can be computed -> trials
-    for name in names:
-        try:
-            tr = rawformat.read_trial(path, name, fields=raw_union)
-            groups.setdefault(tuple(fields), []).append(tr)
-            continue
-        except TrialFormatError as exc:
-            first = exc
-        # isolate the broken field(s): retry each field with its own raw datasets
-        ok: list[str] = []
-        tr = None
-        for f in fields:
+    try:
+        fh = rawformat.open_raw(path)
+    except TrialFormatError as exc:  # the file went away or broke since the scan
+        return [], [_err(exc.file, name, "*", f"{exc.field}: {exc.problem}") for name in names]
+    with fh:
+        for name, at in zip(names, attrs):
             try:
-                t_f = rawformat.read_trial(path, name, fields=RAW_FIELDS[f])
-                tr = t_f if tr is None else _merge(tr, t_f)
-                ok.append(f)
+                tr = rawformat.read_trial(path, name, fields=raw_union, attrs=at, file=fh)
+                groups.setdefault(tuple(fields), []).append(tr)
+                continue
             except TrialFormatError as exc:
-                errors.append(_err(exc.file, exc.trial, f, f"{exc.field}: {exc.problem}"))
-        if not ok and not errors:
-            errors.append(_err(first.file, first.trial, "*", f"{first.field}: {first.problem}"))
-        if ok and tr is not None:
-            groups.setdefault(tuple(ok), []).append(tr)
+                first = exc
+            # isolate the broken field(s): retry each field with its own raw datasets
+            ok: list[str] = []
+            tr = None
+            for f in fields:
+                try:
+                    t_f = rawformat.read_trial(path, name, fields=RAW_FIELDS[f], attrs=at, file=fh)
+                    tr = t_f if tr is None else _merge(tr, t_f)
+                    ok.append(f)
+                except TrialFormatError as exc:
+                    errors.append(_err(exc.file, exc.trial, f, f"{exc.field}: {exc.problem}"))
+            if not ok and not errors:
+                errors.append(_err(first.file, first.trial, "*", f"{first.field}: {first.problem}"))
+            if ok and tr is not None:
+                groups.setdefault(tuple(ok), []).append(tr)
     for flds, trials in groups.items():
         try:
-            with _one_blas_thread():
-                out = preprocess_trials(trials, cfg, flds)
+            out = preprocess_trials(trials, cfg, flds)
             for i, tr in enumerate(trials):
-                results[tr.name] = (tr.attrs, {f: out[f][i] for f in flds})
+                results[tr.name] = {f: out[f][i] for f in flds}
         except (ValueError, FloatingPointError) as exc:  # isolate the offending trial(s)
             for tr in trials:
                 try:
                     o = preprocess_trials([tr], cfg, flds)
-                    results[tr.name] = (tr.attrs, {f: o[f][0] for f in flds})
+                    results[tr.name] = {f: o[f][0] for f in flds}
                 except (ValueError, FloatingPointError) as e2:
                     errors.extend(_err(path, tr.name, f, f"preprocess: {e2}") for f in flds)
             log.debug("chunk fell back to per-trial processing: %s", exc)
-    ordered = [(n, *results[n]) for n in names if n in results]
+    ordered = [(n, results[n]) for n in names if n in results]
+    if slot is not None:  # into the shared slot; an array of an unexpected shape travels pickled
+        trial_bytes, layout = _slot_layout(cfg, fields)
+        for pos, (name, arrays) in enumerate(ordered):
+            for f, arr in arrays.items():
+                off, shape = layout[f]
+                if arr.shape == shape and arr.dtype == np.float32:
+                    _slot_array(slot, slot_bytes, pos, trial_bytes, off, shape)[...] = arr
+                    arrays[f] = None
     return ordered, errors
 
 
@@ -218,6 +298,10 @@ def _one_blas_thread():
     return threadpool_limits(limits=1, user_api="blas")
 
 
+def _init_worker() -> None:
+    _one_blas_thread()  # applied on construction; holds for the worker's life (3 ms per call)
+
+
 def _merge(a: rawformat.RawTrial, b: rawformat.RawTrial) -> rawformat.RawTrial:
     """Fields of one trial (same file, same group) read in two passes, as one RawTrial."""
     assert a.name == b.name, (a.name, b.name)
@@ -228,14 +312,94 @@ def _merge(a: rawformat.RawTrial, b: rawformat.RawTrial) -> rawformat.RawTrial:
     return a
 
 
-def _map(tasks: list, workers: int) -> Iterator[tuple[list, list]]:
-    if workers <= 1 or len(tasks) <= 1:
-        for t in tasks:
-            yield _process_chunk(t)
-        return
-    ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else mp.get_context()
-    with ctx.Pool(min(workers, len(tasks))) as pool:
-        yield from pool.imap(_process_chunk, tasks)
+class _Workers:
+    """The build's process pool (fork: workers inherit ``_OUT``), or this process when
+    ``workers <= 1``. ``map`` keeps task order; ``process`` runs chunk tasks with at most
+    ``slots`` in flight, each owning one slot of ``_OUT`` until the parent has written it."""
+
+    def __init__(self, workers: int, n_tasks: int, slot_bytes: int):
+        self.n = min(workers, n_tasks)
+        self.pool = None
+        self.slot_bytes = slot_bytes
+        self.slots = self.n + 2 if self.n > 1 and "fork" in mp.get_all_start_methods() else 0
+        self._stack = contextlib.ExitStack()
+
+    def __enter__(self) -> "_Workers":
+        global _OUT
+        if self.n <= 1:
+            self._stack.enter_context(_one_blas_thread())
+            return self
+        if self.slots:
+            _OUT = mmap.mmap(-1, max(1, self.slots * self.slot_bytes))  # shared; pages touched on use, in the workers
+            self._stack.callback(self._close_out)
+            ctx = mp.get_context("fork")
+        else:
+            ctx = mp.get_context()
+        self.pool = self._stack.enter_context(ctx.Pool(self.n, initializer=_init_worker))
+        return self
+
+    @staticmethod
+    def _close_out() -> None:
+        global _OUT
+        _OUT = None  # unmapped once the last view of it is gone (closing it now would fail on a live view)
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()
+
+    def map(self, fn, tasks: list) -> list:
+        return [fn(t) for t in tasks] if self.pool is None else self.pool.map(fn, tasks, chunksize=1)
+
+    def process(self, tasks: list) -> Iterator[tuple[tuple, int | None, list, list]]:
+        """Yield ``(task, slot, results, errors)`` in task order; the slot is free again
+        once the caller asks for the next one."""
+        if self.pool is None:
+            for t in tasks:
+                yield (t, None, *_process_chunk((*t, None, 0)))
+            return
+        if not self.slots:  # no fork: the arrays travel pickled
+            for t, out in zip(tasks, self.pool.imap(_process_chunk, [(*t, None, 0) for t in tasks])):
+                yield (t, None, *out)
+            return
+        free = list(range(self.slots))
+        pending: collections.deque = collections.deque()
+        todo = iter(tasks)
+
+        def submit() -> None:
+            while free:
+                t = next(todo, None)
+                if t is None:
+                    return
+                slot = free.pop()
+                pending.append((t, slot, self.pool.apply_async(_process_chunk, ((*t, slot, self.slot_bytes),))))
+
+        submit()
+        while pending:
+            t, slot, res = pending.popleft()
+            yield (t, slot, *res.get())
+            free.append(slot)
+            submit()
+
+
+_ATTR_TYPES: dict[Any, tuple] = {}
+
+
+def _write_attrs(g: h5py.Group, attrs: dict[str, Any]) -> None:
+    """``g.attrs[k] = v`` for a new group, through h5py's low-level calls: the same types
+    (str as variable-length UTF-8, numbers as 0-d arrays, lists as arrays) at half the
+    CPU time of the high-level setter (no existence check, HDF5 types made once per dtype)."""
+    for k, v in attrs.items():
+        data = np.array(v, dtype=h5py.string_dtype()) if isinstance(v, str) else np.asarray(v)
+        key = "str" if isinstance(v, str) else data.dtype if data.dtype.kind != "O" else None
+        types = _ATTR_TYPES.get(key) if key is not None else None
+        if types is None:
+            types = (h5py.h5t.py_create(data.dtype, logical=True), h5py.h5t.py_create(data.dtype))
+            if key is not None:
+                _ATTR_TYPES[key] = types
+        at = h5py.h5a.create(g.id, k.encode(), types[0], h5py.h5s.create_simple(data.shape))
+        try:
+            at.write(data, mtype=types[1])
+        finally:
+            at.close()
 
 
 # ============================================================================ build
@@ -265,83 +429,99 @@ def build_cache(
     cache_dir = Path(cache_dir)
     cache_dir.mkdir(parents=True, exist_ok=True)
 
-    # 1) trial index (attrs only; data are validated when the worker reads them); raises
-    #    on a trial name held by two files
+    # 1) trial index (attrs only, read once here and handed on; data are validated when a
+    #    worker reads them); raises on a trial name held by two files
     infos, scan_errors = rawformat.scan_raw(paths, validate_data=False, strict=strict)
     by_file: dict[str, list[str]] = {p: [] for p in paths}
+    attrs: dict[tuple[str, str], dict[str, Any]] = {}
     for info in infos:
         by_file[info.file].append(info.name)
+        attrs[(info.file, info.name)] = info.attrs
+    chunks = [(p, by_file[p][i : i + chunk_size]) for p in paths for i in range(0, len(by_file[p]), chunk_size)]
+    slot_bytes = chunk_size * _slot_layout(cfg, fields)[0]
 
-    # 2) keys from config + fingerprints of only the datasets each field reads
-    digests: dict[str, list[str]] = {f: [] for f in fields}
-    for p in paths:
-        fp = fingerprint_file(p, by_file[p], fields) if by_file[p] else {f: "no-valid-trials" for f in fields}
+    with _Workers(workers, len(chunks), slot_bytes) as pool:
+        # 2) keys from config + fingerprints of only the datasets each field reads, hashed
+        #    chunk by chunk on the pool
+        dpaths = _fields_datasets(fields)
+        found = pool.map(_digest_chunk, [(p, names, dpaths) for p, names in chunks])
+        per_file: dict[str, dict[str, dict[str, str]]] = {p: {} for p in paths}
+        for (p, _), d in zip(chunks, found):
+            per_file[p].update(d)
+        digests: dict[str, list[str]] = {f: [] for f in fields}
+        for p in paths:
+            if by_file[p]:
+                ajson = {n: _attrs_json(attrs[(p, n)]) for n in by_file[p]}
+                fp = _combine_fingerprint(by_file[p], ajson, per_file[p], fields)
+            else:
+                fp = {f: "no-valid-trials" for f in fields}
+            for f in fields:
+                digests[f].append(fp[f])
+        targets = {f: cache_dir / f"{f}-{cache_key(f, cfg, digests[f])}.h5" for f in fields}
+        todo = tuple(f for f in fields if not _is_complete(targets[f]))
         for f in fields:
-            digests[f].append(fp[f])
-    targets = {f: cache_dir / f"{f}-{cache_key(f, cfg, digests[f])}.h5" for f in fields}
-    todo = tuple(f for f in fields if not _is_complete(targets[f]))
-    for f in fields:
-        if f not in todo:
-            log.info("cache hit for %s: %s", f, targets[f])
-    if not todo:
-        return targets
+            if f not in todo:
+                log.info("cache hit for %s: %s", f, targets[f])
+        if not todo:
+            return targets
 
-    # 3) compute the missing fields in chunks on a process pool, stream into temp files
-    tasks = [
-        (p, by_file[p][i : i + chunk_size], todo, cfg.to_dict())
-        for p in paths
-        for i in range(0, len(by_file[p]), chunk_size)
-    ]
-    base_err = [_err(e.file, e.trial, "*", f"{e.field}: {e.problem}") for e in scan_errors]
-    skipped: dict[str, list[dict]] = {f: list(base_err) for f in todo}
-    tmp = {f: targets[f].with_name(f"{targets[f].name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}") for f in todo}
-    files = {f: h5py.File(tmp[f], "w") for f in todo}
-    counts = {f: 0 for f in todo}
-    try:
-        for f, h in files.items():
-            h.attrs["format"] = CACHE_FORMAT
-            h.attrs["complete"] = False
-            h.create_group("trials")
-        for (results, errors), (path, _, _, _) in zip(_map(tasks, workers), tasks):
-            for e in errors:
-                if strict:
-                    raise TrialFormatError(e["file"], e["trial"], e["field"], e["problem"])
-                log.warning("skipping %s / %s for %s: %s", e["file"], e["trial"], e["field"], e["problem"])
-                for f in todo if e["field"] == "*" else [e["field"]]:
-                    skipped[f].append(e)
-            for name, attrs, arrays in results:
-                for f, arr in arrays.items():
-                    g = files[f]["trials"].create_group(name)  # names are unique: scan_raw checked
-                    g.create_dataset(f, data=arr, compression=compression)
-                    for k, v in attrs.items():
-                        g.attrs[k] = np.asarray(v) if isinstance(v, (list, tuple)) else v
-                    g.attrs["source_file"] = os.path.abspath(path)  # one identity, whatever the cwd or spelling
-                    counts[f] += 1
-        for f, h in files.items():
-            h.attrs.update(
-                {
-                    "cache_format_version": CACHE_FORMAT_VERSION,
-                    "preprocess_version": PREPROCESS_VERSION,
-                    "field": f,
-                    "key": targets[f].stem.split("-", 1)[1],
-                    "config": json.dumps(cfg.to_dict(), sort_keys=True),
-                    "field_config": json.dumps(cfg.field_dict(f), sort_keys=True),
-                    "sources": json.dumps(paths),
-                    "source_digests": json.dumps(digests[f]),
-                    "skipped": json.dumps(skipped[f]),
-                    "n_trials": counts[f],
-                    "complete": True,
-                }
-            )
-            h.close()
-            os.replace(tmp[f], targets[f])
-            log.info("wrote %s (%d trials, %d skipped)", targets[f], counts[f], len(skipped[f]))
-    finally:
-        for f, h in files.items():
-            if h.id.valid:
+        # 3) compute the missing fields chunk by chunk on the pool; the parent streams the
+        #    results into temp files while the workers go on
+        cfg_dict = cfg.to_dict()
+        tasks = [(p, names, [attrs[(p, n)] for n in names], todo, cfg_dict) for p, names in chunks]
+        trial_bytes, layout = _slot_layout(cfg, todo)
+        base_err = [_err(e.file, e.trial, "*", f"{e.field}: {e.problem}") for e in scan_errors]
+        skipped: dict[str, list[dict]] = {f: list(base_err) for f in todo}
+        tmp = {f: targets[f].with_name(f"{targets[f].name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}") for f in todo}
+        files = {f: h5py.File(tmp[f], "w") for f in todo}
+        counts = {f: 0 for f in todo}
+        try:
+            for f, h in files.items():
+                h.attrs["format"] = CACHE_FORMAT
+                h.attrs["complete"] = False
+                h.create_group("trials")
+            for (path, _, _, _, _), slot, results, errors in pool.process(tasks):
+                for e in errors:
+                    if strict:
+                        raise TrialFormatError(e["file"], e["trial"], e["field"], e["problem"])
+                    log.warning("skipping %s / %s for %s: %s", e["file"], e["trial"], e["field"], e["problem"])
+                    for f in todo if e["field"] == "*" else [e["field"]]:
+                        skipped[f].append(e)
+                source = os.path.abspath(path)  # one identity, whatever the cwd or spelling
+                for pos, (name, arrays) in enumerate(results):
+                    trial_attrs = {**attrs[(path, name)], "source_file": source}
+                    for f, arr in arrays.items():
+                        if arr is None:
+                            arr = _slot_array(slot, slot_bytes, pos, trial_bytes, *layout[f])
+                        g = files[f]["trials"].create_group(name)  # names are unique: scan_raw checked
+                        g.create_dataset(f, data=arr, compression=compression)
+                        _write_attrs(g, trial_attrs)
+                        counts[f] += 1
+            for f, h in files.items():
+                h.attrs.update(
+                    {
+                        "cache_format_version": CACHE_FORMAT_VERSION,
+                        "preprocess_version": PREPROCESS_VERSION,
+                        "field": f,
+                        "key": targets[f].stem.split("-", 1)[1],
+                        "config": json.dumps(cfg.to_dict(), sort_keys=True),
+                        "field_config": json.dumps(cfg.field_dict(f), sort_keys=True),
+                        "sources": json.dumps(paths),
+                        "source_digests": json.dumps(digests[f]),
+                        "skipped": json.dumps(skipped[f]),
+                        "n_trials": counts[f],
+                        "complete": True,
+                    }
+                )
                 h.close()
-            if tmp[f].exists():
-                tmp[f].unlink()
+                os.replace(tmp[f], targets[f])
+                log.info("wrote %s (%d trials, %d skipped)", targets[f], counts[f], len(skipped[f]))
+        finally:
+            for f, h in files.items():
+                if h.id.valid:
+                    h.close()
+                if tmp[f].exists():
+                    tmp[f].unlink()
     return targets
 
 

@@ -546,6 +546,16 @@ def preprocess_trials(
     return out
 
 
+def output_shape(cfg: PreprocessConfig, field: str) -> tuple[int, ...]:
+    """Shape of one trial's processed ``field`` (float32), as :func:`preprocess_trials` makes it."""
+    shapes = {
+        "acc": (cfg.n_frames, *cfg.resize_hw),
+        "fsr": (cfg.n_frames, C.FSR_LAYERS, *cfg.resize_hw),
+        "actions": (cfg.n_frames, 6),
+    }
+    return shapes[field]
+
+
 def preprocess_trial(trial: RawTrial, cfg: PreprocessConfig | None = None, fields: Iterable[str] = FIELDS) -> dict[str, np.ndarray]:
     """One trial: ``acc`` (T, 28, 28), ``fsr`` (T, 2, 28, 28), ``actions`` (T, 6), float32."""
     return {k: v[0] for k, v in preprocess_trials([trial], cfg, fields).items()}

@@ -591,17 +591,32 @@ def scan_raw(
     return good, errors
 
 
-def read_trial(path: str | os.PathLike, name: str, fields: Iterable[str] = ALL_REQUIRED_FIELDS, *, check: bool = True) -> RawTrial:
+def read_trial(
+    path: str | os.PathLike,
+    name: str,
+    fields: Iterable[str] = ALL_REQUIRED_FIELDS,
+    *,
+    check: bool = True,
+    attrs: Mapping[str, Any] | None = None,
+    file: h5py.File | None = None,
+) -> RawTrial:
     """Read one trial (only ``fields``; the others are left as empty arrays, optional ones
-    absent from the file as None). Its ``name`` is the group name ``name``."""
-    with open_raw(path) as f:
-        if name not in f["trials"]:
-            raise TrialFormatError(path, name, "group", "no such trial")
-        g = f["trials"][name]
-        attrs = read_attrs(g)
-        if check:
-            _check_attrs(str(path), name, attrs)
-        data = _read_group(str(path), name, g, fields, check=check)
+    absent from the file as None). Its ``name`` is the group name ``name``.
+
+    ``file``: ``path`` already opened with :func:`open_raw` (many trials, one open);
+    ``attrs``: the group's attributes as :func:`scan_raw` read them (``TrialInfo.attrs``),
+    not read again (reading ~16 HDF5 attributes costs about as much as decoding a trial's
+    pose and clocks)."""
+    if file is None:
+        with open_raw(path) as f:
+            return read_trial(path, name, fields, check=check, attrs=attrs, file=f)
+    if name not in file["trials"]:
+        raise TrialFormatError(path, name, "group", "no such trial")
+    g = file["trials"][name]
+    attrs = read_attrs(g) if attrs is None else dict(attrs)
+    if check:
+        _check_attrs(str(path), name, attrs)
+    data = _read_group(str(path), name, g, fields, check=check)
     empty = np.zeros((0,))
     return RawTrial(
         t=data.get("t", empty),
