@@ -170,3 +170,33 @@ def test_default_train_run_prints_none_of_the_known_messages(tmp_path, fast_data
     assert res.returncode == 0, out[-3000:]
     for noise in ("litlogger", "LeafSpec", "litmodels"):
         assert noise not in out, noise
+
+
+def test_hydra_command_exit_statuses(tmp_path, monkeypatch, capsys):
+    """The one wrapper of the Hydra commands (record, palpate): run's status, a listed error
+    as one line and 2, a bad override 2, ``--cfg job`` and ``--help`` 0."""
+    from embodied_tactile.settings import hydra_command
+
+    monkeypatch.chdir(tmp_path)
+    seen = []
+
+    def run(cfg):
+        seen.append(cfg.port)
+        if cfg.port == "bad":
+            raise KeyError("no such thing")
+        return 3
+
+    main = hydra_command("record", run, "prog", errors=(KeyError,))
+
+    def status(*argv):
+        monkeypatch.setattr(sys, "argv", ["prog", f"hydra.run.dir={tmp_path / 'run'}", *argv])
+        with pytest.raises(SystemExit) as exc:
+            main()
+        return exc.value.code
+
+    assert status("port=loop://") == 3 and seen == ["loop://"]
+    assert status("port=bad") == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "prog: error: 'no such thing'"
+    assert status("no_such_key=1") == 2
+    assert status("--cfg", "job") == 0 and status("--help") == 0
+    assert seen == ["loop://", "bad"]

@@ -134,7 +134,9 @@ class Modality:
 def _config_dir() -> "Path":
     from pathlib import Path
 
-    return Path(__file__).resolve().parents[2] / "configs" / "modality"
+    from embodied_tactile.settings import config_dir
+
+    return Path(config_dir()) / "modality"
 
 
 def modality_names() -> list[str]:

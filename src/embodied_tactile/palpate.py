@@ -16,16 +16,14 @@ Exit codes: 0 done; 2 a bad setting or a run that cannot be used (one line on st
 from __future__ import annotations
 
 import logging
-import sys
 import time
 from pathlib import Path
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile import constants as C
-from embodied_tactile.record import config_dir
+from embodied_tactile.settings import hydra_command
 
 log = logging.getLogger("embodied_tactile.palpate")
 
@@ -194,29 +192,7 @@ def run(cfg: DictConfig) -> int:
     return 0
 
 
-_exit_code: int | None = None
-
-
-@hydra.main(version_base="1.3", config_path=config_dir(), config_name="palpate")
-def _app(cfg: DictConfig) -> None:
-    global _exit_code
-    try:
-        _exit_code = run(cfg)
-    except SettingError as err:
-        print(f"palpate: error: {err}", file=sys.stderr)
-        _exit_code = 2
-
-
-def main() -> None:
-    global _exit_code
-    _exit_code = None
-    try:
-        _app()
-    except SystemExit as exc:  # Hydra exits 1 on config composition errors
-        if _exit_code is None and exc.code not in (0, None):
-            sys.exit(2)
-        raise
-    sys.exit(2 if _exit_code is None else _exit_code)
+main = hydra_command("palpate", run, "palpate", errors=(SettingError,))
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ import logging
 import sys
 import time
 
-from embodied_tactile.record import config_dir
+from embodied_tactile.settings import config_dir
 
 
 def scene_from_train_config(overrides: list[str]):

@@ -16,25 +16,17 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import signal
 import sys
-from pathlib import Path
 from typing import Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile import constants as C
+from embodied_tactile.settings import hydra_command
 
 log = logging.getLogger("embodied_tactile.record")
-
-
-def config_dir() -> str:
-    env = os.environ.get("EMBODIED_TACTILE_CONFIG_DIR")
-    if env:
-        return str(Path(env).resolve())
-    return str(Path(__file__).resolve().parents[2] / "configs")
 
 
 _POSE_BUILTIN_KEYS = ("kind", "file", "time_base", "offset_s", "static_pose", "fs")
@@ -167,25 +159,7 @@ def run(cfg: DictConfig) -> int:
     return res.exit_code
 
 
-_exit_code: int | None = None
-
-
-@hydra.main(version_base="1.3", config_path=config_dir(), config_name="record")
-def _app(cfg: DictConfig) -> None:
-    global _exit_code
-    _exit_code = run(cfg)
-
-
-def main() -> None:
-    global _exit_code
-    _exit_code = None
-    try:
-        _app()
-    except SystemExit as exc:  # Hydra exits 1 on config composition errors
-        if _exit_code is None and exc.code not in (0, None):
-            sys.exit(2)
-        raise
-    sys.exit(2 if _exit_code is None else _exit_code)
+main = hydra_command("record", run, "record")
 
 
 if __name__ == "__main__":

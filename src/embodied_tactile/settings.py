@@ -12,8 +12,10 @@ folder. ``train.py`` runs the type check again per job (values swept with ``-m``
 from __future__ import annotations
 
 import math
+import os
 import sys
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,6 +23,52 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 EXIT_BAD_SETTINGS = 2
+
+
+def config_dir() -> str:
+    """The Hydra config folder: ``$EMBODIED_TACTILE_CONFIG_DIR`` if set, else the project
+    checkout's ``configs/``."""
+    env = os.environ.get("EMBODIED_TACTILE_CONFIG_DIR")
+    if env:
+        return str(Path(env).resolve())
+    return str(Path(__file__).resolve().parents[2] / "configs")
+
+
+def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
+                  errors: tuple[type[Exception], ...] = ()) -> Callable[[], None]:
+    """``main()`` of a Hydra command (``python -m embodied_tactile.record`` / ``.palpate``)
+    whose ``run(cfg)`` returns the exit status. An exception of ``errors`` prints
+    ``<prog>: error: <message>`` and exits 2; so does a config composition error (Hydra's
+    own exit 1); ``--help`` / ``--cfg`` exit 0."""
+    code: list[int | None] = [None]
+
+    import hydra
+
+    @hydra.main(version_base="1.3", config_path=config_dir(), config_name=config_name)
+    def app(cfg: DictConfig) -> None:
+        try:
+            code[0] = run(cfg)
+        except errors as err:
+            print(f"{prog}: error: {err}", file=sys.stderr)
+            code[0] = EXIT_BAD_SETTINGS
+
+    def main() -> None:
+        code[0] = None
+        try:
+            app()
+        except SystemExit as exc:
+            if code[0] is None and exc.code not in (0, None):
+                sys.exit(EXIT_BAD_SETTINGS)
+            raise
+        # Hydra returned without running the app (--help, --cfg): nothing failed
+        sys.exit(0 if code[0] is None and _info_only() else (EXIT_BAD_SETTINGS if code[0] is None else code[0]))
+
+    return main
+
+
+def _info_only() -> bool:
+    return any(a in ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i") or a.startswith("--cfg=")
+               for a in sys.argv[1:])
 
 
 class SettingsError(ValueError):
