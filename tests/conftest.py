@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import zlib
 from pathlib import Path
 
 import pytest
@@ -69,3 +70,9 @@ def fast_data_dir(tiny_data_dir, tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("fast_data")
     shutil.copytree(tiny_data_dir / "raw", d / "raw")
     return d
+
+
+def stable_seed(text: str, modulo: int = 1000) -> int:
+    """A seed from a label that is the same in every process (``hash()`` of a str is salted
+    per process, which made synthetic tables differ between runs)."""
+    return zlib.crc32(text.encode()) % modulo

@@ -10,13 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import stable_seed
+
 
 def _stable_seed(*parts) -> int:
-    """A seed from labels that is the same in every process (Python's hash() of a str is
-    salted per process, which made these synthetic tables differ between runs)."""
-    import zlib
-
-    return zlib.crc32(repr(parts).encode()) % 1000
+    return stable_seed(repr(parts))
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("TMPDIR", "/tmp")) / "embodied_tactile_numba"))
 

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import json
 import sys
-import zlib
 import warnings
 
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import REPO, stable_seed
 from embodied_tactile.constants import FACTOR_NAMES, OBJECTS
 from embodied_tactile.eval import Results, nmse_trajectory
 
@@ -164,7 +163,7 @@ def test_evaluate_refuses_an_object_split_with_seen_objects_and_captions_say_the
 # ------------------------------------------------------------------ verdicts
 def _run(modality, skin, primitive, seed, err, *, n=64, t=3, het_err=None):
     """A Results with prediction error err (x the factor's std), fixed held-out set per seed."""
-    rng = np.random.default_rng([seed, zlib.crc32(f"{modality}/{skin}/{primitive}".encode()) % 997])  # not hash(): salted per process
+    rng = np.random.default_rng([seed, stable_seed(f"{modality}/{skin}/{primitive}", 997)])
     obj = np.arange(n) % 32
     f = np.array([OBJECTS[o].factors() for o in obj])
     sd = f.std(axis=0)
