@@ -17,11 +17,11 @@ from __future__ import annotations
 import argparse
 import time
 
-from embodied_tactile.bench.pendulum_run import READOUTS, run
+from embodied_tactile.bench.pendulum_run import DIAGNOSTIC_READOUTS, READOUTS, run
 from embodied_tactile.runtime import set_threads
 
 #: --remedy NAME=VALUE -> LatentFilter keyword (docs/model.md, "Training remedies")
-REMEDIES = {"obs_dropout": float, "elbo_samples": int}
+REMEDIES = {"obs_dropout": float, "elbo_samples": int, "y_update": str}
 
 
 def parse_remedy(text: str) -> tuple[str, float]:
@@ -53,9 +53,9 @@ def main(argv=None) -> None:
     print(f"pendulum: {a.steps} steps, batch {a.batch_size}, seed {a.seed}, y_weight {a.y_weight}, "
           f"remedies {dict(a.remedy) or 'none'}")
     print("| read-out | linear R^2 | kernel R^2 |\n|---|---|---|")
-    for k in READOUTS:
+    for k in (*READOUTS, *DIAGNOSTIC_READOUTS):
         lin, krr = res["readouts"][k]
-        print(f"| {k} | {lin:.2f} | {krr:.2f} |")
+        print(f"| {k}{' (diagnostic)' if k in DIAGNOSTIC_READOUTS else ''} | {lin:.2f} | {krr:.2f} |")
     dg = res["diagnostics"]
     print(f"\nheld-out: transition weight in q_filt {dg['transition_weight']:.3f}, median variance encoder "
           f"{dg['encoder_var']:.2e} / transition {dg['transition_var']:.2e}; per sequence nll {dg['nll']:.0f}, "

@@ -9,7 +9,9 @@ outputs):
 
 * ``z_angle``: q_filt mean z_t -> (cos theta_t, sin theta_t), frames t >= ``skip``;
 * ``z_velocity``: z_t -> theta'_t, frames t >= ``skip``;
-* ``y_frequency`` / ``y_damping``: q(y_T) mean at the last frame -> w0 / d.
+* ``y_frequency`` / ``y_damping``: q(y_T) mean at the last frame -> w0 / d;
+* diagnostics ``z_frequency`` / ``z_damping``: q_filt mean z_T at the last frame -> w0 / d
+  (a model can keep the trial-constant parameters in z instead of y).
 
 Open-loop prediction: filter the first ``n_filter`` frames, then
 :meth:`LatentFilter.predict` the next ``horizon`` frames under the known actions; image MSE
@@ -38,6 +40,8 @@ from .pendulum import N_OBJECTS, PendulumData, generate, render
 #: the benchmark's modality: one image channel (the channel name is only a label here)
 MODALITY = {"name": "pendulum", "channels": ["fsr_t"], "fusion": "single"}
 READOUTS = ("z_angle", "z_velocity", "y_frequency", "y_damping")
+#: where the object's parameters live when y does not hold them: q_filt mean z_T -> w0 / d
+DIAGNOSTIC_READOUTS = ("z_frequency", "z_damping")
 
 
 @dataclass
@@ -136,6 +140,9 @@ def readouts(model: LatentFilter, train_data: PendulumData, test_data: PendulumD
     groups = np.arange(len(y_tr))
     res["y_frequency"] = _r2_pair(y_tr, train_data.w0[:, None], y_te, test_data.w0[:, None], groups, seed)
     res["y_damping"] = _r2_pair(y_tr, train_data.damping[:, None], y_te, test_data.damping[:, None], groups, seed)
+    zl_tr, zl_te = lat_tr["z_mean"][:, -1], lat_te["z_mean"][:, -1]
+    res["z_frequency"] = _r2_pair(zl_tr, train_data.w0[:, None], zl_te, test_data.w0[:, None], groups, seed)
+    res["z_damping"] = _r2_pair(zl_tr, train_data.damping[:, None], zl_te, test_data.damping[:, None], groups, seed)
     return res
 
 
