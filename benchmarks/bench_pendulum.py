@@ -17,6 +17,8 @@ from __future__ import annotations
 import argparse
 import time
 
+import torch
+
 from embodied_tactile.bench.pendulum_run import DIAGNOSTIC_READOUTS, READOUTS, run
 from embodied_tactile.runtime import set_threads
 
@@ -44,12 +46,16 @@ def main(argv=None) -> None:
                    help=f"training remedy, repeatable; NAME in {sorted(REMEDIES)}")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--log-every", type=int, default=0, help="print the loss every N steps (0: never)")
+    p.add_argument("--save", metavar="PATH", help="write the trained network (config + state_dict, torch.save) here")
     a = p.parse_args(argv)
     set_threads(a.threads)
     t0 = time.perf_counter()
     res = run(a.steps, seed=a.seed, batch_size=a.batch_size, model_kwargs=dict(a.remedy),
               annealing={"name": "linear", "beta0": 0.01, "fraction": 0.1, "y_weight": a.y_weight},
               log_every=a.log_every)
+    if a.save:
+        torch.save({"config": res["model"].config(), "state_dict": res["model"].state_dict(), "seed": a.seed,
+                    "steps": a.steps}, a.save)
     print(f"pendulum: {a.steps} steps, batch {a.batch_size}, seed {a.seed}, y_weight {a.y_weight}, "
           f"remedies {dict(a.remedy) or 'none'}")
     print("| read-out | linear R^2 | kernel R^2 |\n|---|---|---|")

@@ -11,7 +11,8 @@ outputs):
 * ``z_velocity``: z_t -> theta'_t, frames t >= ``skip``;
 * ``y_frequency`` / ``y_damping``: q(y_T) mean at the last frame -> w0 / d;
 * diagnostics ``z_frequency`` / ``z_damping``: q_filt mean z_T at the last frame -> w0 / d
-  (a model can keep the trial-constant parameters in z instead of y).
+  (a model can keep the trial-constant parameters in z instead of y), and ``y_velocity``:
+  q(y_t) mean -> theta'_t, frames t >= ``skip`` (a per-step y can carry the moving state).
 
 Open-loop prediction: filter the first ``n_filter`` frames, then
 :meth:`LatentFilter.predict` the next ``horizon`` frames under the known actions; image MSE
@@ -41,7 +42,8 @@ from .pendulum import N_OBJECTS, PendulumData, generate, render
 MODALITY = {"name": "pendulum", "channels": ["fsr_t"], "fusion": "single"}
 READOUTS = ("z_angle", "z_velocity", "y_frequency", "y_damping")
 #: where the object's parameters live when y does not hold them: q_filt mean z_T -> w0 / d
-DIAGNOSTIC_READOUTS = ("z_frequency", "z_damping")
+#: and whether y_t carries the moving state instead (y_t -> angular velocity, frames t >= skip)
+DIAGNOSTIC_READOUTS = ("z_frequency", "z_damping", "y_velocity")
 
 
 @dataclass
@@ -123,18 +125,20 @@ def readouts(model: LatentFilter, train_data: PendulumData, test_data: PendulumD
     n, t_len = train_data.theta.shape
     seq = np.repeat(np.arange(n), t_len - skip)
 
-    def zrows(lat, d):
-        return lat["z_mean"][:, skip:].reshape(-1, lat["z_mean"].shape[-1])
+    def rows(lat, key):
+        return lat[key][:, skip:].reshape(-1, lat[key].shape[-1])
 
-    z_tr, z_te = zrows(lat_tr, train_data), zrows(lat_te, test_data)
+    z_tr, z_te = rows(lat_tr, "z_mean"), rows(lat_te, "z_mean")
     pick = rng.choice(len(z_tr), size=min(max_rows, len(z_tr)), replace=False)
     th_tr, th_te = train_data.theta[:, skip:].ravel(), test_data.theta[:, skip:].ravel()
     ang_tr = np.stack([np.cos(th_tr), np.sin(th_tr)], -1)
     ang_te = np.stack([np.cos(th_te), np.sin(th_te)], -1)
     om_tr, om_te = train_data.omega[:, skip:].reshape(-1, 1), test_data.omega[:, skip:].reshape(-1, 1)
+    yr_tr, yr_te = rows(lat_tr, "y_mean"), rows(lat_te, "y_mean")
     res = {
         "z_angle": _r2_pair(z_tr[pick], ang_tr[pick], z_te, ang_te, seq[pick], seed),
         "z_velocity": _r2_pair(z_tr[pick], om_tr[pick], z_te, om_te, seq[pick], seed),
+        "y_velocity": _r2_pair(yr_tr[pick], om_tr[pick], yr_te, om_te, seq[pick], seed),
     }
     y_tr, y_te = lat_tr["y_mean"][:, -1], lat_te["y_mean"][:, -1]
     groups = np.arange(len(y_tr))
