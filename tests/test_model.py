@@ -272,6 +272,28 @@ def test_evidence_y_posterior_is_the_product_of_its_evidence():
         YPosterior(3, 2, 1, prior_precision=0.0)
 
 
+def test_bounded_evidence_caps_each_steps_precision():
+    """y_evidence_max: lambda_k = max * sigmoid(raw_k), so P_t <= p0 + t * max even when the
+    head asks for huge precision, and the latest frame's weight in the mean is at most
+    max / P_t; the LatentFilter passes it through and refuses it without evidence."""
+    from embodied_tactile.models.networks import YPosterior
+
+    torch.manual_seed(0)
+    yp = YPosterior(n_z=3, n_y=2, n_a=1, hidden=8, update="evidence", prior_precision=1.0, max_evidence=0.5)
+    with torch.no_grad():
+        yp.head.bias[2:] = 50.0  # softplus would give lambda = 50 per step
+    state = yp.initial_state(4, torch.device("cpu"))
+    for t in range(1, 8):
+        _, var, state = yp(torch.randn(4, 3), torch.randn(4, 1), state)
+        assert (state[2] <= 1.0 + 0.5 * t + 1e-5).all() and (state[2] >= 1.0 + 0.5 * t - 1e-3).all()
+    with pytest.raises(ValueError, match="y_evidence_max=0.5 needs y_update='evidence'"):
+        YPosterior(3, 2, 1, update="direct", max_evidence=0.5)
+    with pytest.raises(ValueError, match="y_evidence_max=0.0 needs"):
+        YPosterior(3, 2, 1, update="evidence", max_evidence=0.0)
+    net = LatentFilter("fsr_t", n_z=4, n_y=2, y_update="evidence", y_evidence_max=2.0)
+    assert net.y_posterior.max_evidence == 2.0 and net.config()["y_evidence_max"] == 2.0
+
+
 # ------------------------------------------------------------------ numerics
 def test_kl_matches_torch_distributions():
     torch.manual_seed(0)

@@ -273,7 +273,10 @@ class YPosterior(nn.Module):
     * ``"evidence"``: one step's evidence about the trial-constant y. q(y_t) is the normalised
       product of a N(0, 1/prior_precision) start and all evidence so far,
       precision P_t = prior_precision + sum_k lambda_k, mean = (sum_k lambda_k m_k) / P_t,
-      with lambda_k = softplus(raw_k) (no floor needed: P_t >= prior_precision > 0).
+      with lambda_k = softplus(raw_k) (no floor needed: P_t >= prior_precision > 0), or
+      lambda_k = max_evidence * sigmoid(raw_k) when ``max_evidence`` is set: one frame's
+      evidence is then bounded, so the mean cannot follow the latest frame by giving it
+      ever larger precision (unbounded lambda lets q(y_t) carry the moving state).
       This is the exact Bayesian filter for a static latent, so the posterior can only
       sharpen as evidence accumulates, and the evidence network is a local function that
       short training windows teach as well as whole trials. The variance 1/P_t + min_var
@@ -284,12 +287,15 @@ class YPosterior(nn.Module):
     """
 
     def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3,
-                 update: str = "direct", prior_precision: float = 1.0) -> None:
+                 update: str = "direct", prior_precision: float = 1.0, max_evidence: float | None = None) -> None:
         super().__init__()
         if update not in Y_UPDATES:
             raise ValueError(f"y_update must be one of {Y_UPDATES}, got {update!r}")
         if not prior_precision > 0:
             raise ValueError(f"y_prior_precision must be > 0, got {prior_precision}")
+        if max_evidence is not None and not (update == "evidence" and max_evidence > 0):
+            raise ValueError(f"y_evidence_max={max_evidence} needs y_update='evidence' and a value > 0")
+        self.max_evidence = None if max_evidence is None else float(max_evidence)
         self.hidden, self.n_y = int(hidden), int(n_y)
         self.min_var = float(min_var)
         self.update = update
@@ -311,7 +317,8 @@ class YPosterior(nn.Module):
         if self.update == "direct":
             return m.float(), softplus_var(raw, self.min_var), (h, c)
         with float32_region(raw):
-            lam = F.softplus(raw.float())
+            raw = raw.float()
+            lam = F.softplus(raw) if self.max_evidence is None else self.max_evidence * torch.sigmoid(raw)
             prec = state[2] + lam
             pm = state[3] + lam * m.float()
             mean, var = pm / prec, 1.0 / prec + self.min_var
