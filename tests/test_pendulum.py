@@ -152,10 +152,31 @@ def test_short_training_learns_the_angle(short_run):
     assert ol["model"].shape == (20,) and np.all(ol["model"] < ol["last_frame"][0] * 10)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 15: z is close to a per-frame code and y does not identify the "
-                   "pendulum's frequency / damping; flips when the Latent Filter filters")
-def test_short_training_meets_the_issue_targets(short_run):
-    r = short_run["readouts"]
+@pytest.fixture(scope="module")
+def remedy_run():
+    """The short run with the remedies that make the filter filter (docs/model.md, "Pendulum
+    benchmark"): observation dropout 0.5 and the evidence y update."""
+    from embodied_tactile.bench.pendulum_run import run
+
+    torch.set_num_threads(1)
+    return run(steps=300, seed=0, batch_size=16, n_train=8, n_test=4, n_steps=30, n_filter=10, horizon=20,
+               max_rows=600, snr_draws=2, model_kwargs={"obs_dropout": 0.5, "y_update": "evidence"})
+
+
+def test_remedies_put_the_velocity_into_z(remedy_run):
+    """Angular velocity is in no single frame: z holds it only if the transition carries it.
+    Same data, seed and 300 steps without the remedies: kernel R^2 0.01 (plain ELBO) against
+    0.33 with them; both predict the next frames better than the last one."""
+    r, ol = remedy_run["readouts"], remedy_run["open_loop"]
+    assert r["z_angle"][1] >= 0.9, r
+    assert r["z_velocity"][1] >= 0.2, r
+    assert np.all(ol["model"][:10] < ol["last_clean"][:10]), ol
+
+
+@pytest.mark.xfail(strict=True, reason="issue 15: at 300 steps on 64 sequences y does not yet identify the "
+                   "pendulum's frequency / damping (2500 steps: docs/model.md); flips when it does")
+def test_short_training_meets_the_issue_targets(remedy_run):
+    r = remedy_run["readouts"]
     assert r["z_velocity"][1] >= 0.9, r
     assert r["y_frequency"][1] >= 0.8, r
     assert r["y_damping"][1] >= 0.6, r
