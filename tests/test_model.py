@@ -294,6 +294,26 @@ def test_bounded_evidence_caps_each_steps_precision():
     assert net.y_posterior.max_evidence == 2.0 and net.config()["y_evidence_max"] == 2.0
 
 
+def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
+    """y_evidence_range r: evidence means r tanh(raw / r), so with the precision bound L one
+    step moves the mean by at most L (r + |mean|) / P_t, however large the head's output."""
+    from embodied_tactile.models.networks import YPosterior
+
+    torch.manual_seed(0)
+    yp = YPosterior(n_z=3, n_y=2, n_a=1, hidden=8, update="evidence", max_evidence=1.0, evidence_range=2.0)
+    with torch.no_grad():
+        yp.head.weight.mul_(1000.0)  # evidence means of order 1e3 before squashing
+    state = yp.initial_state(16, torch.device("cpu"))
+    mean_prev = torch.zeros(16, 2)
+    for t in range(1, 10):
+        mean, _, state = yp(torch.randn(16, 3), torch.randn(16, 1), state)
+        assert ((mean - mean_prev).abs() <= 1.0 * (2.0 + mean_prev.abs()) / state[2] + 1e-5).all()
+        assert (mean.abs() < 2.0).all()
+        mean_prev = mean
+    with pytest.raises(ValueError, match="y_evidence_range=1.0 needs y_update='evidence'"):
+        YPosterior(3, 2, 1, update="direct", evidence_range=1.0)
+
+
 # ------------------------------------------------------------------ numerics
 def test_kl_matches_torch_distributions():
     torch.manual_seed(0)

@@ -93,7 +93,8 @@ class LatentFilter(nn.Module):
         y_update: ``"direct"`` (the LSTM head is q(y_t)) or ``"evidence"`` (accumulate
             per-step Gaussian evidence about the trial-constant y); y_prior_precision:
             precision of the N(0, 1/p) start of the evidence product; y_evidence_max: if
-            set, one step's evidence precision is at most this (``evidence`` only).
+            set, one step's evidence precision is at most this; y_evidence_range: if set,
+            the evidence means are squashed into (-r, r) (both ``evidence`` only).
         obs_dropout: training remedy (docs/model.md, "Observation dropout"): in training
             mode each frame t >= 2 is hidden from the filter with this probability, so
             q_filt(z_t) is the transition prior alone there and the likelihood of that
@@ -108,7 +109,8 @@ class LatentFilter(nn.Module):
                  transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
                  obs_sigma: float = 1.0, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
                  prior: Optional[Mapping] = None, y_update: str = "direct",
-                 y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None, obs_dropout: float = 0.0,
+                 y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None,
+                 y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
                  elbo_samples: int = 1) -> None:
         super().__init__()
         if not 0.0 <= float(obs_dropout) < 1.0:
@@ -133,7 +135,8 @@ class LatentFilter(nn.Module):
             self.modality["fusion"], self.modality["pathways"], n_z, enc["widths"], enc["hidden"], min_var)
         self.transition = TransitionNet(n_z, n_y, n_a, transition_hidden, min_var)
         self.y_posterior = YPosterior(n_z, n_y, n_a, lstm_hidden, min_var, update=y_update,
-                                      prior_precision=y_prior_precision, max_evidence=y_evidence_max)
+                                      prior_precision=y_prior_precision, max_evidence=y_evidence_max,
+                                      evidence_range=y_evidence_range)
         self.prior = HierarchicalPrior(n_y, n_a, n_objects, **(to_plain(prior) or {}))
         if obs_sigma <= obs_sigma_min:
             raise ValueError(f"obs_sigma={obs_sigma} must exceed obs_sigma_min={obs_sigma_min}")

@@ -276,7 +276,9 @@ class YPosterior(nn.Module):
       with lambda_k = softplus(raw_k) (no floor needed: P_t >= prior_precision > 0), or
       lambda_k = max_evidence * sigmoid(raw_k) when ``max_evidence`` is set: one frame's
       evidence is then bounded, so the mean cannot follow the latest frame by giving it
-      ever larger precision (unbounded lambda lets q(y_t) carry the moving state).
+      ever larger precision (unbounded lambda lets q(y_t) carry the moving state);
+      ``evidence_range`` r bounds the evidence means, m_k = r tanh(raw_m / r), so that
+      one step moves the mean by at most lambda_k (r + |mean|) / P_t.
       This is the exact Bayesian filter for a static latent, so the posterior can only
       sharpen as evidence accumulates, and the evidence network is a local function that
       short training windows teach as well as whole trials. The variance 1/P_t + min_var
@@ -287,7 +289,8 @@ class YPosterior(nn.Module):
     """
 
     def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3,
-                 update: str = "direct", prior_precision: float = 1.0, max_evidence: float | None = None) -> None:
+                 update: str = "direct", prior_precision: float = 1.0, max_evidence: float | None = None,
+                 evidence_range: float | None = None) -> None:
         super().__init__()
         if update not in Y_UPDATES:
             raise ValueError(f"y_update must be one of {Y_UPDATES}, got {update!r}")
@@ -296,6 +299,9 @@ class YPosterior(nn.Module):
         if max_evidence is not None and not (update == "evidence" and max_evidence > 0):
             raise ValueError(f"y_evidence_max={max_evidence} needs y_update='evidence' and a value > 0")
         self.max_evidence = None if max_evidence is None else float(max_evidence)
+        if evidence_range is not None and not (update == "evidence" and evidence_range > 0):
+            raise ValueError(f"y_evidence_range={evidence_range} needs y_update='evidence' and a value > 0")
+        self.evidence_range = None if evidence_range is None else float(evidence_range)
         self.hidden, self.n_y = int(hidden), int(n_y)
         self.min_var = float(min_var)
         self.update = update
@@ -319,8 +325,11 @@ class YPosterior(nn.Module):
         with float32_region(raw):
             raw = raw.float()
             lam = F.softplus(raw) if self.max_evidence is None else self.max_evidence * torch.sigmoid(raw)
+            m = m.float()
+            if self.evidence_range is not None:
+                m = self.evidence_range * torch.tanh(m / self.evidence_range)
             prec = state[2] + lam
-            pm = state[3] + lam * m.float()
+            pm = state[3] + lam * m
             mean, var = pm / prec, 1.0 / prec + self.min_var
         return mean, var, (h, c, prec, pm)
 
