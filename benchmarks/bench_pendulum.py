@@ -26,7 +26,7 @@ from embodied_tactile.runtime import set_threads
 REMEDIES = {"obs_dropout": float, "elbo_samples": int, "y_update": str, "y_evidence_max": float, "y_evidence_range": float}
 
 
-def parse_remedy(text: str) -> tuple[str, float]:
+def parse_remedy(text: str) -> tuple[str, float | int | str]:
     name, _, value = text.partition("=")
     if name not in REMEDIES or not value:
         raise argparse.ArgumentTypeError(f"--remedy {text!r}: expected NAME=VALUE with NAME in {sorted(REMEDIES)}")

@@ -140,13 +140,12 @@ def readouts(model: LatentFilter, train_data: PendulumData, test_data: PendulumD
         "z_velocity": _r2_pair(z_tr[pick], om_tr[pick], z_te, om_te, seq[pick], seed),
         "y_velocity": _r2_pair(yr_tr[pick], om_tr[pick], yr_te, om_te, seq[pick], seed),
     }
-    y_tr, y_te = lat_tr["y_mean"][:, -1], lat_te["y_mean"][:, -1]
-    groups = np.arange(len(y_tr))
-    res["y_frequency"] = _r2_pair(y_tr, train_data.w0[:, None], y_te, test_data.w0[:, None], groups, seed)
-    res["y_damping"] = _r2_pair(y_tr, train_data.damping[:, None], y_te, test_data.damping[:, None], groups, seed)
-    zl_tr, zl_te = lat_tr["z_mean"][:, -1], lat_te["z_mean"][:, -1]
-    res["z_frequency"] = _r2_pair(zl_tr, train_data.w0[:, None], zl_te, test_data.w0[:, None], groups, seed)
-    res["z_damping"] = _r2_pair(zl_tr, train_data.damping[:, None], zl_te, test_data.damping[:, None], groups, seed)
+    groups = np.arange(n)
+    for latent in ("y", "z"):  # the last frame's mean -> the object's parameters
+        x_tr, x_te = lat_tr[f"{latent}_mean"][:, -1], lat_te[f"{latent}_mean"][:, -1]
+        for name, param in (("frequency", "w0"), ("damping", "damping")):
+            t_tr, t_te = getattr(train_data, param)[:, None], getattr(test_data, param)[:, None]
+            res[f"{latent}_{name}"] = _r2_pair(x_tr, t_tr, x_te, t_te, groups, seed)
     return res
 
 
