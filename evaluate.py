@@ -435,13 +435,13 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
               "train_time_source": "krr_history.jsonl (training minus KRR checks)" if history
               else "metrics.json train_wall_s", "data_prepare_s": metrics.get("data_prepare_s"),
               "checkpoint": str(run.ckpt), "run_dir": str(run.run_dir)}
-    res, _ = evaluate_latents(tr, te, latent=opts.latent, alignment=align, params=params, **meta)
+    res, _ = evaluate_latents(tr, te, latent=opts.latent, alignment=align, params=params, split=split["kind"], **meta)
     results = [res]
     timings = {"data_s": t_data - t_run, "load_and_infer_s": t_inf - t_data}
     for b in baselines:
         t0 = time.perf_counter()
         if b == "handcrafted":
-            results.append(evaluate_handcrafted(tr, te, channels, alignment=align, **meta))
+            results.append(evaluate_handcrafted(tr, te, channels, alignment=align, split=split["kind"], **meta))
         elif b == "gru":
             results.append(evaluate_gru(tr, te, gru=OmegaConf.to_container(opts.gru, resolve=True), **meta))
         elif b == "mean":
@@ -458,7 +458,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
             "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"), "targets": str(opts.targets),
             "split": split,
             "training_final_alignment": compare_with_training(res, final_row, run.ckpt, align, opts.latent,
-                                                              str(opts.targets))}
+                                                              str(opts.targets), split["kind"])}
     del model
     return results, history, info
 
@@ -481,13 +481,13 @@ def run_split(run: Run, split_file: str) -> dict:
 
 
 def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, latent: str,
-                          targets: str = "design_rank") -> dict:
+                          targets: str = "design_rank", split_kind: str = "trial") -> dict:
     """evaluate.py's NMSE against the training's final KRR alignment (krr_final of metrics.json /
     the ``final`` row of krr_history.jsonl): both numbers, the difference and, when they are
     not the same measurement, why (other weights, other alignment settings, other sequences)."""
     import inspect
 
-    from embodied_tactile.eval.krr import fit_alignment
+    from embodied_tactile.eval.krr import fit_alignment, resolve_cv_grouping
 
     ours = float(res.summary()["nmse_trajectory_overall"])
     if not final_row or final_row.get("nmse_overall") is None:
@@ -514,6 +514,10 @@ def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, 
     elif diff:
         reasons.append("alignment settings (training, evaluate.py): "
                        + ", ".join(f"{k}=({a}, {b})" for k, (a, b) in diff.items()))
+    theirs_groups = (final_row.get("alignment_settings") or {}).get("groups", "sequence")
+    ours_groups = resolve_cv_grouping(align.get("groups", "auto"), split_kind)
+    if "alignment_settings" in final_row and theirs_groups != ours_groups:
+        reasons.append(f"CV folds grouped by {theirs_groups} in training, by {ours_groups} here")
     if final_row.get("val_frame_stride", 1) != 1:
         reasons.append(f"training scored every {final_row['val_frame_stride']}th frame")
     if final_row.get("latent", latent) != latent:

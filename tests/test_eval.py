@@ -148,6 +148,37 @@ def test_grid_cv_matches_sklearn_gridsearchcv():
     np.testing.assert_allclose(ours, ref, rtol=1e-6)
 
 
+def test_object_split_alignment_chooses_its_hyperparameters_on_unseen_objects():
+    """Latents that code only object identity (a random point per object, unrelated to the
+    factors): sequence-grouped CV, where every object sits on both sides of a fold, picks a
+    memorising fit that is worse than the mean on unseen objects; the object split's 'auto'
+    grouping chooses on unseen objects and lands at the mean predictor."""
+    from embodied_tactile.eval.krr import resolve_cv_grouping
+
+    rng = np.random.default_rng(0)
+    n_obj, per_obj, t, d = 32, 4, 10, 8
+    code = rng.normal(size=(n_obj, d))
+    obj_factors = rng.normal(size=(n_obj, 4))
+    def split(objs):
+        oid = np.repeat(objs, per_obj)
+        lat = code[oid][:, None, :] + 0.05 * rng.normal(size=(len(oid), t, d))
+        return {"y": lat, "factors": obj_factors[oid], "object_id": oid,
+                "action_index": np.tile(np.arange(per_obj), len(objs)),
+                "seq_id": np.array([f"o{o}_{i}" for o, i in zip(oid, range(len(oid)))])}
+    train, test = split(np.arange(24)), split(np.arange(24, 32))
+    scores = {}
+    for groups in ("sequence", "auto"):
+        res, align = evaluate_latents(train, test, alignment={"groups": groups, "cv": 4}, split="object")
+        scores[groups] = (res.summary()["nmse_trajectory_overall"], align.params["alpha"])
+    mean_pred = np.broadcast_to(train["factors"].mean(0), (len(test["factors"]), t, 4))
+    mean_nmse = overall(nmse_trajectory(test["factors"], mean_pred))  # the train-mean predictor
+    assert scores["sequence"][1] <= 1e-2 and scores["sequence"][0] > mean_nmse + 0.03
+    assert scores["auto"][1] >= 10.0 and abs(scores["auto"][0] - mean_nmse) < 0.02
+    assert resolve_cv_grouping("auto", "trial") == "sequence" and resolve_cv_grouping("auto", "object") == "object"
+    with pytest.raises(ValueError, match="alignment groups must be one of"):
+        evaluate_latents(train, test, alignment={"groups": "objects"})
+
+
 def test_final_segment_rows():
     lat = np.arange(2 * 10 * 1, dtype=float).reshape(2, 10, 1)
     rows, seq = final_segment_rows(lat, final_segment=0.3, reduce="frames", frames_per_sequence=2)

@@ -533,6 +533,26 @@ def test_hierarchical_prior_population_marginal_for_unseen_objects():
         p(torch.tensor([5]), a)
 
 
+def test_prior_without_labels_gives_every_sequence_the_population_marginal():
+    from embodied_tactile.models.networks import HierarchicalPrior
+
+    torch.manual_seed(0)
+    p = HierarchicalPrior(n_y=3, n_a=2, n_objects=5, sigma_init=0.5, pop_sigma_init=0.4, labels=False)
+    a = torch.randn(2, 4, 2)
+    p.train()
+    m, v = p(torch.tensor([0, 2]), a)  # ids given in training are ignored
+    assert not bool(p.seen.any())
+    assert float(p.population_nll()) == 0.0
+    m_new, v_new = p(torch.tensor([-1, -1]), a)
+    torch.testing.assert_close(m, m_new)
+    torch.testing.assert_close(v, v_new)
+    torch.testing.assert_close(m[0, 0], p.pop_mean.detach())  # the action term starts at 0
+    sigma2 = torch.nn.functional.softplus(p.raw_var.detach()) + 1e-2
+    torch.testing.assert_close(v[1, 3], sigma2 + torch.full((3,), 0.16))
+    m.sum().backward()
+    assert float(p.embedding.weight.grad.abs().sum()) == 0.0  # no embedding row takes part
+
+
 def test_population_term_enters_kl_y_and_old_checkpoints_load():
     from embodied_tactile.models.networks import HierarchicalPrior
 

@@ -41,7 +41,7 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
     single-touch NMSE (used to order the fixed baseline's first touch)."""
     import torch
 
-    from embodied_tactile.eval.krr import fit_alignment
+    from embodied_tactile.eval.krr import alignment_kwargs, fit_alignment
     from embodied_tactile.eval.metrics import reference_variance
     from embodied_tactile.eval.targets import encode_split
 
@@ -71,7 +71,9 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
         raise PalpationError(str(err)) from err
     tr, _ = ev.collect_split(module, cache.batches(key, dm, "train"), ev._names(dm, "train"), "y")
     tr = encode_split(tr, str(opts.targets))
-    align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"], **dict(opts.alignment))
+    split = str(data.get("split", "trial"))
+    align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"],
+                          **alignment_kwargs(opts.alignment, split, tr["object_id"]))
     nominal = {int(a): tr["actions"][tr["action_index"] == a].mean(axis=0) for a in np.unique(tr["action_index"])}
     from embodied_tactile import constants as C
     from embodied_tactile.data.prepare import Scene

@@ -41,7 +41,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from .krr import assert_disjoint, fit_alignment
+from .krr import alignment_kwargs, assert_disjoint, fit_alignment
 from .results import Results
 
 _EPS = 1e-8
@@ -156,8 +156,9 @@ def handcrafted_features(obs, actions, channels: Sequence[str]) -> tuple[np.ndar
 
 
 def evaluate_handcrafted(train: Mapping[str, Any], test: Mapping[str, Any], channels: Sequence[str], *,
-                         alignment: Mapping[str, Any] | None = None, **meta) -> Results:
+                         alignment: Mapping[str, Any] | None = None, split: str = "trial", **meta) -> Results:
     """Hand-crafted features -> the same KRR alignment -> Results (method 'handcrafted_krr').
+    ``alignment`` and ``split``: as :func:`~embodied_tactile.eval.results.evaluate_latents`.
 
     ``train`` / ``test``: dicts with ``obs``, ``actions``, ``factors``, ``object_id``,
     ``action_index`` (and optional ``seq_id``). ``meta``: modality / skin / primitive / source.
@@ -167,7 +168,8 @@ def evaluate_handcrafted(train: Mapping[str, Any], test: Mapping[str, Any], chan
     f_tr, names = handcrafted_features(train["obs"], train["actions"], channels)
     f_te, _ = handcrafted_features(test["obs"], test["actions"], channels)
     t1 = time.perf_counter()
-    align = fit_alignment(f_tr, train["factors"], ids=train.get("seq_id"), **dict(alignment or {}))
+    align = fit_alignment(f_tr, train["factors"], ids=train.get("seq_id"),
+                          **alignment_kwargs(alignment, split, train.get("object_id")))
     t2 = time.perf_counter()
     pred = align.predict(f_te, ids=test.get("seq_id"))
     t3 = time.perf_counter()

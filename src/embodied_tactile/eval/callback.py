@@ -48,7 +48,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..constants import FACTOR_NAMES
-from .krr import assert_disjoint, fit_alignment
+from .krr import alignment_kwargs, assert_disjoint, fit_alignment, resolve_cv_grouping
 from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
 from .metrics import nmse_over_time, nmse_trajectory, overall
 from .results import select_latents
@@ -183,15 +183,17 @@ class KRRAlignmentCallback(Callback):
     def __init__(self, every_n_epochs: int | None = None, latent: str = "y", max_train_sequences: int | None = 512,
                  max_val_sequences: int | None = None, val_frame_stride: int = 2, final_segment: float | int = 0.1,
                  frames_per_sequence: int = 2, cv: int = 3, nystroem_threshold: int = 1024, n_components: int = 256,
-                 alphas=(1e-3, 1e-2, 1e-1, 1.0), gammas=(0.3, 1.0, 3.0), run_on_train_end: bool = True,
+                 alphas=(1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0), gammas=(0.3, 1.0, 3.0), run_on_train_end: bool = True,
                  history_name: str = "krr_history.jsonl", seed: int = 0, n_threads: int | None = None,
                  final_alignment: Mapping[str, Any] | None = None, targets: str = DEFAULT_TARGETS,
-                 points: int = 8, initial: bool = True, infer_batch_size: int = 64):
+                 points: int = 8, initial: bool = True, infer_batch_size: int = 64, groups: str = "auto"):
         if latent not in LATENT_KEYS:
             raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
         if targets not in TARGET_ENCODINGS:
             raise ValueError(f"targets must be one of {TARGET_ENCODINGS}, got {targets!r}")
         self.targets = targets  # the factors' encoding (eval.targets), as evaluate.py's `targets`
+        resolve_cv_grouping(groups, "trial")  # refuses an unknown grouping now, not at the first check
+        self.groups = groups  # CV grouping ('auto': by object on an object split), as evaluate.py's alignment.groups
         self.every_n_epochs = None if every_n_epochs is None else int(every_n_epochs)
         if int(points) < 1 or int(infer_batch_size) < 1:
             raise ValueError(f"KRRAlignmentCallback points and infer_batch_size must be >= 1, "
@@ -300,12 +302,14 @@ class KRRAlignmentCallback(Callback):
         train_batches, val_batches = self._inputs(trainer, final)
         max_train, max_val, stride = (None, None, 1) if final else (
             self.max_train_sequences, self.max_val_sequences, self.val_frame_stride)
-        align_kw = self.final_kw if final else self.align_kw
+        base_kw = {**(self.final_kw if final else self.align_kw), "groups": self.groups}
         tr = collect_latents(pl_module, train_batches, latent=self.latent, max_sequences=max_train)
         te = collect_latents(pl_module, val_batches, latent=self.latent, max_sequences=max_val)
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
         tr, te = encode_split(tr, self.targets), encode_split(te, self.targets)
         t_inf = time.perf_counter()
+        split = str(getattr(trainer.datamodule, "split", "trial"))
+        align_kw = alignment_kwargs(base_kw, split, tr.get("object_id"))
         align = fit_alignment(select_latents(tr, self.latent), tr["factors"], ids=tr.get("seq_id"), **align_kw)
         x_te = select_latents(te, self.latent)[:, ::-1][:, ::stride][:, ::-1]  # keep the last frame
         pred = align.predict(x_te, ids=te.get("seq_id"))
@@ -340,7 +344,8 @@ class KRRAlignmentCallback(Callback):
                                                        "final_segment", "frames_per_sequence", "cv_folds", "seed")},
         }
         if final:
-            row["alignment_settings"] = {k: v for k, v in align_kw.items() if k != "n_threads"}
+            row["alignment_settings"] = {**{k: v for k, v in base_kw.items() if k != "n_threads"},
+                                         "groups": resolve_cv_grouping(self.groups, split)}
             self.final = row
         self.history.append(row)
         if trainer.is_global_zero:

@@ -11,8 +11,11 @@ protocol"):
 * Inputs are standardised with a scaler fitted on those training rows; targets are
   standardised too; the regressor is ``KernelRidge(kernel="rbf")`` (sklearn's default kernel
   is linear -- never used here). ``alpha`` and ``gamma`` are chosen by a grid search (equivalent to ``GridSearchCV``, see ``_grid_cv``) over
-  folds grouped by sequence (``GroupKFold``: the frames of one sequence never sit on both
-  sides of a fold), on training rows only. ``gamma`` grid values are multiples of 1/d.
+  grouped folds (``GroupKFold``), on training rows only: grouped by sequence (the frames of
+  one sequence never sit on both sides of a fold) or by object (:func:`cv_groups`; what an
+  object split asks). ``gamma`` grid values are multiples of 1/d; the ``alpha`` grid reaches
+  100, where the fit is close to the training mean, so the search can choose "the latents do
+  not help" when they do not.
 * With more than ``nystroem_threshold`` rows, exact KRR (O(n^3)) is replaced by
   ``Nystroem`` RBF features + ``Ridge`` with the same grid search.
 * The fitted :class:`Alignment` predicts at every frame of (held-out) sequences, in the
@@ -35,8 +38,43 @@ from sklearn.linear_model import Ridge
 from sklearn.model_selection import GroupKFold
 from sklearn.pipeline import Pipeline
 
-DEFAULT_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
+DEFAULT_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
 DEFAULT_GAMMAS = (0.1, 0.3, 1.0, 3.0)  # multiples of 1/d on standardised inputs
+CV_GROUPINGS = ("auto", "sequence", "object")
+
+
+def resolve_cv_grouping(grouping: str | None, split: str) -> str:
+    """'sequence' or 'object': how the alignment's CV folds group the training sequences.
+
+    ``grouping``: 'sequence' (None too) or 'object', or 'auto': 'object' on an object split
+    (the question is generalisation to objects never seen, so hyper-parameters are chosen on
+    folds whose objects the fit did not see), 'sequence' on the trial split (held-out trials
+    of objects the fit saw, the paper's question). ``split``: the run's split kind.
+    """
+    grouping = "sequence" if grouping is None else str(grouping)
+    if grouping not in CV_GROUPINGS:
+        raise ValueError(f"alignment groups must be one of {CV_GROUPINGS}, got {grouping!r}")
+    if grouping == "auto":
+        return "object" if split == "object" else "sequence"
+    return grouping
+
+
+def cv_groups(grouping: str | None, split: str, object_ids) -> np.ndarray | None:
+    """:func:`fit_alignment`'s ``groups`` for a training split: the object id per sequence
+    when :func:`resolve_cv_grouping` says 'object', None (each sequence its own group) else."""
+    if resolve_cv_grouping(grouping, split) == "sequence":
+        return None
+    if object_ids is None:
+        raise ValueError("alignment groups='object' needs the training sequences' object ids (object_id)")
+    return np.asarray(object_ids)
+
+
+def alignment_kwargs(alignment, split: str, object_ids) -> dict:
+    """A copy of an ``alignment`` option mapping (evaluate.py's ``alignment``) with its
+    ``groups`` name ('auto' when absent) resolved to :func:`fit_alignment`'s ``groups``."""
+    kw = dict(alignment or {})
+    kw["groups"] = cv_groups(kw.get("groups", "auto"), split, object_ids)
+    return kw
 
 
 class LeakageError(AssertionError):

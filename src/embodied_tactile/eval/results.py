@@ -27,7 +27,7 @@ import numpy as np
 
 from ..constants import FACTOR_NAMES, OBJECT_GROUPS, get_object
 from ..jsonio import to_jsonable
-from .krr import Alignment, assert_disjoint, fit_alignment
+from .krr import Alignment, alignment_kwargs, assert_disjoint, fit_alignment
 from .metrics import balanced_accuracy, nmse_over_time, nmse_trajectory, overall, reference_variance, roc_auc
 
 
@@ -276,11 +276,14 @@ def evaluate_latents(
     source: str = "simulated",
     alignment: Mapping[str, Any] | None = None,
     params: Mapping[str, Any] | None = None,
+    split: str = "trial",
 ) -> tuple[Results, Alignment]:
     """Fit the KRR alignment on ``train`` (final segments), predict every frame of ``test``.
 
     ``alignment``: keyword arguments for :func:`fit_alignment` (final_segment, cv, grids,
-    nystroem_threshold, seed, groups='object' to group CV folds by object). Raises
+    nystroem_threshold, seed) and ``groups``: 'auto' (default), 'sequence' or 'object', the CV
+    grouping resolved by :func:`~embodied_tactile.eval.krr.resolve_cv_grouping` for the run's
+    ``split`` kind ('trial' | 'object'). Raises
     :class:`~embodied_tactile.eval.krr.LeakageError` when both splits carry ``seq_id`` and
     they intersect.
     """
@@ -288,8 +291,7 @@ def evaluate_latents(
     assert_disjoint(train.get("seq_id"), test.get("seq_id"))
     x_tr = select_latents(train, latent)
     x_te = select_latents(test, latent)
-    if kw.get("groups") == "object":
-        kw["groups"] = np.asarray(train["object_id"])
+    kw = alignment_kwargs(kw, split, train.get("object_id"))
     t0 = time.perf_counter()
     align = fit_alignment(x_tr, train["factors"], ids=train.get("seq_id"), **kw)
     t1 = time.perf_counter()

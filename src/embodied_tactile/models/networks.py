@@ -355,12 +355,18 @@ class HierarchicalPrior(nn.Module):
     Objects are marked *seen* (a persistent buffer) when they occur in a training-mode call;
     in evaluation an unseen object id, or id -1, gets the population marginal, so an object
     never touched in training still has a prior.
+
+    ``labels=False`` (an ablation of the paper's label-conditioned prior) ignores every object
+    id, in training too: every sequence gets the population marginal, no embedding is used and
+    the population term is 0, so y can only carry what the observations and actions carry.
     """
 
     def __init__(self, n_y: int, n_a: int, n_objects: int = 32, sigma_init: float = 0.5,
                  learn_sigma: bool = True, var_floor: float = 1e-2, action_term: bool = True,
-                 pop_sigma_init: float = 0.5, population_weight: Optional[float] = None) -> None:
+                 pop_sigma_init: float = 0.5, population_weight: Optional[float] = None,
+                 labels: bool = True) -> None:
         super().__init__()
+        self.labels = bool(labels)
         if sigma_init ** 2 <= var_floor:
             raise ValueError(f"prior sigma_init**2={sigma_init ** 2} must exceed var_floor={var_floor}")
         if pop_sigma_init ** 2 <= var_floor:
@@ -420,7 +426,7 @@ class HierarchicalPrior(nn.Module):
         if object_id.numel() and (int(object_id.min()) < -1 or int(object_id.max()) >= self.n_objects):
             raise ValueError(f"object_id out of range [-1, {self.n_objects}) (-1 = a new object): "
                              f"min={int(object_id.min())} max={int(object_id.max())}")
-        oid = object_id.long()
+        oid = object_id.long() if self.labels else torch.full_like(object_id, -1, dtype=torch.long)
         known = oid >= 0
         if self.training:
             self.seen[oid[known]] = True
