@@ -286,6 +286,28 @@ def test_study_report_table2_intervals_verdicts_and_what_was_not_run(tmp_path):
     assert "- Note: parts ran on two commits" in out.read_text()
 
 
+def test_study_report_objects_section_takes_object_split_runs_only(tmp_path):
+    from embodied_tactile.eval.report import write_report
+    from embodied_tactile.eval.study_report import StudyReportError, load, main, render
+
+    main_runs = [_run("multi_l", "soft", "pressing", s, 0.2) for s in range(3)]
+    obj_runs = [_run("multi_l", "soft", "pressing", s, 0.9) for s in range(3)]
+    for r in obj_runs:
+        r.split, r.unseen_objects = "object", True
+    write_report(main_runs, tmp_path / "study", figures=False)
+    write_report(obj_runs, tmp_path / "objects", figures=False)
+    text = render(load(tmp_path / "study"), objects=load(tmp_path / "objects"))
+    section = text.split("## Objects never touched in training", 1)[1].split("## What was not run", 1)[0]
+    vals = [r.summary()["nmse_trajectory_overall"] for r in obj_runs]
+    row = next(ln for ln in section.splitlines() if ln.startswith("| latent_filter |"))
+    assert f"{np.mean(vals):.4f}" in row and "| 3 |" in row
+    with pytest.raises(StudyReportError, match="object-split runs with unseen held-out objects only"):
+        render(load(tmp_path / "study"), objects=load(tmp_path / "study"))
+    out = tmp_path / "r.md"
+    assert main([str(tmp_path / "study"), "--objects", str(tmp_path / "objects"), "--out", str(out)]) == 0
+    assert out.read_text() == text
+
+
 def test_study_report_names_a_missing_results_file(tmp_path, capsys):
     from embodied_tactile.eval.study_report import main
 

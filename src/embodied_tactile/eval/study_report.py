@@ -15,6 +15,7 @@ present, ``evaluation.json`` and each evaluated run's ``config_resolved.yaml`` /
   seeds with its 95 % t interval beside the paper's value (:data:`~.verdicts.PAPER_TABLE2`);
 * the per-cell statistics over seeds for every modality (the ``aggregate`` table);
 * the paper's findings with their verdicts and every comparison behind them;
+* with ``--objects <evaluation folder>``: the held-out-object runs' statistics over seeds;
 * what was not run: every cell of the paper's 24 (8 modality x e-Skin combinations x 3
   primitives) with fewer than the protocol's 3 seeds.
 """
@@ -205,7 +206,29 @@ def _json_table(blob: Mapping, name: str) -> Table | None:
     return None
 
 
-def render(blob: Mapping, source: str = "", notes: Sequence[str] = ()) -> str:
+def objects_section(blob: Mapping) -> list[str]:
+    """'Objects never touched in training': the commands and the per-configuration statistics
+    over seeds (evaluate.py's ``aggregate`` table) of an evaluation of held-out-object runs
+    (``data.split=object``); every Latent Filter run in it must be an object split with unseen
+    held-out objects."""
+    bad = sorted({str(r.get("split")) for r in _latent_runs(blob["runs"]) if r.get("split") != "object"
+                  or not r.get("unseen_objects")})
+    if bad:
+        raise StudyReportError(f"{blob.get('_dir')}: the held-out-object section takes object-split runs with "
+                               f"unseen held-out objects only; found split kind(s) {bad}")
+    out = ["## Objects never touched in training (`data.split=object`)", "",
+           f"Generated from `{blob.get('_dir')}/results.json`. Whole objects held out (stratified over factor "
+           "levels); the alignment's hyper-parameters chosen on folds grouped by object (alignment.groups=auto); "
+           "unseen objects get the hierarchical prior's population marginal.", ""]
+    files = _run_files(blob)
+    out += _command_lines(files) or ["- (no run folders readable from evaluation.json: commands not listed)"]
+    out += _budget_lines(files, blob) + [""]
+    agg = _json_table(blob, "aggregate")
+    out += [agg.to_markdown()] if agg is not None else ["No aggregate table in that evaluation.", ""]
+    return out
+
+
+def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: Mapping | None = None) -> str:
     runs = blob["runs"]
     files = _run_files(blob)
     out = ["# Simulated study: results", "",
@@ -228,6 +251,8 @@ def render(blob: Mapping, source: str = "", notes: Sequence[str] = ()) -> str:
         out += [f"## {head}", ""]
         out += [t.to_markdown()] if t is not None else [
             "Not measured: no comparison of the findings had runs on both sides in this evaluation.", ""]
+    if objects is not None:
+        out += objects_section(objects)
     measured, missing = coverage(runs)
     out += ["## What was not run", "",
             f"Cells of the paper's 24 (8 modality x e-Skin combinations x 3 primitives) with fewer than "
@@ -241,11 +266,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="Write the study's results page (Markdown) from evaluate.py's output.")
     ap.add_argument("evaluation", help="the evaluation folder evaluate.py wrote for the study (holds results.json)")
     ap.add_argument("--out", default=None, help="write here (e.g. docs/results.md); default: print")
+    ap.add_argument("--objects", default=None,
+                    help="an evaluation folder of held-out-object runs (data.split=object): adds their section")
     ap.add_argument("--note", action="append", default=[],
                     help="a line for 'What was run' (e.g. how the parts were run); repeatable")
     args = ap.parse_args(argv)
     try:
-        text = render(load(args.evaluation), source=args.evaluation, notes=args.note)
+        text = render(load(args.evaluation), source=args.evaluation, notes=args.note,
+                      objects=load(args.objects) if args.objects else None)
     except StudyReportError as err:
         print(f"study_report: error: {err}", file=sys.stderr)
         return 2
