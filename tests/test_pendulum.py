@@ -224,6 +224,45 @@ def test_several_elbo_samples_average_independent_samples():
     assert four.elbo_terms(batch)["out"]["z"].shape[0] == 2
 
 
+def test_latent_overshooting_scores_the_d_step_open_loop_prior():
+    """With a transition z_t = z_{t-1} + a_t (variance v) and draws at their means, the d-step
+    prior from z_t is N(z_t + a_{t+1} + ... + a_{t+d}, v): the overshooting term is the mean over d = 2..D of
+    sum_t KL(q_filt(z_{t+d}) || that prior), in training only, inside kl_z."""
+    from embodied_tactile.models.networks import kl_diag_gaussians
+
+    with pytest.raises(ValueError, match="overshoot must be an integer >= 1"):
+        _model(overshoot=0)
+    v = 0.05
+
+    class Shift(torch.nn.Module):
+        def forward(self, z_prev, y, a):
+            return z_prev + a[..., :1], torch.full_like(z_prev, v)
+
+    torch.manual_seed(0)
+    m = _model(overshoot=3)
+    m.transition = Shift()
+    m._draw = lambda mean, var, sample: mean  # no sampling noise: the rolled prior's mean is exact
+    obs, act = torch.rand(2, 7, 1, 28, 28), torch.randn(2, 7, 1)
+    batch = {"obs": obs, "actions": act, "object_id": torch.tensor([0, 3])}
+    m.train()
+    with torch.no_grad():
+        terms = m.elbo_terms(batch)
+        out = terms["out"]
+        z, qm, qv = out["z"], out["z_mean"], out["z_var"]
+        want = 0.0
+        for d in (2, 3):
+            n = 7 - d
+            shift = sum(act[:, j:j + n] for j in range(1, d + 1))
+            want += float(kl_diag_gaussians(qm[:, d:], qv[:, d:], z[:, :n] + shift, torch.full_like(z[:, :n], v))
+                          .sum(1).mean())
+        one_step = kl_diag_gaussians(qm, qv, out["zp_mean"], out["zp_var"]).sum(1).mean()
+    assert float(terms["overshoot"]) == pytest.approx(want / 2, rel=1e-3)
+    assert float(terms["kl_z"]) == pytest.approx(float(one_step) + want / 2, rel=1e-3)
+    m.eval()
+    assert "overshoot" not in m.elbo_terms(batch)  # evaluation: the plain ELBO
+    assert "overshoot" not in _model().train().elbo_terms(batch)  # overshoot=1: off
+
+
 def test_remedies_are_config_switches(tmp_path):
     from hydra.utils import instantiate
     from test_configs import _compose_job

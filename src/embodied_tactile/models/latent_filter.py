@@ -102,6 +102,10 @@ class LatentFilter(nn.Module):
         elbo_samples: training remedy (docs/model.md, "Several ELBO samples"): in training
             mode ``elbo_terms`` averages the single-sample estimate over K independent
             samples per sequence (K x the compute). 1 (default) = one sample.
+        overshoot: training remedy (docs/model.md, "Latent overshooting"): in training mode
+            ``kl_z`` adds the mean over d = 2..D of KL(sg[q_filt(z_{t+d})] || p_d(z_{t+d})),
+            p_d the transition rolled d steps open loop from a sample of q_filt(z_t), weighted
+            by ``overshoot_weight``. 1 (default) = off (one-step prior only).
     """
 
     def __init__(self, modality: Any, n_z: int = 16, n_y: int = 16, n_a: int = 6,
@@ -111,8 +115,13 @@ class LatentFilter(nn.Module):
                  prior: Optional[Mapping] = None, y_update: str = "direct",
                  y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None,
                  y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
-                 elbo_samples: int = 1) -> None:
+                 elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0) -> None:
         super().__init__()
+        if int(overshoot) != overshoot or overshoot < 1:
+            raise ValueError(f"overshoot must be an integer >= 1 (1 = off), got {overshoot}")
+        if not float(overshoot_weight) >= 0.0:
+            raise ValueError(f"overshoot_weight must be >= 0, got {overshoot_weight}")
+        self.overshoot, self.overshoot_weight = int(overshoot), float(overshoot_weight)
         if not 0.0 <= float(obs_dropout) < 1.0:
             raise ValueError(f"obs_dropout must be in [0, 1), got {obs_dropout}")
         if int(elbo_samples) != elbo_samples or elbo_samples < 1:
@@ -295,12 +304,42 @@ class LatentFilter(nn.Module):
         else:
             kl_y = out["y_mean"].new_zeros(()).float()
             self.prior(batch["object_id"], actions[:, :1])  # marks the objects seen in training
+        over = self.overshooting_kl(out, actions) if self.training and sample else None
+        if over is not None:
+            kl_z = kl_z + self.overshoot_weight * over
         w_pop = self.prior.population_weight
         pop = self.prior.population_nll() * (1.0 / self.prior.n_objects if w_pop is None else float(w_pop))
         kl_y = kl_y + pop
         n_dims = torch.tensor(float(T * obs.shape[2] * 28 * 28), device=obs.device)
-        return {"nll": nll, "kl_z": kl_z, "kl_y": kl_y, "pop": pop.detach(), "entropy": ent.mean(), "n_dims": n_dims,
-                "out": out}
+        terms = {"nll": nll, "kl_z": kl_z, "kl_y": kl_y, "pop": pop.detach(), "entropy": ent.mean(), "n_dims": n_dims,
+                 "out": out}
+        if over is not None:
+            terms["overshoot"] = over.detach()
+        return terms
+
+    def overshooting_kl(self, out: Mapping[str, Tensor], actions: Tensor) -> Optional[Tensor]:
+        """Latent overshooting (Hafner et al. 2019): per sequence (batch mean), the mean over
+        d = 2..D (D = ``overshoot``) of sum_t KL(sg[q_filt(z_{t+d})] || p_d(z_{t+d} | z_t)),
+        where p_d rolls the transition d steps from the sample z_t of q_filt under the
+        posterior's y samples and the actions, sampling the intermediate states; the last
+        step's Gaussian is p_d. The posterior is held fixed (stop-gradient), so these terms
+        train the transition (and through it y) to predict several frames ahead, without
+        pulling q_filt towards the open-loop prediction. None when D = 1 or T <= 2."""
+        T = out["z"].shape[1]
+        horizon = min(self.overshoot, T - 1)
+        if horizon < 2:
+            return None
+        z, y = out["z"], out["y"]
+        q_m, q_v = out["z_mean"].detach(), out["z_var"].detach()
+        total = z.new_zeros(()).float()
+        for d in range(2, horizon + 1):
+            n = T - d  # start frames t = 0 .. T-d-1
+            zs = z[:, :n]
+            for j in range(1, d + 1):
+                m, v = self.transition(zs, y[:, j:j + n], actions[:, j:j + n].float())
+                zs = self._draw(m, v, True) if j < d else zs
+            total = total + kl_diag_gaussians(q_m[:, d:], q_v[:, d:], m, v).sum(1).mean()
+        return total / (horizon - 1)
 
     # ------------------------------------------------------------------ inference
     @torch.no_grad()

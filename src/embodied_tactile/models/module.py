@@ -170,6 +170,8 @@ class LatentFilterModule(L.LightningModule):
         for k in ("nll", "kl_z", "kl_y", "pop", "entropy"):
             self.log(f"train/{k}", terms[k].detach(), batch_size=bs)
         self.log("train/elbo", -(terms["nll"] + terms["kl_z"] + terms["kl_y"]).detach(), batch_size=bs)
+        if "overshoot" in terms:  # latent overshooting (inside kl_z in training): logged on its own too
+            self.log("train/overshoot", terms["overshoot"], batch_size=bs)
         for k, v in logs.items():
             self.log(k, float(v), batch_size=bs)
         return loss
