@@ -155,6 +155,10 @@ def main(argv=None) -> None:
     ap.add_argument("--modalities", nargs="+", default=list(MODALITIES), choices=MODALITIES)
     ap.add_argument("--seed", type=int, default=0, help="split seed and GRU seed")
     ap.add_argument("--gru-epochs", type=int, default=20)
+    ap.add_argument("--gru-window", default="50", help="GRU training crop in frames; 'none' = whole trials")
+    ap.add_argument("--gru-standardize", action="store_true",
+                    help="GRU input_standardize: each channel standardised by its training-set mean / std")
+    ap.add_argument("--gru-windows-per-trial", type=int, default=6, help="GRU crops per trial and epoch")
     ap.add_argument("--no-raw", action="store_true", help="skip the raw-signal probes")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--preprocess", nargs="*", default=[], metavar="KEY=VALUE",
@@ -177,8 +181,9 @@ def main(argv=None) -> None:
           f"{len(test['seq_id'])} test trials (split seed {args.seed}); data {time.perf_counter() - t0:.0f} s",
           file=sys.stderr)
     alignment = dict(final_segment=0.1, frames_per_sequence=4, cv=5, n_threads=1)  # evaluate.yaml's
-    gru = dict(epochs=args.gru_epochs, window=50, windows_per_trial=6, batch_size=16, hidden=64, lr=1e-3,
-               seed=args.seed)
+    gru_window = None if args.gru_window.lower() == "none" else int(args.gru_window)
+    gru = dict(epochs=args.gru_epochs, window=gru_window, windows_per_trial=args.gru_windows_per_trial, batch_size=16,
+               hidden=64, lr=1e-3, seed=args.seed, input_standardize=args.gru_standardize)
     rows = []
     for name in args.modalities:
         chans = list(load_modality(name).channels)
@@ -202,7 +207,8 @@ def main(argv=None) -> None:
     head = [short.get(f, f) for f in FACTOR_NAMES] + ["overall"]
     print(f"\nHeld-out NMSE, whole trajectory / last frame (targets design_rank), skin={args.skin}, "
           f"primitive={args.primitive}, preprocess {pre or 'default'}, {len(train['seq_id'])} train / {len(test['seq_id'])} test trials, "
-          f"split seed {args.seed}, GRU seed {args.seed} ({args.gru_epochs} epochs)\n")
+          f"split seed {args.seed}, GRU seed {args.seed} ({args.gru_epochs} epochs, window {gru_window} x "
+          f"{args.gru_windows_per_trial} per trial, input_standardize {args.gru_standardize})\n")
     print("| modality | method | " + " | ".join(head) + " | s |")
     print("|---|---|" + "---|" * (len(head) + 1))
     for s, dt in rows:

@@ -604,3 +604,67 @@ def test_checkpoint_of_the_pre_fusion_module_layout_loads(name, tmp_path):
                 "hyper_parameters": dict(module.hparams), "pytorch-lightning_version": L.__version__}, ckpt)
     with pytest.raises(RuntimeError, match="state_dict"):
         module_cls.load_from_checkpoint(str(ckpt), map_location="cpu")
+
+
+# ------------------------------------------------------------------ input standardisation
+def test_standardised_encoder_does_not_see_the_channels_offset_and_scale():
+    """input_standardize: shifting and scaling a channel's data together with its stats
+    leaves the latents unchanged, so a small signal on a large offset (the acc image at
+    pressing, docs/modalities.md) reaches the encoder at unit scale."""
+    torch.manual_seed(0)
+    batch = make_batch(3, B=2, T=5)
+    net = LatentFilter("multi_l", input_standardize=True, **TINY).eval()
+    with pytest.raises(ValueError, match="one value per channel"):
+        net.set_input_stats([0.5], [0.1])
+    with pytest.raises(ValueError, match="std > 0"):
+        net.set_input_stats([0.5, 0.2, 0.1], [0.1, 0.0, 0.2])
+    assert not bool(net.input_stats_set)
+    ref = net.infer_latents(batch)  # stats unset: shift 0, scale 1
+    shift, scale = torch.tensor([0.5, -2.0, 3.0]), torch.tensor([0.04, 10.0, 1.0])
+    net.set_input_stats(shift, scale)
+    moved = {**batch, "obs": batch["obs"] * scale.view(1, 1, 3, 1, 1) + shift.view(1, 1, 3, 1, 1)}
+    out = net.infer_latents(moved)
+    for k in ref:
+        torch.testing.assert_close(out[k], ref[k], rtol=1e-4, atol=1e-5)
+    plain = LatentFilter("multi_l", **TINY)
+    assert not hasattr(plain, "input_shift") and "input_shift" not in plain.state_dict()
+    with pytest.raises(ValueError, match="input_standardize=True"):
+        plain.set_input_stats([0.0] * 3, [1.0] * 3)
+
+
+def test_fit_sets_the_input_stats_from_the_training_set_and_checkpoints_carry_them(tmp_path):
+    torch.manual_seed(0)
+    batch = make_batch(1, B=4, T=6)
+    batch["obs"] = 0.5 + 0.03 * batch["obs"]  # the acc image's scale: a small spread on a large offset
+
+    class DM(L.LightningDataModule):
+        def __init__(self):
+            super().__init__()
+            self.train_set = ListDataset(batch)
+
+        def train_dataloader(self):
+            return DataLoader(self.train_set, batch_size=2, shuffle=True)
+
+        def train_eval_dataloader(self):
+            return DataLoader(self.train_set, batch_size=3)
+
+        def val_dataloader(self):
+            return DataLoader(self.train_set, batch_size=2)
+
+    module = LatentFilterModule(LatentFilter("acc", input_standardize=True, **TINY),
+                                optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
+    tr = trainer(tmp_path, max_steps=2)
+    tr.fit(module, datamodule=DM())
+    net = module.model
+    assert bool(net.input_stats_set)
+    o = batch["obs"].double()
+    torch.testing.assert_close(net.input_shift, o.mean().float().view(1), rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(net.input_scale, o.std(unbiased=False).float().view(1), rtol=1e-5, atol=1e-7)
+    path = tmp_path / "m.ckpt"
+    tr.save_checkpoint(path)
+    loaded = LatentFilterModule.load_from_checkpoint(path)
+    assert loaded.model.input_standardize and bool(loaded.model.input_stats_set)
+    torch.testing.assert_close(loaded.model.input_scale, net.input_scale, rtol=0, atol=0)
+    a, b = module.infer_latents(batch), loaded.infer_latents(batch)
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)

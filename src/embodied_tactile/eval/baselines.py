@@ -230,13 +230,16 @@ class GRURegressor:
     ``window`` / ``windows_per_trial`` (array input only): train on that many random
     ``window``-frame crops of every sequence per epoch, as the Latent Filter's CPU budget
     does (same frames per epoch, more optimiser steps); prediction always runs over whole
-    sequences.
+    sequences. ``input_standardize``: the network sees each channel shifted and scaled by
+    its training-set mean and standard deviation (set in ``fit``); without it, a small
+    signal on a large offset (the acc image at pressing: spread ~0.03 around 0.5) left the
+    GRU at the mean predictor (docs/modalities.md, "Where the pressing information is lost").
     """
 
     def __init__(self, in_channels: int, action_dim: int = 6, hidden: int = 64, feat: int = 64,
                  epochs: int = 30, lr: float = 1e-3, batch_size: int = 16, weight_decay: float = 0.0,
                  max_batches_per_epoch: int | None = None, window: int | None = None,
-                 windows_per_trial: int = 1, seed: int = 0, device: str = "cpu"):
+                 windows_per_trial: int = 1, seed: int = 0, device: str = "cpu", input_standardize: bool = False):
         import torch
         from torch import nn
 
@@ -247,7 +250,8 @@ class GRURegressor:
         self.cfg = dict(in_channels=in_channels, action_dim=action_dim, hidden=hidden, feat=feat, epochs=epochs,
                         lr=lr, batch_size=batch_size, weight_decay=weight_decay,
                         max_batches_per_epoch=max_batches_per_epoch, window=window,
-                        windows_per_trial=int(windows_per_trial), seed=seed, device=device)
+                        windows_per_trial=int(windows_per_trial), seed=seed, device=device,
+                        input_standardize=bool(input_standardize))
         torch.manual_seed(seed)
 
         class Net(nn.Module):
@@ -275,6 +279,14 @@ class GRURegressor:
 
         return torch.as_tensor(x, dtype=torch.float32, device=self.cfg["device"])
 
+    def _obs(self, x):
+        """obs batch -> the network's input tensor (standardised per channel if asked)."""
+        t = self._t(x)
+        if self.cfg["input_standardize"]:
+            shape = (1, 1, -1) + (1,) * (t.dim() - 3)
+            t = (t - self._t(self.in_mean_).view(shape)) / self._t(self.in_scale_).view(shape)
+        return t
+
     def fit(self, data, actions=None, factors=None) -> "GRURegressor":
         import torch
 
@@ -286,6 +298,12 @@ class GRURegressor:
             raise ValueError("GRU training windows need array input (obs, actions, factors), not a loader")
         else:  # loader: one pass for the target statistics
             fac = np.concatenate([np.asarray(b["factors"], np.float64) for b in data])
+        if c["input_standardize"]:
+            from ..models.module import channel_stats
+
+            chunks = ({"obs": data[i:i + 16]} for i in range(0, len(data), 16)) if actions is not None else data
+            mean, sd = channel_stats(chunks)
+            self.in_mean_, self.in_scale_ = mean, np.where(sd > 1e-12, sd, 1.0)
         self.y_mean_ = np.nanmean(fac, 0)
         sd = np.nanstd(fac, 0)
         self.y_scale_ = np.where(sd > 1e-12, sd, 1.0)
@@ -315,7 +333,7 @@ class GRURegressor:
                 y = (np.asarray(b["factors"], np.float64) - self.y_mean_) / self.y_scale_
                 y = self._t(y)
                 mask = torch.isfinite(y)
-                out = self.net(self._t(b["obs"]), self._t(b["actions"]))
+                out = self.net(self._obs(b["obs"]), self._t(b["actions"]))
                 target = torch.where(mask, y, torch.zeros_like(y))[:, None, :].expand_as(out)
                 m = mask[:, None, :].expand_as(out).float()
                 loss = (((out - target) ** 2) * m).sum() / m.sum().clamp_min(1.0)
@@ -339,7 +357,7 @@ class GRURegressor:
                           np.asarray(actions, np.float32) if arr else None, None,
                           batch_size=batch_size or self.cfg["batch_size"], shuffle=False, rng=None)
             for b in it:
-                outs.append(self.net(self._t(b["obs"]), self._t(b["actions"])).cpu().numpy().astype(np.float64))
+                outs.append(self.net(self._obs(b["obs"]), self._t(b["actions"])).cpu().numpy().astype(np.float64))
         return np.concatenate(outs) * self.y_scale_ + self.y_mean_
 
 

@@ -106,6 +106,12 @@ class LatentFilter(nn.Module):
             ``kl_z`` adds the mean over d = 2..D of KL(sg[q_filt(z_{t+d})] || p_d(z_{t+d})),
             p_d the transition rolled d steps open loop from a sample of q_filt(z_t), weighted
             by ``overshoot_weight``. 1 (default) = off (one-step prior only).
+        input_standardize: the encoders see each channel shifted and scaled by its
+            training-set mean and standard deviation (buffers ``input_shift`` /
+            ``input_scale``, set once by :meth:`set_input_stats`, carried by checkpoints);
+            the decoder and the likelihood stay in the data's units. False (default) =
+            the [0, 1] images as they are (docs/modalities.md, "Where the pressing
+            information is lost").
     """
 
     def __init__(self, modality: Any, n_z: int = 16, n_y: int = 16, n_a: int = 6,
@@ -115,7 +121,8 @@ class LatentFilter(nn.Module):
                  prior: Optional[Mapping] = None, y_update: str = "direct",
                  y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None,
                  y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
-                 elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0) -> None:
+                 elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0,
+                 input_standardize: bool = False) -> None:
         super().__init__()
         if int(overshoot) != overshoot or overshoot < 1:
             raise ValueError(f"overshoot must be an integer >= 1 (1 = off), got {overshoot}")
@@ -155,6 +162,11 @@ class LatentFilter(nn.Module):
             self.obs_sigma_raw = nn.Parameter(raw)
         else:
             self.register_buffer("obs_sigma_raw", raw)
+        self.input_standardize = bool(input_standardize)
+        if self.input_standardize:  # only then: checkpoints without the option load unchanged
+            self.register_buffer("input_shift", torch.zeros(self.n_channels))
+            self.register_buffer("input_scale", torch.ones(self.n_channels))
+            self.register_buffer("input_stats_set", torch.tensor(False))
 
     def config(self) -> dict[str, Any]:
         """The constructor arguments as plain, checkpoint-safe values (``modality`` as its
@@ -172,11 +184,31 @@ class LatentFilter(nn.Module):
             raise ValueError(f"modality {self.modality['name']!r} expects obs (..., {self.n_channels}, 28, 28) "
                              f"for channels {self.modality['channels']}, got {tuple(obs.shape)}")
 
+    def set_input_stats(self, mean: Any, std: Any) -> None:
+        """Per-channel training-set mean and standard deviation (C,) of the observations,
+        used by the encoders when ``input_standardize`` (see :meth:`encode`)."""
+        if not self.input_standardize:
+            raise ValueError("set_input_stats needs input_standardize=True")
+        mean = torch.as_tensor(mean, dtype=torch.float32).reshape(-1)
+        std = torch.as_tensor(std, dtype=torch.float32).reshape(-1)
+        if mean.shape != (self.n_channels,) or std.shape != (self.n_channels,):
+            raise ValueError(f"input stats must have one value per channel {self.modality['channels']}, "
+                             f"got mean {tuple(mean.shape)}, std {tuple(std.shape)}")
+        if not (torch.isfinite(mean).all() and torch.isfinite(std).all() and (std > 0).all()):
+            raise ValueError(f"input stats must be finite with std > 0, got mean {mean.tolist()}, std {std.tolist()}")
+        self.input_shift.copy_(mean)
+        self.input_scale.copy_(std)
+        self.input_stats_set.fill_(True)
+
     def encode(self, o: Tensor) -> tuple[Tensor, Tensor]:
         """q(z | o) for frames o (N, C, 28, 28) -> mean, var (N, n_z) in float32, by the
         observation model (:mod:`.fusion`: one encoder over the stacked channels, or per
-        pathway Gaussians multiplied in latent space)."""
+        pathway Gaussians multiplied in latent space). With ``input_standardize`` the
+        encoders see (o - input_shift) / input_scale per channel."""
         self._check_obs(o)
+        if self.input_standardize:
+            shape = (1, self.n_channels, 1, 1)
+            o = (o - self.input_shift.view(shape).to(o.dtype)) / self.input_scale.view(shape).to(o.dtype)
         return self.observation.encode(o)
 
     def decode(self, z: Tensor) -> Tensor:

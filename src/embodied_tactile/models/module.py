@@ -7,6 +7,7 @@ from collections.abc import Mapping
 from typing import Any, Callable, Optional
 
 import lightning as L
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -43,6 +44,22 @@ def _optimizer_factory(optimizer: Any) -> Callable:
             raise ValueError(f"unknown torch.optim optimizer {name!r}")
         return functools.partial(cls, **spec)
     raise TypeError(f"optimizer must be a callable (functools.partial) or a mapping, got {type(optimizer).__name__}")
+
+
+def channel_stats(batches) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel mean and standard deviation (C,) over every frame and pixel of an
+    iterable of batches with ``obs`` (B, T, C, H, W) (float64 sums)."""
+    n, s, ss = 0, None, None
+    for b in batches:
+        o = np.asarray(b["obs"], dtype=np.float64)
+        o = np.moveaxis(o, 2, 0).reshape(o.shape[2], -1)
+        s = o.sum(1) if s is None else s + o.sum(1)
+        ss = (o ** 2).sum(1) if ss is None else ss + (o ** 2).sum(1)
+        n += o.shape[1]
+    if not n:
+        raise ValueError("channel_stats: no observations")
+    mean = s / n
+    return mean, np.sqrt(np.maximum(ss / n - mean ** 2, 0.0))
 
 
 def _trial_label(batch: Mapping[str, Any], row: int) -> str:
@@ -203,6 +220,11 @@ class LatentFilterModule(L.LightningModule):
             return
         # schedule lengths given as a fraction of the run resolve against its optimiser steps
         self.annealing.set_total_steps(self.trainer.estimated_stepping_batches)
+        if self.model.input_standardize and not bool(self.model.input_stats_set):
+            dm = getattr(self.trainer, "datamodule", None)
+            if dm is None or getattr(dm, "train_set", None) is None:
+                raise ValueError("input_standardize needs the training set: fit with a TactileDataModule")
+            self.model.set_input_stats(*channel_stats(dm.train_eval_dataloader()))
         # the prior's population term counts once per dataset: 1 / (training sequences) per sequence
         prior = self.model.prior
         if (self.hparams["net"].get("prior") or {}).get("population_weight") is None:
