@@ -528,6 +528,9 @@ def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, 
         reasons.append(f"sequences: training {final_row.get('n_train')} fit / {final_row.get('n_test')} scored, "
                        f"evaluate.py {res.n_train} / {res.n_test}")
     theirs = float(final_row["nmse_overall"])
+    if "alignment_settings" in final_row and "alphas" not in final_row["alignment_settings"] and abs(ours - theirs) > 1e-9:
+        reasons.append("the training's alpha grid is not recorded (runs written before the grid reached 100 used "
+                       "1e-4 .. 1; evaluate.py now searches 1e-4 .. 100)")
     return {"evaluate_nmse_overall": ours, "training_nmse_overall": theirs, "difference": ours - theirs,
             "training_epoch": final_row.get("epoch"), "reasons": reasons}
 

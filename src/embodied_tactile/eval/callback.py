@@ -48,7 +48,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..constants import FACTOR_NAMES
-from .krr import alignment_kwargs, assert_disjoint, fit_alignment, resolve_cv_grouping
+from .krr import (DEFAULT_ALPHAS, DEFAULT_GAMMAS, alignment_kwargs, assert_disjoint, fit_alignment,
+                  resolve_cv_grouping)
 from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
 from .metrics import nmse_over_time, nmse_trajectory, overall
 from .results import select_latents
@@ -344,7 +345,8 @@ class KRRAlignmentCallback(Callback):
                                                        "final_segment", "frames_per_sequence", "cv_folds", "seed")},
         }
         if final:
-            row["alignment_settings"] = {**{k: v for k, v in base_kw.items() if k != "n_threads"},
+            row["alignment_settings"] = {"alphas": list(DEFAULT_ALPHAS), "gammas": list(DEFAULT_GAMMAS),
+                                         **{k: v for k, v in base_kw.items() if k != "n_threads"},
                                          "groups": resolve_cv_grouping(self.groups, split)}
             self.final = row
         self.history.append(row)
