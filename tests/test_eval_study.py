@@ -306,6 +306,9 @@ def test_study_report_objects_section_takes_object_split_runs_only(tmp_path):
     out = tmp_path / "r.md"
     assert main([str(tmp_path / "study"), "--objects", str(tmp_path / "objects"), "--out", str(out)]) == 0
     assert out.read_text() == text
+    assert main([str(tmp_path / "study"), "--extra", f"Prior ablation={tmp_path / 'objects'}", "--out", str(out)]) == 0
+    assert "## Prior ablation" in out.read_text() and f"{np.mean(vals):.4f}" in out.read_text()
+    assert main([str(tmp_path / "study"), "--extra", "no-title", "--out", str(out)]) == 2
 
 
 def test_study_report_names_a_missing_results_file(tmp_path, capsys):

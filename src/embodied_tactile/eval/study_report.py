@@ -16,6 +16,7 @@ present, ``evaluation.json`` and each evaluated run's ``config_resolved.yaml`` /
 * the per-cell statistics over seeds for every modality (the ``aggregate`` table);
 * the paper's findings with their verdicts and every comparison behind them;
 * with ``--objects <evaluation folder>``: the held-out-object runs' statistics over seeds;
+  with ``--extra TITLE=<evaluation folder>`` (repeatable): any further evaluation (an ablation);
 * what was not run: every cell of the paper's 24 (8 modality x e-Skin combinations x 3
   primitives) with fewer than the protocol's 3 seeds.
 """
@@ -216,10 +217,16 @@ def objects_section(blob: Mapping) -> list[str]:
     if bad:
         raise StudyReportError(f"{blob.get('_dir')}: the held-out-object section takes object-split runs with "
                                f"unseen held-out objects only; found split kind(s) {bad}")
-    out = ["## Objects never touched in training (`data.split=object`)", "",
-           f"Generated from `{blob.get('_dir')}/results.json`. Whole objects held out (stratified over factor "
-           "levels); the alignment's hyper-parameters chosen on folds grouped by object (alignment.groups=auto); "
-           "unseen objects get the hierarchical prior's population marginal.", ""]
+    return extra_section(blob, "Objects never touched in training (`data.split=object`)",
+                         "Whole objects held out (stratified over factor levels); the alignment's hyper-parameters "
+                         "chosen on folds grouped by object (alignment.groups=auto); unseen objects get the "
+                         "hierarchical prior's population marginal.")
+
+
+def extra_section(blob: Mapping, title: str, text: str = "") -> list[str]:
+    """A section for a further evaluation (an ablation, the held-out objects): its commands,
+    budget and per-configuration statistics over seeds (evaluate.py's ``aggregate`` table)."""
+    out = [f"## {title}", "", f"Generated from `{blob.get('_dir')}/results.json`. {text}".rstrip(), ""]
     files = _run_files(blob)
     out += _command_lines(files) or ["- (no run folders readable from evaluation.json: commands not listed)"]
     out += _budget_lines(files, blob) + [""]
@@ -228,7 +235,8 @@ def objects_section(blob: Mapping) -> list[str]:
     return out
 
 
-def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: Mapping | None = None) -> str:
+def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: Mapping | None = None,
+           extras: Sequence[tuple[str, Mapping]] = ()) -> str:
     runs = blob["runs"]
     files = _run_files(blob)
     out = ["# Simulated study: results", "",
@@ -253,6 +261,8 @@ def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: 
             "Not measured: no comparison of the findings had runs on both sides in this evaluation.", ""]
     if objects is not None:
         out += objects_section(objects)
+    for title, extra in extras:
+        out += extra_section(extra, title)
     measured, missing = coverage(runs)
     out += ["## What was not run", "",
             f"Cells of the paper's 24 (8 modality x e-Skin combinations x 3 primitives) with fewer than "
@@ -268,12 +278,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="write here (e.g. docs/results.md); default: print")
     ap.add_argument("--objects", default=None,
                     help="an evaluation folder of held-out-object runs (data.split=object): adds their section")
+    ap.add_argument("--extra", action="append", default=[], metavar="TITLE=FOLDER",
+                    help="a further evaluation folder (e.g. an ablation) as a section titled TITLE; repeatable")
     ap.add_argument("--note", action="append", default=[],
                     help="a line for 'What was run' (e.g. how the parts were run); repeatable")
     args = ap.parse_args(argv)
     try:
+        extras = []
+        for item in args.extra:
+            title, sep, folder = item.rpartition("=")
+            if not sep or not title or not folder:
+                raise StudyReportError(f"--extra {item!r}: expected TITLE=FOLDER")
+            extras.append((title, load(folder)))
         text = render(load(args.evaluation), source=args.evaluation, notes=args.note,
-                      objects=load(args.objects) if args.objects else None)
+                      objects=load(args.objects) if args.objects else None, extras=extras)
     except StudyReportError as err:
         print(f"study_report: error: {err}", file=sys.stderr)
         return 2
