@@ -290,7 +290,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not sep or not title or not folder:
                 raise StudyReportError(f"--extra {item!r}: expected TITLE=FOLDER")
             extras.append((title, load(folder)))
-        text = render(load(args.evaluation), source=args.evaluation, notes=args.note,
+        import shlex
+
+        source = " ".join([args.evaluation] + ([f"--objects {args.objects}"] if args.objects else [])
+                          + [f"--extra {shlex.quote(e)}" for e in args.extra])
+        text = render(load(args.evaluation), source=source, notes=args.note,
                       objects=load(args.objects) if args.objects else None, extras=extras)
     except StudyReportError as err:
         print(f"study_report: error: {err}", file=sys.stderr)
