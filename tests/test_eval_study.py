@@ -305,7 +305,9 @@ def test_study_report_objects_section_takes_object_split_runs_only(tmp_path):
         render(load(tmp_path / "study"), objects=load(tmp_path / "study"))
     out = tmp_path / "r.md"
     assert main([str(tmp_path / "study"), "--objects", str(tmp_path / "objects"), "--out", str(out)]) == 0
-    assert out.read_text() == text
+    written = out.read_text()  # the same page, its head naming the whole command
+    assert written.split("## What was run", 1)[1] == text.split("## What was run", 1)[1]
+    assert f"study_report {tmp_path / 'study'} --objects {tmp_path / 'objects'} --out docs/results.md" in written
     assert main([str(tmp_path / "study"), "--extra", f"Prior ablation={tmp_path / 'objects'}", "--out", str(out)]) == 0
     assert "## Prior ablation" in out.read_text() and f"{np.mean(vals):.4f}" in out.read_text()
     assert main([str(tmp_path / "study"), "--extra", "no-title", "--out", str(out)]) == 2
