@@ -12,7 +12,7 @@ protocol"):
   standardised too; the regressor is ``KernelRidge(kernel="rbf")`` (sklearn's default kernel
   is linear -- never used here). ``alpha`` and ``gamma`` are chosen by a grid search (equivalent to ``GridSearchCV``, see ``_grid_cv``) over
   grouped folds (``GroupKFold``), on training rows only: grouped by sequence (the frames of
-  one sequence never sit on both sides of a fold) or by object (:func:`cv_groups`; what an
+  one sequence never sit on both sides of a fold) or by object (:func:`alignment_kwargs`; what an
   object split asks). ``gamma`` grid values are multiples of 1/d; the ``alpha`` grid reaches
   100, where the fit is close to the training mean, so the search can choose "the latents do
   not help" when they do not.
@@ -59,21 +59,18 @@ def resolve_cv_grouping(grouping: str | None, split: str) -> str:
     return grouping
 
 
-def cv_groups(grouping: str | None, split: str, object_ids) -> np.ndarray | None:
-    """:func:`fit_alignment`'s ``groups`` for a training split: the object id per sequence
-    when :func:`resolve_cv_grouping` says 'object', None (each sequence its own group) else."""
-    if resolve_cv_grouping(grouping, split) == "sequence":
-        return None
-    if object_ids is None:
-        raise ValueError("alignment groups='object' needs the training sequences' object ids (object_id)")
-    return np.asarray(object_ids)
-
-
 def alignment_kwargs(alignment, split: str, object_ids) -> dict:
     """A copy of an ``alignment`` option mapping (evaluate.py's ``alignment``) with its
-    ``groups`` name ('auto' when absent) resolved to :func:`fit_alignment`'s ``groups``."""
+    ``groups`` name ('auto' when absent) resolved to :func:`fit_alignment`'s ``groups``: the
+    object id per training sequence when :func:`resolve_cv_grouping` says 'object', None
+    (each sequence its own group) otherwise."""
     kw = dict(alignment or {})
-    kw["groups"] = cv_groups(kw.get("groups", "auto"), split, object_ids)
+    if resolve_cv_grouping(kw.get("groups", "auto"), split) == "sequence":
+        kw["groups"] = None
+    elif object_ids is None:
+        raise ValueError("alignment groups='object' needs the training sequences' object ids (object_id)")
+    else:
+        kw["groups"] = np.asarray(object_ids)
     return kw
 
 

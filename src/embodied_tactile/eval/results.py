@@ -287,11 +287,10 @@ def evaluate_latents(
     :class:`~embodied_tactile.eval.krr.LeakageError` when both splits carry ``seq_id`` and
     they intersect.
     """
-    kw = dict(alignment or {})
     assert_disjoint(train.get("seq_id"), test.get("seq_id"))
     x_tr = select_latents(train, latent)
     x_te = select_latents(test, latent)
-    kw = alignment_kwargs(kw, split, train.get("object_id"))
+    kw = alignment_kwargs(alignment, split, train.get("object_id"))
     t0 = time.perf_counter()
     align = fit_alignment(x_tr, train["factors"], ids=train.get("seq_id"), **kw)
     t1 = time.perf_counter()

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -290,8 +291,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             if not sep or not title or not folder:
                 raise StudyReportError(f"--extra {item!r}: expected TITLE=FOLDER")
             extras.append((title, load(folder)))
-        import shlex
-
         source = " ".join([args.evaluation] + ([f"--objects {args.objects}"] if args.objects else [])
                           + [f"--extra {shlex.quote(e)}" for e in args.extra])
         text = render(load(args.evaluation), source=source, notes=args.note,
