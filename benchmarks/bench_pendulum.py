@@ -23,7 +23,7 @@ from embodied_tactile.bench.pendulum_run import DIAGNOSTIC_READOUTS, READOUTS, r
 from embodied_tactile.runtime import set_threads
 
 #: --remedy NAME=VALUE -> LatentFilter keyword (docs/model.md, "Training remedies")
-REMEDIES = {"obs_dropout": float, "elbo_samples": int, "y_update": str, "y_evidence_max": float, "y_evidence_range": float,
+REMEDIES = {"obs_dropout": float, "obs_dropout_span": int, "elbo_samples": int, "y_update": str, "y_evidence_max": float, "y_evidence_range": float,
             "overshoot": int, "overshoot_weight": float}
 
 

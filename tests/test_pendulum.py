@@ -133,6 +133,39 @@ def test_observation_dropout_masks_frames_in_training_only():
     assert "observed" not in _model()(obs, act)  # off by default
 
 
+def test_observation_dropout_in_runs_hides_whole_blocks_of_span_frames():
+    with pytest.raises(ValueError, match="obs_dropout_span must be an integer >= 1"):
+        _model(obs_dropout=0.5, obs_dropout_span=0)
+    span, T = 6, 60
+    m = _model(obs_dropout=0.5, obs_dropout_span=span).train()
+    torch.manual_seed(3)
+    mask = m.observation_mask(400, T, torch.device("cpu"))
+    assert mask.shape == (400, T) and mask[:, 0].all()
+    assert 0.45 < (~mask[:, 1:]).float().mean() < 0.55  # the hidden fraction stays obs_dropout
+    # every change between seen and hidden after frame 1 falls on a block edge of the
+    # sequence's phase: between two edges the frames share one fate
+    changes = (mask[:, 2:] != mask[:, 1:-1]).nonzero().tolist()
+    edges = {}
+    for b, t in changes:
+        edges.setdefault(b, set()).add((t + 2) % span)
+    assert edges and all(len(phases) == 1 for phases in edges.values())
+    # a hidden run (not touching frame 1 or the end) is a multiple of span long
+    runs = []
+    for row in mask[:, 1:].tolist():
+        n = 0
+        for t, seen in enumerate(row):
+            if not seen:
+                n += 1
+            else:
+                if n and t - n > 0:
+                    runs.append(n)
+                n = 0
+    assert runs and all(r % span == 0 for r in runs)
+    assert min(runs) == span
+    m.eval()
+    assert m.observation_mask(4, T, torch.device("cpu")) is None
+
+
 def test_predict_is_the_filter_with_the_future_hidden():
     m = _model()
     m.eval()
@@ -267,10 +300,11 @@ def test_remedies_are_config_switches(tmp_path):
     from hydra.utils import instantiate
     from test_configs import _compose_job
 
-    cfg = _compose_job(["model.net.obs_dropout=0.25", "model.net.elbo_samples=2"], tmp_path)
+    cfg = _compose_job(["model.net.obs_dropout=0.25", "model.net.elbo_samples=2", "model.net.obs_dropout_span=4"],
+                       tmp_path)
     module = instantiate(cfg.model)
     net = next(m for m in module.modules() if type(m).__name__ == "LatentFilter")
-    assert (net.obs_dropout, net.elbo_samples) == (0.25, 2)
+    assert (net.obs_dropout, net.elbo_samples, net.obs_dropout_span) == (0.25, 2, 4)
     assert net.config()["obs_dropout"] == 0.25 and net.config()["elbo_samples"] == 2
     default = _compose_job([], tmp_path)
-    assert (default.model.net.obs_dropout, default.model.net.elbo_samples) == (0.0, 1)
+    assert (default.model.net.obs_dropout, default.model.net.elbo_samples, default.model.net.obs_dropout_span) == (0.0, 1, 1)

@@ -99,6 +99,12 @@ class LatentFilter(nn.Module):
             mode each frame t >= 2 is hidden from the filter with this probability, so
             q_filt(z_t) is the transition prior alone there and the likelihood of that
             frame trains the transition. 0 (default) = off.
+        obs_dropout_span: observation dropout in runs of this many consecutive frames
+            (docs/model.md, "Observation dropout in runs"): the frames are cut into blocks
+            of ``span`` (at a random phase per sequence) and each block is hidden with
+            probability ``obs_dropout``, so the hidden fraction stays ``obs_dropout`` and the
+            transition must predict ``span`` frames or more at a time. 1 (default) = each
+            frame on its own.
         elbo_samples: training remedy (docs/model.md, "Several ELBO samples"): in training
             mode ``elbo_terms`` averages the single-sample estimate over K independent
             samples per sequence (K x the compute). 1 (default) = one sample.
@@ -121,7 +127,7 @@ class LatentFilter(nn.Module):
                  prior: Optional[Mapping] = None, y_update: str = "direct",
                  y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None,
                  y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
-                 elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0,
+                 obs_dropout_span: int = 1, elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0,
                  input_standardize: bool = False) -> None:
         super().__init__()
         if int(overshoot) != overshoot or overshoot < 1:
@@ -133,7 +139,10 @@ class LatentFilter(nn.Module):
             raise ValueError(f"obs_dropout must be in [0, 1), got {obs_dropout}")
         if int(elbo_samples) != elbo_samples or elbo_samples < 1:
             raise ValueError(f"elbo_samples must be an integer >= 1, got {elbo_samples}")
+        if int(obs_dropout_span) != obs_dropout_span or obs_dropout_span < 1:
+            raise ValueError(f"obs_dropout_span must be an integer >= 1 (1 = single frames), got {obs_dropout_span}")
         self.obs_dropout, self.elbo_samples = float(obs_dropout), int(elbo_samples)
+        self.obs_dropout_span = int(obs_dropout_span)
         args = dict(locals())
         self._config = {k: to_plain(v) for k, v in args.items() if k not in ("self", "__class__")}
         self._config["modality"] = _modality_config(modality)
@@ -261,10 +270,19 @@ class LatentFilter(nn.Module):
     # ------------------------------------------------------------------ batched
     def observation_mask(self, B: int, T: int, device: torch.device) -> Optional[Tensor]:
         """Observation dropout: (B, T) bool, frames t >= 2 hidden with probability
-        ``obs_dropout`` in training mode; None (all observed) otherwise."""
+        ``obs_dropout`` in training mode, in runs of ``obs_dropout_span`` frames (blocks
+        of that length at a random phase per sequence, each hidden or seen as a whole);
+        None (all observed) otherwise."""
         if not (self.training and self.obs_dropout > 0.0):
             return None
-        mask = torch.rand(B, T, device=device) >= self.obs_dropout
+        span = self.obs_dropout_span
+        if span == 1:
+            mask = torch.rand(B, T, device=device) >= self.obs_dropout
+        else:
+            phase = torch.randint(0, span, (B, 1), device=device)
+            block = (torch.arange(T, device=device).view(1, T) + phase) // span
+            seen = torch.rand(B, (T - 1 + span) // span + 1, device=device) >= self.obs_dropout
+            mask = torch.gather(seen, 1, block)
         mask[:, 0] = True  # z_1 has no transition prior to fall back on
         return mask
 
