@@ -228,7 +228,7 @@ class _BatchSizeModel(FakeModel):
 def test_points_give_a_t0_row_and_8_points_reading_inputs_once(tmp_path):
     """Error against run time: a row before training (t = 0, the untrained network), then
     `points` = 8 checks over an 8-epoch run (the final alignment the last), inputs read from
-    the loaders once and inferred in batches of infer_batch_size sequences."""
+    the loaders once and inferred in batches of infer_batch_size sequences, both splits together."""
     torch.set_num_threads(1)
     cb = KRRAlignmentCallback(latent="y", cv=2, val_frame_stride=3, n_threads=1, points=8, infer_batch_size=32)
     assert cb.every_n_epochs is None  # the default spreads `points` over the run
@@ -244,6 +244,41 @@ def test_points_give_a_t0_row_and_8_points_reading_inputs_once(tmp_path):
     assert sum(not r["final"] for r in rows) == 8 and not any(r["initial"] for r in rows[1:])
     wall = [r["train_wall_time_s"] for r in rows]
     assert all(b > a for a, b in zip(wall, wall[1:])), wall
-    # read once (the final alignment reuses the cache: it holds every sequence), batched by 32
+    # read once (the final alignment reuses the cache: it holds every sequence); the 48 training
+    # and 16 held-out sequences inferred together in batches of 32
     assert dm.eval_ds.reads == 48 and dm.test_set.reads == 16
-    assert model.eval_batches == [32, 16, 16] * 9
+    assert model.eval_batches == [32, 32] * 9
+
+
+def test_both_splits_inferred_in_one_pass_give_each_splits_own_latents():
+    """The callback infers the cached training and held-out sequences in one pass (merged
+    batches); every sequence's latents equal those of inferring each split on its own."""
+    from embodied_tactile.eval.callback import collect_latents, rebatch
+    from embodied_tactile.models.latent_filter import LatentFilter
+    from embodied_tactile.models.module import LateFusionLatentFilter
+
+    torch.manual_seed(0)
+    model = LateFusionLatentFilter(LatentFilter("multi_l", n_z=4, n_y=3, encoder={"widths": [4, 8], "hidden": 16},
+                                                transition_hidden=16, lstm_hidden=16, obs_sigma=0.1))
+    g = torch.Generator().manual_seed(1)
+
+    def batches(n, size):
+        out = []
+        for i in range(0, n, size):
+            b = min(size, n - i)
+            out.append({"obs": torch.rand(b, T, 3, 28, 28, generator=g), "actions": torch.randn(b, T, 6, generator=g),
+                        "object_id": torch.arange(i, i + b) % 32, "factors": torch.rand(b, 4, generator=g),
+                        "action_index": torch.full((b,), 6)})
+        return out
+
+    train, held = batches(10, 4), batches(5, 3)
+    cb = KRRAlignmentCallback(latent="both", infer_batch_size=16)
+    tr, te = cb._collect(model, train, held, None, None)
+    tr_alone = collect_latents(model, rebatch(train, 16), latent="both")
+    te_alone = collect_latents(model, rebatch(held, 16), latent="both")
+    for joint, alone, n in ((tr, tr_alone, 10), (te, te_alone, 5)):
+        assert joint.keys() == alone.keys() and len(joint["factors"]) == n
+        for k in ("z", "y"):
+            np.testing.assert_allclose(joint[k], alone[k], rtol=1e-5, atol=1e-6)
+        for k in ("factors", "object_id", "action_index"):
+            np.testing.assert_array_equal(joint[k], alone[k])

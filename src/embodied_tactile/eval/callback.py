@@ -187,7 +187,7 @@ class KRRAlignmentCallback(Callback):
                  alphas=(1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0), gammas=(0.3, 1.0, 3.0), run_on_train_end: bool = True,
                  history_name: str = "krr_history.jsonl", seed: int = 0, n_threads: int | None = None,
                  final_alignment: Mapping[str, Any] | None = None, targets: str = DEFAULT_TARGETS,
-                 points: int = 8, initial: bool = True, infer_batch_size: int = 64, groups: str = "auto"):
+                 points: int = 8, initial: bool = True, infer_batch_size: int = 128, groups: str = "auto"):
         if latent not in LATENT_KEYS:
             raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
         if targets not in TARGET_ENCODINGS:
@@ -284,16 +284,32 @@ class KRRAlignmentCallback(Callback):
         return train, held_out
 
     def _inputs(self, trainer, final: bool):
-        """(train, held-out) batches: the cached ones (read at the first check of this fit),
-        or for the final alignment the loaders when the cache holds only part of a split."""
+        """(train, held-out) inputs: the cached batches (read at the first check of this fit),
+        or for the final alignment the loader of a split the cache holds only part of."""
         loaders = self._loaders(trainer)
         out = []
         for key, loader, cap in zip(("train", "held_out"), loaders, (self.max_train_sequences, self.max_val_sequences)):
             if key not in self._cache:
                 self._cache[key] = cache_batches(loader, cap)
             batches, whole = self._cache[key]
-            out.append(loader if final and not whole else rebatch(batches, self.infer_batch_size))
+            out.append(loader if final and not whole else batches)
         return out
+
+    def _collect(self, pl_module, train_in, held_in, max_train, max_val) -> tuple[dict, dict]:
+        """Latents of the training and held-out sequences. Cached inputs of both splits are
+        inferred in ONE pass, merged into batches of up to ``infer_batch_size`` sequences
+        (the default scene's 80 + 32 in one batch), so the recursion's Python loop runs over
+        the T frames once instead of once per split batch: 1.78 -> 1.56 s per check at the
+        default run's shapes (``benchmarks/bench_callback_inference.py``). Sequences are
+        filtered independently (eval mode, no sampling), so a sequence's latents do not
+        depend on its batch-mates. A loader (the final alignment of a capped split) is read
+        split by split as before."""
+        if not (isinstance(train_in, list) and isinstance(held_in, list)):
+            return (collect_latents(pl_module, train_in, latent=self.latent, max_sequences=max_train),
+                    collect_latents(pl_module, held_in, latent=self.latent, max_sequences=max_val))
+        n_train = sum(len(b["factors"]) for b in train_in)
+        joint = collect_latents(pl_module, rebatch(train_in + held_in, self.infer_batch_size), latent=self.latent)
+        return {k: v[:n_train] for k, v in joint.items()}, {k: v[n_train:] for k, v in joint.items()}
 
     def _evaluate(self, trainer, pl_module, final: bool = False, initial: bool = False) -> dict[str, float]:
         t0 = time.perf_counter()
@@ -304,8 +320,7 @@ class KRRAlignmentCallback(Callback):
         max_train, max_val, stride = (None, None, 1) if final else (
             self.max_train_sequences, self.max_val_sequences, self.val_frame_stride)
         base_kw = {**(self.final_kw if final else self.align_kw), "groups": self.groups}
-        tr = collect_latents(pl_module, train_batches, latent=self.latent, max_sequences=max_train)
-        te = collect_latents(pl_module, val_batches, latent=self.latent, max_sequences=max_val)
+        tr, te = self._collect(pl_module, train_batches, val_batches, max_train, max_val)
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
         tr, te = encode_split(tr, self.targets), encode_split(te, self.targets)
         t_inf = time.perf_counter()
