@@ -668,3 +668,24 @@ def test_fit_sets_the_input_stats_from_the_training_set_and_checkpoints_carry_th
     a, b = module.infer_latents(batch), loaded.infer_latents(batch)
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+
+
+def test_per_pixel_likelihood_sigma_enters_the_nll_pixel_by_pixel():
+    """obs_sigma_shape="pixel": one learnable sigma per channel and pixel; the nll term is
+    sum over frames, channels and pixels of -log N(o; recon, sigma_cij^2), by hand."""
+    torch.manual_seed(0)
+    m = LatentFilter("fsr_tb", obs_sigma=0.1, obs_sigma_shape="pixel", **TINY)
+    assert m.obs_sigma_raw.shape == (2, 28, 28) and m.obs_log_sigma().shape == (2, 28, 28)
+    sigma = 0.02 + 0.3 * torch.rand(2, 28, 28)
+    with torch.no_grad():
+        m.obs_sigma_raw.copy_(torch.log(torch.expm1(sigma - m.obs_sigma_min)))
+    batch = make_batch(2)
+    t = m.elbo_terms(batch, sample=False)
+    x, mu = batch["obs"].double(), t["out"]["recon"].double()
+    s = sigma.double()[None, None]
+    hand = (0.5 * ((x - mu) / s) ** 2 + torch.log(s) + 0.5 * math.log(2 * math.pi)).sum(dim=(1, 2, 3, 4)).mean()
+    assert float(t["nll"]) == pytest.approx(float(hand), rel=1e-5)
+    # the default keeps one sigma per channel (checkpoints of earlier runs load unchanged)
+    assert LatentFilter("fsr_tb", obs_sigma=0.1, **TINY).obs_sigma_raw.shape == (2,)
+    with pytest.raises(ValueError, match="obs_sigma_shape must be one of"):
+        LatentFilter("fsr_tb", obs_sigma=0.1, obs_sigma_shape="frame", **TINY)

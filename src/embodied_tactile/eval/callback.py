@@ -200,8 +200,9 @@ class KRRAlignmentCallback(Callback):
             raise ValueError(f"KRRAlignmentCallback points and infer_batch_size must be >= 1, "
                              f"got points={points}, infer_batch_size={infer_batch_size}")
         self.points, self.initial, self.infer_batch_size = int(points), bool(initial), int(infer_batch_size)
-        # inputs kept between checks (per fit): split -> (batches, whether the whole loader)
-        self._cache: dict[str, tuple[list[dict], bool]] = {}
+        # inputs kept between checks (per fit): "joint" -> (merged batches of both splits,
+        # number of training sequences, whether both splits are whole)
+        self._cache: dict[str, tuple[list[dict], int, bool]] = {}
         self.latent = latent
         self.max_train_sequences = max_train_sequences
         self.max_val_sequences = max_val_sequences
@@ -283,32 +284,29 @@ class KRRAlignmentCallback(Callback):
         held_out = dm.test_dataloader() if hasattr(dm, "test_set") else dm.val_dataloader()
         return train, held_out
 
-    def _inputs(self, trainer, final: bool):
-        """(train, held-out) inputs: the cached batches (read at the first check of this fit),
-        or for the final alignment the loader of a split the cache holds only part of."""
-        loaders = self._loaders(trainer)
-        out = []
-        for key, loader, cap in zip(("train", "held_out"), loaders, (self.max_train_sequences, self.max_val_sequences)):
-            if key not in self._cache:
-                self._cache[key] = cache_batches(loader, cap)
-            batches, whole = self._cache[key]
-            out.append(loader if final and not whole else batches)
-        return out
+    def _latents(self, trainer, pl_module, final: bool) -> tuple[dict, dict]:
+        """Latents of the training and held-out sequences.
 
-    def _collect(self, pl_module, train_in, held_in, max_train, max_val) -> tuple[dict, dict]:
-        """Latents of the training and held-out sequences. Cached inputs of both splits are
-        inferred in ONE pass, merged into batches of up to ``infer_batch_size`` sequences
-        (the default scene's 80 + 32 in one batch), so the recursion's Python loop runs over
-        the T frames once instead of once per split batch: 1.78 -> 1.56 s per check at the
-        default run's shapes (``benchmarks/bench_callback_inference.py``). Sequences are
-        filtered independently (eval mode, no sampling), so a sequence's latents do not
-        depend on its batch-mates. A loader (the final alignment of a capped split) is read
-        split by split as before."""
-        if not (isinstance(train_in, list) and isinstance(held_in, list)):
-            return (collect_latents(pl_module, train_in, latent=self.latent, max_sequences=max_train),
-                    collect_latents(pl_module, held_in, latent=self.latent, max_sequences=max_val))
-        n_train = sum(len(b["factors"]) for b in train_in)
-        joint = collect_latents(pl_module, rebatch(train_in + held_in, self.infer_batch_size), latent=self.latent)
+        The first check of a fit reads both splits once (at most ``max_train_sequences`` /
+        ``max_val_sequences``) and keeps them merged into batches of up to
+        ``infer_batch_size`` sequences, training sequences first (the default scene's
+        80 + 32 in one batch of 112); every check infers that list in ONE pass, so the
+        recursion's Python loop runs over the T frames once instead of once per split batch,
+        and the merge is not redone per check. Sequences are filtered independently (eval
+        mode, no sampling): a sequence's latents do not depend on its batch-mates (tested).
+        The final alignment of a run whose cache holds only part of a split reads both
+        splits whole from their loaders."""
+        loaders = self._loaders(trainer)
+        if "joint" not in self._cache:
+            train, train_whole = cache_batches(loaders[0], self.max_train_sequences)
+            held, held_whole = cache_batches(loaders[1], self.max_val_sequences)
+            n_train = sum(len(b["factors"]) for b in train)
+            self._cache["joint"] = (rebatch(train + held, self.infer_batch_size), n_train, train_whole and held_whole)
+        batches, n_train, whole = self._cache["joint"]
+        if final and not whole:
+            return (collect_latents(pl_module, loaders[0], latent=self.latent),
+                    collect_latents(pl_module, loaders[1], latent=self.latent))
+        joint = collect_latents(pl_module, batches, latent=self.latent)
         return {k: v[:n_train] for k, v in joint.items()}, {k: v[n_train:] for k, v in joint.items()}
 
     def _evaluate(self, trainer, pl_module, final: bool = False, initial: bool = False) -> dict[str, float]:
@@ -316,11 +314,9 @@ class KRRAlignmentCallback(Callback):
         if self._t_start is None:
             self._t_start = t0
         train_wall = 0.0 if initial else self._elapsed_before + (t0 - self._t_start) - self._cb_before - self._cb_time
-        train_batches, val_batches = self._inputs(trainer, final)
-        max_train, max_val, stride = (None, None, 1) if final else (
-            self.max_train_sequences, self.max_val_sequences, self.val_frame_stride)
+        stride = 1 if final else self.val_frame_stride
         base_kw = {**(self.final_kw if final else self.align_kw), "groups": self.groups}
-        tr, te = self._collect(pl_module, train_batches, val_batches, max_train, max_val)
+        tr, te = self._latents(trainer, pl_module, final)
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
         tr, te = encode_split(tr, self.targets), encode_split(te, self.targets)
         t_inf = time.perf_counter()

@@ -68,6 +68,9 @@ def _modality_config(modality: Any) -> dict[str, Any]:
 
 _Y_STATE_KEYS = ("h", "c", "y_prec", "y_pm")
 
+#: ``obs_sigma_shape``: one likelihood sigma per channel, or one per channel and pixel
+OBS_SIGMA_SHAPES = ("channel", "pixel")
+
 
 def _state_to(z: Tensor, a: Tensor, y_state: tuple[Tensor, ...]) -> dict[str, Tensor]:
     return {"z": z, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
@@ -88,6 +91,10 @@ class LatentFilter(nn.Module):
         min_var: variance floor of encoder, transition and q(y) heads.
         obs_sigma: (initial) observation sigma; ``learn_obs_sigma`` makes it a learnable
             per-channel parameter sigma_c = obs_sigma_min + softplus(raw_c).
+        obs_sigma_shape: ``"channel"`` (default, one sigma per channel) or ``"pixel"``
+            (one learnable sigma per channel and pixel, sigma_{c,ij}: a heteroscedastic
+            likelihood for images whose pixels differ in noise, such as the acc log-mel
+            bins; docs/model.md, "Training remedies").
         prior: kwargs of :class:`HierarchicalPrior` (sigma_init, learn_sigma, var_floor,
             action_term).
         y_update: ``"direct"`` (the LSTM head is q(y_t)) or ``"evidence"`` (accumulate
@@ -128,8 +135,10 @@ class LatentFilter(nn.Module):
                  y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None,
                  y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
                  obs_dropout_span: int = 1, elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0,
-                 input_standardize: bool = False) -> None:
+                 input_standardize: bool = False, obs_sigma_shape: str = "channel") -> None:
         super().__init__()
+        if obs_sigma_shape not in OBS_SIGMA_SHAPES:
+            raise ValueError(f"obs_sigma_shape must be one of {OBS_SIGMA_SHAPES}, got {obs_sigma_shape!r}")
         if int(overshoot) != overshoot or overshoot < 1:
             raise ValueError(f"overshoot must be an integer >= 1 (1 = off), got {overshoot}")
         if not float(overshoot_weight) >= 0.0:
@@ -166,7 +175,9 @@ class LatentFilter(nn.Module):
         if obs_sigma <= obs_sigma_min:
             raise ValueError(f"obs_sigma={obs_sigma} must exceed obs_sigma_min={obs_sigma_min}")
         self.obs_sigma_min = float(obs_sigma_min)
-        raw = torch.full((self.n_channels,), float(torch.log(torch.expm1(torch.tensor(obs_sigma - obs_sigma_min)))))
+        self.obs_sigma_shape = obs_sigma_shape
+        shape = (self.n_channels,) if obs_sigma_shape == "channel" else (self.n_channels, 28, 28)
+        raw = torch.full(shape, float(torch.log(torch.expm1(torch.tensor(obs_sigma - obs_sigma_min)))))
         if learn_obs_sigma:
             self.obs_sigma_raw = nn.Parameter(raw)
         else:
@@ -185,7 +196,8 @@ class LatentFilter(nn.Module):
 
     # ------------------------------------------------------------------ pieces
     def obs_log_sigma(self) -> Tensor:
-        """Per-channel log sigma of the Gaussian likelihood, shape (C,), float32."""
+        """Log sigma of the Gaussian likelihood in float32: shape (C,) per channel, or
+        (C, 28, 28) per pixel (``obs_sigma_shape="pixel"``)."""
         return torch.log(F.softplus(self.obs_sigma_raw.float()) + self.obs_sigma_min)
 
     def _check_obs(self, obs: Tensor) -> None:
@@ -343,7 +355,10 @@ class LatentFilter(nn.Module):
             batch = {**batch, "obs": obs, "actions": actions, "object_id": batch["object_id"].repeat_interleave(k, 0)}
         out = self.forward(obs, actions, sample=sample)
         B, T = obs.shape[:2]
-        log_sigma = self.obs_log_sigma().view(1, 1, -1, 1, 1)
+        log_sigma = self.obs_log_sigma()  # (C,) or (C, 28, 28)
+        if log_sigma.dim() == 1:
+            log_sigma = log_sigma.view(-1, 1, 1)
+        log_sigma = log_sigma[None, None]  # broadcasts over (B, T, C, 28, 28)
         nll = gaussian_nll(obs, out["recon"], log_sigma).sum(dim=(1, 2, 3, 4)).mean()
         kl_z = kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"]).sum(1).mean()
         ent = gaussian_entropy(out["z_var"]).sum(1)
