@@ -133,3 +133,32 @@ def test_no_grad_passes_run_the_convs_in_chunks_with_the_same_result(monkeypatch
     assert calls == [50, 50, 20]
     for k in ("z_mean", "z_var", "y_mean", "recon"):
         torch.testing.assert_close(chunked[k], whole[k], rtol=1e-5, atol=1e-5)
+
+
+def test_training_passes_run_the_convs_in_chunks_with_the_same_loss_and_gradients(monkeypatch):
+    """Autograd passes over more than CONV_CHUNK_FRAMES frames are chunked too: the same
+    ELBO terms and the same gradients (summed over chunks) as one call over every frame."""
+    from embodied_tactile.models import LatentFilter, networks
+
+    torch.manual_seed(0)
+    m = LatentFilter("multi_l", obs_sigma=0.1)
+    batch = {"obs": torch.rand(3, 40, 3, 28, 28), "actions": torch.randn(3, 40, 6),
+             "object_id": torch.tensor([0, 5, 9])}
+
+    def loss_and_grads():
+        m.zero_grad()
+        t = m.elbo_terms(batch, sample=False)
+        (t["nll"] + t["kl_z"] + t["kl_y"]).backward()
+        return t["nll"].detach(), {n: p.grad.clone() for n, p in m.named_parameters() if p.grad is not None}
+
+    nll_whole, g_whole = loss_and_grads()  # 120 frames <= 1024: one call
+    monkeypatch.setattr(networks, "CONV_CHUNK_FRAMES", 50)
+    calls = []
+    enc = next(n for n in m.modules() if isinstance(n, networks.ConvEncoder))
+    enc.conv.register_forward_hook(lambda *a: calls.append(a[1][0].shape[0]))
+    nll_chunked, g_chunked = loss_and_grads()
+    assert calls == [50, 50, 20]
+    torch.testing.assert_close(nll_chunked, nll_whole, rtol=1e-5, atol=1e-3)
+    assert g_chunked.keys() == g_whole.keys() and len(g_whole) > 10
+    for name, g in g_whole.items():
+        torch.testing.assert_close(g_chunked[name], g, rtol=1e-4, atol=1e-4, msg=name)

@@ -118,9 +118,15 @@ def small_batch_convs(n: int, threshold: int = SMALL_BATCH_ONEDNN_OFF) -> Iterat
 #: on CPU (oneDNN's fast layout; docs/model.md "Speed").
 CHANNELS_LAST_MIN_FRAMES = 64
 
-#: Without autograd (inference), the conv encoders / decoders take batches of more frames
-#: than this in chunks of this size (per-frame results unchanged; whole-trial batches of
-#: thousands of frames otherwise spill the activations out of the caches).
+#: The conv encoders / decoders take batches of more frames than this in chunks of this
+#: size, with or without autograd (per-frame results unchanged; the weight gradients are
+#: summed over chunks, equal to float rounding). Whole-trial batches of thousands of frames
+#: otherwise spill every layer's activations out of the caches: no-grad 19200 frames 1.8x
+#: faster in chunks; a training step at the paper's shapes (B=48, T=300, multi_l, 2 threads)
+#: 9.1 -> 5.9 s, where one call over all 14400 frames was slower than the naive per-frame
+#: loop (6.7 s). The default budget's 800-frame batches are one chunk; smaller chunks
+#: were slower there (0.28 s a step unchunked, 0.31 s in chunks of 400, 0.33 s of 200).
+#: ``benchmarks/bench_step_levers.py``, docs/model.md "Speed".
 CONV_CHUNK_FRAMES = 1024
 
 
@@ -134,9 +140,7 @@ def _run(net: nn.Module, x: Tensor) -> Tensor:
         if fn is None:
             fn = net.__dict__["_compiled_body"] = torch.compile(net.body)
         return fn(x)
-    if x.shape[0] > CONV_CHUNK_FRAMES and not torch.is_grad_enabled():
-        # no-grad passes over many frames (validation, KRR callback, evaluate.py): chunks
-        # that stay in cache; measured 1.8x faster for 19200 frames (docs/model.md "Speed")
+    if x.shape[0] > CONV_CHUNK_FRAMES:  # chunks that stay in cache (see CONV_CHUNK_FRAMES)
         return torch.cat([net.body(c) for c in x.split(CONV_CHUNK_FRAMES)])
     return net.body(x)
 
