@@ -119,8 +119,8 @@ def small_batch_convs(n: int, threshold: int = SMALL_BATCH_ONEDNN_OFF) -> Iterat
 CHANNELS_LAST_MIN_FRAMES = 64
 
 #: The conv encoders / decoders take batches of more frames than this in chunks of this
-#: size, with or without autograd (per-frame results unchanged; the weight gradients are
-#: summed over chunks, equal to float rounding). Whole-trial batches of thousands of frames
+#: size, without autograd and, on CPU, with it (per-frame results unchanged; the weight
+#: gradients are summed over chunks, equal to float rounding). Whole-trial batches of thousands of frames
 #: otherwise spill every layer's activations out of the caches: no-grad 19200 frames 1.8x
 #: faster in chunks; a training step at the paper's shapes (B=48, T=300, multi_l, 2 threads)
 #: 9.1 -> 5.9 s, where one call over all 14400 frames was slower than the naive per-frame
@@ -140,7 +140,9 @@ def _run(net: nn.Module, x: Tensor) -> Tensor:
         if fn is None:
             fn = net.__dict__["_compiled_body"] = torch.compile(net.body)
         return fn(x)
-    if x.shape[0] > CONV_CHUNK_FRAMES:  # chunks that stay in cache (see CONV_CHUNK_FRAMES)
+    if x.shape[0] > CONV_CHUNK_FRAMES and (x.device.type == "cpu" or not torch.is_grad_enabled()):
+        # chunks that stay in cache (see CONV_CHUNK_FRAMES); a GPU's training step keeps its
+        # one large call
         return torch.cat([net.body(c) for c in x.split(CONV_CHUNK_FRAMES)])
     return net.body(x)
 
@@ -208,7 +210,7 @@ class ConvEncoder(_CompilableBody):
     def body(self, o: Tensor) -> Tensor:
         """Convs and MLP: (N, C, 28, 28) -> (N, 2 n_z) raw head output (what
         :func:`compile_convs` compiles). The channels_last copy is made here, so a chunked
-        no-grad pass (:func:`_run`) copies one chunk at a time, never the whole input."""
+        pass (:func:`_run`) copies one chunk at a time, never the whole input."""
         if o.shape[0] >= CHANNELS_LAST_MIN_FRAMES and o.device.type == "cpu":
             o = o.contiguous(memory_format=torch.channels_last)  # ~2-3x faster oneDNN convs
         return self.head(self.conv(o))
