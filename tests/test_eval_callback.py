@@ -276,7 +276,7 @@ def test_both_splits_inferred_in_one_pass_give_each_splits_own_latents():
     dm = SimpleNamespace(train_eval_dataloader=lambda: train, val_dataloader=lambda: held)
     cb = KRRAlignmentCallback(latent="both", infer_batch_size=16)
     tr, te = cb._latents(SimpleNamespace(datamodule=dm), model, final=False)
-    assert [len(b["factors"]) for b in cb._cache["joint"][0]] == [15]  # one merged batch, training first
+    assert [len(b["factors"]) for b in cb._inputs[0]] == [15]  # one merged batch, training first
     tr_alone = collect_latents(model, rebatch(train, 16), latent="both")
     te_alone = collect_latents(model, rebatch(held, 16), latent="both")
     for joint, alone, n in ((tr, tr_alone, 10), (te, te_alone, 5)):

@@ -200,9 +200,9 @@ class KRRAlignmentCallback(Callback):
             raise ValueError(f"KRRAlignmentCallback points and infer_batch_size must be >= 1, "
                              f"got points={points}, infer_batch_size={infer_batch_size}")
         self.points, self.initial, self.infer_batch_size = int(points), bool(initial), int(infer_batch_size)
-        # inputs kept between checks (per fit): "joint" -> (merged batches of both splits,
-        # number of training sequences, whether both splits are whole)
-        self._cache: dict[str, tuple[list[dict], int, bool]] = {}
+        # inputs kept between checks (per fit): merged batches of both splits, the number of
+        # training sequences, whether both splits are whole; None until the first check
+        self._inputs: tuple[list[dict], int, bool] | None = None
         self.latent = latent
         self.max_train_sequences = max_train_sequences
         self.max_val_sequences = max_val_sequences
@@ -226,7 +226,7 @@ class KRRAlignmentCallback(Callback):
     def on_train_start(self, trainer, pl_module) -> None:
         self._t_start = time.perf_counter()
         self._cb_time = 0.0
-        self._cache = {}
+        self._inputs = None
         if self.initial and trainer.global_step == 0 and self._elapsed_before == 0.0:
             metrics = self._evaluate(trainer, pl_module, initial=True)  # t = 0: the untrained network
             if metrics:
@@ -297,12 +297,12 @@ class KRRAlignmentCallback(Callback):
         The final alignment of a run whose cache holds only part of a split reads both
         splits whole from their loaders."""
         loaders = self._loaders(trainer)
-        if "joint" not in self._cache:
+        if self._inputs is None:
             train, train_whole = cache_batches(loaders[0], self.max_train_sequences)
             held, held_whole = cache_batches(loaders[1], self.max_val_sequences)
             n_train = sum(len(b["factors"]) for b in train)
-            self._cache["joint"] = (rebatch(train + held, self.infer_batch_size), n_train, train_whole and held_whole)
-        batches, n_train, whole = self._cache["joint"]
+            self._inputs = (rebatch(train + held, self.infer_batch_size), n_train, train_whole and held_whole)
+        batches, n_train, whole = self._inputs
         if final and not whole:
             return (collect_latents(pl_module, loaders[0], latent=self.latent),
                     collect_latents(pl_module, loaders[1], latent=self.latent))

@@ -175,7 +175,6 @@ class LatentFilter(nn.Module):
         if obs_sigma <= obs_sigma_min:
             raise ValueError(f"obs_sigma={obs_sigma} must exceed obs_sigma_min={obs_sigma_min}")
         self.obs_sigma_min = float(obs_sigma_min)
-        self.obs_sigma_shape = obs_sigma_shape
         shape = (self.n_channels,) if obs_sigma_shape == "channel" else (self.n_channels, 28, 28)
         raw = torch.full(shape, float(torch.log(torch.expm1(torch.tensor(obs_sigma - obs_sigma_min)))))
         if learn_obs_sigma:
