@@ -294,6 +294,31 @@ def test_bounded_evidence_caps_each_steps_precision():
     assert net.y_posterior.max_evidence == 2.0 and net.config()["y_evidence_max"] == 2.0
 
 
+def test_y_input_mean_feeds_the_y_lstm_the_filtered_mean_not_the_draw():
+    """y_input="mean": q(y_2) reads q_filt(z_1)'s mean, so it is the same for any draw of z_1
+    (with "sample" it moves with the draw); both read the same thing without sampling, and
+    the filter state carries the mean for online filtering."""
+    obs, acts = torch.rand(3, 4, 1, 28, 28), torch.randn(3, 4, 6)
+    y2 = {}
+    for y_input in ("sample", "mean"):
+        torch.manual_seed(0)
+        net = LatentFilter("fsr_t", n_z=4, n_y=2, y_input=y_input)
+        draws = []
+        for seed in (1, 2):
+            torch.manual_seed(seed)
+            draws.append(net(obs, acts, sample=True, decode=False)["y_mean"][:, 1])
+        y2[y_input] = draws
+        eval_y = net(obs, acts, sample=False, decode=False)["y_mean"]
+        y2[y_input + "_eval"] = eval_y
+        out, state = net.filter_step(obs[:, 0], acts[:, 0])
+        assert torch.equal(state["z_mean"], out["z_mean"])
+    assert torch.equal(y2["mean"][0], y2["mean"][1])
+    assert (y2["sample"][0] - y2["sample"][1]).abs().max() > 1e-4
+    assert torch.allclose(y2["mean_eval"], y2["sample_eval"])
+    with pytest.raises(ValueError, match="y_input must be one of"):
+        LatentFilter("fsr_t", n_z=4, n_y=2, y_input="belief")
+
+
 def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
     """y_evidence_range r: evidence means r tanh(raw / r), so with the precision bound L one
     step moves the mean by at most L (r + |mean|) / P_t, however large the head's output."""

@@ -72,8 +72,12 @@ _Y_STATE_KEYS = ("h", "c", "y_prec", "y_pm")
 OBS_SIGMA_SHAPES = ("channel", "pixel")
 
 
-def _state_to(z: Tensor, a: Tensor, y_state: tuple[Tensor, ...]) -> dict[str, Tensor]:
-    return {"z": z, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
+#: ``y_input``: what the y posterior's LSTM reads of z_{t-1}: the sample or the filtered mean
+Y_INPUTS = ("sample", "mean")
+
+
+def _state_to(z: Tensor, z_mean: Tensor, a: Tensor, y_state: tuple[Tensor, ...]) -> dict[str, Tensor]:
+    return {"z": z, "z_mean": z_mean, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
 
 
 class LatentFilter(nn.Module):
@@ -102,6 +106,11 @@ class LatentFilter(nn.Module):
             precision of the N(0, 1/p) start of the evidence product; y_evidence_max: if
             set, one step's evidence precision is at most this; y_evidence_range: if set,
             the evidence means are squashed into (-r, r) (both ``evidence`` only).
+        y_input: what the y posterior's LSTM reads of z_{t-1}: ``"sample"`` (default, the
+            paper's q(y_t | z_{t-1}, y_{t-1}, a_{t-1}) on the drawn z) or ``"mean"`` (the
+            filtered mean of q_filt(z_{t-1}), a function of the frames so far: the LSTM
+            integrates the belief over many frames without each draw's noise; still a
+            valid q, so still the ELBO; docs/model.md, "Training remedies").
         obs_dropout: training remedy (docs/model.md, "Observation dropout"): in training
             mode each frame t >= 2 is hidden from the filter with this probability, so
             q_filt(z_t) is the transition prior alone there and the likelihood of that
@@ -135,8 +144,11 @@ class LatentFilter(nn.Module):
                  y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None,
                  y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
                  obs_dropout_span: int = 1, elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0,
-                 input_standardize: bool = False, obs_sigma_shape: str = "channel") -> None:
+                 input_standardize: bool = False, obs_sigma_shape: str = "channel", y_input: str = "sample") -> None:
         super().__init__()
+        if y_input not in Y_INPUTS:
+            raise ValueError(f"y_input must be one of {Y_INPUTS}, got {y_input!r}")
+        self.y_input = y_input
         if obs_sigma_shape not in OBS_SIGMA_SHAPES:
             raise ValueError(f"obs_sigma_shape must be one of {OBS_SIGMA_SHAPES}, got {obs_sigma_shape!r}")
         if int(overshoot) != overshoot or overshoot < 1:
@@ -238,7 +250,7 @@ class LatentFilter(nn.Module):
     def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, Tensor]:
         z = torch.zeros(batch, self.n_z, device=device, dtype=dtype)
         a = torch.zeros(batch, self.n_a, device=device, dtype=dtype)
-        return _state_to(z, a, self.y_posterior.initial_state(batch, device, dtype))
+        return _state_to(z, z.clone(), a, self.y_posterior.initial_state(batch, device, dtype))
 
     @staticmethod
     def _draw(m: Tensor, v: Tensor, sample: bool) -> Tensor:
@@ -261,7 +273,8 @@ class LatentFilter(nn.Module):
         else:
             a_prev = state["a"] if prev_action is None else prev_action.float()
         y_state = tuple(state[k] for k in _Y_STATE_KEYS if k in state)
-        y_m, y_v, y_state = self.y_posterior(state["z"], a_prev, y_state)
+        z_in = state["z_mean"] if self.y_input == "mean" else state["z"]
+        y_m, y_v, y_state = self.y_posterior(z_in, a_prev, y_state)
         y = self._draw(y_m, y_v, sample)
         if first:
             # z_1 from the encoder alone; its prior is N(0, I).
@@ -276,7 +289,7 @@ class LatentFilter(nn.Module):
         z = self._draw(z_m, z_v, sample)
         out = {"z_mean": z_m, "z_var": z_v, "z": z, "y_mean": y_m, "y_var": y_v, "y": y,
                "zp_mean": zp_m, "zp_var": zp_v}
-        return out, _state_to(z, a_t.float(), y_state)
+        return out, _state_to(z, z_m, a_t.float(), y_state)
 
     # ------------------------------------------------------------------ batched
     def observation_mask(self, B: int, T: int, device: torch.device) -> Optional[Tensor]:
@@ -463,7 +476,7 @@ class LatentFilter(nn.Module):
         """Online filtering: one frame obs_t (B, C, 28, 28) and action a_t (B, n_a) in.
 
         ``state`` is None for the first frame, else the returned ``new_state``
-        (z_{t-1} mean or sample, a_{t-1}, LSTM h and c, and with ``y_update="evidence"`` the
+        (z_{t-1} sample ``z`` and mean ``z_mean``, a_{t-1}, LSTM h and c, and with ``y_update="evidence"`` the
         accumulated precision ``y_prec`` and precision-weighted mean sum ``y_pm``). ``prev_action`` (a_{t-1})
         overrides the action stored in the state. With ``sample=False`` the posterior
         equals the batched ``forward(..., sample=False)`` at the same t.
