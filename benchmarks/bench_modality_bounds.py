@@ -19,7 +19,12 @@ For each of the six modalities (channels from ``configs/modality/<name>.yaml``):
   modality's PREPROCESSED inputs: what a network can read from exactly what the Latent
   Filter sees;
 * ``handcrafted_krr``: the hand-crafted features + KRR alignment (``evaluate_handcrafted``)
-  on the same inputs.
+  on the same inputs;
+* with ``--lf-supervised``, ``latent_filter_supervised``: the Latent Filter's own inference
+  path (encoder, fusion with the transition, y LSTM; default sizes) with a linear head on y,
+  trained supervised like the GRU for ``--lf-epochs`` (default 16: the Latent Filter's
+  default budget of 480 optimiser steps): what the unsupervised model's y could hold at
+  its budget, which separates the objective from the architecture and the budget.
 
 For acc also two probes on the RAW 700 Hz accelerometer signal (``tactile/acc`` of the raw
 HDF5), features -> the same KRR alignment:
@@ -159,6 +164,11 @@ def main(argv=None) -> None:
     ap.add_argument("--gru-standardize", action="store_true",
                     help="GRU input_standardize: each channel standardised by its training-set mean / std")
     ap.add_argument("--gru-windows-per-trial", type=int, default=6, help="GRU crops per trial and epoch")
+    ap.add_argument("--lf-supervised", action="store_true",
+                    help="also train the Latent Filter's inference path supervised (method latent_filter_supervised)")
+    ap.add_argument("--lf-epochs", type=int, default=16, help="epochs of --lf-supervised (16 = the default budget)")
+    ap.add_argument("--methods", nargs="*", default=["gru", "handcrafted_krr"], choices=["gru", "handcrafted_krr"],
+                    help="which of the GRU and hand-crafted rows to run (default both)")
     ap.add_argument("--no-raw", action="store_true", help="skip the raw-signal probes")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--preprocess", nargs="*", default=[], metavar="KEY=VALUE",
@@ -189,10 +199,13 @@ def main(argv=None) -> None:
         chans = list(load_modality(name).channels)
         tr, te = subset(train, chans), subset(test, chans)
         meta = dict(modality=name, skin=args.skin, primitive=args.primitive)
-        for method in ("gru", "handcrafted_krr"):
+        lf = dict(gru, arch="latent_filter", modality=name, epochs=args.lf_epochs)
+        for method in (*args.methods, *(["latent_filter_supervised"] if args.lf_supervised else [])):
             t1 = time.perf_counter()
-            res = (evaluate_gru(tr, te, gru=gru, **meta) if method == "gru"
-                   else evaluate_handcrafted(tr, te, chans, alignment=alignment, **meta))
+            if method == "handcrafted_krr":
+                res = evaluate_handcrafted(tr, te, chans, alignment=alignment, **meta)
+            else:
+                res = evaluate_gru(tr, te, gru=gru if method == "gru" else lf, **meta)
             rows.append((res.summary(), time.perf_counter() - t1))
             print(f"# {name} {method}: {rows[-1][0]['nmse_trajectory_overall']:.3f} ({rows[-1][1]:.0f} s)",
                   file=sys.stderr)
@@ -208,7 +221,8 @@ def main(argv=None) -> None:
     print(f"\nHeld-out NMSE, whole trajectory / last frame (targets design_rank), skin={args.skin}, "
           f"primitive={args.primitive}, preprocess {pre or 'default'}, {len(train['seq_id'])} train / {len(test['seq_id'])} test trials, "
           f"split seed {args.seed}, GRU seed {args.seed} ({args.gru_epochs} epochs, window {gru_window} x "
-          f"{args.gru_windows_per_trial} per trial, input_standardize {args.gru_standardize})\n")
+          f"{args.gru_windows_per_trial} per trial, input_standardize {args.gru_standardize}"
+          + (f"; latent_filter_supervised {args.lf_epochs} epochs, same windows" if args.lf_supervised else "") + ")\n")
     print("| modality | method | " + " | ".join(head) + " | s |")
     print("|---|---|" + "---|" * (len(head) + 1))
     for s, dt in rows:

@@ -300,6 +300,41 @@ def test_standardised_gru_reads_a_small_level_on_a_large_offset():
     np.testing.assert_allclose(m.in_scale_, [otr.astype(np.float64).std()], rtol=1e-5)
 
 
+def test_supervised_latent_filter_arch_reads_a_level_through_its_y_pathway():
+    """arch="latent_filter": the Latent Filter's inference path + a linear head on y, trained
+    supervised, learns a per-trial level that only its y (through z and the LSTM) can carry;
+    Results carry the method name latent_filter_supervised; without a modality it refuses."""
+    import torch
+
+    torch.set_num_threads(1)
+    from embodied_tactile.eval.baselines import GRURegressor, evaluate_gru
+
+    def split(n, seed):
+        rng = np.random.default_rng(seed)
+        f = rng.integers(0, 3, size=(n, 4)).astype(float)
+        obs = 0.3 + 0.2 * (f[:, 0] - 1)[:, None, None, None, None] + 0.02 * rng.standard_normal((n, 6, 1, 28, 28))
+        return obs.astype(np.float32), rng.standard_normal((n, 6, 6)).astype(np.float32), f
+
+    (otr, atr, ftr), (ote, ate, fte) = split(48, 0), split(24, 1)
+    lf = dict(arch="latent_filter", modality="fsr_t", epochs=12, batch_size=8, lr=3e-3,
+              latent_filter={"n_z": 4, "n_y": 4, "encoder": {"widths": [4, 8], "hidden": 16},
+                             "transition_hidden": 16, "lstm_hidden": 16})
+    m = GRURegressor(in_channels=1, **lf)
+    p = m.fit(otr, atr, ftr).predict(ote, ate)
+    assert p.shape == (24, 6, 4)
+    nmse = ((p[:, -1, 0] - fte[:, 0]) ** 2).mean() / fte[:, 0].var()
+    assert nmse < 0.2, nmse
+    ids = np.arange(24)
+    res = evaluate_gru({"obs": otr, "actions": atr, "factors": ftr, "seq_id": np.arange(100, 148)},
+                       {"obs": ote, "actions": ate, "factors": fte, "object_id": ids, "action_index": ids % 4,
+                        "seq_id": ids}, gru=dict(lf, epochs=1), modality="fsr_t", skin="soft", primitive="pressing")
+    assert res.method == "latent_filter_supervised"
+    with pytest.raises(ValueError, match="arch='latent_filter' needs the modality"):
+        GRURegressor(in_channels=1, arch="latent_filter")
+    with pytest.raises(ValueError, match="arch must be one of"):
+        GRURegressor(in_channels=1, arch="lstm")
+
+
 # ------------------------------------------------------------------ tables / figures / report
 def _results_set():
     out = []

@@ -220,6 +220,10 @@ def _batches(data, actions=None, factors=None, *, batch_size: int, shuffle: bool
         yield b
 
 
+#: GRURegressor ``arch`` -> the method name its Results carry
+SUPERVISED_ARCHS = {"gru": "gru", "latent_filter": "latent_filter_supervised"}
+
+
 class GRURegressor:
     """Supervised upper bound: conv frame encoder + GRU -> standardised factors per frame.
 
@@ -234,14 +238,26 @@ class GRURegressor:
     its training-set mean and standard deviation (set in ``fit``); without it, a small
     signal on a large offset (the acc image at pressing: spread ~0.03 around 0.5) left the
     GRU at the mean predictor (docs/modalities.md, "Where the pressing information is lost").
+    ``arch="latent_filter"``: the network is the Latent Filter's own inference path instead
+    of the conv + GRU (``LatentFilter(modality, **latent_filter)``, the default sizes of
+    configs/model/latent_filter.yaml: encoder, Bayesian fusion with the transition, the y
+    LSTM; every frame observed, means, no decoder) with a linear head on q(y_t)'s mean:
+    what the unsupervised model's y could hold if it were told the factors, at the same
+    budget (method ``latent_filter_supervised``; ``modality`` is required for it).
     """
 
     def __init__(self, in_channels: int, action_dim: int = 6, hidden: int = 64, feat: int = 64,
                  epochs: int = 30, lr: float = 1e-3, batch_size: int = 16, weight_decay: float = 0.0,
                  max_batches_per_epoch: int | None = None, window: int | None = None,
-                 windows_per_trial: int = 1, seed: int = 0, device: str = "cpu", input_standardize: bool = False):
+                 windows_per_trial: int = 1, seed: int = 0, device: str = "cpu", input_standardize: bool = False,
+                 arch: str = "gru", modality: Any = None, latent_filter: Mapping[str, Any] | None = None):
         import torch
         from torch import nn
+
+        if arch not in SUPERVISED_ARCHS:
+            raise ValueError(f"arch must be one of {tuple(SUPERVISED_ARCHS)}, got {arch!r}")
+        if arch == "latent_filter" and modality is None:
+            raise ValueError("arch='latent_filter' needs the modality (a configs/modality name or mapping)")
 
         if window is not None and int(window) < 1:
             raise ValueError(f"GRU window must be >= 1 frame, got {window}")
@@ -251,7 +267,8 @@ class GRURegressor:
                         lr=lr, batch_size=batch_size, weight_decay=weight_decay,
                         max_batches_per_epoch=max_batches_per_epoch, window=window,
                         windows_per_trial=int(windows_per_trial), seed=seed, device=device,
-                        input_standardize=bool(input_standardize))
+                        input_standardize=bool(input_standardize), arch=arch)
+        self.method = SUPERVISED_ARCHS[arch]
         torch.manual_seed(seed)
 
         class Net(nn.Module):
@@ -271,7 +288,20 @@ class GRURegressor:
                 h, _ = self.gru(torch.cat([f, actions], -1))
                 return self.head(h)
 
-        self.net = Net().to(device)
+        class LatentFilterNet(nn.Module):
+            def __init__(self):
+                super().__init__()
+                from ..models import LatentFilter
+
+                self.lf = LatentFilter(modality, n_a=action_dim, **dict(latent_filter or {}))
+                self.head = nn.Linear(self.lf.n_y, 4)
+
+            def forward(self, obs, actions):
+                seen = torch.ones(obs.shape[:2], dtype=torch.bool, device=obs.device)
+                out = self.lf(obs, actions, sample=False, observed=seen, decode=False)
+                return self.head(out["y_mean"])
+
+        self.net = (Net() if arch == "gru" else LatentFilterNet()).to(device)
         self.history: list[float] = []
 
     def _t(self, x):
@@ -373,5 +403,5 @@ def evaluate_gru(train: Mapping[str, Any], test: Mapping[str, Any], *, gru: Mapp
     dt = time.perf_counter() - t0
     params = {"gru": model.cfg, "train_time_s": model.train_time_s_, "loss_history": model.history,
               "inference_s_per_sequence": dt / max(1, len(pred))}
-    return Results(pred, test["factors"], test["object_id"], test["action_index"], method="gru",
+    return Results(pred, test["factors"], test["object_id"], test["action_index"], method=model.method,
                    n_train=len(obs), params=params, seq_id=test.get("seq_id"), **meta)
