@@ -43,6 +43,7 @@ def main(argv=None) -> None:
     p.add_argument("--steps", type=int, default=2500, help="optimiser steps (default 2500)")
     p.add_argument("--seed", type=int, default=0, help="data (train seed, test seed + 1000) and init seed")
     p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--n-train", type=int, default=32, help="training sequences per object (held-out: 8 per object)")
     p.add_argument("--y-weight", type=float, default=1.0, help="linear warm-up y_weight (1 = plain ELBO)")
     p.add_argument("--remedy", type=parse_remedy, action="append", default=[], metavar="NAME=VALUE",
                    help=f"training remedy, repeatable; NAME in {sorted(REMEDIES)}")
@@ -55,13 +56,13 @@ def main(argv=None) -> None:
     a = p.parse_args(argv)
     set_threads(a.threads)
     t0 = time.perf_counter()
-    res = run(a.steps, seed=a.seed, batch_size=a.batch_size, model_kwargs=dict(a.remedy),
+    res = run(a.steps, seed=a.seed, batch_size=a.batch_size, n_train=a.n_train, model_kwargs=dict(a.remedy),
               annealing={"name": "linear", "beta0": 0.01, "fraction": 0.1, "y_weight": a.y_weight},
               log_every=a.log_every, supervised=a.supervised)
     if a.save:
         torch.save({"config": res["model"].config(), "state_dict": res["model"].state_dict(), "seed": a.seed,
-                    "steps": a.steps}, a.save)
-    print(f"pendulum: {a.steps} steps, batch {a.batch_size}, seed {a.seed}, "
+                    "steps": a.steps, "n_train": a.n_train}, a.save)
+    print(f"pendulum: {a.steps} steps, batch {a.batch_size}, seed {a.seed}, {a.n_train} training sequences per object, "
           + ("SUPERVISED on (w0, d) through y" if a.supervised else f"y_weight {a.y_weight}")
           + f", remedies {dict(a.remedy) or 'none'}")
     print("| read-out | linear R^2 | kernel R^2 |\n|---|---|---|")
