@@ -443,7 +443,10 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
         if b == "handcrafted":
             results.append(evaluate_handcrafted(tr, te, channels, alignment=align, split=split["kind"], **meta))
         elif b == "gru":
-            results.append(evaluate_gru(tr, te, gru=OmegaConf.to_container(opts.gru, resolve=True), **meta))
+            gru = OmegaConf.to_container(opts.gru, resolve=True)
+            if gru.get("arch") == "latent_filter":  # the run's own modality, defined once
+                gru["modality"] = OmegaConf.to_container(cfg.modality, resolve=True)
+            results.append(evaluate_gru(tr, te, gru=gru, **meta))
         elif b == "mean":
             results.append(evaluate_mean(tr, te, n_frames=te["obs"].shape[1], **meta))
         timings[f"{b}_s"] = time.perf_counter() - t0
