@@ -10,7 +10,6 @@ sequences (linear / RBF kernel ridge R^2) and the open-loop prediction error.
     python benchmarks/bench_pendulum.py                                # 2500 steps, seed 0
     python benchmarks/bench_pendulum.py --steps 500 --seed 1 --batch-size 16
     python benchmarks/bench_pendulum.py --remedy obs_dropout=0.5       # a training remedy
-    python benchmarks/bench_pendulum.py --supervised --remedy y_update=evidence  # the supervised bound on y
 """
 
 from __future__ import annotations
@@ -49,29 +48,22 @@ def main(argv=None) -> None:
                    help=f"training remedy, repeatable; NAME in {sorted(REMEDIES)}")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--log-every", type=int, default=0, help="print the loss every N steps (0: never)")
-    p.add_argument("--supervised", action="store_true",
-                   help="the supervised bound: train the inference path and a linear head on y to (w0, d) by least "
-                        "squares instead of the ELBO; prints the read-outs only")
     p.add_argument("--save", metavar="PATH", help="write the trained network (config + state_dict, torch.save) here")
     a = p.parse_args(argv)
     set_threads(a.threads)
     t0 = time.perf_counter()
     res = run(a.steps, seed=a.seed, batch_size=a.batch_size, n_train=a.n_train, model_kwargs=dict(a.remedy),
               annealing={"name": "linear", "beta0": 0.01, "fraction": 0.1, "y_weight": a.y_weight},
-              log_every=a.log_every, supervised=a.supervised)
+              log_every=a.log_every)
     if a.save:
         torch.save({"config": res["model"].config(), "state_dict": res["model"].state_dict(), "seed": a.seed,
                     "steps": a.steps, "n_train": a.n_train}, a.save)
     print(f"pendulum: {a.steps} steps, batch {a.batch_size}, seed {a.seed}, {a.n_train} training sequences per object, "
-          + ("SUPERVISED on (w0, d) through y" if a.supervised else f"y_weight {a.y_weight}")
-          + f", remedies {dict(a.remedy) or 'none'}")
+          f"y_weight {a.y_weight}, remedies {dict(a.remedy) or 'none'}")
     print("| read-out | linear R^2 | kernel R^2 |\n|---|---|---|")
-    for k in (("y_frequency", "y_damping") if a.supervised else (*READOUTS, *DIAGNOSTIC_READOUTS)):
+    for k in (*READOUTS, *DIAGNOSTIC_READOUTS):
         lin, krr = res["readouts"][k]
         print(f"| {k}{' (diagnostic)' if k in DIAGNOSTIC_READOUTS else ''} | {lin:.2f} | {krr:.2f} |")
-    if a.supervised:
-        print(f"wall time: train {res['train_s']:.0f} s, total {time.perf_counter() - t0:.0f} s")
-        return
     dg = res["diagnostics"]
     print(f"\nheld-out: transition weight in q_filt {dg['transition_weight']:.3f}, median variance encoder "
           f"{dg['encoder_var']:.2e} / transition {dg['transition_var']:.2e}; per sequence nll {dg['nll']:.0f}, "

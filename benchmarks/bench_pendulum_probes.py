@@ -4,6 +4,10 @@ all from the benchmark's data, by readers that are TOLD them?
 
 * ``frames_gru``: the project's supervised conv + GRU (``eval.baselines.GRURegressor``) on
   the noisy 28x28 frames and the actions, trained on the training sequences to (w0, d);
+* ``lf_path``: the Latent Filter's own inference path (``GRURegressor(arch="latent_filter")``:
+  encoder, fusion with the transition, the y LSTM, a linear head on y; the benchmark's
+  sizes, n_z 8, n_y 4, and the y options given by ``--lf-option``) trained the same way:
+  what this y can hold when it is told the parameters, with no reconstruction to shape z;
 * with ``--load`` (a model saved by ``bench_pendulum.py --save``): a small LSTM trained on
   that frozen model's filtered trajectories, ``z_trajectory`` (q_filt means z_1..z_t plus
   the actions) and ``y_trajectory`` (q(y_t) means plus the actions): whether the filter's
@@ -16,6 +20,7 @@ regressor fitted on the same training sequences, can be expected to show.
 
     python benchmarks/bench_pendulum_probes.py --seed 0                      # frames only
     python benchmarks/bench_pendulum_probes.py --seed 0 --n-train 128 --gru-epochs 25
+    python benchmarks/bench_pendulum_probes.py --seed 0 --no-frames --lf-path --lf-option y_update=evidence
     python benchmarks/bench_pendulum.py --seed 0 --remedy ... --save /tmp/m.pt
     python benchmarks/bench_pendulum_probes.py --seed 0 --load /tmp/m.pt --no-frames
 """
@@ -29,8 +34,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from embodied_tactile.bench.pendulum import generate
-from embodied_tactile.bench.pendulum_run import latents
+from embodied_tactile.bench.pendulum import N_OBJECTS, generate
+from embodied_tactile.bench.pendulum_run import MODALITY, latents
 from embodied_tactile.eval.baselines import GRURegressor
 from embodied_tactile.models import LatentFilter
 from embodied_tactile.runtime import set_threads
@@ -48,6 +53,17 @@ def frames_gru(train, test, epochs: int, seed: int) -> dict[str, np.ndarray]:
     """GRURegressor (4 outputs: (w0, d) twice, each standardised on its own) -> R^2 (w0, d)."""
     four = lambda d: np.concatenate([_targets(d)] * 2, -1)  # noqa: E731
     reg = GRURegressor(in_channels=1, action_dim=1, epochs=epochs, batch_size=16, seed=seed)
+    reg.fit(train.obs, train.actions, four(train))
+    return {name: _r2(reg.predict(d.obs, d.actions)[:, -1, :2], _targets(d)) for name, d in
+            (("train", train), ("held-out", test))}
+
+
+def lf_path(train, test, epochs: int, seed: int, options: dict) -> dict[str, np.ndarray]:
+    """GRURegressor(arch="latent_filter") with the benchmark's network -> R^2 (w0, d)."""
+    four = lambda d: np.concatenate([_targets(d)] * 2, -1)  # noqa: E731
+    net = {"n_z": 8, "n_y": 4, "n_objects": N_OBJECTS, "obs_sigma": 0.1, **options}
+    reg = GRURegressor(in_channels=1, action_dim=1, epochs=epochs, batch_size=16, seed=seed, arch="latent_filter",
+                       modality=MODALITY, latent_filter=net)
     reg.fit(train.obs, train.actions, four(train))
     return {name: _r2(reg.predict(d.obs, d.actions)[:, -1, :2], _targets(d)) for name, d in
             (("train", train), ("held-out", test))}
@@ -81,6 +97,9 @@ def main(argv=None) -> None:
     p.add_argument("--n-train", type=int, default=32, help="training sequences per object (bench_pendulum: 32)")
     p.add_argument("--gru-epochs", type=int, default=100, help="frames_gru epochs (100 x 256 / 16 = 1600 steps)")
     p.add_argument("--no-frames", action="store_true", help="skip frames_gru")
+    p.add_argument("--lf-path", action="store_true", help="also train lf_path (the Latent Filter's inference path)")
+    p.add_argument("--lf-option", action="append", default=[], metavar="NAME=VALUE",
+                   help="LatentFilter y option for lf_path, e.g. y_update=evidence y_evidence_max=1 (repeatable)")
     p.add_argument("--load", metavar="PATH", help="a model saved by bench_pendulum.py --save: probe its z and y")
     p.add_argument("--probe-epochs", type=int, default=300)
     p.add_argument("--probe-seeds", type=int, nargs="+", default=[0, 1])
@@ -93,6 +112,13 @@ def main(argv=None) -> None:
         t0 = time.perf_counter()
         rows.append(("frames_gru", f"seed {a.seed}, {a.gru_epochs} epochs", frames_gru(train, test, a.gru_epochs, a.seed),
                      time.perf_counter() - t0))
+    if a.lf_path:
+        from bench_pendulum import parse_remedy  # the same NAME=VALUE parsing as bench_pendulum --remedy
+
+        opts = dict(parse_remedy(o) for o in a.lf_option)
+        t0 = time.perf_counter()
+        rows.append(("lf_path", f"seed {a.seed}, {a.gru_epochs} epochs, {opts or 'defaults'}",
+                     lf_path(train, test, a.gru_epochs, a.seed, opts), time.perf_counter() - t0))
     if a.load:
         ck = torch.load(a.load, weights_only=False)
         if int(ck["seed"]) != a.seed:

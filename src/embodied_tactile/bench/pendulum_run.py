@@ -96,39 +96,6 @@ def train(model: LatentFilter, data: PendulumData, steps: int, batch_size: int =
     return PendulumRun(model, steps, time.perf_counter() - t0, losses)
 
 
-def train_supervised(model: LatentFilter, data: PendulumData, steps: int, batch_size: int = 16, seed: int = 0,
-                     lr: float = 1e-3, skip: int = 10) -> PendulumRun:
-    """The supervised bound on what y can hold: the model's own inference path (encoder,
-    Bayesian fusion with the transition, the y LSTM; every frame observed, means, no
-    decoder, no ELBO) and a linear head on q(y_t)'s mean, trained by least squares to the
-    standardised (w0, d) at every frame t > ``skip``. The read-outs of the trained model
-    (:func:`readouts`, y rows) say how well this architecture identifies the parameters
-    when it is told them; the unsupervised model cannot do better through y. The head is
-    returned as ``model.supervised_head`` (not used by the read-outs)."""
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
-    target = np.stack([data.w0, data.damping], -1)
-    mu, sd = target.mean(0), target.std(0)
-    target = torch.from_numpy(((target - mu) / sd).astype(np.float32))
-    head = nn.Linear(model.n_y, 2)
-    opt = torch.optim.Adam([*model.parameters(), *head.parameters()], lr=lr)
-    model.train()
-    losses = []
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        idx = rng.integers(0, len(data), batch_size)
-        b = _batch(data, idx)
-        seen = torch.ones(b["obs"].shape[:2], dtype=torch.bool)
-        y = model(b["obs"], b["actions"], sample=False, observed=seen, decode=False)["y_mean"][:, skip:]
-        loss = ((head(y) - target[idx].unsqueeze(1)) ** 2).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        losses.append(float(loss.detach()))
-    model.supervised_head = head
-    return PendulumRun(model, steps, time.perf_counter() - t0, losses)
-
-
 @torch.no_grad()
 def latents(model: LatentFilter, data: PendulumData, chunk: int = 64) -> dict[str, np.ndarray]:
     """z_mean (N, T, n_z) and y_mean (N, T, n_y) of the filter (eval mode, no sampling)."""
@@ -254,20 +221,12 @@ def open_loop(model: LatentFilter, data: PendulumData, n_filter: int = 20, horiz
 
 def run(steps: int, seed: int = 0, batch_size: int = 16, n_train: int = 32, n_test: int = 8, n_steps: int = 60,
         model_kwargs: Optional[dict] = None, annealing: Any = None, log_every: int = 0,
-        n_filter: int = 20, horizon: int = 40, max_rows: int = 1500, snr_draws: int = 16,
-        supervised: bool = False) -> dict[str, Any]:
-    """Generate (train seed ``seed``, test seed ``seed + 1000``), train, read out, predict.
-    ``supervised``: train by :func:`train_supervised` instead of the ELBO and return the
-    read-outs only (``open_loop``, ``diagnostics`` and ``gradient_snr`` are None)."""
+        n_filter: int = 20, horizon: int = 40, max_rows: int = 1500, snr_draws: int = 16) -> dict[str, Any]:
+    """Generate (train seed ``seed``, test seed ``seed + 1000``), train, read out, predict."""
     train_data = generate(n_train, seed=seed, n_steps=n_steps)
     test_data = generate(n_test, seed=seed + 1000, n_steps=n_steps)
     torch.manual_seed(seed)
     model = build_model(**(model_kwargs or {}))
-    if supervised:
-        fit = train_supervised(model, train_data, steps, batch_size, seed)
-        res = readouts(model, train_data, test_data, max_rows=max_rows, seed=seed)
-        return {"readouts": res, "open_loop": None, "diagnostics": None, "gradient_snr": None,
-                "train_s": fit.train_s, "model": model, "losses": fit.losses}
     fit = train(model, train_data, steps, batch_size, seed, annealing=annealing, log_every=log_every)
     t0 = time.perf_counter()
     res = readouts(model, train_data, test_data, max_rows=max_rows, seed=seed)
