@@ -49,24 +49,22 @@ def _r2(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
     return 1.0 - ((pred - target) ** 2).mean(0) / target.var(0)
 
 
-def frames_gru(train, test, epochs: int, seed: int) -> dict[str, np.ndarray]:
-    """GRURegressor (4 outputs: (w0, d) twice, each standardised on its own) -> R^2 (w0, d)."""
+def supervised(train, test, epochs: int, seed: int, **kwargs) -> dict[str, np.ndarray]:
+    """GRURegressor on the frames (``kwargs`` pick its architecture) -> R^2 (w0, d) on the
+    training and the held-out sequences at the last frame. It regresses 4 outputs: (w0, d)
+    twice, each column standardised on its own."""
     four = lambda d: np.concatenate([_targets(d)] * 2, -1)  # noqa: E731
-    reg = GRURegressor(in_channels=1, action_dim=1, epochs=epochs, batch_size=16, seed=seed)
+    reg = GRURegressor(in_channels=1, action_dim=1, epochs=epochs, batch_size=16, seed=seed, **kwargs)
     reg.fit(train.obs, train.actions, four(train))
     return {name: _r2(reg.predict(d.obs, d.actions)[:, -1, :2], _targets(d)) for name, d in
             (("train", train), ("held-out", test))}
 
 
-def lf_path(train, test, epochs: int, seed: int, options: dict) -> dict[str, np.ndarray]:
-    """GRURegressor(arch="latent_filter") with the benchmark's network -> R^2 (w0, d)."""
-    four = lambda d: np.concatenate([_targets(d)] * 2, -1)  # noqa: E731
+def lf_path_kwargs(options: dict) -> dict:
+    """GRURegressor arguments for the Latent Filter's inference path with the benchmark's
+    network (n_z 8, n_y 4, 8 objects) and the y ``options``."""
     net = {"n_z": 8, "n_y": 4, "n_objects": N_OBJECTS, "obs_sigma": 0.1, **options}
-    reg = GRURegressor(in_channels=1, action_dim=1, epochs=epochs, batch_size=16, seed=seed, arch="latent_filter",
-                       modality=MODALITY, latent_filter=net)
-    reg.fit(train.obs, train.actions, four(train))
-    return {name: _r2(reg.predict(d.obs, d.actions)[:, -1, :2], _targets(d)) for name, d in
-            (("train", train), ("held-out", test))}
+    return {"arch": "latent_filter", "modality": MODALITY, "latent_filter": net}
 
 
 def trajectory_lstm(x_tr: np.ndarray, t_tr: np.ndarray, x_te: np.ndarray, t_te: np.ndarray, epochs: int,
@@ -110,7 +108,7 @@ def main(argv=None) -> None:
     rows = []
     if not a.no_frames:
         t0 = time.perf_counter()
-        rows.append(("frames_gru", f"seed {a.seed}, {a.gru_epochs} epochs", frames_gru(train, test, a.gru_epochs, a.seed),
+        rows.append(("frames_gru", f"seed {a.seed}, {a.gru_epochs} epochs", supervised(train, test, a.gru_epochs, a.seed),
                      time.perf_counter() - t0))
     if a.lf_path:
         from bench_pendulum import parse_remedy  # the same NAME=VALUE parsing as bench_pendulum --remedy
@@ -118,7 +116,7 @@ def main(argv=None) -> None:
         opts = dict(parse_remedy(o) for o in a.lf_option)
         t0 = time.perf_counter()
         rows.append(("lf_path", f"seed {a.seed}, {a.gru_epochs} epochs, {opts or 'defaults'}",
-                     lf_path(train, test, a.gru_epochs, a.seed, opts), time.perf_counter() - t0))
+                     supervised(train, test, a.gru_epochs, a.seed, **lf_path_kwargs(opts)), time.perf_counter() - t0))
     if a.load:
         ck = torch.load(a.load, weights_only=False)
         if int(ck["seed"]) != a.seed:
