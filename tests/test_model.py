@@ -319,6 +319,28 @@ def test_y_input_mean_feeds_the_y_lstm_the_filtered_mean_not_the_draw():
         LatentFilter("fsr_t", n_z=4, n_y=2, y_input="belief")
 
 
+def test_y_input_innovation_feeds_the_y_lstm_the_filters_prediction_error():
+    """y_input="innovation": the y LSTM reads [z_{t-1}, q_filt mean - transition mean at t-1];
+    the innovation is 0 after the first frame (no prediction) and after a hidden frame (q_filt
+    is the prediction there), and y depends on it."""
+    torch.manual_seed(0)
+    net = LatentFilter("fsr_t", n_z=4, n_y=2, y_input="innovation")
+    assert net.y_posterior.cell.input_size == 2 * 4 + 6
+    obs, acts = torch.rand(3, 4, 1, 28, 28), torch.randn(3, 4, 6)
+    out, state = net.filter_step(obs[:, 0], acts[:, 0])
+    assert torch.equal(state["innovation"], torch.zeros(3, 4))
+    out, state = net.filter_step(obs[:, 1], acts[:, 1], state=state)
+    torch.testing.assert_close(state["innovation"], out["z_mean"] - out["zp_mean"])
+    assert state["innovation"].abs().max() > 1e-4
+    enc_m, enc_v = net.encode(obs[:, 2])
+    _, hidden = net.step(enc_m, enc_v, acts[:, 2], state, sample=False, observed=torch.zeros(3, dtype=torch.bool))
+    assert torch.equal(hidden["innovation"], torch.zeros(3, 4))
+    y_seen, _ = net.step(enc_m, enc_v, acts[:, 3], state, sample=False)
+    zeroed = dict(state, innovation=torch.zeros(3, 4))
+    y_zeroed, _ = net.step(enc_m, enc_v, acts[:, 3], zeroed, sample=False)
+    assert (y_seen["y_mean"] - y_zeroed["y_mean"]).abs().max() > 1e-6
+
+
 def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
     """y_evidence_range r: evidence means r tanh(raw / r), so with the precision bound L one
     step moves the mean by at most L (r + |mean|) / P_t, however large the head's output."""

@@ -72,12 +72,14 @@ _Y_STATE_KEYS = ("h", "c", "y_prec", "y_pm")
 OBS_SIGMA_SHAPES = ("channel", "pixel")
 
 
-#: ``y_input``: what the y posterior's LSTM reads of z_{t-1}: the sample or the filtered mean
-Y_INPUTS = ("sample", "mean")
+#: ``y_input``: what the y posterior's LSTM reads of z_{t-1}: the sample, the filtered mean,
+#: or the sample and the innovation (filtered mean minus the transition's prediction)
+Y_INPUTS = ("sample", "mean", "innovation")
 
 
-def _state_to(z: Tensor, z_mean: Tensor, a: Tensor, y_state: tuple[Tensor, ...]) -> dict[str, Tensor]:
-    return {"z": z, "z_mean": z_mean, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
+def _state_to(z: Tensor, z_mean: Tensor, innovation: Tensor, a: Tensor, y_state: tuple[Tensor, ...]
+              ) -> dict[str, Tensor]:
+    return {"z": z, "z_mean": z_mean, "innovation": innovation, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
 
 
 class LatentFilter(nn.Module):
@@ -110,7 +112,9 @@ class LatentFilter(nn.Module):
             paper's q(y_t | z_{t-1}, y_{t-1}, a_{t-1}) on the drawn z) or ``"mean"`` (the
             filtered mean of q_filt(z_{t-1}), a function of the frames so far: the LSTM
             integrates the belief over many frames without each draw's noise; still a
-            valid q, so still the ELBO; docs/model.md, "Training remedies").
+            valid q, so still the ELBO; docs/model.md, "Training remedies") or
+            ``"innovation"`` (the draw and the innovation q_filt mean minus the transition's
+            mean at t-1: the prediction error that carries a hidden parameter's evidence).
         obs_dropout: training remedy (docs/model.md, "Observation dropout"): in training
             mode each frame t >= 2 is hidden from the filter with this probability, so
             q_filt(z_t) is the transition prior alone there and the likelihood of that
@@ -180,7 +184,8 @@ class LatentFilter(nn.Module):
         self.observation: ObservationModel = observation_model(
             self.modality["fusion"], self.modality["pathways"], n_z, enc["widths"], enc["hidden"], min_var)
         self.transition = TransitionNet(n_z, n_y, n_a, transition_hidden, min_var)
-        self.y_posterior = YPosterior(n_z, n_y, n_a, lstm_hidden, min_var, update=y_update,
+        self.y_posterior = YPosterior(n_z * (2 if y_input == "innovation" else 1), n_y, n_a, lstm_hidden, min_var,
+                                      update=y_update,
                                       prior_precision=y_prior_precision, max_evidence=y_evidence_max,
                                       evidence_range=y_evidence_range)
         self.prior = HierarchicalPrior(n_y, n_a, n_objects, **(to_plain(prior) or {}))
@@ -250,7 +255,7 @@ class LatentFilter(nn.Module):
     def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, Tensor]:
         z = torch.zeros(batch, self.n_z, device=device, dtype=dtype)
         a = torch.zeros(batch, self.n_a, device=device, dtype=dtype)
-        return _state_to(z, z.clone(), a, self.y_posterior.initial_state(batch, device, dtype))
+        return _state_to(z, z.clone(), z.clone(), a, self.y_posterior.initial_state(batch, device, dtype))
 
     @staticmethod
     def _draw(m: Tensor, v: Tensor, sample: bool) -> Tensor:
@@ -273,7 +278,10 @@ class LatentFilter(nn.Module):
         else:
             a_prev = state["a"] if prev_action is None else prev_action.float()
         y_state = tuple(state[k] for k in _Y_STATE_KEYS if k in state)
-        z_in = state["z_mean"] if self.y_input == "mean" else state["z"]
+        if self.y_input == "innovation":
+            z_in = torch.cat([state["z"], state["innovation"].to(state["z"].dtype)], dim=-1)
+        else:
+            z_in = state["z_mean"] if self.y_input == "mean" else state["z"]
         y_m, y_v, y_state = self.y_posterior(z_in, a_prev, y_state)
         y = self._draw(y_m, y_v, sample)
         if first:
@@ -289,7 +297,10 @@ class LatentFilter(nn.Module):
         z = self._draw(z_m, z_v, sample)
         out = {"z_mean": z_m, "z_var": z_v, "z": z, "y_mean": y_m, "y_var": y_v, "y": y,
                "zp_mean": zp_m, "zp_var": zp_v}
-        return out, _state_to(z, z_m, a_t.float(), y_state)
+        # what frame t taught the filter beyond the transition's prediction: 0 at the first
+        # frame (no prediction) and wherever the frame was hidden (q_filt = the prediction)
+        innovation = torch.zeros_like(z_m) if first else z_m - zp_m
+        return out, _state_to(z, z_m, innovation, a_t.float(), y_state)
 
     # ------------------------------------------------------------------ batched
     def observation_mask(self, B: int, T: int, device: torch.device) -> Optional[Tensor]:
