@@ -273,6 +273,15 @@ def test_gru_baseline_tiny_run():
 
 
 
+def _level_split(n: int, seed: int, *, offset: float, step: float, frames: int):
+    """n sequences whose single-channel frames carry factor 0 as a per-trial level
+    offset + step * (f0 - 1) under N(0, 0.02^2) pixel noise -> (obs, actions (6-d), factors)."""
+    rng = np.random.default_rng(seed)
+    f = rng.integers(0, 3, size=(n, 4)).astype(float)
+    obs = offset + step * (f[:, 0] - 1)[:, None, None, None, None] + 0.02 * rng.standard_normal((n, frames, 1, 28, 28))
+    return obs.astype(np.float32), rng.standard_normal((n, frames, 6)).astype(np.float32), f
+
+
 def test_standardised_gru_reads_a_small_level_on_a_large_offset():
     """The acc image at pressing: a per-trial level of +-0.01 on an offset of 0.5 under
     frame noise of 0.02. With input_standardize the GRU reads it; on the raw scale the same
@@ -283,13 +292,8 @@ def test_standardised_gru_reads_a_small_level_on_a_large_offset():
     torch.set_num_threads(1)
     from embodied_tactile.eval.baselines import GRURegressor
 
-    def split(n, seed):
-        rng = np.random.default_rng(seed)
-        f = rng.integers(0, 3, size=(n, 4)).astype(float)
-        obs = 0.5 + 0.01 * (f[:, 0] - 1)[:, None, None, None, None] + 0.02 * rng.standard_normal((n, 8, 1, 28, 28))
-        return obs.astype(np.float32), rng.standard_normal((n, 8, 6)).astype(np.float32), f
-
-    (otr, atr, ftr), (ote, ate, fte) = split(48, 0), split(24, 1)
+    (otr, atr, ftr), (ote, ate, fte) = (_level_split(n, seed, offset=0.5, step=0.01, frames=8)
+                                        for n, seed in ((48, 0), (24, 1)))
     nmse = {}
     for std in (False, True):
         m = GRURegressor(in_channels=1, hidden=8, feat=8, epochs=15, batch_size=8, lr=3e-3, input_standardize=std)
@@ -309,13 +313,8 @@ def test_supervised_latent_filter_arch_reads_a_level_through_its_y_pathway():
     torch.set_num_threads(1)
     from embodied_tactile.eval.baselines import GRURegressor, evaluate_gru
 
-    def split(n, seed):
-        rng = np.random.default_rng(seed)
-        f = rng.integers(0, 3, size=(n, 4)).astype(float)
-        obs = 0.3 + 0.2 * (f[:, 0] - 1)[:, None, None, None, None] + 0.02 * rng.standard_normal((n, 6, 1, 28, 28))
-        return obs.astype(np.float32), rng.standard_normal((n, 6, 6)).astype(np.float32), f
-
-    (otr, atr, ftr), (ote, ate, fte) = split(48, 0), split(24, 1)
+    (otr, atr, ftr), (ote, ate, fte) = (_level_split(n, seed, offset=0.3, step=0.2, frames=6)
+                                        for n, seed in ((48, 0), (24, 1)))
     lf = dict(arch="latent_filter", modality="fsr_t", epochs=12, batch_size=8, lr=3e-3,
               latent_filter={"n_z": 4, "n_y": 4, "encoder": {"widths": [4, 8], "hidden": 16},
                              "transition_hidden": 16, "lstm_hidden": 16})

@@ -280,8 +280,10 @@ class LatentFilter(nn.Module):
         y_state = tuple(state[k] for k in _Y_STATE_KEYS if k in state)
         if self.y_input == "innovation":
             z_in = torch.cat([state["z"], state["innovation"].to(state["z"].dtype)], dim=-1)
+        elif self.y_input == "mean":
+            z_in = state["z_mean"]
         else:
-            z_in = state["z_mean"] if self.y_input == "mean" else state["z"]
+            z_in = state["z"]
         y_m, y_v, y_state = self.y_posterior(z_in, a_prev, y_state)
         y = self._draw(y_m, y_v, sample)
         if first:
