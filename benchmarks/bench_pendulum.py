@@ -24,7 +24,25 @@ from embodied_tactile.runtime import set_threads
 
 #: --remedy NAME=VALUE -> LatentFilter keyword (docs/model.md, "Training remedies")
 REMEDIES = {"obs_dropout": float, "obs_dropout_span": int, "elbo_samples": int, "y_update": str, "y_evidence_max": float, "y_evidence_range": float, "y_input": str,
-            "overshoot": int, "overshoot_weight": float}
+            "overshoot": int, "overshoot_weight": float, "prior.learn_embedding": lambda v: _bool(v)}
+
+
+def _bool(text: str) -> bool:
+    if text.lower() not in ("true", "false"):
+        raise ValueError(text)
+    return text.lower() == "true"
+
+
+def remedy_kwargs(remedies) -> dict:
+    """(NAME, value) pairs -> LatentFilter keywords; ``prior.X`` names go into ``prior``."""
+    kwargs: dict = {}
+    for name, value in remedies:
+        head, _, key = name.partition(".")
+        if key:
+            kwargs.setdefault(head, {})[key] = value
+        else:
+            kwargs[name] = value
+    return kwargs
 
 
 def parse_remedy(text: str) -> tuple[str, float | int | str]:
@@ -34,7 +52,8 @@ def parse_remedy(text: str) -> tuple[str, float | int | str]:
     try:
         return name, REMEDIES[name](value)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--remedy {text!r}: {value!r} is not a {REMEDIES[name].__name__}") from None
+        kind = "bool" if name == "prior.learn_embedding" else REMEDIES[name].__name__
+        raise argparse.ArgumentTypeError(f"--remedy {text!r}: {value!r} is not a {kind}") from None
 
 
 def main(argv=None) -> None:
@@ -52,7 +71,7 @@ def main(argv=None) -> None:
     a = p.parse_args(argv)
     set_threads(a.threads)
     t0 = time.perf_counter()
-    res = run(a.steps, seed=a.seed, batch_size=a.batch_size, n_train=a.n_train, model_kwargs=dict(a.remedy),
+    res = run(a.steps, seed=a.seed, batch_size=a.batch_size, n_train=a.n_train, model_kwargs=remedy_kwargs(a.remedy),
               annealing={"name": "linear", "beta0": 0.01, "fraction": 0.1, "y_weight": a.y_weight},
               log_every=a.log_every)
     if a.save:

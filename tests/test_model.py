@@ -600,6 +600,54 @@ def test_prior_without_labels_gives_every_sequence_the_population_marginal():
     assert float(p.embedding.weight.grad.abs().sum()) == 0.0  # no embedding row takes part
 
 
+def test_fixed_object_codes_stay_at_their_draws_while_the_rest_of_the_prior_learns(tmp_path):
+    """prior.learn_embedding=False: training moves q(y), sigma, mu_0 and tau but never the
+    object codes, which stay distinct draws of N(0, pop_sigma_init^2)."""
+    torch.manual_seed(0)
+    net = LatentFilter("fsr_t", prior={"learn_embedding": False, "pop_sigma_init": 0.5}, **TINY)
+    codes = net.prior.embedding.weight.detach().clone()
+    assert not net.prior.embedding.weight.requires_grad
+    assert 0.3 < float(codes.std()) < 0.7  # the draws' spread is pop_sigma_init
+    others = {k: v.detach().clone() for k, v in net.prior.named_parameters() if v.requires_grad}
+    assert set(others) == {"pop_mean", "pop_raw_var", "raw_var", "action.weight"}
+    module = EarlyFusionLatentFilter(net, optimizer={"name": "Adam", "lr": 1e-2})
+    data = ListDataset(make_batch(1, B=8, T=6))
+    trainer(tmp_path, max_steps=4).fit(module, DataLoader(data, batch_size=4))
+    torch.testing.assert_close(net.prior.embedding.weight.detach(), codes, rtol=0, atol=0)
+    moved = [k for k, v in net.prior.named_parameters() if v.requires_grad and not torch.equal(v.detach(), others[k])]
+    assert {"pop_mean", "pop_raw_var", "raw_var"} <= set(moved)
+    # learned codes (the default) do move under the same training
+    torch.manual_seed(0)
+    learned = LatentFilter("fsr_t", **TINY)
+    before = learned.prior.embedding.weight.detach().clone()
+    trainer(tmp_path, max_steps=4).fit(EarlyFusionLatentFilter(learned, optimizer={"name": "Adam", "lr": 1e-2}),
+                                       DataLoader(data, batch_size=4))
+    assert not torch.equal(learned.prior.embedding.weight.detach(), before)
+
+
+def test_cosine_lr_schedule_falls_to_zero_over_the_runs_steps(tmp_path):
+    torch.manual_seed(0)
+    lrs = []
+
+    class Record(L.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+    module = EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
+                                     lr_schedule="cosine")
+    data = DataLoader(ListDataset(make_batch(1, B=8, T=4)), batch_size=2)  # 4 steps per epoch
+    trainer(tmp_path, max_steps=-1, max_epochs=2, callbacks=[Record()]).fit(module, data)
+    expected = [0.5e-2 * (1 + math.cos(math.pi * i / 8)) for i in range(8)]
+    assert lrs == pytest.approx(expected, rel=1e-6)
+    assert module.hparams["lr_schedule"] == "cosine"
+    constant = EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2})
+    lrs.clear()
+    trainer(tmp_path, max_steps=3, callbacks=[Record()]).fit(constant, data)
+    assert lrs == [1e-2] * 3
+    with pytest.raises(ValueError, match="lr_schedule must be one of"):
+        EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), lr_schedule="step")
+
+
 def test_population_term_enters_kl_y_and_old_checkpoints_load():
     from embodied_tactile.models.networks import HierarchicalPrior
 

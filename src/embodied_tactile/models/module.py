@@ -16,6 +16,7 @@ from .fusion import EarlyFusion, LateFusion
 from .latent_filter import LatentFilter, to_plain
 
 DEFAULT_OPTIMIZER = {"name": "Adam", "lr": 1e-5}  # the paper's setting
+LR_SCHEDULES = ("constant", "cosine")
 
 
 def _optimizer_spec(optimizer: Any) -> Optional[dict[str, Any]]:
@@ -111,6 +112,9 @@ class LatentFilterModule(L.LightningModule):
         check_finite: raise FloatingPointError on non-finite inputs (naming trial and frame)
             or a non-finite loss (naming the terms and the batch's trials), in training and
             validation / test steps.
+        lr_schedule: ``"constant"`` (the optimizer's lr throughout) or ``"cosine"`` (the lr
+            falls from its value to 0 along a half cosine over the run's optimiser steps,
+            ``trainer.estimated_stepping_batches``; docs/model.md, "Learning-rate schedule").
 
     Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
     train/elbo, anneal/*; val/loss, val/elbo (per sequence, higher is better),
@@ -121,8 +125,10 @@ class LatentFilterModule(L.LightningModule):
     fusion: Optional[type[nn.Module]] = None
 
     def __init__(self, net: LatentFilter | Mapping[str, Any], annealing: Any = None, optimizer: Any = None,
-                 check_finite: bool = True) -> None:
+                 check_finite: bool = True, lr_schedule: str = "constant") -> None:
         super().__init__()
+        if lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
         if not isinstance(net, LatentFilter):
             if not isinstance(net, Mapping):
                 raise TypeError(f"{type(self).__name__}: net must be a LatentFilter or its config mapping, "
@@ -135,9 +141,11 @@ class LatentFilterModule(L.LightningModule):
         schedule = build_schedule(annealing)
         self._optimizer = _optimizer_factory(optimizer)
         self.check_finite = bool(check_finite)
+        self.lr_schedule = lr_schedule
         # saved once: the network's own constructor arguments, the schedule and the optimizer
         self.save_hyperparameters({"net": net.config(), "annealing": schedule.config(),
-                                   "optimizer": _optimizer_spec(optimizer), "check_finite": bool(check_finite)})
+                                   "optimizer": _optimizer_spec(optimizer), "check_finite": bool(check_finite),
+                                   "lr_schedule": lr_schedule})
         self.model = net
         self.annealing: AnnealingSchedule = schedule
 
@@ -256,7 +264,12 @@ class LatentFilterModule(L.LightningModule):
 
     def configure_optimizers(self):
         self._fit_budget()
-        return self._optimizer(self.parameters())
+        optimizer = self._optimizer(self.parameters())
+        if self.lr_schedule == "constant" or getattr(self, "_trainer", None) is None:
+            return optimizer
+        total = max(1, int(self.trainer.estimated_stepping_batches))
+        cosine = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total, eta_min=0.0)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": cosine, "interval": "step"}}
 
 
 class EarlyFusionLatentFilter(LatentFilterModule):

@@ -366,12 +366,18 @@ class HierarchicalPrior(nn.Module):
     ``labels=False`` (an ablation of the paper's label-conditioned prior) ignores every object
     id, in training too: every sequence gets the population marginal, no embedding is used and
     the population term is 0, so y can only carry what the observations and actions carry.
+
+    ``learn_embedding=False`` keeps the object codes e_n at their initial draws from
+    N(0, pop_sigma_init^2) (a fixed random projection of the one-hot label): the codes cannot
+    follow q(y) to one shared point, so KL_y is small only where q(y) tells the training
+    objects apart (docs/model.md, "Fixed object codes"). mu_0 and tau are still fitted to
+    the codes, so a new object keeps its population marginal.
     """
 
     def __init__(self, n_y: int, n_a: int, n_objects: int = 32, sigma_init: float = 0.5,
                  learn_sigma: bool = True, var_floor: float = 1e-2, action_term: bool = True,
                  pop_sigma_init: float = 0.5, population_weight: Optional[float] = None,
-                 labels: bool = True) -> None:
+                 labels: bool = True, learn_embedding: bool = True) -> None:
         super().__init__()
         self.labels = bool(labels)
         if sigma_init ** 2 <= var_floor:
@@ -387,6 +393,8 @@ class HierarchicalPrior(nn.Module):
         self.population_weight = population_weight
         self.embedding = nn.Embedding(n_objects, n_y)
         nn.init.normal_(self.embedding.weight, std=pop_sigma_init)
+        self.learn_embedding = bool(learn_embedding)
+        self.embedding.weight.requires_grad_(self.learn_embedding)
         self.pop_mean = nn.Parameter(torch.zeros(n_y))
         self.pop_raw_var = nn.Parameter(torch.full((n_y,), math.log(math.expm1(pop_sigma_init ** 2 - var_floor))))
         self.register_buffer("seen", torch.zeros(n_objects, dtype=torch.bool))
