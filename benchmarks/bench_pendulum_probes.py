@@ -111,9 +111,9 @@ def main(argv=None) -> None:
         rows.append(("frames_gru", f"seed {a.seed}, {a.gru_epochs} epochs", supervised(train, test, a.gru_epochs, a.seed),
                      time.perf_counter() - t0))
     if a.lf_path:
-        from bench_pendulum import parse_remedy  # the same NAME=VALUE parsing as bench_pendulum --remedy
+        from bench_pendulum import parse_remedy, remedy_kwargs  # the same NAME=VALUE parsing as bench_pendulum --remedy
 
-        opts = dict(parse_remedy(o) for o in a.lf_option)
+        opts = remedy_kwargs(parse_remedy(o) for o in a.lf_option)
         t0 = time.perf_counter()
         rows.append(("lf_path", f"seed {a.seed}, {a.gru_epochs} epochs, {opts or 'defaults'}",
                      supervised(train, test, a.gru_epochs, a.seed, **lf_path_kwargs(opts)), time.perf_counter() - t0))

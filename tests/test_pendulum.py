@@ -308,3 +308,29 @@ def test_remedies_are_config_switches(tmp_path):
     assert net.config()["obs_dropout"] == 0.25 and net.config()["elbo_samples"] == 2
     default = _compose_job([], tmp_path)
     assert (default.model.net.obs_dropout, default.model.net.elbo_samples, default.model.net.obs_dropout_span) == (0.0, 1, 1)
+
+
+def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):
+    """``bench_pendulum --remedy``: plain names are LatentFilter keywords, ``prior.X`` names
+    go into its ``prior`` mapping; a bad value is named."""
+    import argparse
+    import sys
+    from pathlib import Path
+
+    from hydra.utils import instantiate
+    from test_configs import _compose_job
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from bench_pendulum import parse_remedy, remedy_kwargs
+
+    pairs = [parse_remedy(t) for t in ("obs_dropout=0.5", "prior.learn_embedding=false", "y_update=evidence")]
+    kwargs = remedy_kwargs(pairs)
+    assert kwargs == {"obs_dropout": 0.5, "prior": {"learn_embedding": False}, "y_update": "evidence"}
+    assert not _model(**kwargs).prior.embedding.weight.requires_grad
+    with pytest.raises(argparse.ArgumentTypeError, match="'maybe' is not a bool"):
+        parse_remedy("prior.learn_embedding=maybe")
+    cfg = _compose_job(["model.net.prior.learn_embedding=false", "model.lr_schedule=cosine"], tmp_path)
+    module = instantiate(cfg.model)
+    assert module.lr_schedule == "cosine" and not module.model.prior.learn_embedding
+    default = _compose_job([], tmp_path)
+    assert default.model.lr_schedule == "constant" and default.model.net.prior.learn_embedding is True
