@@ -22,15 +22,16 @@ import torch
 from embodied_tactile.bench.pendulum_run import DIAGNOSTIC_READOUTS, READOUTS, run
 from embodied_tactile.runtime import set_threads
 
-#: --remedy NAME=VALUE -> LatentFilter keyword (docs/model.md, "Training remedies")
-REMEDIES = {"obs_dropout": float, "obs_dropout_span": int, "elbo_samples": int, "y_update": str, "y_evidence_max": float, "y_evidence_range": float, "y_input": str,
-            "overshoot": int, "overshoot_weight": float, "prior.learn_embedding": lambda v: _bool(v)}
-
-
-def _bool(text: str) -> bool:
+def boolean(text: str) -> bool:
+    """``true`` / ``false`` (any case) -> bool; anything else is a ValueError."""
     if text.lower() not in ("true", "false"):
         raise ValueError(text)
     return text.lower() == "true"
+
+
+#: --remedy NAME=VALUE -> LatentFilter keyword (docs/model.md, "Training remedies"); prior.X -> prior={X: ...}
+REMEDIES = {"obs_dropout": float, "obs_dropout_span": int, "elbo_samples": int, "y_update": str, "y_evidence_max": float, "y_evidence_range": float, "y_input": str,
+            "overshoot": int, "overshoot_weight": float, "prior.learn_embedding": boolean}
 
 
 def remedy_kwargs(remedies) -> dict:
@@ -52,8 +53,7 @@ def parse_remedy(text: str) -> tuple[str, float | int | str]:
     try:
         return name, REMEDIES[name](value)
     except ValueError:
-        kind = "bool" if name == "prior.learn_embedding" else REMEDIES[name].__name__
-        raise argparse.ArgumentTypeError(f"--remedy {text!r}: {value!r} is not a {kind}") from None
+        raise argparse.ArgumentTypeError(f"--remedy {text!r}: {value!r} is not a {REMEDIES[name].__name__}") from None
 
 
 def main(argv=None) -> None:

@@ -327,7 +327,7 @@ def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):
     kwargs = remedy_kwargs(pairs)
     assert kwargs == {"obs_dropout": 0.5, "prior": {"learn_embedding": False}, "y_update": "evidence"}
     assert not _model(**kwargs).prior.embedding.weight.requires_grad
-    with pytest.raises(argparse.ArgumentTypeError, match="'maybe' is not a bool"):
+    with pytest.raises(argparse.ArgumentTypeError, match="'maybe' is not a boolean"):
         parse_remedy("prior.learn_embedding=maybe")
     cfg = _compose_job(["model.net.prior.learn_embedding=false", "model.lr_schedule=cosine"], tmp_path)
     module = instantiate(cfg.model)
