@@ -281,7 +281,10 @@ def test_study_report_table2_intervals_verdicts_and_what_was_not_run(tmp_path):
     assert "| fsr_t | soft | pressing | 2 | 0,1 |" in not_run
     assert "| multi_l | soft | pressing |" not in not_run
     out = tmp_path / "results.md"
-    assert main([str(tmp_path / "evaluation"), "--out", str(out)]) == 0 and out.read_text() == text
+    assert main([str(tmp_path / "evaluation"), "--out", str(out)]) == 0
+    assert out.read_text() == render(load(tmp_path / "evaluation"), out_path=str(out))
+    assert f"--out {out}` from that folder's" in out.read_text()  # the header names where it was written
+    assert out.read_text().replace(f"--out {out}`", "--out docs/results.md`") == text
     assert main([str(tmp_path / "evaluation"), "--out", str(out), "--note", "parts ran on two commits"]) == 0
     assert "- Note: parts ran on two commits" in out.read_text()
 
@@ -307,7 +310,7 @@ def test_study_report_objects_section_takes_object_split_runs_only(tmp_path):
     assert main([str(tmp_path / "study"), "--objects", str(tmp_path / "objects"), "--out", str(out)]) == 0
     written = out.read_text()  # the same page, its head naming the whole command
     assert written.split("## What was run", 1)[1] == text.split("## What was run", 1)[1]
-    assert f"study_report {tmp_path / 'study'} --objects {tmp_path / 'objects'} --out docs/results.md" in written
+    assert f"study_report {tmp_path / 'study'} --objects {tmp_path / 'objects'} --out {out}`" in written
     assert main([str(tmp_path / "study"), "--extra", f"Prior ablation={tmp_path / 'objects'}", "--out", str(out)]) == 0
     assert "## Prior ablation" in out.read_text() and f"{np.mean(vals):.4f}" in out.read_text()
     assert main([str(tmp_path / "study"), "--extra", "no-title", "--out", str(out)]) == 2
