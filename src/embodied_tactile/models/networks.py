@@ -393,8 +393,7 @@ class HierarchicalPrior(nn.Module):
         self.population_weight = population_weight
         self.embedding = nn.Embedding(n_objects, n_y)
         nn.init.normal_(self.embedding.weight, std=pop_sigma_init)
-        self.learn_embedding = bool(learn_embedding)
-        self.embedding.weight.requires_grad_(self.learn_embedding)
+        self.embedding.weight.requires_grad_(bool(learn_embedding))
         self.pop_mean = nn.Parameter(torch.zeros(n_y))
         self.pop_raw_var = nn.Parameter(torch.full((n_y,), math.log(math.expm1(pop_sigma_init ** 2 - var_floor))))
         self.register_buffer("seen", torch.zeros(n_objects, dtype=torch.bool))
@@ -419,6 +418,11 @@ class HierarchicalPrior(nn.Module):
                 state_dict.setdefault(prefix + name, getattr(self, name).detach().clone())
         super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys,
                                       error_msgs)
+
+    @property
+    def learn_embedding(self) -> bool:
+        """Whether the object codes train (``learn_embedding``): read off the embedding itself."""
+        return self.embedding.weight.requires_grad
 
     def pop_var(self) -> Tensor:
         return softplus_var(self.pop_raw_var, self.var_floor)
