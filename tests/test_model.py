@@ -22,6 +22,7 @@ from embodied_tactile.models.networks import (
     ConvDecoder,
     ConvEncoder,
     TransitionNet,
+    free_bits_kl,
     fuse_gaussians,
     kl_diag_gaussians,
 )
@@ -359,6 +360,46 @@ def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
         mean_prev = mean
     with pytest.raises(ValueError, match="y_evidence_range=1.0 needs y_update='evidence'"):
         YPosterior(3, 2, 1, update="direct", evidence_range=1.0)
+
+
+def test_free_bits_floor_each_dimensions_batch_and_step_mean_kl():
+    """free_bits_kl = T * sum_j max(floor, mean_{b,t} kl_{b,t,j}), by hand on a (2, 2, 2)
+    tensor; floor 0 is the plain per-sequence sum averaged over the batch."""
+    kl = torch.tensor([[[0.1, 2.0], [0.3, 4.0]],
+                       [[0.0, 1.0], [0.2, 3.0]]])  # (B=2, T=2, D=2): dimension means 0.15, 2.5
+    assert free_bits_kl(kl, 0.0).item() == pytest.approx(kl.sum(dim=(1, 2)).mean().item())
+    assert free_bits_kl(kl, 0.5).item() == pytest.approx(2 * (0.5 + 2.5))
+    assert free_bits_kl(kl, 3.0).item() == pytest.approx(2 * (3.0 + 3.0))
+    kl = kl.clone().requires_grad_(True)
+    free_bits_kl(kl, 0.5).backward()
+    assert torch.equal(kl.grad[..., 0], torch.zeros(2, 2))  # under the floor: no gradient
+    torch.testing.assert_close(kl.grad[..., 1], torch.full((2, 2), 0.5))  # T / (B T)
+
+
+def test_free_bits_apply_in_training_only_and_are_logged_as_what_they_add():
+    """free_bits_y / free_bits_z floor kl_y / kl_z in training mode (``free_bits`` = the
+    nats they add); in eval mode and with floors 0 the terms are the plain KLs."""
+    batch = make_batch(1, B=3, T=6)
+    torch.manual_seed(0)
+    plain = LatentFilter("fsr_t", n_z=4, n_y=2, **TINY)
+    torch.manual_seed(0)
+    floored = LatentFilter("fsr_t", n_z=4, n_y=2, free_bits_y=50.0, free_bits_z=0.0, **TINY)
+    terms = {}
+    for name, net in (("plain", plain), ("floored", floored)):
+        torch.manual_seed(1)
+        terms[name] = net.elbo_terms(batch)
+    assert "free_bits" not in terms["plain"]
+    torch.testing.assert_close(terms["floored"]["kl_z"], terms["plain"]["kl_z"])
+    # a floor above every dimension's KL: kl_y = (T - 1) * n_y * floor + the population term
+    assert terms["floored"]["kl_y"].item() == pytest.approx(5 * 2 * 50.0 + terms["plain"]["pop"].item(), rel=1e-5)
+    torch.testing.assert_close(terms["floored"]["free_bits"], (terms["floored"]["kl_y"] - terms["plain"]["kl_y"]))
+    floored.eval()
+    torch.manual_seed(1)
+    eval_terms = floored.elbo_terms(batch)
+    assert "free_bits" not in eval_terms
+    assert eval_terms["kl_y"].item() < 5 * 2 * 50.0
+    with pytest.raises(ValueError, match="free_bits_z must be >= 0"):
+        LatentFilter("fsr_t", n_z=4, n_y=2, free_bits_z=-0.1)
 
 
 # ------------------------------------------------------------------ numerics

@@ -179,8 +179,8 @@ def gradient_snr(model: LatentFilter, data: PendulumData, n_draws: int = 16, bat
              "y_posterior": model.y_posterior, "prior": model.prior}
     grads: dict[str, list] = {k: [] for k in parts}
     torch.manual_seed(seed)
-    saved = (model.obs_dropout, model.elbo_samples, model.overshoot)
-    model.obs_dropout, model.elbo_samples, model.overshoot = 0.0, 1, 1
+    saved = (model.obs_dropout, model.elbo_samples, model.overshoot, model.free_bits_z, model.free_bits_y)
+    model.obs_dropout, model.elbo_samples, model.overshoot, model.free_bits_z, model.free_bits_y = 0.0, 1, 1, 0.0, 0.0
     try:
         for _ in range(n_draws):
             model.zero_grad(set_to_none=True)
@@ -189,7 +189,7 @@ def gradient_snr(model: LatentFilter, data: PendulumData, n_draws: int = 16, bat
             for k, mod in parts.items():
                 grads[k].append(torch.cat([p.grad.flatten() for p in mod.parameters() if p.grad is not None]))
     finally:
-        model.obs_dropout, model.elbo_samples, model.overshoot = saved
+        model.obs_dropout, model.elbo_samples, model.overshoot, model.free_bits_z, model.free_bits_y = saved
         model.zero_grad(set_to_none=True)
     out = {}
     for k, g in grads.items():

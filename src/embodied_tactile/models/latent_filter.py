@@ -34,6 +34,7 @@ from .networks import (
     fuse_gaussians,
     gaussian_entropy,
     gaussian_nll,
+    free_bits_kl,
     kl_diag_gaussians,
     small_batch_convs,
 )
@@ -132,6 +133,11 @@ class LatentFilter(nn.Module):
             ``kl_z`` adds the mean over d = 2..D of KL(sg[q_filt(z_{t+d})] || p_d(z_{t+d})),
             p_d the transition rolled d steps open loop from a sample of q_filt(z_t), weighted
             by ``overshoot_weight``. 1 (default) = off (one-step prior only).
+        free_bits_z, free_bits_y: training remedy (docs/model.md, "Free bits"): in training
+            mode kl_z / kl_y are taken per latent dimension, averaged over the batch and the
+            steps, and floored at this many nats per dimension and step
+            (:func:`networks.free_bits_kl`): a dimension under the floor costs the floor and
+            gets no gradient from its KL. 0 (default) = the plain KL.
         input_standardize: the encoders see each channel shifted and scaled by its
             training-set mean and standard deviation (buffers ``input_shift`` /
             ``input_scale``, set once by :meth:`set_input_stats`, carried by checkpoints);
@@ -148,7 +154,8 @@ class LatentFilter(nn.Module):
                  y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None,
                  y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
                  obs_dropout_span: int = 1, elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0,
-                 input_standardize: bool = False, obs_sigma_shape: str = "channel", y_input: str = "sample") -> None:
+                 input_standardize: bool = False, obs_sigma_shape: str = "channel", y_input: str = "sample",
+                 free_bits_z: float = 0.0, free_bits_y: float = 0.0) -> None:
         super().__init__()
         if y_input not in Y_INPUTS:
             raise ValueError(f"y_input must be one of {Y_INPUTS}, got {y_input!r}")
@@ -171,6 +178,10 @@ class LatentFilter(nn.Module):
         args = dict(locals())
         self._config = {k: to_plain(v) for k, v in args.items() if k not in ("self", "__class__")}
         self._config["modality"] = _modality_config(modality)
+        for name, floor in (("free_bits_z", free_bits_z), ("free_bits_y", free_bits_y)):
+            if not float(floor) >= 0.0:
+                raise ValueError(f"{name} must be >= 0 nats per dimension and step (0 = off), got {floor}")
+        self.free_bits_z, self.free_bits_y = float(free_bits_z), float(free_bits_y)
         self.modality = resolve_modality(modality)
         self.n_z, self.n_y, self.n_a = int(n_z), int(n_y), int(n_a)
         self.n_channels = len(self.modality["channels"])
@@ -385,11 +396,25 @@ class LatentFilter(nn.Module):
             log_sigma = log_sigma.view(-1, 1, 1)
         log_sigma = log_sigma[None, None]  # broadcasts over (B, T, C, 28, 28)
         nll = gaussian_nll(obs, out["recon"], log_sigma).sum(dim=(1, 2, 3, 4)).mean()
-        kl_z = kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"]).sum(1).mean()
+        floors = self.training and sample and (self.free_bits_z > 0 or self.free_bits_y > 0)
+        extra = out["z"].new_zeros(()).float()  # what the free-bits floors add to kl_z + kl_y
+
+        def kl_term(kl: Tensor, floor: float) -> Tensor:  # (B, T', D) -> per-sequence KL, batch mean
+            nonlocal extra
+            plain = kl.sum(-1).sum(1).mean()
+            if not (floors and floor > 0):
+                return plain
+            used = free_bits_kl(kl, floor)
+            extra = extra + (used - plain).detach()
+            return used
+
+        kl_z = kl_term(kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"], per_dim=True),
+                       self.free_bits_z)
         ent = gaussian_entropy(out["z_var"]).sum(1)
         if T > 1:
             py_m, py_v = self.prior(batch["object_id"], actions[:, 1:])
-            kl_y = kl_diag_gaussians(out["y_mean"][:, 1:], out["y_var"][:, 1:], py_m, py_v).sum(1).mean()
+            kl_y = kl_term(kl_diag_gaussians(out["y_mean"][:, 1:], out["y_var"][:, 1:], py_m, py_v, per_dim=True),
+                           self.free_bits_y)
             ent = ent + gaussian_entropy(out["y_var"][:, 1:]).sum(1)
         else:
             kl_y = out["y_mean"].new_zeros(()).float()
@@ -405,6 +430,8 @@ class LatentFilter(nn.Module):
                  "out": out}
         if over is not None:
             terms["overshoot"] = over.detach()
+        if floors:
+            terms["free_bits"] = extra
         return terms
 
     def overshooting_kl(self, out: Mapping[str, Tensor], actions: Tensor) -> Optional[Tensor]:

@@ -197,6 +197,8 @@ class LatentFilterModule(L.LightningModule):
         self.log("train/elbo", -(terms["nll"] + terms["kl_z"] + terms["kl_y"]).detach(), batch_size=bs)
         if "overshoot" in terms:  # latent overshooting (inside kl_z in training): logged on its own too
             self.log("train/overshoot", terms["overshoot"], batch_size=bs)
+        if "free_bits" in terms:  # the nats the free-bits floors add to kl_z + kl_y in training
+            self.log("train/free_bits", terms["free_bits"], batch_size=bs)
         for k, v in logs.items():
             self.log(k, float(v), batch_size=bs)
         return loss

@@ -58,8 +58,9 @@ def fuse_gaussians(m1: Tensor, v1: Tensor, m2: Tensor, v2: Tensor) -> tuple[Tens
     return mu, var
 
 
-def kl_diag_gaussians(mq: Tensor, vq: Tensor, mp: Tensor, vp: Tensor) -> Tensor:
-    """KL(N(mq, vq) || N(mp, vp)) for diagonal Gaussians, summed over the last dim.
+def kl_diag_gaussians(mq: Tensor, vq: Tensor, mp: Tensor, vp: Tensor, per_dim: bool = False) -> Tensor:
+    """KL(N(mq, vq) || N(mp, vp)) for diagonal Gaussians, summed over the last dim
+    (``per_dim``: one value per dimension, not summed).
 
     Log-space with expm1 (precise for nearly equal variances): with lq = log vq,
     lp = log vp, d = lq - lp:  KL = 0.5 * sum(expm1(d) - d + (mq - mp)^2 * exp(-lp)).
@@ -69,7 +70,19 @@ def kl_diag_gaussians(mq: Tensor, vq: Tensor, mp: Tensor, vp: Tensor) -> Tensor:
         lp = torch.log(vp.float())
         d = lq - lp
         diff = mq.float() - mp.float()
-        return 0.5 * (torch.expm1(d) - d + diff * diff * torch.exp(-lp)).sum(-1)
+        kl = 0.5 * (torch.expm1(d) - d + diff * diff * torch.exp(-lp))
+        return kl if per_dim else kl.sum(-1)
+
+
+def free_bits_kl(kl: Tensor, floor: float) -> Tensor:
+    """The free-bits KL (Kingma et al. 2016, "Improved variational inference with inverse
+    autoregressive flow", eq. 15) of per-step, per-dimension KLs ``kl`` (B, T, D), per
+    sequence: T * sum_j max(floor, mean_{b,t} kl_{b,t,j}). A dimension whose KL per step,
+    averaged over the batch, is below ``floor`` nats costs ``floor`` and gets no gradient
+    from the KL; ``floor`` = 0 gives the plain sum_t sum_j kl averaged over the batch."""
+    with float32_region(kl):
+        per_dim = kl.float().mean(dim=(0, 1))
+        return kl.shape[1] * torch.clamp(per_dim, min=float(floor)).sum()
 
 
 def gaussian_entropy(var: Tensor) -> Tensor:
