@@ -31,10 +31,10 @@ from .networks import (
     TransitionNet,
     YPosterior,
     float32_region,
+    free_bits_kl,
     fuse_gaussians,
     gaussian_entropy,
     gaussian_nll,
-    free_bits_kl,
     kl_diag_gaussians,
     small_batch_convs,
 )
