@@ -165,6 +165,10 @@ def diagnostics(model: LatentFilter, data: PendulumData) -> dict[str, float]:
             **{k: float(terms[k]) for k in ("nll", "kl_z", "kl_y")}}
 
 
+#: LatentFilter training-remedy attributes and their values for the plain single-sample ELBO
+PLAIN_ELBO = {"obs_dropout": 0.0, "elbo_samples": 1, "overshoot": 1, "free_bits_z": 0.0, "free_bits_y": 0.0}
+
+
 def gradient_snr(model: LatentFilter, data: PendulumData, n_draws: int = 16, batch_size: int = 16,
                  seed: int = 0) -> dict[str, float]:
     """One-sample ELBO noise: gradients of the negative ELBO on ONE fixed batch for
@@ -179,8 +183,9 @@ def gradient_snr(model: LatentFilter, data: PendulumData, n_draws: int = 16, bat
              "y_posterior": model.y_posterior, "prior": model.prior}
     grads: dict[str, list] = {k: [] for k in parts}
     torch.manual_seed(seed)
-    saved = (model.obs_dropout, model.elbo_samples, model.overshoot, model.free_bits_z, model.free_bits_y)
-    model.obs_dropout, model.elbo_samples, model.overshoot, model.free_bits_z, model.free_bits_y = 0.0, 1, 1, 0.0, 0.0
+    saved = {name: getattr(model, name) for name in PLAIN_ELBO}
+    for name, value in PLAIN_ELBO.items():  # the plain single-sample ELBO, whatever remedies trained the model
+        setattr(model, name, value)
     try:
         for _ in range(n_draws):
             model.zero_grad(set_to_none=True)
@@ -189,7 +194,8 @@ def gradient_snr(model: LatentFilter, data: PendulumData, n_draws: int = 16, bat
             for k, mod in parts.items():
                 grads[k].append(torch.cat([p.grad.flatten() for p in mod.parameters() if p.grad is not None]))
     finally:
-        model.obs_dropout, model.elbo_samples, model.overshoot, model.free_bits_z, model.free_bits_y = saved
+        for name, value in saved.items():
+            setattr(model, name, value)
         model.zero_grad(set_to_none=True)
     out = {}
     for k, g in grads.items():
