@@ -8,6 +8,13 @@ all from the benchmark's data, by readers that are TOLD them?
   encoder, fusion with the transition, the y LSTM, a linear head on y; the benchmark's
   sizes, n_z 8, n_y 4, and the y options given by ``--lf-option``) trained the same way:
   what this y can hold when it is told the parameters, with no reconstruction to shape z;
+* with ``--state``: readers of the true angle trajectory with N(0, sigma^2) added, sigma the
+  per-frame Cramer-Rao bound of one noisy frame (``angle_precision``, 0.004 rad): the best
+  angle any frame reader can see. ``state_lstm`` (the same LSTM as the trajectory probes,
+  on (cos, sin) of the angle plus the actions, TOLD the labels) and ``physics_ls``
+  (``least_squares_parameters``: per-sequence least squares TOLD the equation of motion,
+  not the labels; no training). The two say what the data allow a learned reader of this
+  size and a reader with the true model structure;
 * with ``--load`` (a model saved by ``bench_pendulum.py --save``): a small LSTM trained on
   that frozen model's filtered trajectories, ``z_trajectory`` (q_filt means z_1..z_t plus
   the actions) and ``y_trajectory`` (q(y_t) means plus the actions): whether the filter's
@@ -20,6 +27,7 @@ regressor fitted on the same training sequences, can be expected to show.
 
     python benchmarks/bench_pendulum_probes.py --seed 0                      # frames only
     python benchmarks/bench_pendulum_probes.py --seed 0 --n-train 128 --gru-epochs 25
+    python benchmarks/bench_pendulum_probes.py --seed 0 --no-frames --state
     python benchmarks/bench_pendulum_probes.py --seed 0 --no-frames --lf-path --lf-option y_update=evidence
     python benchmarks/bench_pendulum.py --seed 0 --remedy ... --save /tmp/m.pt
     python benchmarks/bench_pendulum_probes.py --seed 0 --load /tmp/m.pt --no-frames
@@ -34,7 +42,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from embodied_tactile.bench.pendulum import N_OBJECTS, generate
+from embodied_tactile.bench.pendulum import N_OBJECTS, angle_precision, generate, least_squares_parameters
 from embodied_tactile.bench.pendulum_run import MODALITY, latents
 from embodied_tactile.eval.baselines import GRURegressor
 from embodied_tactile.models import LatentFilter
@@ -98,6 +106,8 @@ def main(argv=None) -> None:
     p.add_argument("--lf-path", action="store_true", help="also train lf_path (the Latent Filter's inference path)")
     p.add_argument("--lf-option", action="append", default=[], metavar="NAME=VALUE",
                    help="LatentFilter y option for lf_path, e.g. y_update=evidence y_evidence_max=1 (repeatable)")
+    p.add_argument("--state", action="store_true",
+                   help="also the readers of the true angle + per-frame CRB noise: state_lstm and physics_ls")
     p.add_argument("--load", metavar="PATH", help="a model saved by bench_pendulum.py --save: probe its z and y")
     p.add_argument("--probe-epochs", type=int, default=300)
     p.add_argument("--probe-seeds", type=int, nargs="+", default=[0, 1])
@@ -117,6 +127,22 @@ def main(argv=None) -> None:
         t0 = time.perf_counter()
         rows.append(("lf_path", f"seed {a.seed}, {a.gru_epochs} epochs, {opts or 'defaults'}",
                      supervised(train, test, a.gru_epochs, a.seed, **lf_path_kwargs(opts)), time.perf_counter() - t0))
+    if a.state:
+        sigma = angle_precision()
+        noisy = {n: d.theta + sigma * np.random.default_rng(a.seed + k).standard_normal(d.theta.shape)
+                 for k, (n, d) in enumerate((("train", train), ("held-out", test)))}
+        x = {n: np.concatenate([np.cos(noisy[n])[..., None], np.sin(noisy[n])[..., None], d.actions], -1)
+             for n, d in (("train", train), ("held-out", test))}
+        for s in a.probe_seeds:
+            t0 = time.perf_counter()
+            r = trajectory_lstm(x["train"], _targets(train), x["held-out"], _targets(test), a.probe_epochs, s)
+            rows.append(("state_lstm", f"angle + N(0, {sigma:.4f}^2), probe seed {s}, {a.probe_epochs} epochs", r,
+                         time.perf_counter() - t0))
+        t0 = time.perf_counter()
+        r = {n: _r2(np.stack(least_squares_parameters(noisy[n], d.actions), -1), _targets(d))
+             for n, d in (("train", train), ("held-out", test))}
+        rows.append(("physics_ls", f"angle + N(0, {sigma:.4f}^2), told the equation, no training", r,
+                     time.perf_counter() - t0))
     if a.load:
         ck = torch.load(a.load, weights_only=False)
         if int(ck["seed"]) != a.seed:

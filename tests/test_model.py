@@ -342,6 +342,32 @@ def test_y_input_innovation_feeds_the_y_lstm_the_filters_prediction_error():
     assert (y_seen["y_mean"] - y_zeroed["y_mean"]).abs().max() > 1e-6
 
 
+def test_affine_y_transition_is_affine_in_y_with_a_y_free_variance():
+    """transition_form="affine_y": z_{t-1} + g(z, a) + G(z, a) y, so the mean is affine in y
+    (superposition and scaling hold exactly), the variance ignores y, the untrained drift is
+    0 (a random walk as the MLP form), and the option reaches LatentFilter and its config."""
+    from embodied_tactile.models.networks import TransitionNet
+
+    torch.manual_seed(0)
+    net = LatentFilter("fsr_t", n_z=4, n_y=3, transition_form="affine_y")
+    tr = net.transition
+    assert net.config()["transition_form"] == "affine_y" and tr.body[0].in_features == 4 + 6
+    z, a = torch.randn(5, 4), torch.randn(5, 6)
+    y1, y2 = torch.randn(5, 3), torch.randn(5, 3)
+    m0, _ = tr(z, torch.zeros(5, 3), a)
+    torch.testing.assert_close(m0, z)  # zero-initialised heads: a random walk
+    with torch.no_grad():
+        for head in (tr.mean, tr.gain):
+            nn.init.normal_(head.weight)
+    m0, v0 = tr(z, torch.zeros(5, 3), a)
+    (m1, v1), (m2, _), (m12, _) = tr(z, y1, a), tr(z, y2, a), tr(z, y1 + 2.5 * y2, a)
+    torch.testing.assert_close(m12 - m0, (m1 - m0) + 2.5 * (m2 - m0), rtol=1e-4, atol=1e-4)
+    assert (m1 - m0).abs().max() > 1e-2
+    torch.testing.assert_close(v1, v0)
+    with pytest.raises(ValueError, match="transition_form must be one of"):
+        TransitionNet(4, 3, 6, form="bilinear")
+
+
 def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
     """y_evidence_range r: evidence means r tanh(raw / r), so with the precision bound L one
     step moves the mean by at most L (r + |mean|) / P_t, however large the head's output."""

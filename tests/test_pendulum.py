@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from embodied_tactile.bench.pendulum import (DAMPINGS, DT, N_OBJECTS, angle_precision, generate, integrate,
-                                             object_params, parameter_separation, render)
+                                             least_squares_parameters, object_params, parameter_separation, render)
 
 
 def _energy(theta, omega, w0):
@@ -99,6 +99,22 @@ def test_one_step_ahead_separates_frequency_but_not_damping_beyond_one_frames_pr
         parameter_separation(data, "mass", (1.0, 2.0), 1)
     with pytest.raises(ValueError, match="outside the 60 frames"):
         parameter_separation(data, "w0", (3.0, 4.0), 55)
+
+
+def test_least_squares_reader_told_the_equation_recovers_both_parameters():
+    """The physics reader of docs/model.md: on noiseless angles the per-sequence least squares
+    recovers w0 and d to the finite differences' error (also across the angle's wrap at
+    +-pi); with the per-frame Cramer-Rao noise the two damping levels stay apart on average
+    and their spread grows; a trajectory too short for central differences is refused."""
+    data = generate(4, seed=7)
+    w0, d = least_squares_parameters(np.angle(np.exp(1j * data.theta)), data.actions)
+    assert np.abs(w0 - data.w0).max() < 0.02 and np.abs(d - data.damping).max() < 0.02
+    noisy = data.theta + angle_precision() * np.random.default_rng(0).standard_normal(data.theta.shape)
+    _, d_noisy = least_squares_parameters(noisy, data.actions[..., 0])
+    lo, hi = d_noisy[data.damping == DAMPINGS[0]], d_noisy[data.damping == DAMPINGS[1]]
+    assert hi.mean() - lo.mean() > 0.3 and np.abs(d_noisy - data.damping).max() > np.abs(d - data.damping).max()
+    with pytest.raises(ValueError, match=r"must both be \(N, T\) with T >= 4"):
+        least_squares_parameters(data.theta[:, :3], data.actions[:, :3])
 
 
 def test_hidden_frames_take_the_transition_prior_and_cost_no_kl():

@@ -158,3 +158,31 @@ def parameter_separation(data: PendulumData, parameter: str, values: tuple[float
         ends.append(theta[:, -1])
     return np.abs(np.angle(np.exp(1j * (ends[0] - ends[1]))))
 
+
+
+def least_squares_parameters(theta: np.ndarray, actions: np.ndarray, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
+    """Per-sequence least-squares estimate of (w0, d) from an angle trajectory, told the
+    equation of motion (not the labels): a reader with the true model structure, the
+    reference an unsupervised filter's y is compared with (docs/model.md, "What a reader
+    that is told the parameters gets").
+
+    theta (N, T) angles at the start of each frame (rad, may wrap), actions (N, T) or
+    (N, T, 1) the acceleration held over each frame. With central differences on the
+    unwrapped angle, for 1 <= t <= T - 2,
+
+        (theta_{t+1} - 2 theta_t + theta_{t-1}) / dt^2 - (u_{t-1} + u_t) / 2
+            = -w0^2 sin(theta_t) - d (theta_{t+1} - theta_{t-1}) / (2 dt)
+
+    is linear in (w0^2, d) and solved per sequence. Returns (w0, d), each (N,); w0 is
+    sqrt(max(w0^2, 0))."""
+    theta = np.unwrap(np.asarray(theta, dtype=np.float64), axis=-1)
+    u = np.asarray(actions, dtype=np.float64)
+    u = u[..., 0] if u.ndim == 3 else u
+    if theta.ndim != 2 or u.shape != theta.shape or theta.shape[1] < 4:
+        raise ValueError(f"least_squares_parameters: theta {theta.shape} and actions {u.shape} must both be "
+                         f"(N, T) with T >= 4")
+    acc = (theta[:, 2:] - 2 * theta[:, 1:-1] + theta[:, :-2]) / dt ** 2 - 0.5 * (u[:, :-2] + u[:, 1:-1])
+    vel = (theta[:, 2:] - theta[:, :-2]) / (2 * dt)
+    design = np.stack([-np.sin(theta[:, 1:-1]), -vel], -1)  # (N, T - 2, 2)
+    coef = np.stack([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in zip(design, acc)])
+    return np.sqrt(np.maximum(coef[:, 0], 0.0)), coef[:, 1]

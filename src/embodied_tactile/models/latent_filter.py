@@ -138,6 +138,10 @@ class LatentFilter(nn.Module):
             steps, and floored at this many nats per dimension and step
             (:func:`networks.free_bits_kl`): a dimension under the floor costs the floor and
             gets no gradient from its KL. 0 (default) = the plain KL.
+        transition_form: ``"mlp"`` (default: the transition MLP reads [z, y, a]) or
+            ``"affine_y"`` (the drift is affine in y with z- and a-dependent coefficients,
+            the linear-in-parameters form of mechanical dynamics; :class:`TransitionNet`,
+            docs/model.md, "Training remedies").
         input_standardize: the encoders see each channel shifted and scaled by its
             training-set mean and standard deviation (buffers ``input_shift`` /
             ``input_scale``, set once by :meth:`set_input_stats`, carried by checkpoints);
@@ -155,7 +159,7 @@ class LatentFilter(nn.Module):
                  y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
                  obs_dropout_span: int = 1, elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0,
                  input_standardize: bool = False, obs_sigma_shape: str = "channel", y_input: str = "sample",
-                 free_bits_z: float = 0.0, free_bits_y: float = 0.0) -> None:
+                 free_bits_z: float = 0.0, free_bits_y: float = 0.0, transition_form: str = "mlp") -> None:
         super().__init__()
         if y_input not in Y_INPUTS:
             raise ValueError(f"y_input must be one of {Y_INPUTS}, got {y_input!r}")
@@ -194,7 +198,7 @@ class LatentFilter(nn.Module):
         # fusion code moved to models/fusion.py
         self.observation: ObservationModel = observation_model(
             self.modality["fusion"], self.modality["pathways"], n_z, enc["widths"], enc["hidden"], min_var)
-        self.transition = TransitionNet(n_z, n_y, n_a, transition_hidden, min_var)
+        self.transition = TransitionNet(n_z, n_y, n_a, transition_hidden, min_var, form=transition_form)
         self.y_posterior = YPosterior(n_z * (2 if y_input == "innovation" else 1), n_y, n_a, lstm_hidden, min_var,
                                       update=y_update,
                                       prior_precision=y_prior_precision, max_evidence=y_evidence_max,

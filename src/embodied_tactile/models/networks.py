@@ -258,26 +258,52 @@ class ConvDecoder(_CompilableBody):
         return self.deconv(h)
 
 
+#: ``transition_form``: how y enters the transition's mean (docs/model.md, "Training remedies")
+TRANSITION_FORMS = ("mlp", "affine_y")
+
+
 class TransitionNet(nn.Module):
     """p(z_t | z_{t-1}, y_t, a_t) = N(z_{t-1} + f_mu(.), softplus(f_v(.)) + floor).
 
-    Residual form: the MLP predicts the change of z; the mean head is zero-initialised so
+    Residual form: the MLP predicts the change of z; the mean heads are zero-initialised so
     the untrained transition is a random walk around z_{t-1}.
+
+    ``form`` says how y enters:
+
+    * ``"mlp"`` (default): f_mu and f_v read the concatenation [z_{t-1}, y_t, a_t].
+    * ``"affine_y"``: the drift is affine in y, f_mu = g(h) + G(h) y_t with h = MLP(z_{t-1}, a_t),
+      G(h) an (n_z, n_y) matrix, and the variance f_v(h) does not depend on y. Mechanical
+      dynamics are linear in their physical parameters (theta'' = -w0^2 sin theta - d theta'
+      + u is linear in (w0^2, d)), so a parameter only has to scale a state-dependent
+      direction, a product an MLP on the concatenation has to build from its units.
     """
 
-    def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3) -> None:
+    def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3,
+                 form: str = "mlp") -> None:
         super().__init__()
-        self.min_var = float(min_var)
-        self.body = nn.Sequential(nn.Linear(n_z + n_y + n_a, hidden), nn.ELU(),
+        if form not in TRANSITION_FORMS:
+            raise ValueError(f"transition_form must be one of {TRANSITION_FORMS}, got {form!r}")
+        self.min_var, self.form, self.n_z, self.n_y = float(min_var), form, int(n_z), int(n_y)
+        n_in = n_z + n_a + (n_y if form == "mlp" else 0)
+        self.body = nn.Sequential(nn.Linear(n_in, hidden), nn.ELU(),
                                   nn.Linear(hidden, hidden), nn.ELU())
         self.mean = nn.Linear(hidden, n_z)
         self.var = nn.Linear(hidden, n_z)
         nn.init.zeros_(self.mean.weight)
         nn.init.zeros_(self.mean.bias)
+        if form == "affine_y":
+            self.gain = nn.Linear(hidden, n_z * n_y)
+            nn.init.zeros_(self.gain.weight)
+            nn.init.zeros_(self.gain.bias)
 
     def forward(self, z_prev: Tensor, y: Tensor, a: Tensor) -> tuple[Tensor, Tensor]:
-        h = self.body(torch.cat([z_prev, y, a], dim=-1))
-        return z_prev.float() + self.mean(h).float(), softplus_var(self.var(h), self.min_var)
+        if self.form == "mlp":
+            h = self.body(torch.cat([z_prev, y, a], dim=-1))
+            return z_prev.float() + self.mean(h).float(), softplus_var(self.var(h), self.min_var)
+        h = self.body(torch.cat([z_prev, a], dim=-1))
+        gain = self.gain(h).float().unflatten(-1, (self.n_z, self.n_y))
+        drift = self.mean(h).float() + (gain @ y.float().unsqueeze(-1)).squeeze(-1)
+        return z_prev.float() + drift, softplus_var(self.var(h), self.min_var)
 
 
 Y_UPDATES = ("evidence", "direct")
