@@ -368,6 +368,54 @@ def test_affine_y_transition_is_affine_in_y_with_a_y_free_variance():
         TransitionNet(4, 3, 6, form="bilinear")
 
 
+def test_measurement_input_keeps_y_off_z_and_blind_to_hidden_frames():
+    """y_input="measurement": the y LSTM reads frame t-1's encoder mean and a seen flag, so y
+    does not change with the transition's weights, and a hidden frame enters as zeros with
+    flag 0 (y then differs from the all-seen filter only from the step after it)."""
+    torch.manual_seed(0)
+    net = LatentFilter("fsr_t", n_z=4, n_y=2, y_update="evidence", y_input="measurement", **TINY).eval()
+    assert net.y_posterior.cell.input_size == 4 + 1 + 6
+    obs, acts = torch.rand(2, 5, 1, 28, 28), torch.randn(2, 5, 6)
+    before = net(obs, acts, sample=False)
+    y0 = before["y_mean"]
+    with torch.no_grad():
+        nn.init.normal_(net.transition.mean.weight)
+    out = net(obs, acts, sample=False)
+    torch.testing.assert_close(out["y_mean"], y0)
+    assert (out["z_mean"][:, 1:] - before["z_mean"][:, 1:]).abs().max() > 1e-4  # z did change
+    hidden = torch.ones(2, 5, dtype=torch.bool)
+    hidden[:, 2] = False
+    y_h = net(obs, acts, sample=False, observed=hidden)["y_mean"]
+    torch.testing.assert_close(y_h[:, :3], y0[:, :3])
+    assert (y_h[:, 3:] - y0[:, 3:]).abs().max() > 1e-6
+
+
+def test_static_y_gives_the_transition_one_y_per_sequence_and_one_kl():
+    """y_static: in training the transition gets one draw of q(y | window) = q(y_T) at every
+    step (the mean with sample=False), and kl_y is one KL of q(y_T) to the prior without its
+    action term (plus the population term); in evaluation the filter is causal (y_t at step
+    t). It needs the evidence update and the measurement input."""
+    torch.manual_seed(0)
+    net = LatentFilter("fsr_t", n_z=4, n_y=2, y_update="evidence", y_input="measurement", y_static=True, **TINY)
+    obs, acts, ids = torch.rand(3, 6, 1, 28, 28), torch.randn(3, 6, 6), torch.tensor([0, 1, 2])
+    net.train()
+    out = net(obs, acts, sample=False)
+    torch.testing.assert_close(out["y"], out["y_mean"][:, -1:].expand(-1, 6, -1))
+    assert (out["y_mean"][:, 1] - out["y_mean"][:, -1]).abs().max() > 1e-4  # q(y_t) itself still moves
+    drawn = net(obs, acts, sample=True)["y"]
+    assert (drawn - drawn[:, :1]).abs().max() == 0.0
+    terms = net.elbo_terms({"obs": obs, "actions": acts, "object_id": ids}, sample=False)
+    o = terms["out"]
+    py_m, py_v = net.prior(ids, torch.zeros(3, 1, 6))
+    ref = kl_diag_gaussians(o["y_mean"][:, -1], o["y_var"][:, -1], py_m[:, 0], py_v[:, 0]).mean() + terms["pop"]
+    torch.testing.assert_close(terms["kl_y"], ref)
+    net.eval()
+    ev = net(obs, acts, sample=False)
+    torch.testing.assert_close(ev["y"], ev["y_mean"])
+    with pytest.raises(ValueError, match="y_static needs y_update='evidence' and y_input='measurement'"):
+        LatentFilter("fsr_t", n_z=4, n_y=2, y_update="evidence", y_static=True)
+
+
 def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
     """y_evidence_range r: evidence means r tanh(raw / r), so with the precision bound L one
     step moves the mean by at most L (r + |mean|) / P_t, however large the head's output."""

@@ -73,14 +73,16 @@ _Y_STATE_KEYS = ("h", "c", "y_prec", "y_pm")
 OBS_SIGMA_SHAPES = ("channel", "pixel")
 
 
-#: ``y_input``: what the y posterior's LSTM reads of z_{t-1}: the sample, the filtered mean,
-#: or the sample and the innovation (filtered mean minus the transition's prediction)
-Y_INPUTS = ("sample", "mean", "innovation")
+#: ``y_input``: what the y posterior's LSTM reads at step t: the sample of z_{t-1}, the filtered
+#: mean, the sample and the innovation (filtered mean minus the transition's prediction), or
+#: the measurement of frame t-1 (the encoder's mean and whether the frame was seen: no z)
+Y_INPUTS = ("sample", "mean", "innovation", "measurement")
 
 
-def _state_to(z: Tensor, z_mean: Tensor, innovation: Tensor, a: Tensor, y_state: tuple[Tensor, ...]
-              ) -> dict[str, Tensor]:
-    return {"z": z, "z_mean": z_mean, "innovation": innovation, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
+def _state_to(z: Tensor, z_mean: Tensor, innovation: Tensor, a: Tensor, y_state: tuple[Tensor, ...],
+              measurement: Tensor) -> dict[str, Tensor]:
+    return {"z": z, "z_mean": z_mean, "innovation": innovation, "a": a, "measurement": measurement,
+            **dict(zip(_Y_STATE_KEYS, y_state))}
 
 
 class LatentFilter(nn.Module):
@@ -115,7 +117,15 @@ class LatentFilter(nn.Module):
             integrates the belief over many frames without each draw's noise; still a
             valid q, so still the ELBO; docs/model.md, "Training remedies") or
             ``"innovation"`` (the draw and the innovation q_filt mean minus the transition's
-            mean at t-1: the prediction error that carries a hidden parameter's evidence).
+            mean at t-1: the prediction error that carries a hidden parameter's evidence) or
+            ``"measurement"`` (frame t-1's encoder mean and a seen flag, zeros where the
+            frame was hidden: y's inference then does not depend on z, as ``y_static`` needs).
+        y_static: y is one latent per sequence in training (docs/model.md, "Training
+            remedies"): the transition gets one draw from q(y | the window's frames), the
+            evidence product at the last step, at every step, and kl_y is one KL of that
+            posterior to p(y | object) per sequence. Needs ``y_update="evidence"`` and
+            ``y_input="measurement"``. In evaluation the filter is causal: the transition at
+            step t gets q(y_t | frames before t). False (default) = a y_t per step.
         obs_dropout: training remedy (docs/model.md, "Observation dropout"): in training
             mode each frame t >= 2 is hidden from the filter with this probability, so
             q_filt(z_t) is the transition prior alone there and the likelihood of that
@@ -159,11 +169,16 @@ class LatentFilter(nn.Module):
                  y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
                  obs_dropout_span: int = 1, elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0,
                  input_standardize: bool = False, obs_sigma_shape: str = "channel", y_input: str = "sample",
-                 free_bits_z: float = 0.0, free_bits_y: float = 0.0, transition_form: str = "mlp") -> None:
+                 free_bits_z: float = 0.0, free_bits_y: float = 0.0, transition_form: str = "mlp",
+                 y_static: bool = False) -> None:
         super().__init__()
         if y_input not in Y_INPUTS:
             raise ValueError(f"y_input must be one of {Y_INPUTS}, got {y_input!r}")
         self.y_input = y_input
+        if y_static and not (y_update == "evidence" and y_input == "measurement"):
+            raise ValueError(f"y_static needs y_update='evidence' and y_input='measurement' (y's inference must not "
+                             f"read z, which the static y drives), got y_update={y_update!r}, y_input={y_input!r}")
+        self.y_static = bool(y_static)
         if obs_sigma_shape not in OBS_SIGMA_SHAPES:
             raise ValueError(f"obs_sigma_shape must be one of {OBS_SIGMA_SHAPES}, got {obs_sigma_shape!r}")
         if int(overshoot) != overshoot or overshoot < 1:
@@ -199,7 +214,8 @@ class LatentFilter(nn.Module):
         self.observation: ObservationModel = observation_model(
             self.modality["fusion"], self.modality["pathways"], n_z, enc["widths"], enc["hidden"], min_var)
         self.transition = TransitionNet(n_z, n_y, n_a, transition_hidden, min_var, form=transition_form)
-        self.y_posterior = YPosterior(n_z * (2 if y_input == "innovation" else 1), n_y, n_a, lstm_hidden, min_var,
+        y_in = {"innovation": 2 * n_z, "measurement": n_z + 1}.get(y_input, n_z)
+        self.y_posterior = YPosterior(y_in, n_y, n_a, lstm_hidden, min_var,
                                       update=y_update,
                                       prior_precision=y_prior_precision, max_evidence=y_evidence_max,
                                       evidence_range=y_evidence_range)
@@ -270,7 +286,8 @@ class LatentFilter(nn.Module):
     def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, Tensor]:
         z = torch.zeros(batch, self.n_z, device=device, dtype=dtype)
         a = torch.zeros(batch, self.n_a, device=device, dtype=dtype)
-        return _state_to(z, z.clone(), z.clone(), a, self.y_posterior.initial_state(batch, device, dtype))
+        return _state_to(z, z.clone(), z.clone(), a, self.y_posterior.initial_state(batch, device, dtype),
+                         torch.zeros(batch, self.n_z + 1, device=device, dtype=dtype))
 
     @staticmethod
     def _draw(m: Tensor, v: Tensor, sample: bool) -> Tensor:
@@ -280,12 +297,14 @@ class LatentFilter(nn.Module):
             return m + torch.sqrt(v) * torch.randn_like(m)
 
     def step(self, enc_m: Tensor, enc_v: Tensor, a_t: Tensor, state: Optional[dict[str, Tensor]],
-             sample: bool, prev_action: Optional[Tensor] = None, observed: Optional[Tensor] = None
-             ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+             sample: bool, prev_action: Optional[Tensor] = None, observed: Optional[Tensor] = None,
+             y_given: Optional[Tensor] = None) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """One recursion step given the measurement Gaussian of frame t (shared by
         ``forward``, ``filter_step`` and ``predict``). ``state=None`` marks the first frame.
         ``observed`` (B,) bool: where False the frame is not seen and q_filt(z_t) is the
-        transition prior alone (N(0, I) at the first frame); None = all observed."""
+        transition prior alone (N(0, I) at the first frame); None = all observed.
+        ``y_given`` (B, n_y): the y the transition uses (and ``out["y"]``) instead of a draw
+        from q(y_t) (``y_static`` in training); q(y_t) itself is still computed."""
         first = state is None
         if first:
             state = self.initial_state(enc_m.shape[0], enc_m.device)
@@ -297,10 +316,12 @@ class LatentFilter(nn.Module):
             z_in = torch.cat([state["z"], state["innovation"].to(state["z"].dtype)], dim=-1)
         elif self.y_input == "mean":
             z_in = state["z_mean"]
+        elif self.y_input == "measurement":
+            z_in = state["measurement"]
         else:
             z_in = state["z"]
         y_m, y_v, y_state = self.y_posterior(z_in, a_prev, y_state)
-        y = self._draw(y_m, y_v, sample)
+        y = self._draw(y_m, y_v, sample) if y_given is None else y_given
         if first:
             # z_1 from the encoder alone; its prior is N(0, I).
             zp_m, zp_v = torch.zeros_like(enc_m), torch.ones_like(enc_v)
@@ -317,7 +338,9 @@ class LatentFilter(nn.Module):
         # what frame t taught the filter beyond the transition's prediction: 0 at the first
         # frame (no prediction) and wherever the frame was hidden (q_filt = the prediction)
         innovation = torch.zeros_like(z_m) if first else z_m - zp_m
-        return out, _state_to(z, z_m, innovation, a_t.float(), y_state)
+        seen_f = enc_m.new_ones(enc_m.shape[0], 1) if observed is None else observed.view(-1, 1).to(enc_m.dtype)
+        measurement = torch.cat([enc_m * seen_f, seen_f], dim=-1)
+        return out, _state_to(z, z_m, innovation, a_t.float(), y_state, measurement)
 
     # ------------------------------------------------------------------ batched
     def observation_mask(self, B: int, T: int, device: torch.device) -> Optional[Tensor]:
@@ -358,11 +381,12 @@ class LatentFilter(nn.Module):
             observed = self.observation_mask(B, T, obs.device)
         elif observed.shape != (B, T):
             raise ValueError(f"observed must be {(B, T)}, got {tuple(observed.shape)}")
+        y_window = self.window_y(enc_m, actions, observed, sample) if self.y_static and self.training else None
         state = None
         steps: list[dict[str, Tensor]] = []
         for t in range(T):
             out, state = self.step(enc_m[:, t], enc_v[:, t], actions[:, t], state, sample,
-                                   observed=None if observed is None else observed[:, t])
+                                   observed=None if observed is None else observed[:, t], y_given=y_window)
             steps.append(out)
         res = {k: torch.stack([s[k] for s in steps], dim=1) for k in steps[0]}
         if observed is not None:
@@ -372,6 +396,21 @@ class LatentFilter(nn.Module):
             res["recon"] = self.decode(res["z"].reshape(B * T, -1)).view(B, T, *obs.shape[2:])
         return res
 
+    def window_y(self, enc_m: Tensor, actions: Tensor, observed: Optional[Tensor], sample: bool) -> Tensor:
+        """``y_static``: one y per sequence, a draw (or the mean) of q(y | the window's
+        frames), the evidence product after the last step (evidence of frames 1..T-1, as
+        q(y_T) of the causal filter). Runs the y posterior alone over the measurements
+        (``y_input="measurement"``: it does not read z). enc_m (B, T, n_z) -> (B, n_y)."""
+        B, T = enc_m.shape[:2]
+        state = self.initial_state(B, enc_m.device)
+        y_state = tuple(state[k] for k in _Y_STATE_KEYS if k in state)
+        z_in, a_prev = state["measurement"], state["a"]
+        for t in range(T):
+            y_m, y_v, y_state = self.y_posterior(z_in, a_prev, y_state)
+            seen = enc_m.new_ones(B, 1) if observed is None else observed[:, t].view(-1, 1).to(enc_m.dtype)
+            z_in, a_prev = torch.cat([enc_m[:, t] * seen, seen], dim=-1), actions[:, t]
+        return self._draw(y_m, y_v, sample)
+
     def elbo_terms(self, batch: Mapping[str, Tensor], sample: bool = True) -> dict[str, Tensor]:
         """Per-sequence terms averaged over the batch (all float32 scalars):
 
@@ -379,7 +418,8 @@ class LatentFilter(nn.Module):
         kl_z    = KL(q(z_1) || N(0, I)) + sum_{t>=2} KL(q_filt(z_t) || p(z_t | z_{t-1}, y_t, a_t))
         kl_y    = sum_{t>=2} KL(q(y_t | .) || p(y_t | a_t, N))
                   + w_pop * (-log p(E_seen | mu_0, tau))   (population level, ``pop``)
-        entropy = sum_t H[q_filt(z_t)] + sum_{t>=2} H[q(y_t | .)]
+                  (``y_static``: KL(q(y_T | .) || p(y | N)) once, the prior without its action term)
+        entropy = sum_t H[q_filt(z_t)] + sum_{t>=2} H[q(y_t | .)]   (``y_static``: H[q(y_T | .)])
         n_dims  = T * C * 28 * 28 (observation dimensions per sequence)
         pop     = the population term alone (also inside kl_y), logged for inspection
         ELBO = -(nll + kl_z + kl_y). ``out`` holds the forward outputs. ``w_pop`` is
@@ -415,7 +455,12 @@ class LatentFilter(nn.Module):
         kl_z = kl_term(kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"], per_dim=True),
                        self.free_bits_z)
         ent = gaussian_entropy(out["z_var"]).sum(1)
-        if T > 1:
+        if self.y_static:  # one y per sequence: one KL of q(y | window) = q(y_T) to p(y | object)
+            py_m, py_v = self.prior(batch["object_id"], torch.zeros_like(actions[:, :1]))
+            kl_y = kl_term(kl_diag_gaussians(out["y_mean"][:, -1:], out["y_var"][:, -1:], py_m, py_v, per_dim=True),
+                           self.free_bits_y)
+            ent = ent + gaussian_entropy(out["y_var"][:, -1:]).sum(1)
+        elif T > 1:
             py_m, py_v = self.prior(batch["object_id"], actions[:, 1:])
             kl_y = kl_term(kl_diag_gaussians(out["y_mean"][:, 1:], out["y_var"][:, 1:], py_m, py_v, per_dim=True),
                            self.free_bits_y)
