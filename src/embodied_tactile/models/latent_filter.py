@@ -338,9 +338,15 @@ class LatentFilter(nn.Module):
         # what frame t taught the filter beyond the transition's prediction: 0 at the first
         # frame (no prediction) and wherever the frame was hidden (q_filt = the prediction)
         innovation = torch.zeros_like(z_m) if first else z_m - zp_m
-        seen_f = enc_m.new_ones(enc_m.shape[0], 1) if observed is None else observed.view(-1, 1).to(enc_m.dtype)
-        measurement = torch.cat([enc_m * seen_f, seen_f], dim=-1)
+        measurement = self._measurement(enc_m, observed) if self.y_input == "measurement" else state["measurement"]
         return out, _state_to(z, z_m, innovation, a_t.float(), y_state, measurement)
+
+    @staticmethod
+    def _measurement(enc_m: Tensor, observed: Optional[Tensor]) -> Tensor:
+        """What ``y_input="measurement"`` feeds the y LSTM about a frame: [encoder mean x seen,
+        seen] (B, n_z + 1), zeros and flag 0 where the frame was hidden."""
+        seen = enc_m.new_ones(enc_m.shape[0], 1) if observed is None else observed.view(-1, 1).to(enc_m.dtype)
+        return torch.cat([enc_m * seen, seen], dim=-1)
 
     # ------------------------------------------------------------------ batched
     def observation_mask(self, B: int, T: int, device: torch.device) -> Optional[Tensor]:
@@ -407,8 +413,8 @@ class LatentFilter(nn.Module):
         z_in, a_prev = state["measurement"], state["a"]
         for t in range(T):
             y_m, y_v, y_state = self.y_posterior(z_in, a_prev, y_state)
-            seen = enc_m.new_ones(B, 1) if observed is None else observed[:, t].view(-1, 1).to(enc_m.dtype)
-            z_in, a_prev = torch.cat([enc_m[:, t] * seen, seen], dim=-1), actions[:, t]
+            z_in = self._measurement(enc_m[:, t], None if observed is None else observed[:, t])
+            a_prev = actions[:, t]
         return self._draw(y_m, y_v, sample)
 
     def elbo_terms(self, batch: Mapping[str, Tensor], sample: bool = True) -> dict[str, Tensor]:
