@@ -159,12 +159,11 @@ def parameter_separation(data: PendulumData, parameter: str, values: tuple[float
     return np.abs(np.angle(np.exp(1j * (ends[0] - ends[1]))))
 
 
-
 def least_squares_parameters(theta: np.ndarray, actions: np.ndarray, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
     """Per-sequence least-squares estimate of (w0, d) from an angle trajectory, told the
     equation of motion (not the labels): a reader with the true model structure, the
-    reference an unsupervised filter's y is compared with (docs/model.md, "What a reader
-    that is told the parameters gets").
+    reference an unsupervised filter's y is compared with (docs/model.md, "Readers of the
+    true angle").
 
     theta (N, T) angles at the start of each frame (rad, may wrap), actions (N, T) or
     (N, T, 1) the acceleration held over each frame. With central differences on the
