@@ -298,13 +298,16 @@ class LatentFilter(nn.Module):
 
     def step(self, enc_m: Tensor, enc_v: Tensor, a_t: Tensor, state: Optional[dict[str, Tensor]],
              sample: bool, prev_action: Optional[Tensor] = None, observed: Optional[Tensor] = None,
-             y_given: Optional[Tensor] = None) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+             y_given: Optional[Tensor] = None, y_post: Optional[tuple[Tensor, Tensor]] = None
+             ) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """One recursion step given the measurement Gaussian of frame t (shared by
         ``forward``, ``filter_step`` and ``predict``). ``state=None`` marks the first frame.
         ``observed`` (B,) bool: where False the frame is not seen and q_filt(z_t) is the
         transition prior alone (N(0, I) at the first frame); None = all observed.
         ``y_given`` (B, n_y): the y the transition uses (and ``out["y"]``) instead of a draw
-        from q(y_t) (``y_static`` in training); q(y_t) itself is still computed."""
+        from q(y_t) (``y_static`` in training). ``y_post``: q(y_t)'s mean and variance computed
+        beforehand (``forward`` with ``y_input="measurement"``, :meth:`measurement_y`); the
+        y posterior is then not run here and the returned state's y entries stay as given."""
         first = state is None
         if first:
             state = self.initial_state(enc_m.shape[0], enc_m.device)
@@ -312,15 +315,18 @@ class LatentFilter(nn.Module):
         else:
             a_prev = state["a"] if prev_action is None else prev_action.float()
         y_state = tuple(state[k] for k in _Y_STATE_KEYS if k in state)
-        if self.y_input == "innovation":
-            z_in = torch.cat([state["z"], state["innovation"].to(state["z"].dtype)], dim=-1)
-        elif self.y_input == "mean":
-            z_in = state["z_mean"]
-        elif self.y_input == "measurement":
-            z_in = state["measurement"]
+        if y_post is not None:
+            y_m, y_v = y_post
         else:
-            z_in = state["z"]
-        y_m, y_v, y_state = self.y_posterior(z_in, a_prev, y_state)
+            if self.y_input == "innovation":
+                z_in = torch.cat([state["z"], state["innovation"].to(state["z"].dtype)], dim=-1)
+            elif self.y_input == "mean":
+                z_in = state["z_mean"]
+            elif self.y_input == "measurement":
+                z_in = state["measurement"]
+            else:
+                z_in = state["z"]
+            y_m, y_v, y_state = self.y_posterior(z_in, a_prev, y_state)
         y = self._draw(y_m, y_v, sample) if y_given is None else y_given
         if first:
             # z_1 from the encoder alone; its prior is N(0, I).
@@ -387,12 +393,17 @@ class LatentFilter(nn.Module):
             observed = self.observation_mask(B, T, obs.device)
         elif observed.shape != (B, T):
             raise ValueError(f"observed must be {(B, T)}, got {tuple(observed.shape)}")
-        y_window = self.window_y(enc_m, actions, observed, sample) if self.y_static and self.training else None
+        # y_input="measurement": q(y_t) does not read z, so every step's is computed once up front
+        y_seq = self.measurement_y(enc_m, actions, observed) if self.y_input == "measurement" else None
+        y_window = None
+        if self.y_static and self.training:  # one draw of q(y | window) = q(y_T) for every step
+            y_window = self._draw(y_seq[0][:, -1], y_seq[1][:, -1], sample)
         state = None
         steps: list[dict[str, Tensor]] = []
         for t in range(T):
             out, state = self.step(enc_m[:, t], enc_v[:, t], actions[:, t], state, sample,
-                                   observed=None if observed is None else observed[:, t], y_given=y_window)
+                                   observed=None if observed is None else observed[:, t], y_given=y_window,
+                                   y_post=None if y_seq is None else (y_seq[0][:, t], y_seq[1][:, t]))
             steps.append(out)
         res = {k: torch.stack([s[k] for s in steps], dim=1) for k in steps[0]}
         if observed is not None:
@@ -402,20 +413,23 @@ class LatentFilter(nn.Module):
             res["recon"] = self.decode(res["z"].reshape(B * T, -1)).view(B, T, *obs.shape[2:])
         return res
 
-    def window_y(self, enc_m: Tensor, actions: Tensor, observed: Optional[Tensor], sample: bool) -> Tensor:
-        """``y_static``: one y per sequence, a draw (or the mean) of q(y | the window's
-        frames), the evidence product after the last step (evidence of frames 1..T-1, as
-        q(y_T) of the causal filter). Runs the y posterior alone over the measurements
-        (``y_input="measurement"``: it does not read z). enc_m (B, T, n_z) -> (B, n_y)."""
+    def measurement_y(self, enc_m: Tensor, actions: Tensor, observed: Optional[Tensor]) -> tuple[Tensor, Tensor]:
+        """``y_input="measurement"``: the causal q(y_t | frames before t) of every step, mean and
+        variance (B, T, n_y), from the y posterior run alone over the measurements (it does not
+        read z). The last step's is q(y | the window's frames 1..T-1), which ``y_static`` draws
+        once per sequence in training. enc_m (B, T, n_z), actions (B, T, n_a)."""
         B, T = enc_m.shape[:2]
         state = self.initial_state(B, enc_m.device)
         y_state = tuple(state[k] for k in _Y_STATE_KEYS if k in state)
         z_in, a_prev = state["measurement"], state["a"]
+        means, variances = [], []
         for t in range(T):
             y_m, y_v, y_state = self.y_posterior(z_in, a_prev, y_state)
+            means.append(y_m)
+            variances.append(y_v)
             z_in = self._measurement(enc_m[:, t], None if observed is None else observed[:, t])
             a_prev = actions[:, t]
-        return self._draw(y_m, y_v, sample)
+        return torch.stack(means, dim=1), torch.stack(variances, dim=1)
 
     def elbo_terms(self, batch: Mapping[str, Tensor], sample: bool = True) -> dict[str, Tensor]:
         """Per-sequence terms averaged over the batch (all float32 scalars):
