@@ -24,7 +24,12 @@ For each of the six modalities (channels from ``configs/modality/<name>.yaml``):
   path (encoder, fusion with the transition, y LSTM; default sizes) with a linear head on y,
   trained supervised like the GRU for ``--lf-epochs`` (default 16: the Latent Filter's
   default budget of 480 optimiser steps): what the unsupervised model's y could hold at
-  its budget, which separates the objective from the architecture and the budget.
+  its budget, which separates the objective from the architecture and the budget;
+* with ``--lf-codes``, ``latent_filter_codes``: the same path and budget trained to output
+  a fixed random N(0, 0.5^2) code per training object (``eval.baselines.
+  evaluate_code_regression``), its outputs aligned to the factors by the KRR: what the
+  label-conditioned prior's pull onto fixed object codes could put into y, were it a
+  regression (docs/modalities.md, "The object codes").
 
 For acc also two probes on the RAW 700 Hz accelerometer signal (``tactile/acc`` of the raw
 HDF5), features -> the same KRR alignment:
@@ -166,7 +171,10 @@ def main(argv=None) -> None:
     ap.add_argument("--gru-windows-per-trial", type=int, default=6, help="GRU crops per trial and epoch")
     ap.add_argument("--lf-supervised", action="store_true",
                     help="also train the Latent Filter's inference path supervised (method latent_filter_supervised)")
-    ap.add_argument("--lf-epochs", type=int, default=16, help="epochs of --lf-supervised (16 = the default budget)")
+    ap.add_argument("--lf-codes", action="store_true",
+                    help="also train that path on random object codes, KRR to the factors (method latent_filter_codes)")
+    ap.add_argument("--lf-epochs", type=int, default=16,
+                    help="epochs of --lf-supervised / --lf-codes (16 = the default budget)")
     ap.add_argument("--methods", nargs="*", default=["gru", "handcrafted_krr"], choices=["gru", "handcrafted_krr"],
                     help="which of the GRU and hand-crafted rows to run (default both)")
     ap.add_argument("--no-raw", action="store_true", help="skip the raw-signal probes")
@@ -179,7 +187,7 @@ def main(argv=None) -> None:
     import torch
 
     torch.set_num_threads(1)
-    from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted
+    from embodied_tactile.eval.baselines import evaluate_code_regression, evaluate_gru, evaluate_handcrafted
     from embodied_tactile.constants import FACTOR_NAMES
     from embodied_tactile.modality import load_modality
 
@@ -200,10 +208,13 @@ def main(argv=None) -> None:
         tr, te = subset(train, chans), subset(test, chans)
         meta = dict(modality=name, skin=args.skin, primitive=args.primitive)
         lf = dict(gru, arch="latent_filter", modality=name, epochs=args.lf_epochs)
-        for method in (*args.methods, *(["latent_filter_supervised"] if args.lf_supervised else [])):
+        extra = ["latent_filter_supervised"] * args.lf_supervised + ["latent_filter_codes"] * args.lf_codes
+        for method in (*args.methods, *extra):
             t1 = time.perf_counter()
             if method == "handcrafted_krr":
                 res = evaluate_handcrafted(tr, te, chans, alignment=alignment, **meta)
+            elif method == "latent_filter_codes":
+                res = evaluate_code_regression(tr, te, gru=lf, alignment=alignment, **meta)
             else:
                 res = evaluate_gru(tr, te, gru=gru if method == "gru" else lf, **meta)
             rows.append((res.summary(), time.perf_counter() - t1))
@@ -222,7 +233,8 @@ def main(argv=None) -> None:
           f"primitive={args.primitive}, preprocess {pre or 'default'}, {len(train['seq_id'])} train / {len(test['seq_id'])} test trials, "
           f"split seed {args.seed}, GRU seed {args.seed} ({args.gru_epochs} epochs, window {gru_window} x "
           f"{args.gru_windows_per_trial} per trial, input_standardize {args.gru_standardize}"
-          + (f"; latent_filter_supervised {args.lf_epochs} epochs, same windows" if args.lf_supervised else "") + ")\n")
+          + (f"; latent_filter_supervised / _codes {args.lf_epochs} epochs, same windows"
+             if args.lf_supervised or args.lf_codes else "") + ")\n")
     print("| modality | method | " + " | ".join(head) + " | s |")
     print("|---|---|" + "---|" * (len(head) + 1))
     for s, dt in rows:

@@ -334,6 +334,36 @@ def test_supervised_latent_filter_arch_reads_a_level_through_its_y_pathway():
         GRURegressor(in_channels=1, arch="lstm")
 
 
+
+def test_code_regression_recognises_objects_by_a_random_code_and_refuses_other_archs():
+    """evaluate_code_regression: the Latent Filter's inference path learns each training
+    object's fixed random code from a per-object level, and the KRR maps the predicted codes
+    of held-out trials of the same objects to the factor; method latent_filter_codes."""
+    import torch
+
+    torch.set_num_threads(1)
+    from embodied_tactile.constants import FACTOR_NAMES
+    from embodied_tactile.eval.baselines import evaluate_code_regression
+
+    def split(n, seed, offset_id):
+        obs, act, f = _level_split(n, seed, offset=0.3, step=0.2, frames=6)
+        ids = np.arange(offset_id, offset_id + n)
+        return {"obs": obs, "actions": act, "factors": f, "object_id": f[:, 0].astype(int),
+                "action_index": ids % 4, "seq_id": ids}
+
+    tr, te = split(48, 0, 0), split(24, 1, 1000)
+    lf = dict(arch="latent_filter", modality="fsr_t", epochs=12, batch_size=8, lr=3e-3, seed=0,
+              latent_filter={"n_z": 4, "n_y": 4, "encoder": {"widths": [4, 8], "hidden": 16},
+                             "transition_hidden": 16, "lstm_hidden": 16})
+    res = evaluate_code_regression(tr, te, gru=lf, alignment={"cv": 2, "alphas": (1e-2,), "gammas": (0.3, 1.0)},
+                                   modality="fsr_t", skin="soft", primitive="pressing")
+    assert res.method == "latent_filter_codes"
+    assert res.params["gru"]["n_out"] == 4
+    assert res.summary()["nmse_last_step"][FACTOR_NAMES[0]] < 0.2
+    with pytest.raises(ValueError, match="must be 'latent_filter'"):
+        evaluate_code_regression(tr, te, gru=dict(lf, arch="gru"))
+
+
 # ------------------------------------------------------------------ tables / figures / report
 def _results_set():
     out = []
@@ -517,3 +547,32 @@ def test_tables_never_print_nan():
     c = a.columns.index("sliding:NMSE_1e-2")
     assert np.isfinite(a.rows[0][c]) and np.isnan(a.rows[2][c])  # action 11 was not slid: '–' in print
     assert "| 11 |" in a.to_markdown() and a.to_markdown().count("–") >= 2
+
+
+# ------------------------------------------------------------------ object codes (eval.codes)
+def test_code_diagnostics_against_hand_computations():
+    """code_spread: median pairwise Mahalanobis distance; affine_r2: 1 for an affine image,
+    about 0 for unrelated codes; own_code_rank: 0 when q(y) sits on its own code, the number
+    of nearer codes otherwise; unknown objects and a degenerate input are refused."""
+    from embodied_tactile.eval.codes import affine_r2, code_spread, own_code_rank
+
+    codes = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 4.0]])
+    var = np.array([1.0, 4.0])
+    # distances: (0,1): 3; (0,2): sqrt(16 / 4) = 2; (1,2): sqrt(9 + 4) = 3.606 -> median 3
+    assert code_spread(codes, var) == pytest.approx(3.0)
+    rng = np.random.default_rng(0)
+    init = rng.normal(size=(32, 4))
+    assert affine_r2(init, 0.5 * init @ rng.normal(size=(4, 4)) + 1.0) == pytest.approx(1.0)
+    assert affine_r2(init, rng.normal(size=(32, 4))) < 0.4
+    y = np.array([[0.1, 0.0], [0.0, 3.9], [2.9, 0.0], [0.0, 0.0]])
+    ranks = own_code_rank(y, [0, 2, 1, 1], codes, var)
+    # the last sequence (object 1) sits on code 0: code 0 is nearer (0), code 2 (2) nearer than its own (3)
+    np.testing.assert_array_equal(ranks, [0, 0, 0, 2])
+    # y = (0.1, 0) of object 1 among codes 2 and 1: d(code 2) = 0.01 + 16 / 4 = 4.01 < d(code 1) = 2.9^2 = 8.41
+    np.testing.assert_array_equal(own_code_rank(y[:1], [1], codes, var, objects=[2, 1]), [1])
+    with pytest.raises(ValueError, match=r"object ids \[0\] have no code"):
+        own_code_rank(y[:1], [0], codes, var, objects=[1, 2])
+    with pytest.raises(ValueError, match="all equal"):
+        affine_r2(init, np.ones_like(init))
+    with pytest.raises(ValueError, match="variances must be > 0"):
+        code_spread(codes, [1.0, 0.0])

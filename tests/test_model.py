@@ -763,6 +763,23 @@ def test_cosine_lr_schedule_falls_to_zero_over_the_runs_steps(tmp_path):
         EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), lr_schedule="step")
 
 
+def test_code_lr_scale_puts_the_object_codes_in_a_group_of_their_own():
+    """code_lr_scale != 1: two parameter groups, the prior's codes alone at scale x lr (the
+    cosine schedule scales both); 1: one group; <= 0 refused."""
+    net = LatentFilter("fsr_t", **TINY)
+    module = EarlyFusionLatentFilter(net, optimizer={"name": "Adam", "lr": 1e-2}, code_lr_scale=10.0)
+    opt = module.configure_optimizers()
+    assert [g["lr"] for g in opt.param_groups] == pytest.approx([1e-2, 1e-1])
+    assert opt.param_groups[1]["params"] == [net.prior.embedding.weight]
+    n_params = sum(1 for _ in module.parameters())
+    assert len(opt.param_groups[0]["params"]) == n_params - 1
+    assert module.hparams["code_lr_scale"] == 10.0
+    one = EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2})
+    assert len(one.configure_optimizers().param_groups) == 1
+    with pytest.raises(ValueError, match="code_lr_scale must be > 0"):
+        EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), code_lr_scale=0.0)
+
+
 def test_population_term_enters_kl_y_and_old_checkpoints_load():
     from embodied_tactile.models.networks import HierarchicalPrior
 

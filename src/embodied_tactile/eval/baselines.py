@@ -32,6 +32,10 @@
     train split only (MSE at every frame, NaN factors masked).
 
 (c) Mean predictor: the train mean at every frame (NMSE ~ 1 by construction).
+
+(d) Object-code regression (:func:`evaluate_code_regression`): the Latent Filter's inference
+    path trained to output a fixed random code per training object, its outputs aligned to
+    the factors by the KRR: the bound of the label-conditioned prior's route into y.
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment
-from .results import Results
+from .results import Results, evaluate_latents
 
 _EPS = 1e-8
 
@@ -244,13 +248,16 @@ class GRURegressor:
     LSTM; every frame observed, means, no decoder) with a linear head on q(y_t)'s mean:
     what the unsupervised model's y could hold if it were told the factors, at the same
     budget (method ``latent_filter_supervised``; ``modality`` is required for it).
+    ``n_out``: the head's outputs (4 factors; :func:`evaluate_code_regression` fits n_y-
+    dimensional object codes instead, any (n, n_out) target works).
     """
 
     def __init__(self, in_channels: int, action_dim: int = 6, hidden: int = 64, feat: int = 64,
                  epochs: int = 30, lr: float = 1e-3, batch_size: int = 16, weight_decay: float = 0.0,
                  max_batches_per_epoch: int | None = None, window: int | None = None,
                  windows_per_trial: int = 1, seed: int = 0, device: str = "cpu", input_standardize: bool = False,
-                 arch: str = "gru", modality: Any = None, latent_filter: Mapping[str, Any] | None = None):
+                 arch: str = "gru", modality: Any = None, latent_filter: Mapping[str, Any] | None = None,
+                 n_out: int = 4):
         import torch
         from torch import nn
 
@@ -267,7 +274,7 @@ class GRURegressor:
                         lr=lr, batch_size=batch_size, weight_decay=weight_decay,
                         max_batches_per_epoch=max_batches_per_epoch, window=window,
                         windows_per_trial=int(windows_per_trial), seed=seed, device=device,
-                        input_standardize=bool(input_standardize), arch=arch)
+                        input_standardize=bool(input_standardize), arch=arch, n_out=int(n_out))
         self.method = SUPERVISED_ARCHS[arch]
         torch.manual_seed(seed)
 
@@ -280,7 +287,7 @@ class GRURegressor:
                     nn.AdaptiveAvgPool2d(4), nn.Flatten(), nn.Linear(32 * 16, feat), nn.ReLU(),
                 )
                 self.gru = nn.GRU(feat + action_dim, hidden, batch_first=True)
-                self.head = nn.Linear(hidden, 4)
+                self.head = nn.Linear(hidden, n_out)
 
             def forward(self, obs, actions):
                 b, t = obs.shape[:2]
@@ -294,7 +301,7 @@ class GRURegressor:
                 from ..models import LatentFilter
 
                 self.lf = LatentFilter(modality, n_a=action_dim, **dict(latent_filter or {}))
-                self.head = nn.Linear(self.lf.n_y, 4)
+                self.head = nn.Linear(self.lf.n_y, n_out)
 
             def forward(self, obs, actions):
                 seen = torch.ones(obs.shape[:2], dtype=torch.bool, device=obs.device)
@@ -405,3 +412,41 @@ def evaluate_gru(train: Mapping[str, Any], test: Mapping[str, Any], *, gru: Mapp
               "inference_s_per_sequence": dt / max(1, len(pred))}
     return Results(pred, test["factors"], test["object_id"], test["action_index"], method=model.method,
                    n_train=len(obs), params=params, seq_id=test.get("seq_id"), **meta)
+
+
+def evaluate_code_regression(train: Mapping[str, Any], test: Mapping[str, Any], *, gru: Mapping[str, Any],
+                             alignment: Mapping[str, Any] | None = None, code_sigma: float = 0.5,
+                             split: str = "trial", **meta) -> Results:
+    """What the label-conditioned prior could put into y at a budget, if its pull acted like a
+    regression (method ``latent_filter_codes``; docs/modalities.md, "The object codes").
+
+    Every object id gets a fixed random code, N(0, code_sigma^2) in each of n_y dimensions
+    (n_y of ``gru["latent_filter"]``, else 16; drawn with ``gru["seed"]``), as the prior's
+    fixed codes (``prior.learn_embedding: false``) are; :class:`GRURegressor` with
+    ``arch="latent_filter"`` (required in ``gru``) learns to output its sequence's code at
+    every frame, trained on ``train`` only; the predicted codes are then aligned to the
+    factors by the evaluation's KRR (:func:`~embodied_tactile.eval.results.evaluate_latents`,
+    fitted on the training sequences' predictions), as a Latent Filter's y is. Under the
+    object split the held-out objects' codes are never seen (the bound is then for
+    recognising the training objects only)."""
+    gru = dict(gru)
+    if gru.get("arch") != "latent_filter":
+        raise ValueError(f"evaluate_code_regression trains the Latent Filter's inference path: gru['arch'] must be "
+                         f"'latent_filter', got {gru.get('arch')!r}")
+    assert_disjoint(train.get("seq_id"), test.get("seq_id"))
+    n_y = int(dict(gru.get("latent_filter") or {}).get("n_y", 16))
+    oid_tr, oid_te = np.asarray(train["object_id"]), np.asarray(test["object_id"])
+    n_obj = int(max(oid_tr.max(), oid_te.max())) + 1
+    codes = np.random.default_rng(int(gru.get("seed", 0))).normal(0.0, code_sigma, size=(n_obj, n_y))
+    obs = np.asarray(train["obs"])
+    model = GRURegressor(in_channels=obs.shape[2], action_dim=np.shape(train["actions"])[-1], n_out=n_y, **gru)
+    model.fit(obs, train["actions"], codes[oid_tr])
+    t0 = time.perf_counter()
+    p_tr = model.predict(obs, train["actions"])
+    p_te = model.predict(test["obs"], test["actions"])
+    dt = time.perf_counter() - t0
+    params = {"gru": model.cfg, "code_sigma": float(code_sigma), "train_time_s": model.train_time_s_,
+              "loss_history": model.history, "inference_s_per_sequence": dt / max(1, len(p_tr) + len(p_te))}
+    res, _ = evaluate_latents(dict(train, y=p_tr), dict(test, y=p_te), latent="y", method="latent_filter_codes",
+                              alignment=alignment, params=params, split=split, **meta)
+    return res

@@ -115,6 +115,9 @@ class LatentFilterModule(L.LightningModule):
         lr_schedule: ``"constant"`` (the optimizer's lr throughout) or ``"cosine"`` (the lr
             falls from its value to 0 along a half cosine over the run's optimiser steps,
             ``trainer.estimated_stepping_batches``; docs/model.md, "Learning-rate schedule").
+        code_lr_scale: the prior's object codes (``prior.embedding``) train in a parameter
+            group of their own at this multiple of the optimizer's lr (1 = one group, the
+            default; docs/model.md, "Fixed object codes").
 
     Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
     train/elbo, anneal/*; val/loss, val/elbo (per sequence, higher is better),
@@ -125,10 +128,12 @@ class LatentFilterModule(L.LightningModule):
     fusion: Optional[type[nn.Module]] = None
 
     def __init__(self, net: LatentFilter | Mapping[str, Any], annealing: Any = None, optimizer: Any = None,
-                 check_finite: bool = True, lr_schedule: str = "constant") -> None:
+                 check_finite: bool = True, lr_schedule: str = "constant", code_lr_scale: float = 1.0) -> None:
         super().__init__()
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
+        if not code_lr_scale > 0:
+            raise ValueError(f"code_lr_scale must be > 0, got {code_lr_scale}")
         if not isinstance(net, LatentFilter):
             if not isinstance(net, Mapping):
                 raise TypeError(f"{type(self).__name__}: net must be a LatentFilter or its config mapping, "
@@ -142,10 +147,11 @@ class LatentFilterModule(L.LightningModule):
         self._optimizer = _optimizer_factory(optimizer)
         self.check_finite = bool(check_finite)
         self.lr_schedule = lr_schedule
+        self.code_lr_scale = float(code_lr_scale)
         # saved once: the network's own constructor arguments, the schedule and the optimizer
         self.save_hyperparameters({"net": net.config(), "annealing": schedule.config(),
                                    "optimizer": _optimizer_spec(optimizer), "check_finite": bool(check_finite),
-                                   "lr_schedule": lr_schedule})
+                                   "lr_schedule": lr_schedule, "code_lr_scale": float(code_lr_scale)})
         self.model = net
         self.annealing: AnnealingSchedule = schedule
 
@@ -266,7 +272,13 @@ class LatentFilterModule(L.LightningModule):
 
     def configure_optimizers(self):
         self._fit_budget()
-        optimizer = self._optimizer(self.parameters())
+        if self.code_lr_scale == 1.0:
+            optimizer = self._optimizer(self.parameters())
+        else:  # the object codes in a group of their own, at code_lr_scale x the optimizer's lr
+            codes = self.model.prior.embedding.weight
+            optimizer = self._optimizer([{"params": [p for p in self.parameters() if p is not codes]},
+                                         {"params": [codes]}])
+            optimizer.param_groups[1]["lr"] = optimizer.param_groups[0]["lr"] * self.code_lr_scale
         if self.lr_schedule == "constant" or getattr(self, "_trainer", None) is None:
             return optimizer
         total = max(1, int(self.trainer.estimated_stepping_batches))
