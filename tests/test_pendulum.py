@@ -345,8 +345,8 @@ def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):
     assert not _model(**kwargs).prior.embedding.weight.requires_grad
     with pytest.raises(argparse.ArgumentTypeError, match="'maybe' is not a boolean"):
         parse_remedy("prior.learn_embedding=maybe")
-    cfg = _compose_job(["model.net.prior.learn_embedding=false", "model.lr_schedule=cosine"], tmp_path)
+    cfg = _compose_job(["model.net.prior.learn_embedding=true", "model.lr_schedule=cosine"], tmp_path)
     module = instantiate(cfg.model)
-    assert module.lr_schedule == "cosine" and not module.model.prior.learn_embedding
+    assert module.lr_schedule == "cosine" and module.model.prior.learn_embedding
     default = _compose_job([], tmp_path)
-    assert default.model.lr_schedule == "constant" and default.model.net.prior.learn_embedding is True
+    assert default.model.lr_schedule == "constant" and default.model.net.prior.learn_embedding is False
