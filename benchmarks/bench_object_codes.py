@@ -49,17 +49,16 @@ def initial_codes(cfg) -> np.ndarray:
 
 
 def run_row(run, opts, cache) -> dict:
-    import torch
-
     import evaluate as ev
     from embodied_tactile.eval.codes import affine_r2, code_spread, own_code_rank
+    from embodied_tactile.models.networks import softplus_var
 
     data = ev.data_config(run, opts)
     key, dm = cache.get(data)
     model = ev.load_module(run)
     prior = model.model.prior
     codes = prior.embedding.weight.detach().numpy().astype(np.float64)
-    var = (torch.nn.functional.softplus(prior.raw_var.detach()) + prior.var_floor).numpy().astype(np.float64)
+    var = softplus_var(prior.raw_var.detach(), prior.var_floor).numpy().astype(np.float64)
     seen = np.flatnonzero(prior.seen.numpy())
     row = {"run": run.name, "seed": int(run.cfg.seed), "sigma": float(np.sqrt(np.median(var))),
            "spread": code_spread(codes[seen], var), "r2_init": affine_r2(initial_codes(run.cfg)[seen], codes[seen])}
