@@ -421,7 +421,7 @@ def evaluate_code_regression(train: Mapping[str, Any], test: Mapping[str, Any], 
     regression (method ``latent_filter_codes``; docs/modalities.md, "The object codes").
 
     Every object id gets a fixed random code, N(0, code_sigma^2) in each of n_y dimensions
-    (n_y of ``gru["latent_filter"]``, else 16; drawn with ``gru["seed"]``), as the prior's
+    (n_y of ``gru["latent_filter"]``, else LatentFilter's default; drawn with ``gru["seed"]``), as the prior's
     fixed codes (``prior.learn_embedding: false``) are; :class:`GRURegressor` with
     ``arch="latent_filter"`` (required in ``gru``) learns to output its sequence's code at
     every frame, trained on ``train`` only; the predicted codes are then aligned to the
@@ -434,7 +434,14 @@ def evaluate_code_regression(train: Mapping[str, Any], test: Mapping[str, Any], 
         raise ValueError(f"evaluate_code_regression trains the Latent Filter's inference path: gru['arch'] must be "
                          f"'latent_filter', got {gru.get('arch')!r}")
     assert_disjoint(train.get("seq_id"), test.get("seq_id"))
-    n_y = int(dict(gru.get("latent_filter") or {}).get("n_y", 16))
+    n_y = dict(gru.get("latent_filter") or {}).get("n_y")
+    if n_y is None:  # the network's own default, defined once in LatentFilter
+        import inspect
+
+        from ..models import LatentFilter
+
+        n_y = inspect.signature(LatentFilter).parameters["n_y"].default
+    n_y = int(n_y)
     oid_tr, oid_te = np.asarray(train["object_id"]), np.asarray(test["object_id"])
     n_obj = int(max(oid_tr.max(), oid_te.max())) + 1
     codes = np.random.default_rng(int(gru.get("seed", 0))).normal(0.0, code_sigma, size=(n_obj, n_y))
