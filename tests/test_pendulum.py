@@ -339,10 +339,12 @@ def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from bench_pendulum import parse_remedy, remedy_kwargs
 
-    pairs = [parse_remedy(t) for t in ("obs_dropout=0.5", "prior.learn_embedding=false", "y_update=evidence")]
+    pairs = [parse_remedy(t) for t in ("obs_dropout=0.5", "prior.learn_embedding=false", "prior.learn_sigma=false", "y_update=evidence")]
     kwargs = remedy_kwargs(pairs)
-    assert kwargs == {"obs_dropout": 0.5, "prior": {"learn_embedding": False}, "y_update": "evidence"}
-    assert not _model(**kwargs).prior.embedding.weight.requires_grad
+    assert kwargs == {"obs_dropout": 0.5, "prior": {"learn_embedding": False, "learn_sigma": False}, "y_update": "evidence"}
+    prior = _model(**kwargs).prior
+    assert not prior.embedding.weight.requires_grad
+    assert "raw_var" not in dict(prior.named_parameters()) and "raw_var" in dict(prior.named_buffers())
     with pytest.raises(argparse.ArgumentTypeError, match="'maybe' is not a boolean"):
         parse_remedy("prior.learn_embedding=maybe")
     cfg = _compose_job(["model.net.prior.learn_embedding=true", "model.lr_schedule=cosine"], tmp_path)
