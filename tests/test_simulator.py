@@ -100,7 +100,7 @@ def test_determinism_and_independent_streams():
     assert np.corrcoef(ta, tc)[0, 1] > 0.9
     # the object is the same object in every trial (seeded by object id only)
     h1 = O.surface(12).copy()
-    O.surface.cache_clear()
+    O._surface.cache_clear()
     O._unit_surface.cache_clear()
     np.testing.assert_array_equal(h1, O.surface(12))
     assert not np.array_equal(O.surface(12), O.surface(13))

@@ -84,11 +84,15 @@ N_OBJECTS = 32
 
 @dataclass(frozen=True)
 class WaveObject:
+    """One palpated object. Catalogue objects name their materials by ``MATERIALS`` key;
+    objects of a simulated population (``sim.population``) carry their own :class:`Material`.
+    Catalogue ids are 0..31; population ids start at :data:`POPULATION_ID_BASE`."""
+
     object_id: int
     spatial_frequency: float  # 1/m, centre of the band-pass
     amplitude_mm: float  # peak-to-peak surface height
-    bulk: str  # key into MATERIALS
-    top_layer: str | None = None  # heterogeneous objects: key into MATERIALS
+    bulk: str | Material  # key into MATERIALS, or the material itself
+    top_layer: str | Material | None = None  # heterogeneous objects: key into MATERIALS or the material
     top_thickness_mm: float = 0.0
 
     @property
@@ -96,11 +100,26 @@ class WaveObject:
         return self.top_layer is not None
 
     @property
+    def bulk_material(self) -> Material:
+        return material(self.bulk)
+
+    @property
+    def top_material(self) -> Material | None:
+        return None if self.top_layer is None else material(self.top_layer)
+
+    @property
     def group(self) -> str:
-        """The paper's Table 2 grouping: 'soft', 'hard' or 'heterogeneous'."""
-        if self.object_id in HETEROGENEOUS_OBJECTS:
+        """The paper's Table 2 grouping: 'soft', 'hard' or 'heterogeneous'. Catalogue objects
+        take the paper's lists verbatim (its "soft" group leaves out the 20 mm silicone
+        objects); population objects: 'heterogeneous' with a top layer, 'hard' with a rigid
+        bulk (E >= RIGID_MODULUS_PA), else 'soft'."""
+        if self.object_id < N_OBJECTS:
+            if self.object_id in HETEROGENEOUS_OBJECTS:
+                return "heterogeneous"
+            return "soft" if self.object_id in SOFT_OBJECTS else "hard"
+        if self.heterogeneous:
             return "heterogeneous"
-        return "soft" if self.object_id in SOFT_OBJECTS else "hard"
+        return "hard" if self.bulk_material.youngs_modulus >= RIGID_MODULUS_PA else "soft"
 
     def factors(self) -> np.ndarray:
         """Ground truth (spatial frequency 1/m, amplitude mm, log10 E_bulk Pa, heterogeneity)."""
@@ -108,11 +127,34 @@ class WaveObject:
             [
                 self.spatial_frequency,
                 self.amplitude_mm,
-                np.log10(MATERIALS[self.bulk].youngs_modulus),
+                np.log10(self.bulk_material.youngs_modulus),
                 1.0 if self.heterogeneous else 0.0,
             ],
             dtype=np.float64,
         )
+
+    def description(self) -> dict[str, float]:
+        """The object's physical description beyond the factors (stored as trial attributes,
+        docs/data_format.md): the bulk's and the top layer's material parameters and the
+        top layer's thickness (0 and NaN moduli for a homogeneous object)."""
+        out: dict[str, float] = {"top_thickness_mm": float(self.top_thickness_mm if self.heterogeneous else 0.0)}
+        for prefix, mat in (("bulk", self.bulk_material), ("top", self.top_material)):
+            for k in MATERIAL_PARAMS:
+                out[f"{prefix}_{k}"] = float("nan") if mat is None else float(getattr(mat, k))
+        return out
+
+
+#: bulk moduli at or above this are rigid (the paper's "hard" group: PLA; silicones are < 1 MPa)
+RIGID_MODULUS_PA = 1e8
+#: Material fields stored per layer as trial attributes (``bulk_<field>``, ``top_<field>``)
+MATERIAL_PARAMS = ("youngs_modulus", "relaxation_strength", "relaxation_time", "density", "friction")
+#: population objects have ids POPULATION_ID_BASE + k (catalogue ids stay 0..N_OBJECTS - 1)
+POPULATION_ID_BASE = 1000
+
+
+def material(key: str | Material) -> Material:
+    """A material given by ``MATERIALS`` key or as itself."""
+    return key if isinstance(key, Material) else MATERIALS[key]
 
 
 def _build_objects() -> tuple[WaveObject, ...]:

@@ -141,9 +141,14 @@ SCHEMA: dict[str, Spec] = {
     "data.seq_len": Spec(("int",), lo=1, nullable=True),
     "data.train_window": Spec(("int",), lo=1, nullable=True),
     "data.windows_per_trial": Spec(("int",), lo=1, nullable=True),
+    "data.windows_per_epoch": Spec(("int",), lo=1, nullable=True),
     "data.test_fraction": Spec(("float",), lo=0, hi=1),
     "data.val_fraction": Spec(("float",), lo=0, hi=1),
     "data.sim_workers": INT1,
+    "data.n_objects": INT1,
+    "data.n_val_objects": INT1,
+    "data.n_test_objects": INT1,
+    "data.population_seed": INT0,
     "data.preprocess_workers": INT1,
     "model.net.n_z": INT1,
     "model.net.n_y": INT1,
@@ -252,3 +257,17 @@ class EntryCallback(_HydraCallback):
 
 __all__ = ["SettingsError", "SCHEMA", "Spec", "check_train_config", "check_paths", "check_writable_dir",
            "fail", "EntryCallback", "EXIT_BAD_SETTINGS"]
+
+
+def prior_rows(objects: Any, n_test: int, n_val: int, n_train: int) -> int:
+    """Rows of the prior's object-code table for a scene (``${prior_rows:...}`` in
+    configs/model/latent_filter.yaml): the catalogue's 32, or every population id."""
+    from embodied_tactile.constants import N_OBJECTS, POPULATION_ID_BASE
+
+    if objects == "population":
+        return POPULATION_ID_BASE + int(n_test) + int(n_val) + int(n_train)
+    return N_OBJECTS
+
+
+if not OmegaConf.has_resolver("prior_rows"):
+    OmegaConf.register_new_resolver("prior_rows", prior_rows)

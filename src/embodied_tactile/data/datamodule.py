@@ -22,7 +22,7 @@ import h5py
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from embodied_tactile.data.prepare import PreparedData, Scene, TrialRef, data_dir_lock, prepare_scene
 from embodied_tactile.jsonio import write_json
@@ -95,24 +95,28 @@ def _stratified_objects(by_obj: Mapping[int, Sequence[TrialRef]], test_fraction:
 
 
 def split_trials(trials: Sequence[TrialRef], *, by: str = "trial", test_fraction: float = 0.25,
-                 val_fraction: float = 0.125, seed: int = 0
+                 val_fraction: float = 0.125, seed: int = 0, roles: Mapping[int, str] | None = None
                  ) -> tuple[list[TrialRef], list[TrialRef], list[TrialRef]]:
     """Train / validation / test split, independent of listing order and stable for a seed.
 
-    * ``test``: the held-out set, touched only by evaluation (evaluate.py, the KRR
-      callback's report), never by model selection.
-      ``by="trial"`` (the paper's split): per object, ``round(test_fraction * n)`` of its
-      ``n`` trials (at least 1 and at most n - 1 when n >= 2), so every object is on both
-      sides. ``by="object"``: whole objects, balanced over factor levels
-      (:func:`_stratified_objects`), so no test object is ever seen in training.
-    * ``val``: ``round(val_fraction * N)`` of all N trials (at least 1 where possible), taken
-      from the *training* objects' remaining trials, one per object in a seeded object order
-      and only from objects that keep at least one training trial. It picks checkpoints
-      and drives early stopping. Empty when no object has a trial to spare (a warning says so).
-    * ``train``: the rest.
+    ``by="trial"`` (the paper's split; it measures recognition of objects seen in training):
+      * ``test``: per object, ``round(test_fraction * n)`` of its ``n`` trials (at least 1 and
+        at most n - 1 when n >= 2), so every object is on both sides;
+      * ``val``: ``round(val_fraction * N)`` of all N trials (at least 1 where possible), from
+        the training objects' remaining trials, one per object in a seeded object order and
+        only from objects that keep at least one training trial.
+    ``by="object"`` (objects never touched in training): train, validation and test objects
+      are disjoint. ``roles`` (object id -> 'train' | 'val' | 'test', a population's fixed
+      roles) decides where given; otherwise ``round(test_fraction * n_objects)`` test objects
+      and then ``round(val_fraction * n_objects)`` validation objects (at least 1 each while
+      a training object remains) are drawn balanced over factor levels
+      (:func:`_stratified_objects`).
 
-    The order inside an object is a hash of (seed, trial name), so adding trials of other
-    objects does not reshuffle an object's assignment more than necessary.
+    ``test`` is touched only by evaluation (evaluate.py, the KRR callback's report), never by
+    model selection; ``val`` picks checkpoints and drives early stopping (empty, with a
+    warning, when nothing can be spared). The order inside an object is a hash of (seed,
+    trial name), so adding trials of other objects does not reshuffle an object's assignment
+    more than necessary.
     """
     if by not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}, got {by!r}")
@@ -125,25 +129,42 @@ def split_trials(trials: Sequence[TrialRef], *, by: str = "trial", test_fraction
         by_obj.setdefault(tr.object_id, []).append(tr)
     for obj in by_obj:
         by_obj[obj].sort(key=lambda t: _hash_key(seed, t.name))
-    test: list[TrialRef] = []
-    pool: dict[int, list[TrialRef]] = {}  # training objects' trials still available
+    key = lambda t: t.name  # noqa: E731
     if by == "object":
         if len(by_obj) < 2:
             raise ValueError(f"split=object needs at least 2 objects, got {sorted(by_obj)}")
-        held = _stratified_objects(by_obj, test_fraction, seed)
-        for obj, items in by_obj.items():
-            (test.extend(items) if obj in held else pool.__setitem__(obj, list(items)))
-    else:
-        for obj in sorted(by_obj):
-            items = by_obj[obj]
-            n = len(items)
-            if n >= 2:
-                n_test = min(max(int(round(test_fraction * n)), 1), n - 1)
-            else:
-                n_test = 0
-                log.warning("object %d has a single trial: it is used for training only", obj)
-            test.extend(items[:n_test])
-            pool[obj] = list(items[n_test:])
+        if roles is not None:
+            unknown = sorted(set(by_obj) - set(roles))
+            if unknown:
+                raise ValueError(f"objects {unknown[:5]} have no role in the population's split")
+            role = {o: roles[o] for o in by_obj}
+        else:
+            held = _stratified_objects(by_obj, test_fraction, seed)
+            rest = {o: t for o, t in by_obj.items() if o not in held}
+            val_objs: set[int] = set()
+            n_val = int(round(val_fraction * len(by_obj)))
+            if val_fraction > 0 and len(rest) >= 2:
+                val_objs = _stratified_objects(rest, min(max(n_val, 1), len(rest) - 1) / len(rest), seed + 1)
+            role = {o: "test" if o in held else "val" if o in val_objs else "train" for o in by_obj}
+        out = {r: sorted((t for o, items in by_obj.items() if role[o] == r for t in items), key=key)
+               for r in ("train", "val", "test")}
+        if not out["val"] and val_fraction > 0:
+            log.warning("no validation objects: checkpoints follow the last epoch")
+        if not out["train"] or not out["test"]:
+            raise ValueError(f"split=object left no {'training' if not out['train'] else 'test'} objects")
+        return out["train"], out["val"], out["test"]
+    test: list[TrialRef] = []
+    pool: dict[int, list[TrialRef]] = {}  # training objects' trials still available
+    for obj in sorted(by_obj):
+        items = by_obj[obj]
+        n = len(items)
+        if n >= 2:
+            n_test = min(max(int(round(test_fraction * n)), 1), n - 1)
+        else:
+            n_test = 0
+            log.warning("object %d has a single trial: it is used for training only", obj)
+        test.extend(items[:n_test])
+        pool[obj] = list(items[n_test:])
     n_val = int(round(val_fraction * len(trials)))
     if val_fraction > 0:
         n_val = max(n_val, 1)
@@ -160,7 +181,6 @@ def split_trials(trials: Sequence[TrialRef], *, by: str = "trial", test_fraction
     if n_val and not val:
         log.warning("no validation trials: no training object has a trial to spare; checkpoints follow the last epoch")
     train = [t for items in pool.values() for t in items]
-    key = lambda t: t.name  # noqa: E731
     return sorted(train, key=key), sorted(val, key=key), sorted(test, key=key)
 
 
@@ -266,15 +286,21 @@ class TactileDataModule(L.LightningDataModule):
         channels: observation channels of the modality, e.g. ``["acc", "fsr_t", "fsr_b"]``.
         objects / actions: subsets of object ids / action indices (None = all).
         preprocess: keyword arguments of ``PreprocessConfig``.
-        split: ``"trial"`` (the paper's: every object on both sides) or ``"object"`` (whole
-            objects held out, stratified over factor levels); see :func:`split_trials`.
-        test_fraction / val_fraction: held-out test share (of trials, or of objects for
-            ``split="object"``) and validation share of all trials (from training objects).
+        objects="population": the simulated object population (``sim.population``) with
+            ``n_objects`` training, ``n_val_objects`` validation and ``n_test_objects`` test
+            objects drawn with ``population_seed``; its roles decide ``split="object"``.
+        split: ``"trial"`` (the paper's: every object on both sides; recognition) or
+            ``"object"`` (train, validation and test objects disjoint); see :func:`split_trials`.
+        test_fraction / val_fraction: held-out test and validation shares (of trials for
+            ``split="trial"``, of objects for ``split="object"``).
         split_file: where the split is saved (JSON); reused if it exists and matches.
         seq_len: keep the first ``seq_len`` frames of every trial (None = all).
         train_window / windows_per_trial: the training loader serves ``windows_per_trial``
             random ``train_window``-frame crops of every training trial per epoch (None =
             whole trials). Held-out and alignment loaders always serve whole trials.
+        windows_per_epoch: instead of ``windows_per_trial`` (which is then null): this many
+            crops per epoch, drawn as shuffled passes over the training trials, so the
+            optimiser-step budget does not depend on the number of training objects.
         strict: a bad raw trial is fatal instead of skipped.
         include_incomplete: also use recordings marked ``complete=False`` (interrupted);
             by default they are left out and counted in a warning.
@@ -289,7 +315,11 @@ class TactileDataModule(L.LightningDataModule):
         skin: str = "soft",
         primitive: str = "pressing",
         channels: Sequence[str] = ("acc", "fsr_t", "fsr_b"),
-        objects: Sequence[int] | None = None,
+        objects: Sequence[int] | str | None = None,
+        n_objects: int = 256,
+        n_val_objects: int = 32,
+        n_test_objects: int = 64,
+        population_seed: int = 0,
         actions: Sequence[int] | None = None,
         repetitions: int = 1,
         sim_seed: int = 0,
@@ -305,7 +335,8 @@ class TactileDataModule(L.LightningDataModule):
         num_workers: int = 0,
         seq_len: int | None = None,
         train_window: int | None = None,
-        windows_per_trial: int = 1,
+        windows_per_trial: int | None = 1,
+        windows_per_epoch: int | None = None,
         strict: bool = False,
         include_incomplete: bool = False,
         pin_memory: bool = False,
@@ -314,7 +345,8 @@ class TactileDataModule(L.LightningDataModule):
         #: what the preparation stage prepares (validates source, skin, primitive, raw_files, channels)
         self.scene = Scene(
             data_dir=data_dir, source=source, raw_files=tuple(raw_files or ()), skin=skin, primitive=primitive,
-            channels=tuple(channels), objects=objects, actions=actions, repetitions=repetitions,
+            channels=tuple(channels), objects=objects, n_objects=n_objects, n_val_objects=n_val_objects,
+            n_test_objects=n_test_objects, population_seed=population_seed, actions=actions, repetitions=repetitions,
             sim_seed=sim_seed, sim_workers=sim_workers, preprocess=preprocess or {},
             preprocess_workers=preprocess_workers, strict=strict, include_incomplete=include_incomplete,
         )
@@ -334,7 +366,13 @@ class TactileDataModule(L.LightningDataModule):
         self.num_workers = int(num_workers)
         self.seq_len = seq_len
         self.train_window = None if train_window is None else int(train_window)
-        self.windows_per_trial = int(windows_per_trial)
+        if (windows_per_trial is None) == (windows_per_epoch is None):
+            raise ValueError(f"give one of windows_per_trial ({windows_per_trial}) and windows_per_epoch "
+                             f"({windows_per_epoch}), the other null")
+        if windows_per_epoch is not None and int(windows_per_epoch) < 1:
+            raise ValueError(f"windows_per_epoch must be >= 1, got {windows_per_epoch}")
+        self.windows_per_trial = 1 if windows_per_trial is None else int(windows_per_trial)
+        self.windows_per_epoch = None if windows_per_epoch is None else int(windows_per_epoch)
         self.pin_memory = bool(pin_memory)
         #: the preparation stage's result (prepare_data, or attach() with one prepared elsewhere)
         self.prepared: PreparedData | None = None
@@ -394,14 +432,15 @@ class TactileDataModule(L.LightningDataModule):
             train, val, test = self._load_split(refs)
         else:
             train, val, test = split_trials(refs, by=self.split, test_fraction=self.test_fraction,
-                                            val_fraction=self.val_fraction, seed=self.split_seed)
+                                            val_fraction=self.val_fraction, seed=self.split_seed,
+                                            roles=self.scene.object_roles())
             if self.split_file:
                 self._save_split(train, val, test)
         self.train_set = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len)
         self.val_set = TactileSequenceDataset(self.cache_files, val, self.channels, self.seq_len)
         self.test_set = TactileSequenceDataset(self.cache_files, test, self.channels, self.seq_len)
         self.train_crops = self.train_set
-        if self.train_window is not None or self.windows_per_trial != 1:
+        if self.train_window is not None or self.windows_per_trial != 1 or self.windows_per_epoch is not None:
             self.train_crops = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len,
                                                       window=self.train_window,
                                                       windows_per_trial=self.windows_per_trial)
@@ -460,7 +499,13 @@ class TactileDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         assert self.train_crops is not None, "call setup() first"
-        return self._loader(self.train_crops, shuffle=True)
+        if self.windows_per_epoch is None:
+            return self._loader(self.train_crops, shuffle=True)
+        # a fixed number of windows per epoch, whatever the number of training trials: each
+        # epoch walks through shuffled passes over the trials (torch's RNG, seeded)
+        sampler = RandomSampler(self.train_crops, replacement=False, num_samples=self.windows_per_epoch)
+        return DataLoader(self.train_crops, batch_size=self.batch_size, sampler=sampler, num_workers=self.num_workers,
+                          pin_memory=self.pin_memory, persistent_workers=self.num_workers > 0, drop_last=False)
 
     def train_eval_dataloader(self) -> DataLoader:
         """Training split, fixed order (for latent alignment / evaluation)."""

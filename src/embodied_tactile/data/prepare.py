@@ -37,6 +37,9 @@ from embodied_tactile.modality import fields_for_channels
 
 log = logging.getLogger(__name__)
 
+#: ``data.objects`` value of the simulated object population (``sim.population``)
+POPULATION = "population"
+
 
 @contextlib.contextmanager
 def data_dir_lock(data_dir: Path) -> Iterator[None]:
@@ -77,9 +80,12 @@ class Scene:
 
     ``source="simulated"``: raw file ``<data_dir>/raw/<skin>_<primitive>.h5``, missing trials
     simulated; ``"recorded"``: ``raw_files`` (paths or glob patterns), never generated.
-    ``objects`` / ``actions``: subsets (None = all). ``preprocess``: ``PreprocessConfig``
-    keyword arguments. ``strict``: a bad raw trial is fatal instead of skipped.
-    ``include_incomplete``: also use recordings marked ``complete=False``.
+    ``objects`` / ``actions``: subsets (None = all). ``objects="population"`` (simulated
+    only): the object population of ``sim.population`` with ``n_objects`` training objects,
+    ``n_val_objects`` validation and ``n_test_objects`` test objects, drawn with
+    ``population_seed``. ``preprocess``: ``PreprocessConfig`` keyword arguments. ``strict``:
+    a bad raw trial is fatal instead of skipped. ``include_incomplete``: also use recordings
+    marked ``complete=False``.
     """
 
     data_dir: str = "data"
@@ -88,7 +94,11 @@ class Scene:
     skin: str = "soft"
     primitive: str = "pressing"
     channels: tuple[str, ...] = ("acc", "fsr_t", "fsr_b")
-    objects: tuple[int, ...] | None = None
+    objects: tuple[int, ...] | str | None = None
+    n_objects: int = 256
+    n_val_objects: int = 32
+    n_test_objects: int = 64
+    population_seed: int = 0
     actions: tuple[int, ...] | None = None
     repetitions: int = 1
     sim_seed: int = 0
@@ -107,11 +117,22 @@ class Scene:
             raise ValueError(f"primitive must be one of {C.PRIMITIVES}, got {self.primitive!r}")
         if self.source == "recorded" and not self.raw_files:
             raise ValueError("source='recorded' needs raw_files (paths or glob patterns of recorded HDF5 files)")
+        if isinstance(self.objects, str):
+            if self.objects != POPULATION:
+                raise ValueError(f"objects must be a list of object ids, null or {POPULATION!r}, got {self.objects!r}")
+            if self.source != "simulated":
+                raise ValueError("objects='population' needs the simulator (source='simulated')")
+            for k in ("n_objects", "n_val_objects", "n_test_objects"):
+                if isinstance(getattr(self, k), bool) or not isinstance(getattr(self, k), int) or getattr(self, k) < 1:
+                    raise ValueError(f"{k} must be an integer >= 1, got {getattr(self, k)!r}")
+            if isinstance(self.population_seed, bool) or not isinstance(self.population_seed, int) or self.population_seed < 0:
+                raise ValueError(f"population_seed must be an integer >= 0, got {self.population_seed!r}")
         norm = {
             "data_dir": str(self.data_dir),
             "raw_files": tuple(str(f) for f in (self.raw_files or ())),
             "channels": tuple(self.channels),
-            "objects": None if self.objects is None else tuple(sorted(int(o) for o in self.objects)),
+            "objects": (None if self.objects is None else self.objects if isinstance(self.objects, str)
+                        else tuple(sorted(int(o) for o in self.objects))),
             "actions": None if self.actions is None else tuple(sorted(int(a) for a in self.actions)),
             "repetitions": int(self.repetitions), "sim_seed": int(self.sim_seed),
             "sim_workers": int(self.sim_workers), "preprocess": dict(self.preprocess or {}),
@@ -128,6 +149,29 @@ class Scene:
         loader keys are the DataModule's and are ignored here."""
         keys = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: data[k] for k in keys if k in data and data[k] is not None})
+
+    @property
+    def is_population(self) -> bool:
+        return self.objects == POPULATION
+
+    def population_objects(self) -> dict[str, list[C.WaveObject]]:
+        """The population's objects by role (``sim.population.population``)."""
+        from embodied_tactile.sim.population import population
+
+        return population(self.n_objects, seed=self.population_seed, n_val=self.n_val_objects,
+                          n_test=self.n_test_objects)
+
+    def object_ids(self) -> set[int] | None:
+        """The ids of the scene's objects (None = every object in the raw files)."""
+        if self.is_population:
+            return {o.object_id for objs in self.population_objects().values() for o in objs}
+        return None if self.objects is None else set(self.objects)
+
+    def object_roles(self) -> dict[int, str] | None:
+        """Population scenes: object id -> 'train' | 'val' | 'test' (fixed by the draw); else None."""
+        if not self.is_population:
+            return None
+        return {o.object_id: role for role, objs in self.population_objects().items() for o in objs}
 
     @property
     def fields(self) -> list[str]:
@@ -148,7 +192,8 @@ class Scene:
         for another (one file per simulated dataset: the trial names do not hold the seed)."""
         if self.source == "simulated":
             suffix = "" if int(self.sim_seed) == 0 else f"_sim{int(self.sim_seed)}"
-            return [Path(self.data_dir) / "raw" / f"{self.skin}_{self.primitive}{suffix}.h5"]
+            prefix = f"population{int(self.population_seed)}_" if self.is_population else ""
+            return [Path(self.data_dir) / "raw" / f"{prefix}{self.skin}_{self.primitive}{suffix}.h5"]
         paths: list[str] = []
         for pattern in self.raw_files:
             expanded = os.path.expanduser(str(pattern))
@@ -233,9 +278,13 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
             raw = scene.raw_paths[0]
             raw.parent.mkdir(parents=True, exist_ok=True)
             before = _n_raw_trials(raw)
+            if scene.is_population:
+                objects = [o for objs in scene.population_objects().values() for o in objs]
+            else:
+                objects = scene.objects if scene.objects is not None else range(C.N_OBJECTS)
             generate_dataset(
                 raw, skin=scene.skin, primitive=scene.primitive,
-                objects=scene.objects if scene.objects is not None else range(C.N_OBJECTS),
+                objects=objects,
                 actions=scene.actions if scene.actions is not None else range(C.N_ACTIONS),
                 repetitions=scene.repetitions, seed=scene.sim_seed, workers=scene.sim_workers,
             )
@@ -276,13 +325,14 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str]
                 if entry not in skipped:
                     skipped.append(entry)
     names = _whole_trials(fields, per_field, cache_files, skipped)
+    object_ids = scene.object_ids()
     refs = []
     incomplete: list[str] = []
     for name in names:
         a = per_field[0][name]
         if str(a["skin"]) != scene.skin or str(a["primitive"]) != scene.primitive:
             continue
-        if scene.objects is not None and int(a["object_id"]) not in scene.objects:
+        if object_ids is not None and int(a["object_id"]) not in object_ids:
             continue
         if scene.actions is not None and int(a["action_index"]) not in scene.actions:
             continue

@@ -184,10 +184,13 @@ def make_attrs(
     fs_pose: float = C.FS_POSE,
     **extra: Any,
 ) -> dict[str, Any]:
-    """Attributes of a trial of catalogue object ``object_id`` (factors from the catalogue
-    unless given; pass NaNs for an unknown object)."""
+    """Attributes of a trial of object ``object_id``: the factors (from the catalogue for a
+    catalogue id unless given; pass them, or NaNs for an unknown object, otherwise) and any
+    ``extra`` attributes, e.g. the object's physical description (``WaveObject.description``)."""
     action = C.get_action(primitive, action_index)
     if factors is None:
+        if not 0 <= int(object_id) < C.N_OBJECTS:
+            raise ValueError(f"object {object_id} is not in the catalogue (0..{C.N_OBJECTS - 1}): pass its factors")
         factors = C.get_object(object_id).factors()
     attrs: dict[str, Any] = {
         "object_id": int(object_id),

@@ -17,10 +17,12 @@ from typing import Iterable
 import h5py
 
 from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import make_attrs, trial_name, write_trial
+from embodied_tactile.io.rawformat import trial_name, write_trial
+from embodied_tactile.sim import objects as O
 from embodied_tactile.sim.physics import PHYSICS_VERSION, VERSION_ATTR, PhysicsOverrides
 from embodied_tactile.sim.trial import simulate_trial
-from embodied_tactile.sim.validation import SimParameterError, check_choice, check_duration, check_int, check_overrides
+from embodied_tactile.sim.validation import (SimParameterError, check_choice, check_duration, check_int, check_object,
+                                             check_overrides)
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +101,18 @@ def _inventory(path: Path, seed: int) -> tuple[set[str], dict[str, str], str | N
         return complete, damaged, pending if pending is not None and pending in f["trials"] else None, stale
 
 
+def _checked_object(i: int, obj: int | C.WaveObject) -> int | C.WaveObject:
+    if isinstance(obj, C.WaveObject):
+        check_object(obj)
+        return obj
+    return check_int(f"objects[{i}]", obj, 0, C.N_OBJECTS - 1)
+
+
+def _name(object_id: int, skin: str, primitive: str, action_index: int, repetition: int) -> str:
+    return trial_name(dict(object_id=object_id, skin=skin, primitive=primitive, action_index=action_index,
+                           repetition=repetition))
+
+
 def _job(args: tuple) -> object:
     object_id, skin, primitive, action, rep, seed, duration, physics = args
     return simulate_trial(object_id, skin, primitive, action, rep, seed, duration=duration, physics=physics)
@@ -123,7 +137,7 @@ def generate_dataset(
     *,
     skin: str,
     primitive: str,
-    objects: Iterable[int] = range(C.N_OBJECTS),
+    objects: Iterable[int | C.WaveObject] = range(C.N_OBJECTS),
     actions: Iterable[int] = range(C.N_ACTIONS),
     repetitions: int = 1,
     seed: int = 0,
@@ -133,6 +147,7 @@ def generate_dataset(
     physics: PhysicsOverrides | None = None,
 ) -> Path:
     """Simulate objects x actions x repetitions trials of one skin and primitive into ``path``.
+    ``objects``: catalogue ids or ``WaveObject`` (a population, ``sim.population``).
 
     Only missing trials are simulated (an interrupted run resumes); ``overwrite``
     regenerates the requested trials. A requested trial simulated by an older physics
@@ -150,7 +165,9 @@ def generate_dataset(
     """
     skin = check_choice("skin", skin, C.SKINS)
     primitive = check_choice("primitive", primitive, C.PRIMITIVES)
-    objects = list(dict.fromkeys(check_int(f"objects[{i}]", o, 0, C.N_OBJECTS - 1) for i, o in enumerate(objects)))
+    objects = list(dict.fromkeys(_checked_object(i, o) for i, o in enumerate(objects)))
+    if len({O.as_object(o).object_id for o in objects}) != len(objects):
+        raise SimParameterError("objects", [O.as_object(o).object_id for o in objects], "objects with distinct ids")
     actions = list(dict.fromkeys(check_int(f"actions[{i}]", a, 0, C.N_ACTIONS - 1) for i, a in enumerate(actions)))
     if not objects:
         raise SimParameterError("objects", objects, f"a non-empty list of object ids 0..{C.N_OBJECTS - 1}")
@@ -165,9 +182,8 @@ def generate_dataset(
         raise SimParameterError("overwrite", overwrite, "true or false")
     path = Path(path)
     complete, damaged, partial, stale = _inventory(path, seed)
-    requested = {trial_name(make_attrs(object_id=o, skin=skin, primitive=primitive, action_index=a, repetition=r,
-                                       source="simulated", seed=seed))
-                 for o in objects for a in actions for r in range(repetitions)}
+    ids = {o: O.as_object(o).object_id for o in objects}
+    requested = {_name(ids[o], skin, primitive, a, r) for o in objects for a in actions for r in range(repetitions)}
     kept_stale = sorted(set(stale) - requested)
     if kept_stale:  # older trials this run would not redo: the file moves aside whole, unchanged
         aside = _aside_path(path, min(stale.values()))
@@ -181,7 +197,7 @@ def generate_dataset(
     for o in objects:
         for a in actions:
             for r in range(repetitions):
-                name = trial_name(make_attrs(object_id=o, skin=skin, primitive=primitive, action_index=a, repetition=r, source="simulated", seed=seed))
+                name = _name(ids[o], skin, primitive, a, r)
                 if name in damaged and not overwrite:
                     log.warning(
                         "%s: trial %s lacks %s; kept as it is (the simulator never deletes a trial, and a reader "

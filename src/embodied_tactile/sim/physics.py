@@ -45,6 +45,14 @@ INFILL_PITCH_M = 0.3e-3  # raster lines on flat parts (crossed at speed / pitch)
 INFILL_WEIGHT = 0.1  # relative height of the raster ridges (only on near-flat patches)
 CONTACT_REF_PA = 2e3  # node contact weight w = p / (p + CONTACT_REF_PA)
 ROUGHNESS = {"pla": 1.0, "ecoflex_00_10": 0.5, "ecoflex_00_50": 0.5, "dragon_skin_30": 0.5}
+#: roughness of a material given as itself (population silicones): the cast silicones' value
+SILICONE_ROUGHNESS = 0.5
+
+
+def roughness(material: str | C.Material) -> float:
+    """Texture roughness of a surface material (``ROUGHNESS`` by key; a material given as
+    itself is a cast silicone)."""
+    return ROUGHNESS[material] if isinstance(material, str) else SILICONE_ROUGHNESS
 
 #: Contact averaging of the step texture over the contact zone (many steps with
 #: incoherent phases under one accelerometer cell); calibrated so that a hard skin
@@ -174,8 +182,8 @@ class Mechanics:
 def mechanics(obj: C.WaveObject, skin: str, physics: PhysicsOverrides | None = None) -> Mechanics:
     physics = physics or PhysicsOverrides()
     sk = C.MATERIALS[C.SKIN_SPECS[skin].silicone]
-    bulk = C.MATERIALS[obj.bulk]
-    top = C.MATERIALS[obj.top_layer] if obj.top_layer else None
+    bulk = obj.bulk_material
+    top = obj.top_material
     tau = physics.relaxation_time
     surface = top or bulk
     return Mechanics(

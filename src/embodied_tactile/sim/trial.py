@@ -203,7 +203,7 @@ def quantise(values: np.ndarray, lo: float, hi: float, *, trial: str, field: str
 
 
 def simulate_trial(
-    object_id: int,
+    obj: int | C.WaveObject,
     skin: str,
     primitive: str,
     action_index: int,
@@ -213,13 +213,15 @@ def simulate_trial(
     duration: float = C.TRIAL_DURATION,
     physics: PhysicsOverrides | None = None,
 ) -> RawTrial:
-    """Simulate one trial. Deterministic: the same arguments (seed, object, skin, primitive,
+    """Simulate one trial of ``obj`` (a catalogue id or a ``WaveObject``, e.g. of
+    ``sim.population``). Deterministic: the same arguments (seed, object, skin, primitive,
     action, repetition, duration, physics) give identical arrays. Every argument is checked
     first (:func:`embodied_tactile.sim.validation.check_trial`, ``SimParameterError``)."""
-    check_trial(object_id, skin, primitive, action_index, repetition, seed, duration, physics)
+    check_trial(obj, skin, primitive, action_index, repetition, seed, duration, physics)
+    obj = O.as_object(obj)
+    object_id = obj.object_id
     name = trial_name(dict(object_id=object_id, skin=skin, primitive=primitive, action_index=action_index, repetition=repetition))
     physics = physics or PhysicsOverrides()
-    obj = C.get_object(object_id)
     action = C.get_action(primitive, action_index)
     mech = P.mechanics(obj, skin, physics)
     rng = _streams(seed, object_id, skin, primitive, action_index, repetition)
@@ -239,8 +241,8 @@ def simulate_trial(
     dt = 1.0 / P.PHYSICS_RATE_HZ
 
     # ---------------------------------------------------------------- surfaces
-    h_con = O.surface(object_id, physics.amplitude_mm)  # heightmap (m)
-    h_spl = O.spline_coeffs(object_id, physics.amplitude_mm)
+    h_con = O.surface(obj, physics.amplitude_mm)  # heightmap (m)
+    h_spl = O.spline_coeffs(obj, physics.amplitude_mm)
 
     # ---------------------------------------------------------------- poses
     x0, y0 = rng["placement"].normal(0.0, P.PLACEMENT_ERR_M, 2)
@@ -335,7 +337,7 @@ def simulate_trial(
     f_step = np.abs(np.gradient(h_n, dtt, axis=0)) / P.LAYER_HEIGHT_M
     f_inf = np.abs(np.gradient(wn_[..., 0], dtt, axis=0)) / P.INFILL_PITCH_M
     fn, zeta = P.node_resonance(skin)
-    rough = P.ROUGHNESS[obj.top_layer or obj.bulk]
+    rough = P.roughness(obj.top_layer or obj.bulk)
     gain = P.TEXTURE_COUPLING * rough * w_node / 9.81
     amp_step = gain * (2 * np.pi * f_step) ** 2 * (P.LAYER_HEIGHT_M / np.pi)
     amp_step *= P.skin_transmissibility(f_step, fn, zeta) * P.antialias(f_step)
@@ -385,6 +387,8 @@ def simulate_trial(
         repetition=repetition,
         source="simulated",
         seed=seed,
+        factors=obj.factors(),
+        **obj.description(),
         **{P.VERSION_ATTR: P.PHYSICS_VERSION},
     )
     return RawTrial(t=t_tac, acc=acc, fsr=fsr, pose_t=t_pose, pose=pose, attrs=attrs)

@@ -126,8 +126,9 @@ def physics_overrides(values: Mapping[str, Any] | None) -> Any:
 
 def check_trial(object_id: Any, skin: Any, primitive: Any, action_index: Any, repetition: Any, seed: Any,
                 duration: Any, physics: Any) -> None:
-    """Check the arguments of one simulated trial (``physics`` may be None)."""
-    check_int("object_id", object_id, 0, C.N_OBJECTS - 1)
+    """Check the arguments of one simulated trial (``physics`` may be None; ``object_id`` a
+    catalogue id or a ``WaveObject``)."""
+    check_object(object_id)
     check_choice("skin", skin, C.SKINS)
     check_choice("primitive", primitive, C.PRIMITIVES)
     check_int("action_index", action_index, 0, C.N_ACTIONS - 1)
@@ -135,6 +136,28 @@ def check_trial(object_id: Any, skin: Any, primitive: Any, action_index: Any, re
     check_int("seed", seed, 0)
     check_duration(duration)
     check_overrides(physics)
+
+
+def check_object(obj: Any) -> None:
+    """A catalogue id, or a ``WaveObject`` whose geometry and materials the simulator accepts
+    (the ranges of docs/simulator.md; the same modulus range as the overrides)."""
+    if not isinstance(obj, C.WaveObject):
+        check_int("object_id", obj, 0, C.N_OBJECTS - 1)
+        return
+    check_int("object.object_id", obj.object_id, 0)
+    check_range("object.spatial_frequency", obj.spatial_frequency, 0.0, 1.0 / (2 * P.SURFACE_DX_M), lo_open=True)
+    check_range("object.amplitude_mm", obj.amplitude_mm, 0.0, 100.0, lo_open=True)
+    layers = [("bulk", obj.bulk)] + ([("top_layer", obj.top_layer)] if obj.top_layer is not None else [])
+    for name, key in layers:
+        if isinstance(key, str):
+            check_choice(f"object.{name}", key, C.MATERIALS)
+        mat = C.material(key)
+        check_range(f"object.{name}.youngs_modulus", mat.youngs_modulus, *YOUNGS_MODULUS_RANGE_PA)
+        check_range(f"object.{name}.relaxation_strength", mat.relaxation_strength, 0.0, 10.0)
+        check_range(f"object.{name}.relaxation_time", mat.relaxation_time, 0.0, lo_open=True)
+        check_range(f"object.{name}.friction", mat.friction, 0.0, 10.0)
+    if obj.top_layer is not None:
+        check_range("object.top_thickness_mm", obj.top_thickness_mm, 0.0, 20.0, lo_open=True)
 
 
 def check_overrides(physics: Any) -> None:
