@@ -93,8 +93,8 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
         raise EvaluationError(f"latent must be 'y', 'z' or 'both', got {opts.latent!r}")
     from embodied_tactile.eval.targets import TARGET_ENCODINGS
 
-    if opts.targets not in TARGET_ENCODINGS:
-        raise EvaluationError(f"targets must be one of {list(TARGET_ENCODINGS)}, got {opts.targets!r}")
+    if opts.targets is not None and opts.targets not in TARGET_ENCODINGS:
+        raise EvaluationError(f"targets must be null (the run's own) or one of {list(TARGET_ENCODINGS)}, got {opts.targets!r}")
     if opts.baselines is not None:
         unknown = [b for b in opts.baselines if b not in BASELINES]
         if unknown:
@@ -399,10 +399,11 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
     from embodied_tactile.modality import Modality
     from embodied_tactile.eval.figures import read_history
-    from embodied_tactile.eval.targets import encode_split
+    from embodied_tactile.eval.targets import DEFAULT_TARGETS, encode_split
 
     t_run = time.perf_counter()
     cfg = run.cfg
+    targets = str(opts.targets if opts.targets is not None else cfg.get("targets", DEFAULT_TARGETS))
     modality, skin, primitive = str(cfg.modality.name), str(cfg.skin.name), str(cfg.primitive.name)
     data = data_config(run, opts)
     source = str(data.get("source", "simulated"))
@@ -416,7 +417,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     model = load_module(run)
     tr, _ = collect_split(model, cache.batches(key, dm, "train"), _names(dm, "train"), opts.latent)
     te, infer_s = collect_split(model, cache.batches(key, dm, "test"), _names(dm, "test"), opts.latent)
-    tr, te = encode_split(tr, str(opts.targets)), encode_split(te, str(opts.targets))  # every method: one encoding
+    tr, te = encode_split(tr, targets), encode_split(te, targets)  # every method: one encoding
     t_inf = time.perf_counter()
     split = run_split(run, data["split_file"])
 
@@ -452,16 +453,16 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
         timings[f"{b}_s"] = time.perf_counter() - t0
     for r in results:
         r.params.setdefault("run_dir", str(run.run_dir))
-        r.targets, r.split, r.unseen_objects = str(opts.targets), split["kind"], split["unseen_objects"]
+        r.targets, r.split, r.unseen_objects = targets, split["kind"], split["unseen_objects"]
     timings["total_s"] = time.perf_counter() - t_run
     info = {"run_dir": str(run.run_dir), "checkpoint": str(run.ckpt), "modality": modality, "skin": skin,
             "primitive": primitive, "source": source, "channels": channels, "latent": opts.latent,
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])),
             "n_frames": int(te["obs"].shape[1]), "train_wall_s": train_s, "timings": timings,
-            "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"), "targets": str(opts.targets),
+            "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"), "targets": targets,
             "split": split,
             "training_final_alignment": compare_with_training(res, final_row, run.ckpt, align, opts.latent,
-                                                              str(opts.targets), split["kind"])}
+                                                              targets, split["kind"])}
     del model
     return results, history, info
 

@@ -58,6 +58,7 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
         raise PalpationError(f"{run_dir} is a multirun folder; give one of its job folders")
     r = runs[0]
     opts = ev.parse_options([f"checkpoint={checkpoint}", *eval_overrides])
+    targets = str(opts.targets if opts.targets is not None else r.cfg.get("targets", "design_rank"))
     try:
         data = ev.data_config(r, opts)
     except ev.EvaluationError as err:
@@ -70,7 +71,7 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
     except ev.EvaluationError as err:
         raise PalpationError(str(err)) from err
     tr, _ = ev.collect_split(module, cache.batches(key, dm, "train"), ev._names(dm, "train"), "y")
-    tr = encode_split(tr, str(opts.targets))
+    tr = encode_split(tr, targets)
     split = str(data.get("split", "trial"))
     align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"],
                           **alignment_kwargs(opts.alignment, split, tr["object_id"]))
@@ -79,11 +80,11 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
     from embodied_tactile.data.prepare import Scene
     from embodied_tactile.eval.targets import encode_factors
 
-    catalogue = encode_factors(np.stack([o.factors() for o in C.OBJECTS]), str(opts.targets))
+    catalogue = encode_factors(np.stack([o.factors() for o in C.OBJECTS]), targets)
     scene = Scene.from_config(data)
     model = PalpationModel(net=module.model, channels=tuple(data["channels"]), preprocess=scene.preprocess_config(),
                            alignment=align, ref_var=reference_variance(catalogue), nominal_actions=nominal,
-                           skin=str(r.cfg.skin.name), primitive=str(r.cfg.primitive.name), targets=str(opts.targets))
+                           skin=str(r.cfg.skin.name), primitive=str(r.cfg.primitive.name), targets=targets)
     split = ev.run_split(r, data["split_file"])
     test_objects = sorted({int(t.object_id) for t in dm.test_set.trials})
     train_objects = sorted({int(t.object_id) for t in dm.train_set.trials})

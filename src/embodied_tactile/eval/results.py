@@ -25,7 +25,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ..constants import FACTOR_NAMES, OBJECT_GROUPS, get_object
+from ..constants import FACTOR_NAMES, N_OBJECTS, OBJECT_GROUPS, get_object
 from ..jsonio import to_jsonable
 from .krr import Alignment, alignment_kwargs, assert_disjoint, fit_alignment
 from .metrics import balanced_accuracy, nmse_over_time, nmse_trajectory, overall, reference_variance, roc_auc
@@ -76,8 +76,9 @@ class Results:
 
     @property
     def group(self) -> np.ndarray:
-        """Table-2 object group per held-out sequence: 'soft' | 'hard' | 'heterogeneous'."""
-        return np.array([get_object(int(o)).group for o in self.object_id])
+        """Table-2 object group per held-out sequence: 'soft' | 'hard' | 'heterogeneous' for
+        catalogue objects, 'population' for others (the paper's groups are catalogue lists)."""
+        return np.array([get_object(int(o)).group if 0 <= int(o) < N_OBJECTS else "population" for o in self.object_id])
 
     @property
     def label(self) -> str:
