@@ -124,17 +124,20 @@ def test_split_independent_of_listing_order():
 
 
 @pytest.mark.parametrize("by", ["trial", "object"])
-def test_split_partitions_and_validation_comes_from_training_objects(by):
+def test_split_partitions_and_validation_objects(by):
     refs = _refs(32, 4)
     for seed in range(5):
         train, val, test = split_trials(refs, by=by, test_fraction=0.25, val_fraction=0.125, seed=seed)
         names = [t.name for t in train + val + test]
         assert sorted(names) == sorted(r.name for r in refs) and len(set(names)) == len(names)
         assert len(val) == 16
-        train_objects = {t.object_id for t in train}
-        assert {t.object_id for t in val} <= train_objects
-        if by == "trial":
+        train_objects, val_objects = {t.object_id for t in train}, {t.object_id for t in val}
+        if by == "trial":  # validation trials of training objects
+            assert val_objects <= train_objects
             assert len(test) == 32 and {t.object_id for t in test} == set(range(32))
+        else:  # 4 whole validation objects, apart from training and test objects
+            assert len(val_objects) == 4 and not val_objects & train_objects
+            assert not val_objects & {t.object_id for t in test}
 
 
 def test_object_split_never_puts_one_object_on_both_sides():
