@@ -20,9 +20,8 @@ names the trial in caches and splits (a group may be renamed), and must be uniqu
 the files of one dataset (``check_unique_names``).
 
 Every problem is reported as a :class:`TrialFormatError` naming file, trial and field.
-A declared rate (``fs_tactile``, ``fs_pose``) must match its timestamps: the median step
-of ``tactile/t`` (and ``baseline/t``) and ``pose/t`` within ``RATE_TOLERANCE`` of
-``1 / fs`` (:func:`_check_rate`).
+A declared rate (``fs_tactile``, ``fs_pose``) must match its timestamps (``tactile/t``,
+``baseline/t``, ``pose/t``) within ``RATE_TOLERANCE`` (:func:`_check_rate`).
 A bad trial is skipped with a warning (``strict=True`` makes it fatal); it never takes the
 other trials of the file down.
 """
@@ -97,9 +96,9 @@ OPTIONAL_ATTRS: Mapping[str, type] = {
 
 #: Clock field -> the attribute that declares its sampling rate.
 RATE_ATTRS: Mapping[str, str] = {"t": "fs_tactile", "baseline_t": "fs_tactile", "pose_t": "fs_pose"}
-#: A declared rate is accepted when the rate its timestamps show (1 / median step) is
-#: within this fraction of it: jitter, lost packets and a board a few percent off pass,
-#: a rate declared twice or half too high does not.
+#: A declared step 1 / fs is accepted within the quartiles of the timestamps' steps widened
+#: by this fraction: jitter, bursts, lost packets and a board a few percent off pass, a
+#: rate declared twice or half too high on regular timestamps does not.
 RATE_TOLERANCE = 0.2
 
 _DTYPES: Mapping[str, tuple[np.dtype, ...]] = {
@@ -293,6 +292,7 @@ class IncrementalTrialWriter:
                 FIELDS[fld], shape=(0, *tail), maxshape=(None, *tail), dtype=_DTYPES[fld][0], chunks=(rows, *tail)
             )
         self.file.flush()
+        self._flushed = {fld: 0 for fld in FIELDS}
 
     def append(self, fld: str, values: np.ndarray) -> None:
         ds = self._ds[fld]
@@ -311,6 +311,14 @@ class IncrementalTrialWriter:
 
     def flush(self) -> None:
         self.file.flush()
+        self._flushed = {fld: int(ds.shape[0]) for fld, ds in self._ds.items()}
+
+    def rollback(self) -> None:
+        """Cut every dataset back to its length at the last :meth:`flush` (a batch whose
+        write failed half way leaves no field longer than its clock)."""
+        for fld, ds in self._ds.items():
+            if ds.shape[0] != self._flushed[fld]:
+                ds.resize(self._flushed[fld], axis=0)
 
     def close(self, *, complete: bool) -> None:
         if not self.file.id.valid:
@@ -408,18 +416,22 @@ def _check_values(file: str, name: str, fld: str, data: np.ndarray) -> None:
 
 
 def _check_rate(file: str, name: str, fld: str, data: np.ndarray, attrs: Mapping[str, Any] | None) -> None:
-    """The rate declared for clock ``fld`` (``RATE_ATTRS``) against its timestamps' median step."""
+    """The rate declared for clock ``fld`` (``RATE_ATTRS``) against its timestamps: the
+    declared step ``1 / fs`` must lie within the steps' interquartile range widened by
+    ``RATE_TOLERANCE`` (regular timestamps: the median step within the tolerance; a polled
+    stream that arrives in bursts or with jitter: anywhere among its typical steps)."""
     key = RATE_ATTRS.get(fld)
     if key is None or attrs is None or key not in attrs or data.shape[0] < 2:
         return
     declared = float(attrs[key])
-    step = float(np.median(np.diff(data)))
-    shown = 1.0 / step if step > 0 else math.inf
-    if not abs(shown / declared - 1.0) <= RATE_TOLERANCE:
+    q25, median, q75 = (float(v) for v in np.quantile(np.diff(data), [0.25, 0.5, 0.75]))
+    if not q25 / (1 + RATE_TOLERANCE) <= 1.0 / declared <= q75 * (1 + RATE_TOLERANCE):
+        shown = 1.0 / median if median > 0 else math.inf
         raise TrialFormatError(
             file, name, FIELDS[fld],
-            f"timestamps show {shown:.4g} Hz (median step {step * 1e3:.4g} ms) but attrs/{key} declares {declared:g} Hz "
-            f"(tolerance {RATE_TOLERANCE:.0%}): fix {key} or the timestamps",
+            f"timestamps show {shown:.4g} Hz (median step {median * 1e3:.4g} ms, quartiles {q25 * 1e3:.4g} to "
+            f"{q75 * 1e3:.4g} ms) but attrs/{key} declares {declared:g} Hz (a step of {1e3 / declared:.4g} ms; "
+            f"tolerance {RATE_TOLERANCE:.0%}): fix {key} or the timestamps",
         )
 
 
