@@ -242,10 +242,11 @@ def test_faults(tmp_path, trial3s, kind, faults):
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _cli(tmp_path, port, *over):
+def _cli(tmp_path, port, *over, preexec_fn=None):
     cmd = [sys.executable, "-m", "embodied_tactile.record", f"port={port}", f"out={tmp_path / 'cli.h5'}", "settle_s=0.1",
-           "baseline_s=0", f"hydra.run.dir={tmp_path / 'hydra'}", "record/device@device=ideal", "trial.object_id=40", *over]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+           "baseline_s=0", f"hydra.run.dir={tmp_path.parent / (tmp_path.name + '_hydra')}", "record/device@device=ideal",
+           "trial.object_id=40", "reserve_mb=0.25", *over]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, preexec_fn=preexec_fn)
 
 
 def _wait_line(proc, text, timeout=30.0):
@@ -259,10 +260,11 @@ def _wait_line(proc, text, timeout=30.0):
     raise AssertionError(f"no '{text}' from recorder: {proc.stderr.read()}")
 
 
-def _read_cli(tmp_path):
-    good, errors = R.scan_raw(tmp_path / "cli.h5", strict=True)
+def _read_cli(tmp_path, rep=0):
+    path = tmp_path / f"cli.obj40_soft_pressing_a00_r{rep:02d}.h5"  # one file per trial
+    good, errors = R.scan_raw(path, strict=True)
     assert len(good) == 1 and not errors
-    return R.read_trial(tmp_path / "cli.h5", good[0].name)
+    return R.read_trial(path, good[0].name)
 
 
 def test_cli_disconnect_exit_3(tmp_path, trial3s):
@@ -350,4 +352,106 @@ def test_cli_config_and_port_errors(tmp_path):
     p = _cli(tmp_path, "loop://", "trial.primitive=juggling")
     _, err = p.communicate(timeout=30)
     assert p.returncode == 2 and "configuration error" in err
-    assert not (tmp_path / "cli.h5").exists()
+    assert not list(tmp_path.glob("cli*.h5"))
+
+
+# --------------------------------------------------------------------------- a full disk, a file-size limit, a failed write
+def _file_bytes(path):
+    return Path(path).read_bytes()
+
+
+@pytest.fixture()
+def small_disk(tmp_path):
+    """An 8 MB tmpfs in the test's folder (needs the right to mount: root)."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(mnt)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (not root)")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], check=False)
+
+
+def _limit_file_size(nbytes):
+    import resource
+
+    return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
+
+
+@pytest.mark.parametrize("where", ["small_disk", "file_size_limit"])
+def test_cli_full_disk_or_file_size_limit_stops_cleanly(tmp_path, trial3s, where, request):
+    """A first trial recorded in full, a second onto a disk that fills up (or under
+    ``ulimit -f``): the first reads back bit for bit, the second is readable up to where
+    it stopped, complete=False, stop_reason disk_full; exit 3 and the summary printed."""
+    folder = request.getfixturevalue("small_disk") if where == "small_disk" else tmp_path
+    limit = None if where == "small_disk" else _limit_file_size(4 * 2**20)
+    emu = Emulator(trial3s)
+    port = emu.start()
+    try:
+        first = _cli(folder, port, "duration_s=1")
+        out1, err1 = first.communicate(timeout=60)
+        assert first.returncode == 0, err1
+        a = folder / "cli.obj40_soft_pressing_a00_r00.h5"
+        before, trial_a = _file_bytes(a), _read_cli(folder)
+        second = _cli(folder, port, "duration_s=6", "trial.repetition=1", preexec_fn=limit)
+        out, err = second.communicate(timeout=60)
+    finally:
+        emu.stop()
+    assert second.returncode == 3, (out, err)
+    assert "record: disk_full: " in out and "packets/s" in out  # the summary
+    assert _file_bytes(a) == before  # the earlier trial, bit for bit
+    again = _read_cli(folder)
+    for fld in ("t", "acc", "fsr", "pose_t", "pose"):
+        np.testing.assert_array_equal(getattr(again, fld), getattr(trial_a, fld))
+    rec = _read_cli(folder, rep=1)
+    assert rec.attrs["complete"] is False and rec.attrs["stop_reason"] == "disk_full"
+    assert 200 < len(rec.t) and rec.t[-1] < 6.0 - 0.4, (len(rec.t), rec.t[-1])  # stopped before the end, after recording some
+    from types import SimpleNamespace
+
+    _check_genuine(trial3s, SimpleNamespace(t=rec.t[:1000], acc=rec.acc[:1000], fsr=rec.fsr[:1000]))  # before the 3 s loop wraps
+
+
+def test_cli_refuses_a_trial_that_has_no_room_to_start(tmp_path):
+    p = _cli(tmp_path, "loop://", "duration_s=5", preexec_fn=_limit_file_size(2**20))
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 2 and "the baseline and the first second need" in err and "reserve_mb=0.25" in err
+    assert not list(tmp_path.glob("cli*.h5"))
+
+
+class _FailingWriter(R.IncrementalTrialWriter):
+    """Raises ENOSPC on the acc append of batch ``fail_at`` (half of that batch written)."""
+
+    def __init__(self, *a, fail_at: int, **kw):
+        super().__init__(*a, **kw)
+        self.fail_at, self.batches = fail_at, 0
+
+    def append(self, fld, values):
+        if fld == "acc":
+            self.batches += 1
+            if self.batches == self.fail_at:
+                raise OSError(28, "No space left on device")
+        super().append(fld, values)
+
+
+def test_failed_write_stops_the_trial_and_keeps_what_was_flushed(tmp_path, trial3s):
+    emu = Emulator(trial3s)
+    port = emu.start()
+    settings = RecorderSettings(port=port, timeout=0.05, settle_s=0.05, baseline_s=0.0, duration_s=3.0, flush_s=0.25,
+                                late_guard_s=0.05, reserve_mb=0)
+    attrs = R.make_attrs(object_id=2, skin="hard", primitive="sliding", action_index=3, repetition=1, source="recorded", seed=0)
+    writer = _FailingWriter(tmp_path / "rec.h5", attrs, fail_at=3)
+    ser = open_port(port, 500000, settings.timeout)
+    try:
+        res = Recorder(ser, writer, settings, pose=StaticPoseSource()).run()
+        finish(writer, res)
+    finally:
+        ser.close()
+        emu.stop()
+    assert res.status == "write_error" and res.exit_code == 3 and res.unwritten > 0
+    assert "write_error: " in res.summary() and "received but not written" in res.summary()
+    rec = R.read_trial(tmp_path / "rec.h5", writer.name)
+    assert rec.attrs["complete"] is False and rec.attrs["stop_reason"] == "write_error"
+    assert len(rec.t) == res.n_trial > 0 and len(rec.acc) == len(rec.t)  # the half-written batch cut back
+    _check_genuine(trial3s, rec)

@@ -41,6 +41,7 @@ def _one_line_exit_2(res: subprocess.CompletedProcess, *needles: str) -> str:
     ("trainer.max_epochs=abc", ("trainer.max_epochs='abc'", "integer")),
     ("data.batch_size=0", ("data.batch_size=0", ">= 1")),
     ("model.optimizer.lr=fast", ("model.optimizer.lr='fast'", "number")),
+    ("data.train_window=1", ("data.train_window=1", ">= 2")),
 ])
 def test_wrongly_typed_setting_names_key_and_value(tmp_path, override, needles):
     res = train(tmp_path, f"paths.data_dir={tmp_path / 'data'}", override)
@@ -112,6 +113,16 @@ def test_settings_spec_unit():
     check_train_config(OmegaConf.create({"trainer": {"max_epochs": 3}, "callbacks": None}))
     with pytest.raises(SettingsError, match=r"trainer.limit_val_batches=-1 \(int\): expected an integer or a number >= 0"):
         check_train_config(OmegaConf.create({"trainer": {"limit_val_batches": -1}}))
+    # open bounds, and bounds between two keys, as the data module and the model enforce them
+    assert Spec(("float",), lo=0, hi=1, hi_open=True).accepts(0.0) and not Spec(("float",), lo=0, hi=1, hi_open=True).accepts(1.0)
+    for bad, match in [({"data": {"test_fraction": 0}}, r"data.test_fraction=0 \(int\): expected a number in \(0, 1\)"),
+                       ({"data": {"test_fraction": 0.25, "val_fraction": 0.75}}, "test_fraction \+ val_fraction < 1"),
+                       ({"model": {"net": {"obs_dropout": 1.0}}}, r"model.net.obs_dropout=1.0 .* in \[0, 1\)"),
+                       ({"model": {"net": {"obs_sigma": 0.01, "obs_sigma_min": 0.01}}}, "obs_sigma > obs_sigma_min"),
+                       ({"model": {"code_lr_scale": 0}}, r"model.code_lr_scale=0 .* > 0")]:
+        with pytest.raises(SettingsError, match=match):
+            check_train_config(OmegaConf.create(bad))
+    check_train_config(OmegaConf.create({"data": {"test_fraction": 0.25, "val_fraction": 0.125, "train_window": 2}}))
 
 
 # ----------------------------------------------------------------------------- quiet.py

@@ -96,6 +96,11 @@ CORRUPTIONS = {
     "lost_at_decreasing": (lambda g: g.create_dataset("tactile/lost_at", data=np.array([5, 3])), "tactile/lost_at", "decrease"),
     "lost_at_dtype": (lambda g: g.create_dataset("tactile/lost_at", data=np.array([1.0, 2.0])), "tactile/lost_at", "dtype"),
     "lost_at_shape": (lambda g: g.create_dataset("tactile/lost_at", data=np.zeros((2, 1), np.int64)), "tactile/lost_at", "shape"),
+    # a declared rate that disagrees with the timestamps, each direction
+    "rate_data_slower": (lambda g: g["tactile/t"].__setitem__(slice(None), np.arange(700) / 350.0), "tactile/t", "show 350 Hz"),
+    "rate_declared_higher": (lambda g: g.attrs.__setitem__("fs_tactile", 1400.0), "tactile/t", "declares 1400 Hz"),
+    "rate_declared_lower": (lambda g: g.attrs.__setitem__("fs_tactile", 350.0), "tactile/t", "declares 350 Hz"),
+    "pose_rate_declared_lower": (lambda g: g.attrs.__setitem__("fs_pose", 50.0), "pose/t", "attrs/fs_pose declares 50 Hz"),
 }
 
 
@@ -115,6 +120,21 @@ def test_validation_error_names_file_trial_field_and_others_load(three_trials, k
     assert bad in caplog.text  # reported, not silent
     with pytest.raises(rf.TrialFormatError, match=field.replace("/", "/")):
         rf.scan_raw(path, strict=True)
+
+
+def test_rate_check_tolerates_jitter_and_losses(tmp_path):
+    tr = make_trial()
+    rng = np.random.default_rng(1)
+    t = np.cumsum(rng.uniform(0.5, 1.5, 700)) / C.FS_TACTILE  # +-50 % jitter around the declared step
+    t[300:] += 0.05  # 35 lost packets in one gap
+    tr.t = t
+    tr.attrs["fs_tactile"] = C.FS_TACTILE / (1 + 0.75 * rf.RATE_TOLERANCE)  # a board a little off
+    rf.write_trial(tmp_path / "ok.h5", tr)
+    good, errors = rf.scan_raw(tmp_path / "ok.h5")
+    assert [g.name for g in good] == [tr.name] and not errors
+    tr.attrs["fs_tactile"] = C.FS_TACTILE / 2  # twice the steps: beyond the widened quartiles
+    with pytest.raises(rf.TrialFormatError, match="tactile/t.*fs_tactile declares"):
+        rf.write_trial(tmp_path / "off.h5", tr)
 
 
 def test_modality_subset_validation_ignores_other_fields(three_trials):

@@ -181,6 +181,30 @@ def test_resumable_csv_logger_moves_rows_of_discarded_training(tmp_path):
     assert [r["step"] for r in _csv_rows(folder / "metrics.discarded.csv")] == ["4", "5", "0", "1", "2", "3", "4"]
 
 
+def test_resumed_csv_holds_one_row_per_step_and_metric(tmp_path):
+    """A run killed after its checkpoint at step 3 had logged step 3's training row: the
+    resumed run logs step 3 again and the file keeps one row of it (the new one); the row of
+    other metrics at step 3 (logged before the checkpoint) stays."""
+    from embodied_tactile.runtime import ResumableCSVLogger
+
+    folder = tmp_path / "csv"
+    folder.mkdir()
+    with open(folder / "metrics.csv", "w") as fh:
+        fh.write("epoch,krr/nmse,step,train/loss\n" + "".join(f"{s // 2},,{s},{10.0 - s}\n" for s in range(4))
+                 + ",0.9,3,\n")
+    lg = ResumableCSVLogger(tmp_path, name="csv", version="", resume_step=3)
+    lg.log_metrics({"train/loss": 0.5, "epoch": 1}, step=3)
+    lg.log_metrics({"train/loss": 0.4, "epoch": 2}, step=4)
+    lg.save()
+    rows = _csv_rows(folder / "metrics.csv")
+    assert [(r["step"], r["train/loss"], r["krr/nmse"]) for r in rows] == [
+        ("0", "10.0", ""), ("1", "9.0", ""), ("2", "8.0", ""), ("3", "", "0.9"), ("3", "0.5", ""), ("4", "0.4", "")]
+    assert [(r["step"], r["train/loss"]) for r in _csv_rows(folder / "metrics.discarded.csv")] == [("3", "7.0")]
+    lg.log_metrics({"train/loss": 0.3}, step=5)  # later saves leave the run's own rows alone
+    lg.save()
+    assert [r["step"] for r in _csv_rows(folder / "metrics.csv")] == ["0", "1", "2", "3", "3", "4", "5"]
+
+
 def _fake_checkpoint(path: Path, step: int, mtime: float) -> None:
     torch.save({"state_dict": {}, "global_step": step, "epoch": step}, path)
     os.utime(path, (mtime, mtime))

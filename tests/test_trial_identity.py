@@ -85,6 +85,26 @@ def test_trial_bad_in_one_field_is_skipped_whole(tiny_data_dir, names, tmp_path)
     assert "tactile/fsr" in dm.skipped[0]["problem"] and dm.skipped[0]["file"] == str(a)
 
 
+@pytest.mark.parametrize("declared", [350.0, 1400.0])
+def test_trial_bad_in_every_field_is_counted_once(tiny_data_dir, names, tmp_path, caplog, declared):
+    """A declared rate its timestamps contradict (either direction) breaks the clock every
+    field reads: each cache lists the trial, the DataModule skips and counts it once."""
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    a = _copy_trials(raw, tmp_path / "a.h5", names[:4])
+    bad = names[2]
+    with h5py.File(a, "a") as f:
+        f["trials"][bad].attrs["fs_tactile"] = declared
+    dm = _recorded(tmp_path, [a])
+    with caplog.at_level("INFO"):
+        dm.prepare_data()
+        dm.setup()
+    assert _used(dm) == set(names[:4]) - {bad}
+    assert len(dm.skipped) == 1 and dm.skipped[0]["trial"] == bad and dm.skipped[0]["file"] == str(a)
+    assert set(dm.skipped[0]["field"].split(", ")) == {"acc", "fsr", "actions"}
+    assert "tactile/t" in dm.skipped[0]["problem"] and f"fs_tactile declares {declared:g} Hz" in dm.skipped[0]["problem"]
+    assert "skipped 1 bad trial(s)" in caplog.text
+
+
 def test_fields_of_one_trial_from_different_files_are_refused(tiny_data_dir, names, tmp_path):
     """The preparation stage's trial listing checks that every cached field of a trial came
     from the same raw file (a guard behind the cache builder's duplicate check)."""

@@ -7,15 +7,21 @@ Hydra app, config ``configs/record.yaml`` (+ ``configs/record/device/*.yaml``). 
 directory is resolved as ``$EMBODIED_TACTILE_CONFIG_DIR`` if set, else the repository's
 ``configs/`` next to ``src/`` (works from the repo and from an editable install).
 
+Each trial goes into its own file next to ``out`` (:func:`~.acquisition.recorder.trial_file`:
+``out=recordings/obj03.h5`` -> ``recordings/obj03.<trial name>.h5``), so a crash, a full
+disk or a file-size limit during one trial never touches the others.
+
 Exit codes: 0 the full trial was recorded (``complete=True``); 3 incomplete (Ctrl-C /
-SIGTERM, device unplugged or no data: everything received so far is stored, readable,
-``complete=False``); 2 configuration or port error (nothing recorded); 1 unexpected error.
+SIGTERM, device unplugged, no data, disk full or a failed write: everything written so
+far is stored, readable, ``complete=False``); 2 configuration or port error, or too little
+room for the baseline and the first second (nothing recorded); 1 unexpected error.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import os
 import signal
 import sys
 from typing import Any
@@ -84,6 +90,41 @@ def make_trial_attrs(cfg: DictConfig, device_desc: str, pose_name: str) -> dict[
     )
 
 
+def _check_room(path, settings, fs_tactile: float, fs_pose: float, pose_columns: int) -> None:
+    """ValueError when ``path`` has no room for the baseline and the first second of the
+    trial beside ``reserve_mb``; a warning when the whole trial will not fit (it then stops
+    early with ``stop_reason=disk_full``)."""
+    from embodied_tactile.acquisition.recorder import room_bytes, trial_bytes
+
+    room = room_bytes(path) - settings.reserve_bytes
+    first = trial_bytes(settings.baseline_s + 1.0, fs_tactile, fs_pose, pose_columns)
+    whole = trial_bytes(settings.baseline_s + settings.duration_s, fs_tactile, fs_pose, pose_columns)
+    where = f"{path.parent}: {(room + settings.reserve_bytes) / 2**20:.1f} MB writable (free disk space / file-size limit)"
+    if room < first:
+        raise ValueError(f"{where}, the baseline and the first second need {first / 2**20:.1f} MB "
+                         f"beside the reserve of reserve_mb={settings.reserve_mb:g} MB")
+    if room < whole:
+        print(f"record: warning: {where}, the whole trial needs about {whole / 2**20:.1f} MB beside the reserve of "
+              f"{settings.reserve_mb:g} MB: it will stop early (disk_full)", file=sys.stderr, flush=True)
+
+
+def _check_not_recorded(path, session, name: str) -> None:
+    """FileExistsError when the trial's file exists, or ``session`` (a file holding many
+    trials, as the recorder wrote them before one file per trial) holds the trial."""
+    if path.exists():
+        raise FileExistsError(f"{path} exists: trial '{name}' was recorded; bump trial.repetition or use another out")
+    if session.is_file():
+        import h5py
+
+        try:
+            with h5py.File(session, "r") as f:
+                held = "trials" in f and name in f["trials"]
+        except OSError:
+            return
+        if held:
+            raise FileExistsError(f"{session} holds trial '{name}'; bump trial.repetition or use another out")
+
+
 def run(cfg: DictConfig) -> int:
     """Record one trial as configured; returns the exit code."""
     from embodied_tactile.acquisition.protocol import DeviceMap, PlausibilityConfig
@@ -94,6 +135,7 @@ def run(cfg: DictConfig) -> int:
         default_out,
         finish,
         open_port,
+        trial_file,
     )
     from embodied_tactile.io.rawformat import IncrementalTrialWriter, trial_name
 
@@ -103,13 +145,16 @@ def run(cfg: DictConfig) -> int:
         settings = RecorderSettings(
             port=str(cfg.port), baud=int(cfg.baud), timeout=float(cfg.timeout), settle_s=float(cfg.settle_s),
             baseline_s=float(cfg.baseline_s), duration_s=float(cfg.duration_s), flush_s=float(cfg.flush_s),
-            quiet_s=float(cfg.quiet_s), late_guard_s=float(cfg.late_guard_s),
+            quiet_s=float(cfg.quiet_s), late_guard_s=float(cfg.late_guard_s), reserve_mb=float(cfg.reserve_mb),
         )
         device = DeviceMap.from_config(OmegaConf.to_container(cfg.device, resolve=True))
         plaus = PlausibilityConfig.from_config(OmegaConf.to_container(cfg.plausibility, resolve=True))
         pose = make_pose_source(cfg)
         attrs = make_trial_attrs(cfg, device.describe(), getattr(pose, "name", "none") if pose is not None else "none")
-        out = default_out(cfg.out)
+        out = trial_file(default_out(cfg.out), trial_name(attrs))
+        pose_columns = getattr(pose, "columns", 6) if pose is not None else 0
+        _check_not_recorded(out, default_out(cfg.out), trial_name(attrs))
+        _check_room(out, settings, float(cfg.fs_tactile), float(cfg.fs_pose), pose_columns)
     except Exception as exc:  # noqa: BLE001 - any config problem -> exit 2
         log.error("configuration error: %s", exc)
         print(f"record: configuration error: {exc}", file=sys.stderr, flush=True)
@@ -121,7 +166,7 @@ def run(cfg: DictConfig) -> int:
         print(f"record: cannot open port {settings.port!r}: {exc}", file=sys.stderr, flush=True)
         return EXIT_CONFIG
     try:
-        writer = IncrementalTrialWriter(out, attrs, pose_columns=getattr(pose, "columns", 6) if pose is not None else 6)
+        writer = IncrementalTrialWriter(out, attrs, pose_columns=pose_columns or 6)
     except (FileExistsError, OSError) as exc:
         ser.close()
         print(f"record: cannot write trial {trial_name(attrs)!r} to {out}: {exc}", file=sys.stderr, flush=True)
@@ -150,12 +195,21 @@ def run(cfg: DictConfig) -> int:
             ser.close()
         except Exception:  # noqa: BLE001 - an unplugged port may fail to close
             pass
-        writer.close(complete=False)  # no-op if finish() closed it
+        try:
+            writer.close(complete=False)  # no-op if finish() closed it
+        except (OSError, RuntimeError):
+            writer.abandon()
     msg = res.summary()
     if res.garbage_reasons:
         msg += f"; garbage reasons {res.garbage_reasons}"
     print(f"record: {msg}", flush=True)
     log.debug(msg)
+    if res.status == "write_error":
+        # The HDF5 library cannot close a file whose write failed and crashes when the
+        # interpreter tears it down: leave without that teardown, the summary printed.
+        logging.shutdown()
+        sys.stderr.flush()
+        os._exit(res.exit_code)
     return res.exit_code
 
 

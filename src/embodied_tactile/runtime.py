@@ -174,13 +174,42 @@ class _ContinuedExperimentWriter(ExperimentWriter):
     Rows logged at a step <= ``resume_step`` (the global step of the checkpoint the run
     continues from) stay; later rows (training that a resume after a kill discards, or every
     row when the run starts afresh: ``resume_step=None``) move to ``metrics.discarded.csv``
-    in the same folder, so the file never mixes two trainings and nothing is deleted."""
+    in the same folder, so the file never mixes two trainings and nothing is deleted. Rows
+    at ``resume_step`` itself that the resumed run logs again move there too (:meth:`save`)."""
 
     DISCARDED_FILE = "metrics.discarded.csv"
 
     def __init__(self, log_dir: str, resume_step: int | None) -> None:
         self.resume_step = resume_step
+        self._first_save = True
         super().__init__(log_dir=log_dir)
+
+    def _discard(self, path: Path, keys: Sequence[str], dropped: Sequence[Mapping[str, str]], why: str) -> None:
+        old = path.with_name(self.DISCARDED_FILE)
+        old_keys, old_rows = _read_csv(old) if old.is_file() else ([], [])
+        _write_csv(old, sorted(set(old_keys) | set(keys)), [*old_rows, *dropped])
+        log.warning("%s: %d row(s) %s moved to %s", path, len(dropped), why, old)
+
+    def save(self) -> None:
+        """On the first save of a resumed run, a kept row at the resume step whose metrics
+        this run logs again at that step (training after the checkpoint was written, e.g.
+        the first step's loss) moves to ``metrics.discarded.csv``: one row per step and
+        metric."""
+        path = Path(self.metrics_file_path)
+        if self._first_save and self.resume_step is not None and self.metrics and path.is_file():
+            again = {k for m in self.metrics if m.get("step") == self.resume_step for k in m} - {"step", "epoch"}
+            if again:
+                keys, rows = _read_csv(path)
+
+                def stale(r: Mapping[str, str]) -> bool:
+                    return _row_step(r) == self.resume_step and bool(again & {k for k, v in r.items() if v not in ("", None)})
+
+                dropped = [r for r in rows if stale(r)]
+                if dropped:
+                    self._discard(path, keys, dropped, f"at step {self.resume_step} that this run logs again")
+                    _write_csv(path, keys, [r for r in rows if not stale(r)])
+        self._first_save = False
+        super().save()
 
     def _check_log_dir_exists(self) -> None:  # called by the base __init__ instead of deleting
         path = Path(self.metrics_file_path)
@@ -193,11 +222,7 @@ class _ContinuedExperimentWriter(ExperimentWriter):
             kept = [r for r in rows if not _row_step(r) > self.resume_step]
             dropped = [r for r in rows if _row_step(r) > self.resume_step]
         if dropped:
-            old = path.with_name(self.DISCARDED_FILE)
-            old_keys, old_rows = _read_csv(old) if old.is_file() else ([], [])
-            _write_csv(old, sorted(set(old_keys) | set(keys)), old_rows + dropped)
-            log.warning("%s: %d row(s) logged after step %s (training this run does not continue) moved to %s",
-                        path, len(dropped), self.resume_step, old)
+            self._discard(path, keys, dropped, f"logged after step {self.resume_step} (training this run does not continue)")
         if kept:
             if dropped:
                 _write_csv(path, keys, kept)

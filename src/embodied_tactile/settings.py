@@ -1,6 +1,6 @@
 """Bad settings stop train.py at the entry with one line naming the key and the value.
 
-:func:`check_train_config` type-checks the keys of the composed train config that reach
+:func:`check_train_config` type- and range-checks the keys of the composed train config that reach
 Lightning / the data module / the optimiser as numbers or flags (``SCHEMA``), and
 :func:`check_paths` makes sure the data and log folders can be created and written.
 Both raise :class:`SettingsError`; :class:`EntryCallback` (a Hydra callback, registered in
@@ -78,20 +78,23 @@ class SettingsError(ValueError):
 @dataclass(frozen=True)
 class Spec:
     """Allowed values of one key: ``kinds`` among 'int', 'float', 'bool', 'str', 'list'
-    (an int is accepted where a float is), optional bounds, None allowed or not."""
+    (an int is accepted where a float is), optional bounds (inclusive unless ``lo_open`` /
+    ``hi_open``), None allowed or not."""
 
     kinds: tuple[str, ...]
     lo: float | None = None
     hi: float | None = None
     nullable: bool = False
+    lo_open: bool = False
+    hi_open: bool = False
 
     def describe(self) -> str:
         names = {"int": "an integer", "float": "a number", "bool": "true/false", "str": "a string", "list": "a list"}
         s = " or ".join(names[k] for k in self.kinds)
         if self.lo is not None and self.hi is not None:
-            s += f" in [{self.lo:g}, {self.hi:g}]"
+            s += f" in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
         elif self.lo is not None:
-            s += f" >= {self.lo:g}"
+            s += f" {'>' if self.lo_open else '>='} {self.lo:g}"
         return s + (" or null" if self.nullable else "")
 
     def accepts(self, v: Any) -> bool:
@@ -109,11 +112,14 @@ class Spec:
             return "list" in self.kinds
         else:
             return False
-        return ok and (self.lo is None or v >= self.lo) and (self.hi is None or v <= self.hi)
+        if self.lo is not None and not (v > self.lo if self.lo_open else v >= self.lo):
+            return False
+        return ok and (self.hi is None or (v < self.hi if self.hi_open else v <= self.hi))
 
 
 INT0, INT1 = Spec(("int",), lo=0), Spec(("int",), lo=1)
 FLAG = Spec(("bool",))
+NONNEG = Spec(("float",), lo=0)
 
 #: key -> Spec. Keys absent from a config (e.g. callbacks=none) are not checked.
 SCHEMA: dict[str, Spec] = {
@@ -139,11 +145,11 @@ SCHEMA: dict[str, Spec] = {
     "data.num_workers": INT0,
     "data.repetitions": INT1,
     "data.seq_len": Spec(("int",), lo=1, nullable=True),
-    "data.train_window": Spec(("int",), lo=1, nullable=True),
+    "data.train_window": Spec(("int",), lo=2, nullable=True),  # the recursion needs a transition
     "data.windows_per_trial": Spec(("int",), lo=1, nullable=True),
     "data.windows_per_epoch": Spec(("int",), lo=1, nullable=True),
-    "data.test_fraction": Spec(("float",), lo=0, hi=1),
-    "data.val_fraction": Spec(("float",), lo=0, hi=1),
+    "data.test_fraction": Spec(("float",), lo=0, hi=1, lo_open=True, hi_open=True),
+    "data.val_fraction": Spec(("float",), lo=0, hi=1, hi_open=True),
     "data.sim_workers": INT1,
     "data.n_objects": INT1,
     "data.n_val_objects": INT1,
@@ -152,6 +158,16 @@ SCHEMA: dict[str, Spec] = {
     "data.preprocess_workers": INT1,
     "model.net.n_z": INT1,
     "model.net.n_y": INT1,
+    "model.net.obs_sigma": Spec(("float",), lo=0, lo_open=True),
+    "model.net.obs_sigma_min": NONNEG,
+    "model.net.obs_dropout": Spec(("float",), lo=0, hi=1, hi_open=True),
+    "model.net.obs_dropout_span": INT1,
+    "model.net.elbo_samples": INT1,
+    "model.net.overshoot": INT1,
+    "model.net.overshoot_weight": NONNEG,
+    "model.net.free_bits_z": NONNEG,
+    "model.net.free_bits_y": NONNEG,
+    "model.code_lr_scale": Spec(("float",), lo=0, lo_open=True),
     "model.optimizer.lr": Spec(("float",), lo=0),
     "callbacks.krr_alignment.every_n_epochs": Spec(("int",), lo=0, nullable=True),  # null = spread `points`
     "callbacks.krr_alignment.points": INT1,
@@ -176,12 +192,24 @@ def _get(cfg: DictConfig, key: str) -> tuple[bool, Any]:
     return True, node
 
 
+#: Bounds between two keys: (key a, key b, test of (a, b), what is allowed).
+PAIRS: tuple[tuple[str, str, Callable[[float, float], bool], str], ...] = (
+    ("data.test_fraction", "data.val_fraction", lambda t, v: t + v < 1, "test_fraction + val_fraction < 1"),
+    ("model.net.obs_sigma", "model.net.obs_sigma_min", lambda s, m: s > m, "obs_sigma > obs_sigma_min"),
+)
+
+
 def check_train_config(cfg: DictConfig) -> None:
-    """Raise SettingsError for the first key of SCHEMA whose value is of the wrong type or range."""
+    """Raise SettingsError for the first key of SCHEMA whose value is of the wrong type or
+    range, then for the first pair of PAIRS that breaks its bound."""
     for key, spec in SCHEMA.items():
         present, v = _get(cfg, key)
         if present and not spec.accepts(v):
             raise SettingsError(f"{key}={v!r} ({type(v).__name__}): expected {spec.describe()}")
+    for a, b, ok, rule in PAIRS:
+        (has_a, va), (has_b, vb) = _get(cfg, a), _get(cfg, b)
+        if has_a and has_b and va is not None and vb is not None and not ok(va, vb):
+            raise SettingsError(f"{a}={va!r} and {b}={vb!r}: expected {rule}")
 
 
 def check_writable_dir(key: str, value: Any) -> Path:

@@ -24,12 +24,21 @@ to ``tactile/lost_at`` (``baseline/lost_at`` before ``t = 0``) with the next bat
 Committed packets are buffered and written in batches through
 :class:`~embodied_tactile.io.rawformat.IncrementalTrialWriter` every ``flush_s`` (<= 1 s),
 each batch followed by a flush, so a crash loses at most the last ``flush_s``.
+
+Storage: before each batch the room left for the trial's file (:func:`room_bytes`: free
+disk space and the process's file-size limit) must exceed the batch, one new chunk per
+dataset and ``reserve_mb``; otherwise the trial stops with ``stop_reason="disk_full"``
+and the batch is not written. A write that fails anyway (I/O error) stops the trial with
+``stop_reason="write_error"``. Either way the file is closed, ``complete=False``.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
+import os
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,6 +63,35 @@ EXIT_COMPLETE = 0
 EXIT_CONFIG = 2
 EXIT_INCOMPLETE = 3
 
+#: Bytes one packet takes once decoded and stored: t (float64) + acc (48 float32) + fsr (512 uint16).
+SAMPLE_BYTES = 8 + 48 * 4 + 512 * 2
+#: HDF5 metadata of a trial group (object headers, chunk indices, attributes): an upper bound.
+METADATA_BYTES = 256 * 1024
+
+
+def room_bytes(path: str | os.PathLike) -> int:
+    """Bytes that can still be written to the file ``path``: the free space of its file
+    system (as an unprivileged user sees it) and, where the process has a file-size limit
+    (``ulimit -f``, RLIMIT_FSIZE), that limit minus the file's current size."""
+    p = Path(path)
+    room = shutil.disk_usage(p.parent if not p.is_dir() else p).free
+    try:
+        import resource  # noqa: PLC0415 - POSIX only
+    except ImportError:  # pragma: no cover - Windows: no file-size limit
+        return int(room)
+    soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    if soft != resource.RLIM_INFINITY:
+        size = p.stat().st_size if p.is_file() else 0
+        room = min(room, soft - size)
+    return int(room)
+
+
+def trial_bytes(seconds: float, fs_tactile: float, fs_pose: float = 0.0, pose_columns: int = 6, chunk: int = 700) -> int:
+    """Upper estimate of the bytes ``seconds`` of recording take in a trial file: every
+    sample, pose included, one partly filled chunk per dataset, and the group's metadata."""
+    pose = math.ceil(seconds * fs_pose) * (8 + 4 * pose_columns)
+    return int(math.ceil(seconds * fs_tactile) * SAMPLE_BYTES + pose + 2 * chunk * SAMPLE_BYTES + METADATA_BYTES)
+
 
 @dataclass
 class RecorderSettings:
@@ -67,17 +105,24 @@ class RecorderSettings:
     quiet_s: float = 0.02  # drain until no byte arrived for this long
     late_guard_s: float = 0.1  # drain window after a timeout (a late answer must land in it)
     max_drain_s: float = 2.0  # a line that never goes quiet is treated as a fault
+    reserve_mb: float = 64.0  # stop the trial (disk_full) before less than this would stay writable
 
     def __post_init__(self) -> None:
         if not 0 < self.flush_s <= 1.0:
             raise ValueError(f"flush_s must be in (0, 1], got {self.flush_s}")
         if self.timeout <= 0 or self.duration_s <= 0 or self.baseline_s < 0:
             raise ValueError("timeout and duration_s must be > 0, baseline_s >= 0")
+        if not self.reserve_mb >= 0:
+            raise ValueError(f"reserve_mb must be >= 0, got {self.reserve_mb}")
+
+    @property
+    def reserve_bytes(self) -> int:
+        return int(self.reserve_mb * 2**20)
 
 
 @dataclass
 class RecordResult:
-    status: str  # complete | interrupted | unplugged | no_data
+    status: str  # complete | interrupted | unplugged | no_data | disk_full | write_error
     n_trial: int = 0
     n_baseline: int = 0
     n_pose: int = 0
@@ -92,6 +137,7 @@ class RecordResult:
     garbage_reasons: dict[str, int] = field(default_factory=dict)
     path: str = ""
     trial: str = ""
+    unwritten: int = 0  # packets received but not written (disk_full / write_error)
 
     @property
     def exit_code(self) -> int:
@@ -103,11 +149,20 @@ class RecordResult:
             f"jitter std {self.jitter_std_s * 1e3:.3f} ms, max interval {self.jitter_max_s * 1e3:.3f} ms; "
             f"lost {self.lost}, garbage {self.garbage}; baseline {self.n_baseline} packets, pose {self.n_pose} samples; "
             f"cpu {self.cpu_s:.2f} s; -> {self.path}:{self.trial}"
+            + (f"; {self.unwritten} packets received but not written" if self.unwritten else "")
         )
 
 
 class _Unplugged(Exception):
     pass
+
+
+class _StorageStop(Exception):
+    """The trial cannot be written further; ``reason`` is its stop reason."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
 
 
 class Recorder:
@@ -124,6 +179,7 @@ class Recorder:
         pose: PoseSource | None = None,
         should_stop: Callable[[], bool] = lambda: False,
         on_phase: Callable[[str], None] | None = None,
+        room: Callable[[], int] | None = None,
     ):
         self.ser = port
         self.writer = writer
@@ -133,6 +189,9 @@ class Recorder:
         self.pose = pose
         self.should_stop = should_stop
         self.on_phase = on_phase or (lambda phase: None)
+        self.room = room or (lambda: room_bytes(writer.path))
+        self._write_failed = False
+        self._unwritten = 0
         self.lost = 0
         self.garbage = 0
         self.reasons: dict[str, int] = {}
@@ -218,7 +277,40 @@ class Recorder:
         buf += pkt
         ts.append(t)
 
+    def _check_room(self) -> None:
+        """Raise _StorageStop("disk_full") unless the next batch fits with ``reserve_mb`` to spare."""
+        n = sum(len(ts) for _, ts in self._bufs.values())
+        chunk = self.writer.chunk
+        need = n * SAMPLE_BYTES + 2 * chunk * SAMPLE_BYTES + 64 * 1024  # the batch, a new chunk per dataset, pose and attrs
+        room = self.room()
+        if room - need < self.s.reserve_bytes:
+            raise _StorageStop(
+                "disk_full",
+                f"{self.writer.path}: {room / 2**20:.1f} MB writable (free disk space / file-size limit), the next "
+                f"write needs {need / 2**20:.1f} MB and {self.s.reserve_mb:g} MB are kept in reserve",
+            )
+
+    def _drop_pending(self) -> None:
+        """Forget the packets not yet written (the trial stopped for lack of room)."""
+        for buf, ts in self._bufs.values():
+            self._unwritten += len(ts)
+            buf.clear()
+            ts.clear()
+        for lost_at in self._lost_at.values():
+            lost_at.clear()
+
     def _flush(self) -> None:
+        if self._write_failed:
+            return
+        self._check_room()
+        try:
+            self._write_batch()
+        except (OSError, RuntimeError) as exc:  # h5py reports failed writes as OSError / RuntimeError
+            self._write_failed = True
+            full = isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT)
+            raise _StorageStop("write_error", f"{self.writer.path}: write failed{' (no space)' if full else ''}: {exc}") from exc
+
+    def _write_batch(self) -> None:
         for phase, (buf, ts) in self._bufs.items():
             if not ts:
                 continue
@@ -313,11 +405,19 @@ class Recorder:
         except _Unplugged as exc:
             log.error("device lost: %s", exc)
             status = "unplugged"
+        except _StorageStop as exc:
+            log.error("trial stopped: %s", exc)
+            status = exc.reason
         finally:
             try:
                 self._flush()
+            except _StorageStop as exc:
+                if status in ("complete", "interrupted", "unplugged"):
+                    log.error("trial stopped: %s", exc)
+                    status = exc.reason
             except Exception:  # noqa: BLE001 - never lose the close that follows
                 log.exception("final flush failed")
+            self._drop_pending()
             if self.pose is not None:
                 self.pose.close()
         trial_t = np.asarray(self._trial_t)
@@ -341,6 +441,7 @@ class Recorder:
             path=str(self.writer.path),
             trial=self.writer.name,
             wall_s=time.perf_counter() - t_start,
+            unwritten=self._unwritten,
         )
         return res
 
@@ -353,17 +454,38 @@ def open_port(url: str, baud: int, timeout: float):
 
 
 def finish(writer: IncrementalTrialWriter, res: RecordResult, extra_attrs: dict[str, Any] | None = None) -> None:
-    """Store the run's statistics and close the trial (``complete`` only for a full run)."""
-    writer.set_attrs(
-        lost_packets=res.lost,
-        garbage_packets=res.garbage,
-        stop_reason=res.status,
-        achieved_rate_hz=res.rate_hz,
-        jitter_std_s=res.jitter_std_s,
-        jitter_max_s=res.jitter_max_s,
-        **(extra_attrs or {}),
-    )
-    writer.close(complete=res.status == "complete")
+    """Store the run's statistics and close the trial (``complete`` only for a full run).
+    After a failed write the datasets are cut back to the last flushed batch; if the file
+    refuses that too, it is closed as it is (its ``complete=False`` was stored when the
+    trial began) and the error logged."""
+    try:
+        if res.status == "write_error":
+            writer.rollback()
+        writer.set_attrs(
+            lost_packets=res.lost,
+            garbage_packets=res.garbage,
+            stop_reason=res.status,
+            achieved_rate_hz=res.rate_hz,
+            jitter_std_s=res.jitter_std_s,
+            jitter_max_s=res.jitter_max_s,
+            unwritten_packets=res.unwritten,
+            **(extra_attrs or {}),
+        )
+        writer.close(complete=res.status == "complete")
+    except (OSError, RuntimeError) as exc:
+        if res.status == "complete":
+            res.status = "write_error"
+        log.error("%s: closing trial '%s' failed: %s", writer.path, writer.name, exc)
+        writer.abandon()
+
+
+def trial_file(out: str | os.PathLike, name: str) -> Path:
+    """The file a trial is recorded into: one file per trial, ``<out without .h5>.<trial name>.h5``
+    (``recordings/obj03.h5`` -> ``recordings/obj03.obj03_soft_pressing_a06_r00.h5``), so a
+    crash or a full disk during one trial never touches the files of the others."""
+    p = Path(out)
+    stem = p.name[: -len(p.suffix)] if p.suffix in (".h5", ".hdf5") else p.name
+    return p.with_name(f"{stem}.{name}.h5")
 
 
 def default_out(path: str | Path) -> Path:

@@ -305,7 +305,8 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str]
     """Trials present in every needed cache and matching the scene.
 
     Returns ``(trials, skipped, excluded_incomplete)``: the usable trials, every trial left
-    out as bad (listed by a cache, or absent from one: see :func:`_whole_trials`), and the
+    out as bad, once each (listed by a cache, or absent from one: see :func:`_whole_trials`;
+    :func:`_one_per_trial`), and the
     interrupted recordings left out (``complete=False``; used with ``include_incomplete``).
     RuntimeError when no trial is usable."""
     fields = scene.fields
@@ -325,6 +326,7 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str]
                 if entry not in skipped:
                     skipped.append(entry)
     names = _whole_trials(fields, per_field, cache_files, skipped)
+    skipped = _one_per_trial(skipped)
     object_ids = scene.object_ids()
     refs = []
     incomplete: list[str] = []
@@ -356,6 +358,20 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str]
             f"actions={scene.actions} in {dict(cache_files)} (skipped: {skipped[:5]})"
         )
     return refs, skipped, (incomplete if not scene.include_incomplete else [])
+
+
+def _one_per_trial(entries: Sequence[Mapping[str, str]]) -> list[dict[str, str]]:
+    """One ``{file, trial, field, problem}`` per bad trial, in first-seen order: a trial
+    rejected by several caches (a broken clock fails every field that reads it) keeps the
+    fields joined by ``", "`` and its distinct problems joined by ``"; "``."""
+    merged: dict[tuple[str | None, str | None], dict[str, list[str]]] = {}
+    for e in entries:
+        m = merged.setdefault((e.get("file"), e.get("trial")), {"field": [], "problem": []})
+        for key in ("field", "problem"):
+            if str(e.get(key)) not in m[key]:
+                m[key].append(str(e.get(key)))
+    return [{"file": f, "trial": t, "field": ", ".join(m["field"]), "problem": "; ".join(m["problem"])}
+            for (f, t), m in merged.items()]
 
 
 def _whole_trials(fields: Sequence[str], per_field: Sequence[Mapping[str, Mapping[str, Any]]],

@@ -20,6 +20,8 @@ names the trial in caches and splits (a group may be renamed), and must be uniqu
 the files of one dataset (``check_unique_names``).
 
 Every problem is reported as a :class:`TrialFormatError` naming file, trial and field.
+A declared rate (``fs_tactile``, ``fs_pose``) must match its timestamps (``tactile/t``,
+``baseline/t``, ``pose/t``) within ``RATE_TOLERANCE`` (:func:`_check_rate`).
 A bad trial is skipped with a warning (``strict=True`` makes it fatal); it never takes the
 other trials of the file down.
 """
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -90,6 +93,13 @@ OPTIONAL_ATTRS: Mapping[str, type] = {
     "notes": str,
     "sim_physics_version": int,  # simulator: version of its physics (sim.physics.PHYSICS_VERSION); absent = 1
 }
+
+#: Clock field -> the attribute that declares its sampling rate.
+RATE_ATTRS: Mapping[str, str] = {"t": "fs_tactile", "baseline_t": "fs_tactile", "pose_t": "fs_pose"}
+#: A declared step 1 / fs is accepted within the quartiles of the timestamps' steps widened
+#: by this fraction: jitter, bursts, lost packets and a board a few percent off pass, a
+#: rate declared twice or half too high on regular timestamps does not.
+RATE_TOLERANCE = 0.2
 
 _DTYPES: Mapping[str, tuple[np.dtype, ...]] = {
     "t": (np.dtype("float64"),),
@@ -269,6 +279,7 @@ class IncrementalTrialWriter:
 
     def __init__(self, path: str | os.PathLike, attrs: Mapping[str, Any], *, chunk: int = 700, pose_columns: int = 6):
         self.path = Path(path)
+        self.chunk = int(chunk)
         self.file = h5py.File(self.path, "a")  # default libver: no SWMR status flags, so a crash leaves a file that opens
         trials = _ensure_root(self.file)
         self.name = trial_name(attrs)
@@ -284,6 +295,7 @@ class IncrementalTrialWriter:
                 FIELDS[fld], shape=(0, *tail), maxshape=(None, *tail), dtype=_DTYPES[fld][0], chunks=(rows, *tail)
             )
         self.file.flush()
+        self._flushed = {fld: 0 for fld in FIELDS}
 
     def append(self, fld: str, values: np.ndarray) -> None:
         ds = self._ds[fld]
@@ -302,6 +314,14 @@ class IncrementalTrialWriter:
 
     def flush(self) -> None:
         self.file.flush()
+        self._flushed = {fld: int(ds.shape[0]) for fld, ds in self._ds.items()}
+
+    def rollback(self) -> None:
+        """Cut every dataset back to its length at the last :meth:`flush` (a batch whose
+        write failed half way leaves no field longer than its clock)."""
+        for fld, ds in self._ds.items():
+            if ds.shape[0] != self._flushed[fld]:
+                ds.resize(self._flushed[fld], axis=0)
 
     def close(self, *, complete: bool) -> None:
         if not self.file.id.valid:
@@ -314,6 +334,16 @@ class IncrementalTrialWriter:
         self.group.attrs["complete"] = bool(complete)
         self.file.flush()
         self.file.close()
+
+    def abandon(self) -> None:
+        """Close after a failed write, writing nothing more (errors of the close ignored):
+        the trial keeps what its last successful :meth:`flush` stored, ``complete=False``."""
+        if not self.file.id.valid:
+            return
+        try:
+            self.file.close()
+        except (OSError, RuntimeError) as exc:
+            log.warning("%s: closing after a failed write: %s", self.path, exc)
 
 
 # --------------------------------------------------------------------------- validation
@@ -388,6 +418,26 @@ def _check_values(file: str, name: str, fld: str, data: np.ndarray) -> None:
         raise TrialFormatError(file, name, path, f"|acc| {float(np.abs(data).max()):.3g} g exceeds the +-{C.ACC_RANGE_G} g range")
 
 
+def _check_rate(file: str, name: str, fld: str, data: np.ndarray, attrs: Mapping[str, Any] | None) -> None:
+    """The rate declared for clock ``fld`` (``RATE_ATTRS``) against its timestamps: the
+    declared step ``1 / fs`` must lie within the steps' interquartile range widened by
+    ``RATE_TOLERANCE`` (regular timestamps: the median step within the tolerance; a polled
+    stream that arrives in bursts or with jitter: anywhere among its typical steps)."""
+    key = RATE_ATTRS.get(fld)
+    if key is None or attrs is None or key not in attrs or data.shape[0] < 2:
+        return
+    declared = float(attrs[key])
+    q25, median, q75 = (float(v) for v in np.quantile(np.diff(data), [0.25, 0.5, 0.75]))
+    if not q25 / (1 + RATE_TOLERANCE) <= 1.0 / declared <= q75 * (1 + RATE_TOLERANCE):
+        shown = 1.0 / median if median > 0 else math.inf
+        raise TrialFormatError(
+            file, name, FIELDS[fld],
+            f"timestamps show {shown:.4g} Hz (median step {median * 1e3:.4g} ms, quartiles {q25 * 1e3:.4g} to "
+            f"{q75 * 1e3:.4g} ms) but attrs/{key} declares {declared:g} Hz (a step of {1e3 / declared:.4g} ms; "
+            f"tolerance {RATE_TOLERANCE:.0%}): fix {key} or the timestamps",
+        )
+
+
 def _check_lost(file: str, name: str, fld: str, data: np.ndarray, n: int | None) -> None:
     """Lost-packet positions: sample indices 0..n (n = after the last sample), non-decreasing."""
     path = FIELDS[fld]
@@ -438,12 +488,15 @@ def validate_arrays(file: str | os.PathLike, name: str, trial: RawTrial, fields:
         if fld == clock:
             counts[clock] = arr.shape[0]
         _check_values(file, name, fld, arr)
+        _check_rate(file, name, fld, arr, trial.attrs)
         if fld in LOST_FIELDS:
             _check_lost(file, name, fld, arr, counts[clock])
 
 
-def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], check: bool = True) -> dict[str, np.ndarray]:
-    """Read (and validate) the named fields of one trial group; opens only those datasets."""
+def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], check: bool = True,
+                attrs: Mapping[str, Any] | None = None) -> dict[str, np.ndarray]:
+    """Read (and validate) the named fields of one trial group; opens only those datasets.
+    ``attrs``: the group's attributes, for the rate check of each clock."""
     out: dict[str, np.ndarray] = {}
     counts: dict[str, int | None] = {"t": None, "pose_t": None, "baseline_t": None}
     for fld in fields_needed(fields):
@@ -468,6 +521,7 @@ def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], chec
             counts[clock] = data.shape[0]
         if check:
             _check_values(file, name, fld, data)
+            _check_rate(file, name, fld, data, attrs)
             if fld in LOST_FIELDS:
                 _check_lost(file, name, fld, data, counts[clock])
         out[fld] = data
@@ -586,7 +640,7 @@ def scan_raw(
                         raise TrialFormatError(p, name, "group", f"unreadable ({exc})") from None
                     _check_attrs(str(p), name, attrs)
                     if validate_data:
-                        _read_group(str(p), name, g, fields)
+                        _read_group(str(p), name, g, fields, attrs=attrs)
                     good.append(TrialInfo(str(p), name, attrs))
                 except TrialFormatError as err:
                     fail(err)
@@ -619,7 +673,7 @@ def read_trial(
     attrs = read_attrs(g) if attrs is None else dict(attrs)
     if check:
         _check_attrs(str(path), name, attrs)
-    data = _read_group(str(path), name, g, fields, check=check)
+    data = _read_group(str(path), name, g, fields, check=check, attrs=attrs)
     empty = np.zeros((0,))
     return RawTrial(
         t=data.get("t", empty),
