@@ -203,7 +203,7 @@ def quantise(values: np.ndarray, lo: float, hi: float, *, trial: str, field: str
 
 
 def simulate_trial(
-    obj: int | C.WaveObject,
+    object_id: int | C.WaveObject,
     skin: str,
     primitive: str,
     action_index: int,
@@ -213,12 +213,12 @@ def simulate_trial(
     duration: float = C.TRIAL_DURATION,
     physics: PhysicsOverrides | None = None,
 ) -> RawTrial:
-    """Simulate one trial of ``obj`` (a catalogue id or a ``WaveObject``, e.g. of
+    """Simulate one trial of ``object_id`` (a catalogue id or a ``WaveObject``, e.g. of
     ``sim.population``). Deterministic: the same arguments (seed, object, skin, primitive,
     action, repetition, duration, physics) give identical arrays. Every argument is checked
     first (:func:`embodied_tactile.sim.validation.check_trial`, ``SimParameterError``)."""
-    check_trial(obj, skin, primitive, action_index, repetition, seed, duration, physics)
-    obj = O.as_object(obj)
+    check_trial(object_id, skin, primitive, action_index, repetition, seed, duration, physics)
+    obj = O.as_object(object_id)
     object_id = obj.object_id
     name = trial_name(dict(object_id=object_id, skin=skin, primitive=primitive, action_index=action_index, repetition=repetition))
     physics = physics or PhysicsOverrides()
