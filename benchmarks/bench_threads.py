@@ -36,10 +36,7 @@ def worker(args: argparse.Namespace) -> None:
 
     import torch
 
-    sys.path.insert(0, os.path.dirname(__file__))
-    from bench_step_ceiling import step
-    from bench_training import make_batch
-
+    from embodied_tactile.bench.step import make_batch, step
     from embodied_tactile.models import LatentFilter
 
     torch.manual_seed(0)
