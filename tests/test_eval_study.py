@@ -79,6 +79,20 @@ def _hand_run(pred_het_last=None):
                    primitive="pressing")
 
 
+def test_objects_outside_the_catalogue_are_grouped_as_population_with_their_own_factors():
+    """Objects with ids beyond the 32-object catalogue (their factors from their trials):
+    the group tables put them in 'population', the catalogue groups are unchanged."""
+    r = _hand_run()
+    extra = Results(pred=np.concatenate([r.pred, r.pred[:2] * 1.1]), factors=np.concatenate([r.factors, r.factors[:2] + 1]),
+                    object_id=np.concatenate([r.object_id, [32, 40]]), action_index=np.zeros(r.n_test + 2, int),
+                    seed=0, primitive="pressing")
+    assert list(extra.group[-2:]) == ["population", "population"]
+    groups = extra.group_summary()
+    assert groups["population"]["n"] == 2
+    assert {g: groups[g]["n"] for g in ("soft", "hard", "heterogeneous")} == \
+        {g: v["n"] for g, v in r.group_summary().items()}
+
+
 def test_heterogeneity_scores_on_a_run():
     r = _hand_run(pred_het_last=[0.0, 0.1, 0.2, 0.3, 0.4, 0.6, 0.0, 0.0, 0.9, 0.45])
     h = r.heterogeneity_scores()
