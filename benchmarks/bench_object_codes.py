@@ -19,7 +19,7 @@ evaluate.py finds them) on its own saved split and best checkpoint:
   and on the held-out trials, with the median rank of the own code.
 
 Prints one Markdown table. Trial split only (under the object split the held-out objects
-have no code). docs/modalities.md, "The object codes".
+have no code). docs/experiments/object_codes.md.
 """
 
 from __future__ import annotations

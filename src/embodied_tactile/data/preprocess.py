@@ -66,7 +66,7 @@ class PreprocessConfig:
     #: "axes": each axis' static part (gravity + offset) removed, the STFT power of the three
     #: axes summed (the power spectrum of the vibration vector, rotation invariant);
     #: "magnitude": |a| first, then its mean removed (keeps, to first order, only the
-    #: component along gravity: lateral vibration enters |a| squared, docs/modalities.md)
+    #: component along gravity: lateral vibration enters |a| squared, docs/experiments/modality_bounds.md)
     acc_combine: str = "axes"
     acc_remove_mean: bool = True  # drop the static (gravity + offset) part
     acc_scale_g: float = C.ACC_RANGE_G  # fixed scale (g), never per-trial

@@ -156,7 +156,7 @@ class LatentFilter(nn.Module):
             training-set mean and standard deviation (buffers ``input_shift`` /
             ``input_scale``, set once by :meth:`set_input_stats`, carried by checkpoints);
             the decoder and the likelihood stay in the data's units. False (default) =
-            the [0, 1] images as they are (docs/modalities.md, "Where the pressing
+            the [0, 1] images as they are (docs/experiments/modality_bounds.md, "Where the pressing
             information is lost").
     """
 
