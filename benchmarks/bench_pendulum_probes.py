@@ -1,5 +1,5 @@
-"""Supervised probes on the pendulum benchmark (issue 15; docs/model.md, "What a supervised
-reader gets from the same data"): how well can the hidden parameters (w0, d) be read at
+"""Supervised probes on the pendulum benchmark (docs/experiments/pendulum.md, "What a
+reader that is told the parameters gets"): how well can the hidden parameters (w0, d) be read at
 all from the benchmark's data, by readers that are TOLD them?
 
 * ``frames_gru``: the project's supervised conv + GRU (``eval.baselines.GRURegressor``) on

@@ -1,4 +1,4 @@
-"""Thread policy under concurrency (issue 10 target 3): a lone training job against two
+"""Thread policy under concurrency (docs/experiments/speed_levers.md, target 3): a lone training job against two
 concurrent ones, each process with the threads ``runtime`` gives it.
 
 Each job is a subprocess that applies the policy exactly as ``train.py`` does

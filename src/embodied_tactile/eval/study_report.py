@@ -1,4 +1,4 @@
-"""``docs/results.md`` from an evaluated study, generated, never typed by hand (issue 9 part 5).
+"""``docs/results.md`` from an evaluated study, generated, never typed by hand.
 
     python train.py -m sweep=study_min hydra.sweeper.params.seed=0 hydra.sweep.dir=logs/train/study/seed0
     ...                                                              # further parts: seed1, seed2, ...
