@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import time
 
 import torch
 from torch.utils.flop_counter import FlopCounterMode

@@ -20,13 +20,13 @@ from collections import Counter
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError
 
 from embodied_tactile.constants import FACTOR_NAMES
 from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect_split, data_config, discover,
-                                        load_module, read_json, run_split, trial_names, trial_objects)
+                                        load_module, run_split, trial_names, trial_objects)
+from embodied_tactile.jsonio import read_json
 from embodied_tactile.settings import config_dir
 
 BASELINES = ("handcrafted", "gru", "mean")
@@ -372,10 +372,6 @@ METHOD_NAMES = {"latent_filter": "Latent Filter", "handcrafted_krr": "hand-craft
                 "mean": "mean"}
 
 
-def _fmt(v) -> str:
-    return "–" if v is None or not np.isfinite(v) else f"{v:.3g}"
-
-
 def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence[tuple], out: Path,
                      seconds: float) -> list[str]:
     """What was measured, as lines for the terminal. One run: its NMSE per factor, one row per
@@ -383,6 +379,7 @@ def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence
     alignment. Several runs: one row per run, the Latent Filter per factor beside the baselines'
     overall NMSE. Then the paper's findings that have at least one measured comparison, the
     skipped jobs and the output folder (which keeps every table)."""
+    from embodied_tactile.eval.tables import fmt_cell
     from embodied_tactile.eval.verdicts import VERDICTS, evaluate_findings, summarise
 
     methods = list(dict.fromkeys(r.method for r in results))
@@ -400,8 +397,8 @@ def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence
         for m in methods:
             row = s[m]
             lines.append(f"| {METHOD_NAMES.get(m, m)} | "
-                         + " | ".join(_fmt(row["nmse_trajectory"][f]) for f in FACTOR_NAMES)
-                         + f" | {_fmt(row['nmse_trajectory_overall'])} |")
+                         + " | ".join(fmt_cell(row["nmse_trajectory"][f]) for f in FACTOR_NAMES)
+                         + f" | {fmt_cell(row['nmse_trajectory_overall'])} |")
         lines.append(agreement_line(i["training_final_alignment"]))
     else:
         others = [m for m in methods if m != "latent_filter"]
@@ -414,10 +411,10 @@ def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence
             c = i["training_final_alignment"]
             agree = "–" if c.get("training_nmse_overall") is None else ("yes" if not c["reasons"] else
                                                                         f"{c['difference']:+.2g}")
-            lines.append(f"| {i['label']} | " + " | ".join(_fmt(lf.get("nmse_trajectory", {}).get(f))
+            lines.append(f"| {i['label']} | " + " | ".join(fmt_cell(lf.get("nmse_trajectory", {}).get(f))
                                                         for f in FACTOR_NAMES)
-                         + f" | {_fmt(lf.get('nmse_trajectory_overall'))} | "
-                         + " | ".join(_fmt(s.get(m, {}).get("nmse_trajectory_overall")) for m in others)
+                         + f" | {fmt_cell(lf.get('nmse_trajectory_overall'))} | "
+                         + " | ".join(fmt_cell(s.get(m, {}).get("nmse_trajectory_overall")) for m in others)
                          + f" | {agree} |")
         lf = [r for r in results if r.method == "latent_filter"]
         contexts = sorted({r.cell[4] for r in lf}, key=str)

@@ -21,20 +21,13 @@ from typing import Any, Mapping
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile import summary
+from embodied_tactile.jsonio import read_json
 
 log = logging.getLogger(__name__)
 
 
 class EvaluationError(RuntimeError):
     """A run folder / checkpoint / option that cannot be evaluated (message names it)."""
-
-
-def read_json(p: Path) -> dict:
-    """The JSON object in ``p``; ``{}`` when the file is missing or unreadable."""
-    try:
-        return json.loads(Path(p).read_text())
-    except (OSError, ValueError):
-        return {}
 
 
 @dataclass
