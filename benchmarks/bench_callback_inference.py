@@ -1,5 +1,5 @@
-"""Cost of one KRR check's latent inference (issue 10, target 5: the callback is almost all
-this pass), by how the sequences are batched.
+"""Cost of one KRR check's latent inference (docs/experiments/speed_levers.md, target 5: the
+callback is almost all this pass), by how the sequences are batched.
 
     python benchmarks/bench_callback_inference.py [--train 80] [--held-out 32] [--seq 300] [--rounds 5]
 

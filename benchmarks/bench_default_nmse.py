@@ -2,7 +2,7 @@
 
     python benchmarks/bench_default_nmse.py                      # every variant below, in turn
     python benchmarks/bench_default_nmse.py --only default whole_trials
-    python benchmarks/bench_default_nmse.py --only default --seeds 0 1     # issue 10 targets 2 and 5
+    python benchmarks/bench_default_nmse.py --only default --seeds 0 1     # speed targets 2 and 5 (docs/experiments/speed_levers.md)
     python benchmarks/bench_default_nmse.py --work /tmp/nmse --data-dir data -- trainer.max_epochs=8
 
 Each variant is one ``python train.py <overrides>`` run of the embedded default scene

@@ -12,7 +12,7 @@ each skin x primitive is simulated / preprocessed once into the shared data fold
 Timing: ``python evaluate.py <multirun> print_tables=false [extra options]`` in a fresh
 process (imports, numba/UMAP compilation and the report included), best of ``--repeat``.
 Prints one table: runs, wall s, per-run s, peak RSS of the evaluate.py process (its own
-``wait4`` rusage, the 3 GB target of issue 16 whatever the number of runs) and the per-stage
+``wait4`` rusage, the 3 GB target whatever the number of runs) and the per-stage
 times evaluate.py recorded. ``--train-args`` builds a heavier scene (e.g. the default
 scene's 128 trials: ``--train-args trainer.max_epochs=1``) instead of ``debug=fast``.
 """

@@ -29,7 +29,7 @@ For each of the six modalities (channels from ``configs/modality/<name>.yaml``):
   a fixed random N(0, 0.5^2) code per training object (``eval.baselines.
   evaluate_code_regression``), its outputs aligned to the factors by the KRR: what the
   label-conditioned prior's pull onto fixed object codes could put into y, were it a
-  regression (docs/modalities.md, "The object codes").
+  regression (docs/experiments/object_codes.md).
 
 For acc also two probes on the RAW 700 Hz accelerometer signal (``tactile/acc`` of the raw
 HDF5), features -> the same KRR alignment:

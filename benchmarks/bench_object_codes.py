@@ -19,7 +19,7 @@ evaluate.py finds them) on its own saved split and best checkpoint:
   and on the held-out trials, with the median rank of the own code.
 
 Prints one Markdown table. Trial split only (under the object split the held-out objects
-have no code). docs/modalities.md, "The object codes".
+have no code). docs/experiments/object_codes.md.
 """
 
 from __future__ import annotations
@@ -33,8 +33,6 @@ from pathlib import Path
 import numpy as np
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 
 def initial_codes(cfg) -> np.ndarray:
@@ -49,7 +47,7 @@ def initial_codes(cfg) -> np.ndarray:
 
 
 def run_row(run, opts, cache) -> dict:
-    import evaluate as ev
+    from embodied_tactile.eval import runs as ev
     from embodied_tactile.eval.codes import affine_r2, code_spread, own_code_rank
     from embodied_tactile.models.networks import softplus_var
 
@@ -62,10 +60,10 @@ def run_row(run, opts, cache) -> dict:
     seen = np.flatnonzero(prior.seen.numpy())
     row = {"run": run.name, "seed": int(run.cfg.seed), "sigma": float(np.sqrt(np.median(var))),
            "spread": code_spread(codes[seen], var), "r2_init": affine_r2(initial_codes(run.cfg)[seen], codes[seen])}
-    metrics = ev._read_json(run.run_dir / "metrics.json")
+    metrics = ev.read_json(run.run_dir / "metrics.json")
     row["nmse"] = (metrics.get("krr_final") or {}).get("nmse_overall", float("nan"))
     for which in ("train", "test"):
-        split, _ = ev.collect_split(model, cache.batches(key, dm, which), ev._names(dm, which), "y")
+        split, _ = ev.collect_split(model, cache.batches(key, dm, which), ev.trial_names(dm, which), "y")
         ranks = own_code_rank(split["y"][:, -1], split["object_id"], codes, var, objects=seen)
         row[f"own_{which}"], row[f"rank_{which}"] = float((ranks == 0).mean()), float(np.median(ranks))
     row["n_objects"] = len(seen)
@@ -80,12 +78,12 @@ def main(argv=None) -> None:
     import torch
 
     torch.set_num_threads(1)
-    import evaluate as ev
-
     from embodied_tactile import quiet
+    from embodied_tactile.eval import runs as ev
+    from embodied_tactile.eval.pipeline import parse_options
 
     quiet.silence_third_party()
-    opts = ev.parse_options([])
+    opts = parse_options([])
     cache = ev.DataCache()
     runs = []
     for f in args.folders:

@@ -1,4 +1,4 @@
-"""Pendulum benchmark for the Latent Filter (issue 15; docs/model.md, "Pendulum benchmark").
+"""Pendulum benchmark for the Latent Filter (docs/model.md, "Pendulum benchmark"; results in docs/experiments/pendulum.md).
 
 The driven, damped pendulum of Deep Variational Bayes Filters (Karl et al. 2017): 8
 objects (natural frequency {2, 3, 4, 5} rad/s x damping {0.1, 0.6} 1/s), random
@@ -20,43 +20,8 @@ import time
 import torch
 
 from embodied_tactile.bench.pendulum_run import DIAGNOSTIC_READOUTS, READOUTS, run
+from embodied_tactile.bench.remedies import REMEDIES, parse_remedy, remedy_kwargs
 from embodied_tactile.runtime import set_threads
-
-def boolean(text: str) -> bool:
-    """``true`` / ``false`` (any case) -> bool; anything else is a ValueError."""
-    if text.lower() not in ("true", "false"):
-        raise ValueError(text)
-    return text.lower() == "true"
-
-
-#: --remedy NAME=VALUE -> LatentFilter keyword (docs/model.md, "Training remedies"); prior.X -> prior={X: ...}
-REMEDIES = {"obs_dropout": float, "obs_dropout_span": int, "elbo_samples": int, "y_update": str, "y_evidence_max": float, "y_evidence_range": float, "y_input": str,
-            "overshoot": int, "overshoot_weight": float, "prior.learn_embedding": boolean,
-            "prior.learn_sigma": boolean,
-            "free_bits_z": float, "free_bits_y": float, "transition_form": str, "y_static": boolean}
-
-
-def remedy_kwargs(remedies) -> dict:
-    """(NAME, value) pairs -> LatentFilter keywords; ``prior.X`` names go into ``prior``."""
-    kwargs: dict = {}
-    for name, value in remedies:
-        head, _, key = name.partition(".")
-        if key:
-            kwargs.setdefault(head, {})[key] = value
-        else:
-            kwargs[name] = value
-    return kwargs
-
-
-def parse_remedy(text: str) -> tuple[str, float | int | str]:
-    name, _, value = text.partition("=")
-    if name not in REMEDIES or not value:
-        raise argparse.ArgumentTypeError(f"--remedy {text!r}: expected NAME=VALUE with NAME in {sorted(REMEDIES)}")
-    try:
-        return name, REMEDIES[name](value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--remedy {text!r}: {value!r} is not a {REMEDIES[name].__name__}") from None
-
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])

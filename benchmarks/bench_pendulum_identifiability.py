@@ -1,4 +1,4 @@
-"""Which hidden pendulum parameter can a one-step-ahead objective identify? (issue 15; docs/model.md).
+"""Which hidden pendulum parameter can a one-step-ahead objective identify? (docs/experiments/pendulum.md).
 
 The Latent Filter's ELBO scores the transition one frame ahead: the filter re-anchors z to
 every frame. A hidden parameter enters that score only through how far apart two values of it

@@ -1,5 +1,5 @@
-"""Supervised probes on the pendulum benchmark (issue 15; docs/model.md, "What a supervised
-reader gets from the same data"): how well can the hidden parameters (w0, d) be read at
+"""Supervised probes on the pendulum benchmark (docs/experiments/pendulum.md, "What a
+reader that is told the parameters gets"): how well can the hidden parameters (w0, d) be read at
 all from the benchmark's data, by readers that are TOLD them?
 
 * ``frames_gru``: the project's supervised conv + GRU (``eval.baselines.GRURegressor``) on
@@ -121,7 +121,7 @@ def main(argv=None) -> None:
         rows.append(("frames_gru", f"seed {a.seed}, {a.gru_epochs} epochs", supervised(train, test, a.gru_epochs, a.seed),
                      time.perf_counter() - t0))
     if a.lf_path:
-        from bench_pendulum import parse_remedy, remedy_kwargs  # the same NAME=VALUE parsing as bench_pendulum --remedy
+        from embodied_tactile.bench.remedies import parse_remedy, remedy_kwargs  # as bench_pendulum --remedy
 
         opts = remedy_kwargs(parse_remedy(o) for o in a.lf_option)
         t0 = time.perf_counter()

@@ -80,7 +80,7 @@ def acc_logmel_librosa(acc: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
     y = scipy.signal.resample_poly(sig, 6, 7, axis=-1)
     left, right = P.stft_padding(cfg, y.shape[-1])
     power = librosa.feature.melspectrogram(
-        y=P._pad_last(y, left, right), sr=cfg.fs_resample, n_fft=cfg.n_fft, hop_length=cfg.hop_length,
+        y=P.pad_last(y, left, right), sr=cfg.fs_resample, n_fft=cfg.n_fft, hop_length=cfg.hop_length,
         win_length=cfg.win_length, window=cfg.window, center=False, n_mels=cfg.n_mels, fmin=cfg.fmin,
         fmax=cfg.fmax_hz, htk=cfg.mel_htk, norm=cfg.mel_norm,
     ).sum(axis=-3)
@@ -134,7 +134,7 @@ def _read(task):
 
 
 def _one_blas_thread():
-    from embodied_tactile.data.cache import _one_blas_thread as one
+    from embodied_tactile.data.cache import one_blas_thread as one
 
     return one()
 

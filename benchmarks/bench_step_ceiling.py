@@ -14,41 +14,14 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import sys
-import time
 
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-sys.path.insert(0, os.path.dirname(__file__))
-from bench_training import make_batch  # noqa: E402
 
+from embodied_tactile.bench.step import make_batch, matmul_ceiling, step  # noqa: E402
 from embodied_tactile.models import LatentFilter  # noqa: E402
 from embodied_tactile.models.networks import ConvDecoder, ConvEncoder  # noqa: E402
-
-
-def matmul_ceiling(n: int = 2048, repeats: int = 3) -> float:
-    """GFLOP/s of an n x n fp32 matmul (best of ``repeats``)."""
-    a, b = torch.randn(n, n), torch.randn(n, n)
-    a @ b
-    best = min(_timed(lambda: a @ b) for _ in range(repeats))
-    return 2 * n ** 3 / best / 1e9
-
-
-def _timed(fn) -> float:
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
-
-
-def step(m: LatentFilter, batch: dict, opt, ctx) -> float:
-    def run():
-        opt.zero_grad(set_to_none=True)
-        with ctx():
-            terms = m.elbo_terms(batch)
-        (terms["nll"] + terms["kl_z"] + terms["kl_y"]).backward()
-        opt.step()
-    return _timed(run)
 
 
 def main() -> None:

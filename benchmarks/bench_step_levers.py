@@ -38,16 +38,13 @@ import argparse
 import contextlib
 import os
 import statistics
-import sys
 import time
 
 import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-sys.path.insert(0, os.path.dirname(__file__))
-from bench_step_ceiling import matmul_ceiling  # noqa: E402
-from bench_training import make_batch, naive_terms  # noqa: E402
+from embodied_tactile.bench.step import make_batch, matmul_ceiling, naive_terms  # noqa: E402
 
 from embodied_tactile.models import LatentFilter  # noqa: E402
 from embodied_tactile.models import networks  # noqa: E402

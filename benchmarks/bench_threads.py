@@ -1,4 +1,4 @@
-"""Thread policy under concurrency (issue 10 target 3): a lone training job against two
+"""Thread policy under concurrency (docs/experiments/speed_levers.md, target 3): a lone training job against two
 concurrent ones, each process with the threads ``runtime`` gives it.
 
 Each job is a subprocess that applies the policy exactly as ``train.py`` does
@@ -36,10 +36,7 @@ def worker(args: argparse.Namespace) -> None:
 
     import torch
 
-    sys.path.insert(0, os.path.dirname(__file__))
-    from bench_step_ceiling import step
-    from bench_training import make_batch
-
+    from embodied_tactile.bench.step import make_batch, step
     from embodied_tactile.models import LatentFilter
 
     torch.manual_seed(0)

@@ -22,34 +22,7 @@ import torch
 
 from embodied_tactile.models import LatentFilter
 from embodied_tactile.modality import modality_names
-from embodied_tactile.models.networks import gaussian_entropy, gaussian_nll, kl_diag_gaussians
-
-
-def naive_terms(m: LatentFilter, batch: dict, sample: bool = True) -> dict:
-    """Same loss as ``LatentFilter.elbo_terms``, encoder and decoder called per time step."""
-    obs, actions = batch["obs"], batch["actions"].float()
-    B, T = obs.shape[:2]
-    log_sigma = m.obs_log_sigma().view(1, -1, 1, 1)
-    state, nll, kl_z, kl_y, ent = None, 0.0, 0.0, 0.0, 0.0
-    if T > 1:
-        py_m, py_v = m.prior(batch["object_id"], actions)
-    for t in range(T):
-        enc_m, enc_v = m.encode(obs[:, t])
-        out, state = m.step(enc_m, enc_v, actions[:, t], state, sample)
-        rec = m.decode(out["z"])
-        nll = nll + gaussian_nll(obs[:, t], rec, log_sigma).sum(dim=(1, 2, 3))
-        kl_z = kl_z + kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"])
-        ent = ent + gaussian_entropy(out["z_var"])
-        if t > 0:
-            kl_y = kl_y + kl_diag_gaussians(out["y_mean"], out["y_var"], py_m[:, t], py_v[:, t])
-            ent = ent + gaussian_entropy(out["y_var"])
-    return {"nll": nll.mean(), "kl_z": kl_z.mean(), "kl_y": torch.as_tensor(kl_y).mean(), "entropy": ent.mean()}
-
-
-def make_batch(C: int, B: int, T: int) -> dict:
-    g = torch.Generator().manual_seed(0)
-    return {"obs": torch.rand(B, T, C, 28, 28, generator=g), "actions": torch.randn(B, T, 6, generator=g),
-            "object_id": torch.randint(0, 32, (B,), generator=g)}
+from embodied_tactile.bench.step import make_batch, naive_terms
 
 
 def one_step(fn, opt) -> float:

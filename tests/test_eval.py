@@ -285,7 +285,7 @@ def _level_split(n: int, seed: int, *, offset: float, step: float, frames: int):
 def test_standardised_gru_reads_a_small_level_on_a_large_offset():
     """The acc image at pressing: a per-trial level of +-0.01 on an offset of 0.5 under
     frame noise of 0.02. With input_standardize the GRU reads it; on the raw scale the same
-    budget leaves it at the mean predictor (docs/modalities.md, "Where the pressing
+    budget leaves it at the mean predictor (docs/experiments/modality_bounds.md, "Where the pressing
     information is lost")."""
     import torch
 

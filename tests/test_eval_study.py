@@ -1,20 +1,18 @@
-"""Issue 9 parts 2-4 on the evaluation side: target encodings, heterogeneity as a decision,
+"""The evaluation side of a study: target encodings, heterogeneity as a decision,
 group-table normalisation, split kind / unseen objects, verdicts on the paper's findings."""
 
 from __future__ import annotations
 
 import json
-import sys
 import warnings
 
 import numpy as np
 import pytest
 
-from conftest import REPO, stable_seed
+from conftest import stable_seed
 from embodied_tactile.constants import FACTOR_NAMES, OBJECTS
 from embodied_tactile.eval import Results, nmse_trajectory
 
-sys.path.insert(0, str(REPO))
 
 
 # ------------------------------------------------------------------ targets
@@ -81,6 +79,20 @@ def _hand_run(pred_het_last=None):
                    primitive="pressing")
 
 
+def test_objects_outside_the_catalogue_are_grouped_as_population_with_their_own_factors():
+    """Objects with ids beyond the 32-object catalogue (their factors from their trials):
+    the group tables put them in 'population', the catalogue groups are unchanged."""
+    r = _hand_run()
+    extra = Results(pred=np.concatenate([r.pred, r.pred[:2] * 1.1]), factors=np.concatenate([r.factors, r.factors[:2] + 1]),
+                    object_id=np.concatenate([r.object_id, [32, 40]]), action_index=np.zeros(r.n_test + 2, int),
+                    seed=0, primitive="pressing")
+    assert list(extra.group[-2:]) == ["population", "population"]
+    groups = extra.group_summary()
+    assert groups["population"]["n"] == 2
+    assert {g: groups[g]["n"] for g in ("soft", "hard", "heterogeneous")} == \
+        {g: v["n"] for g, v in r.group_summary().items()}
+
+
 def test_heterogeneity_scores_on_a_run():
     r = _hand_run(pred_het_last=[0.0, 0.1, 0.2, 0.3, 0.4, 0.6, 0.0, 0.0, 0.9, 0.45])
     h = r.heterogeneity_scores()
@@ -132,7 +144,7 @@ def test_object_split_reports_unseen_objects(seed):
     for by, unseen in (("object", True), ("trial", False)):
         tr, va, te = split_trials(refs, by=by, seed=seed)
         rep = split_report({"split": by, "train": [t.name for t in tr], "val": [t.name for t in va],
-                            "test": [t.name for t in te]})
+                            "test": [t.name for t in te]}, {t.name: t.object_id for t in refs})
         assert rep["kind"] == by and rep["unseen_objects"] is unseen
         if by == "object":  # no object has trials on both sides
             assert rep["seen_test_objects"] == [] and not set(rep["test_objects"]) & set(rep["train_objects"])
@@ -140,18 +152,20 @@ def test_object_split_reports_unseen_objects(seed):
 
 
 def test_evaluate_refuses_an_object_split_with_seen_objects_and_captions_say_the_kind(tmp_path):
-    import evaluate as ev
+    from embodied_tactile.eval import runs
     from embodied_tactile.eval.tables import caption_note
 
     bad = {"split": "object", "train": ["obj01_soft_pressing_a02_r00", "obj02_soft_pressing_a02_r00"], "val": [],
            "test": ["obj02_soft_pressing_a06_r00"]}
+    objects = {"obj01_soft_pressing_a02_r00": 1, "obj02_soft_pressing_a02_r00": 2, "obj02_soft_pressing_a06_r00": 2,
+               "obj03_soft_pressing_a06_r00": 3}  # from the trials' attributes
     (tmp_path / "split.json").write_text(json.dumps(bad))
-    run = ev.Run(run_dir=tmp_path, ckpt=tmp_path / "x.ckpt", cfg=None, name="r")
-    with pytest.raises(ev.EvaluationError, match=r"object split.*\[2\]"):
-        ev.run_split(run, str(tmp_path / "split.json"))
+    run = runs.Run(run_dir=tmp_path, ckpt=tmp_path / "x.ckpt", cfg=None, name="r")
+    with pytest.raises(runs.EvaluationError, match=r"object split.*\[2\]"):
+        runs.run_split(run, str(tmp_path / "split.json"), objects)
     bad["test"] = ["obj03_soft_pressing_a06_r00"]
     (tmp_path / "split.json").write_text(json.dumps(bad))
-    rep = ev.run_split(run, str(tmp_path / "split.json"))
+    rep = runs.run_split(run, str(tmp_path / "split.json"), objects)
     assert rep["unseen_objects"] is True and rep["test_objects"] == [3]
     r = _hand_run()
     r.split, r.unseen_objects, r.targets = "object", True, "design_rank"

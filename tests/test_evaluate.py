@@ -18,7 +18,9 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import evaluate as ev  # noqa: E402
+import evaluate as cli  # noqa: E402  (the script: main())
+from embodied_tactile.eval import pipeline as ev  # noqa: E402
+from embodied_tactile.eval import runs  # noqa: E402
 
 FAST = ["print_tables=false", "alignment.cv=2"]
 
@@ -65,7 +67,12 @@ def test_run_cli_writes_everything_as_trained_modality(trained):
     for name in ("action_config", "environmentshape", "summary", "runtime"):
         for ext in ("md", "csv", "tex"):
             assert (out / f"table_{name}.{ext}").stat().st_size > 0
-        assert f"**{name}.**" in p.stdout  # Markdown printed to the terminal
+        assert f"**{name}.**" not in p.stdout  # tables go to files; the terminal gets what was measured
+    printed = p.stdout.strip().splitlines()
+    assert len(printed) <= 40, p.stdout
+    for method in ("Latent Filter", "hand-crafted KRR", "GRU", "mean"):  # NMSE per factor beside the baselines
+        assert any(line.startswith(f"| {method} |") for line in printed), p.stdout
+    assert "| method | spatial_frequency | amplitude | stiffness | heterogeneity | overall |" in p.stdout
     figs = {f.name for f in (out / "figures").glob("*.png")}
     for f in ("nmse_time_by_modality.png", "nmse_time_by_skin.png", "nmse_time_by_method.png",
               "nmse_time_by_best_worst_action.png", "error_vs_runtime.png",
@@ -101,16 +108,16 @@ def test_saved_split_reused_and_leakage_guard(trained):
 
     run = trained / "run"
     opts = ev.parse_options(FAST)
-    _, (r,), _ = ev.discover(run, "best")
-    cache = ev.DataCache()
-    key, dm = cache.get(ev.data_config(r, opts))
+    _, (r,), _ = runs.discover(run, "best")
+    cache = runs.DataCache()
+    key, dm = cache.get(runs.data_config(r, opts))
     split = json.loads((run / "split.json").read_text())
-    assert ev._names(dm, "train") == split["train"] and ev._names(dm, "test") == split["test"]
+    assert runs.trial_names(dm, "train") == split["train"] and runs.trial_names(dm, "test") == split["test"]
     from hydra.utils import get_class
 
     model = get_class(str(r.cfg.model._target_)).load_from_checkpoint(str(r.ckpt), map_location="cpu")
-    tr, _ = ev.collect_split(model, cache.batches(key, dm, "train"), ev._names(dm, "train"), "y")
-    te, _ = ev.collect_split(model, cache.batches(key, dm, "test"), ev._names(dm, "test"), "y")
+    tr, _ = runs.collect_split(model, cache.batches(key, dm, "train"), runs.trial_names(dm, "train"), "y")
+    te, _ = runs.collect_split(model, cache.batches(key, dm, "test"), runs.trial_names(dm, "test"), "y")
     assert not set(tr["seq_id"]) & set(te["seq_id"])  # scored ids disjoint from fitted ids
     assert tr["obs"].shape[2] == 2  # fsr_tb: two channels, from the run's config
     with pytest.raises(LeakageError):  # scoring a fitted sequence is refused
@@ -158,7 +165,7 @@ def test_study_parts_are_merged(trained, tmp_path):
     for part, job in (("seed0", "modality=acc"), ("seed1", "modality=fsr_t")):
         shutil.copytree(trained / "multi" / job, study / part / job)
     (study / "evaluation" / "figures").mkdir(parents=True)  # an earlier report is not a job
-    assert [d.relative_to(study).as_posix() for d in ev.job_dirs(study)] == ["seed0/modality=acc",
+    assert [d.relative_to(study).as_posix() for d in runs.job_dirs(study)] == ["seed0/modality=acc",
                                                                               "seed1/modality=fsr_t"]
     out = ev.evaluate(study, [*FAST, "baselines=[mean]", "umap=false", "figures=false"])
     assert Path(out["out"]) == study / "evaluation"
@@ -177,7 +184,7 @@ def test_checkpoint_of_an_older_network_layout_is_a_clear_error(trained, tmp_pat
     state["state_dict"] = {k.replace("model.observation.", "model.encoders_v0."): v
                            for k, v in state["state_dict"].items()}
     torch.save(state, ckpt)
-    assert ev.main([str(ckpt), "baselines=[mean]", "figures=false"]) == 2
+    assert cli.main([str(ckpt), "baselines=[mean]", "figures=false"]) == 2
     err = capsys.readouterr().err
     assert "weights do not fit this code's" in err and str(run / "checkpoints") in err
     assert "model.observation." in err or "model.encoders_v0." in err  # the first mismatching key
@@ -187,16 +194,16 @@ def test_folder_without_checkpoint_is_a_clear_error(trained, tmp_path, capsys):
     empty = tmp_path / "no_ckpt_run"
     empty.mkdir()
     shutil.copy(trained / "run" / "config_resolved.yaml", empty / "config_resolved.yaml")
-    assert ev.main([str(empty)]) == 2
+    assert cli.main([str(empty)]) == 2
     err = capsys.readouterr().err
     assert "no checkpoint" in err and str(empty) in err
-    assert ev.main([str(tmp_path / "nowhere")]) == 2
+    assert cli.main([str(tmp_path / "nowhere")]) == 2
     assert "no such file or folder" in capsys.readouterr().err
     # the scene is not an evaluation option: modality= SELECTS runs (this one is fsr_tb), never overrides
-    assert ev.main([str(trained / "run"), "modality=acc"]) == 2
+    assert cli.main([str(trained / "run"), "modality=acc"]) == 2
     err = capsys.readouterr().err
     assert "no run matches modality=acc" in err and "fsr_tb" in err and "never changes a run's scene" in err
-    assert ev.main([str(trained / "run"), "no_such_key=1"]) == 2
+    assert cli.main([str(trained / "run"), "no_such_key=1"]) == 2
     assert "unknown evaluation option" in capsys.readouterr().err
 
 

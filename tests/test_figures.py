@@ -169,10 +169,20 @@ def test_distance_group_names_sit_on_the_matrix_not_over_the_title():
 
 
 def test_umap_colours_are_physical_levels_and_curves_in_paper_order():
-    fac = F.physical_factors([0, 8, 17, 27])
-    np.testing.assert_allclose(fac, np.stack([get_object(o).factors() for o in (0, 8, 17, 27)]))
-    assert set(fac[:, 0]) <= {10.0, 30.0, 50.0}  # 1/m, not the design ranks 0 / 1 / 2
     from embodied_tactile.eval.results import Results
+    from embodied_tactile.eval.targets import encode_factors
+
+    ids = np.array([0, 8, 17, 27])
+    cat = np.stack([get_object(o).factors() for o in ids])
+    ranks = encode_factors(cat, "design_rank")
+    fac = F.physical_factors(Results(factors=ranks, object_id=ids, action_index=np.zeros(4, int), pred=ranks))
+    np.testing.assert_allclose(fac, cat)
+    assert set(fac[:, 0]) <= {10.0, 30.0, 50.0}  # 1/m, not the design ranks 0 / 1 / 2
+    # an object outside the catalogue: its trials' own factors, kept by the evaluation
+    own = cat + 1.0
+    fac = F.physical_factors(Results(factors=ranks, object_id=ids + 40, action_index=np.zeros(4, int), pred=ranks,
+                                     factors_physical=own))
+    np.testing.assert_allclose(fac, own)
 
     rs = [Results(method="latent_filter", modality=m, skin="soft", primitive="pressing", factors=fac,
                   object_id=np.array([0, 8, 17, 27]), action_index=np.zeros(4, int), pred=np.repeat(fac[:, None], 3, 1))

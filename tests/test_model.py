@@ -837,7 +837,7 @@ def test_checkpoint_of_the_pre_fusion_module_layout_loads(name, tmp_path):
 def test_standardised_encoder_does_not_see_the_channels_offset_and_scale():
     """input_standardize: shifting and scaling a channel's data together with its stats
     leaves the latents unchanged, so a small signal on a large offset (the acc image at
-    pressing, docs/modalities.md) reaches the encoder at unit scale."""
+    pressing, docs/experiments/modality_bounds.md) reaches the encoder at unit scale."""
     torch.manual_seed(0)
     batch = make_batch(3, B=2, T=5)
     net = LatentFilter("multi_l", input_standardize=True, **TINY).eval()

@@ -330,14 +330,11 @@ def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):
     """``bench_pendulum --remedy``: plain names are LatentFilter keywords, ``prior.X`` names
     go into its ``prior`` mapping; a bad value is named."""
     import argparse
-    import sys
-    from pathlib import Path
 
     from hydra.utils import instantiate
     from test_configs import _compose_job
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from bench_pendulum import parse_remedy, remedy_kwargs
+    from embodied_tactile.bench.remedies import parse_remedy, remedy_kwargs
 
     pairs = [parse_remedy(t) for t in ("obs_dropout=0.5", "prior.learn_embedding=false", "prior.learn_sigma=false", "y_update=evidence")]
     kwargs = remedy_kwargs(pairs)

@@ -15,7 +15,7 @@ import pytest
 from conftest import REPO
 
 sys.path.insert(0, str(REPO))
-import evaluate as ev  # noqa: E402
+import evaluate as ev  # noqa: E402  (the script's main(); its logic is in embodied_tactile.eval)
 
 from embodied_tactile.summary import (latest_run, multirun_summary_lines,  # noqa: E402
                                       run_summary_lines)

@@ -172,3 +172,43 @@ def test_trial_absent_from_one_cache_without_reason_is_reported(tiny_data_dir, n
     assert _used(dm) == set(names[:4]) - {names[2]}
     assert [(e["file"], e["trial"], e["field"]) for e in dm.skipped] == [(str(a), names[2], "actions")]
     assert "absent from the cache" in dm.skipped[0]["problem"] and names[2] in caplog.text
+
+
+def test_evaluation_takes_each_trials_object_from_its_attributes_not_its_name(tiny_data_dir, names, tmp_path):
+    """A group named ``obj05_...`` that holds object 0, and one named ``session2_trial7``:
+    both train as their attributes say, and evaluate.py scores them as the same objects
+    (before, the first was listed as test object 5 and the second stopped evaluate.py)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    from embodied_tactile.eval import pipeline
+
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    with h5py.File(raw, "r") as f:
+        obj = {n: int(f["trials"][n].attrs["object_id"]) for n in names}
+    liar = next(n for n in names if obj[n] == 0)
+    free = next(n for n in names if obj[n] == 8)
+    rename = {liar: "obj05_soft_pressing_a00_r00", free: "session2_trial7"}
+    data = _copy_trials(raw, tmp_path / "renamed.h5", names, rename=rename)
+    run = tmp_path / "run"
+    env = dict(os.environ, WANDB_MODE="disabled", PYTHONUNBUFFERED="1")
+    p = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "data=recorded", f"data.raw_files=[{data}]",
+                        "data.objects=null", "data.actions=null", f"paths.data_dir={tmp_path / 'data'}",
+                        f"hydra.run.dir={run}"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-3000:]
+    out = pipeline.evaluate(run, ["alignment.cv=2", "baselines=[mean]", "umap=false", "figures=false"])
+    split = json.loads((run / "split.json").read_text())
+    truth = {rename.get(n, n): obj[n] for n in names}
+    info = out["runs"][0]["split"]
+    for side in ("train", "test"):
+        assert info[f"{side}_objects"] == sorted({truth[n] for n in split[side]}), side
+    assert 5 not in info["train_objects"] + info["test_objects"]
+    assert {"obj05_soft_pressing_a00_r00", "session2_trial7"} <= set(split["train"] + split["val"] + split["test"])
+    res = json.loads((run / "evaluation" / "results.json").read_text())
+    lf = next(r for r in res["runs"] if r["method"] == "latent_filter")
+    assert set(lf["nmse_trajectory_by_group"]) <= {"soft", "hard", "heterogeneous"}
+    assert lf["n_test"] == len(split["test"])

@@ -50,3 +50,11 @@ def write_json(path: str | os.PathLike, payload: Any, *, indent: int = 2, nan_to
     tmp.write_text(json.dumps(to_jsonable(payload, nan_to_none=nan_to_none), indent=indent, allow_nan=not nan_to_none))
     os.replace(tmp, path)
     return path
+
+
+def read_json(path: str | os.PathLike) -> dict:
+    """The JSON object in ``path``; ``{}`` when the file is missing or unreadable."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}

@@ -19,18 +19,12 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from .constants import FACTOR_NAMES
+from .jsonio import read_json
 
 FACTOR_SHORT = {"spatial_frequency": "spatial freq.", "amplitude": "amplitude", "stiffness": "stiffness",
                 "heterogeneity": "heterogeneity"}
 HISTORY = "krr_history.jsonl"
 RULE = "-" * 72
-
-
-def _read_json(p: Path) -> dict:
-    try:
-        return json.loads(Path(p).read_text())
-    except (OSError, ValueError):
-        return {}
 
 
 def last_alignment(run_dir: str | os.PathLike) -> dict | None:
@@ -100,7 +94,7 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     """The closing block of one run (``metrics``: the dict train.py writes to metrics.json;
     read from ``<run>/metrics.json`` when None)."""
     run = Path(run_dir)
-    m = dict(metrics) if metrics is not None else _read_json(run / "metrics.json")
+    m = dict(metrics) if metrics is not None else read_json(run / "metrics.json")
     status = m.get("status", "unknown")
     lines = [RULE, f"run {status}: {show_path(run, cwd)}"]
     if status == "failed" and m.get("error"):
@@ -143,7 +137,7 @@ def multirun_summary_lines(sweep_dir: str | os.PathLike, *, cwd: str | os.PathLi
     jobs = _jobs(sweep) if sweep.is_dir() else []
     rows = []
     for d in jobs:
-        m = _read_json(d / "metrics.json")
+        m = read_json(d / "metrics.json")
         row = last_alignment(d) or {}
         rows.append((d.name, m.get("status", "unknown"), _fmt(row.get("nmse_overall")), duration(m.get("train_wall_s"))))
     n_ok = sum(r[1] == "finished" for r in rows)

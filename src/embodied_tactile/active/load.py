@@ -1,37 +1,25 @@
-"""A :class:`~embodied_tactile.active.model.PalpationModel` from a trained run folder, with
-``evaluate.py``'s own run handling (checkpoint choice, the run's data config with its saved
-split, the prepared DataModule, latent collection) and its alignment settings
-(``configs/evaluate.yaml``): the alignment an episode is scored with is the one evaluate.py
-reports for that run.
+"""A :class:`~embodied_tactile.active.model.PalpationModel` from a trained run folder, loaded
+as evaluate.py loads it (:mod:`embodied_tactile.eval.runs`: checkpoint choice, the run's data
+config with its saved split, the prepared DataModule, latent collection) with its alignment
+settings (``configs/evaluate.yaml``): the alignment an episode is scored with is the one
+evaluate.py reports for that run.
 """
 
 from __future__ import annotations
 
-import importlib
-import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+
+from embodied_tactile.eval import runs as R
+from embodied_tactile.eval.pipeline import parse_options, run_targets
 
 from .model import PalpationModel
 
 
 class PalpationError(RuntimeError):
     """A run that cannot be palpated with (missing folder, checkpoint, split, action)."""
-
-
-def _evaluate_module():
-    """The repository's ``evaluate.py`` (a script at the repository root, importable when the
-    working directory is the root; else found next to ``src/``)."""
-    try:
-        return importlib.import_module("evaluate")
-    except ImportError:
-        root = Path(__file__).resolve().parents[3]
-        if not (root / "evaluate.py").exists():
-            raise PalpationError(f"evaluate.py not found (looked in the working directory and {root})") from None
-        sys.path.insert(0, str(root))
-        return importlib.import_module("evaluate")
 
 
 def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_overrides: Sequence[str] = (),
@@ -45,32 +33,31 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
     from embodied_tactile.eval.metrics import reference_variance
     from embodied_tactile.eval.targets import encode_split
 
-    ev = _evaluate_module()
     run_dir = Path(run)
     if not run_dir.exists():
         raise PalpationError(f"no such run folder: {run_dir} (give a folder made by train.py, e.g. "
                              "logs/train/runs/<date>)")
     try:
-        kind, runs, _ = ev.discover(run_dir, checkpoint)
-    except ev.EvaluationError as err:
+        kind, runs, _ = R.discover(run_dir, checkpoint)
+    except R.EvaluationError as err:
         raise PalpationError(str(err)) from err
     if kind != "run":
         raise PalpationError(f"{run_dir} is a multirun folder; give one of its job folders")
     r = runs[0]
-    opts = ev.parse_options([f"checkpoint={checkpoint}", *eval_overrides])
-    targets = str(opts.targets if opts.targets is not None else r.cfg.get("targets", "design_rank"))
+    opts = parse_options([f"checkpoint={checkpoint}", *eval_overrides])
     try:
-        data = ev.data_config(r, opts)
-    except ev.EvaluationError as err:
+        data = R.data_config(r, opts)
+    except R.EvaluationError as err:
         raise PalpationError(str(err)) from err
     torch.set_num_threads(int(threads))
-    cache = ev.DataCache()
+    cache = R.DataCache()
     key, dm = cache.get(data)
     try:
-        module = ev.load_module(r)  # eval mode; an older network layout is a clear error
-    except ev.EvaluationError as err:
+        module = R.load_module(r)  # eval mode; an older network layout is a clear error
+    except R.EvaluationError as err:
         raise PalpationError(str(err)) from err
-    tr, _ = ev.collect_split(module, cache.batches(key, dm, "train"), ev._names(dm, "train"), "y")
+    tr, _ = R.collect_split(module, cache.batches(key, dm, "train"), R.trial_names(dm, "train"), "y")
+    targets = run_targets(r.cfg, opts)
     tr = encode_split(tr, targets)
     split = str(data.get("split", "trial"))
     align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"],
@@ -85,7 +72,7 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
     model = PalpationModel(net=module.model, channels=tuple(data["channels"]), preprocess=scene.preprocess_config(),
                            alignment=align, ref_var=reference_variance(catalogue), nominal_actions=nominal,
                            skin=str(r.cfg.skin.name), primitive=str(r.cfg.primitive.name), targets=targets)
-    split = ev.run_split(r, data["split_file"])
+    split = R.run_split(r, data["split_file"], R.trial_objects(dm))
     test_objects = sorted({int(t.object_id) for t in dm.test_set.trials})
     train_objects = sorted({int(t.object_id) for t in dm.train_set.trials})
     info = {"run_dir": str(r.run_dir), "checkpoint": str(r.ckpt), "split": split.get("kind"),

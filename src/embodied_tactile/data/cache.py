@@ -288,7 +288,7 @@ def _process_chunk(task: tuple) -> tuple[list, list]:
     return ordered, errors
 
 
-def _one_blas_thread():
+def one_blas_thread():
     """Parallelism comes from the process pool: keep BLAS single-threaded inside it
     (oversubscribed OpenBLAS threads spin and were 3-5x slower on a loaded 2-core box)."""
     try:
@@ -299,7 +299,7 @@ def _one_blas_thread():
 
 
 def _init_worker() -> None:
-    _one_blas_thread()  # applied on construction; holds for the worker's life (3 ms per call)
+    one_blas_thread()  # applied on construction; holds for the worker's life (3 ms per call)
 
 
 def _merge(a: rawformat.RawTrial, b: rawformat.RawTrial) -> rawformat.RawTrial:
@@ -327,7 +327,7 @@ class _Workers:
     def __enter__(self) -> "_Workers":
         global _OUT
         if self.n <= 1:
-            self._stack.enter_context(_one_blas_thread())
+            self._stack.enter_context(one_blas_thread())
             return self
         if self.slots:
             _OUT = mmap.mmap(-1, max(1, self.slots * self.slot_bytes))  # shared; pages touched on use, in the workers

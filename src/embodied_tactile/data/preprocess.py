@@ -66,7 +66,7 @@ class PreprocessConfig:
     #: "axes": each axis' static part (gravity + offset) removed, the STFT power of the three
     #: axes summed (the power spectrum of the vibration vector, rotation invariant);
     #: "magnitude": |a| first, then its mean removed (keeps, to first order, only the
-    #: component along gravity: lateral vibration enters |a| squared, docs/modalities.md)
+    #: component along gravity: lateral vibration enters |a| squared, docs/experiments/modality_bounds.md)
     acc_combine: str = "axes"
     acc_remove_mean: bool = True  # drop the static (gravity + offset) part
     acc_scale_g: float = C.ACC_RANGE_G  # fixed scale (g), never per-trial
@@ -223,7 +223,7 @@ def stft_padding(cfg: PreprocessConfig, n_samples: int) -> tuple[int, int]:
     return left, right
 
 
-def _pad_last(y: np.ndarray, left: int, right: int) -> np.ndarray:
+def pad_last(y: np.ndarray, left: int, right: int) -> np.ndarray:
     if right < 0:
         y = y[..., : y.shape[-1] + right]
         right = 0
@@ -335,7 +335,7 @@ def _logmel_from_resampled(y: np.ndarray, cfg: PreprocessConfig, sum_axis: int |
     filterbank. Equal to ``librosa.feature.melspectrogram(center=False)`` per channel to
     float32 precision (tests: ``acc_logmel_naive``, a hand-written librosa reference)."""
     left, right = stft_padding(cfg, y.shape[-1])
-    yp = _pad_last(np.asarray(y, dtype=np.float32), left, right)
+    yp = pad_last(np.asarray(y, dtype=np.float32), left, right)
     frames = np.lib.stride_tricks.sliding_window_view(yp, cfg.n_fft, axis=-1)[..., : cfg.hop_length * cfg.n_frames : cfg.hop_length, :]
     spec = scipy.fft.rfft(frames * _stft_window(cfg.window, cfg.win_length, cfg.n_fft), axis=-1, overwrite_x=True, workers=1)
     pw = np.square(spec.real)
@@ -390,7 +390,7 @@ def resample(x: np.ndarray, up: int, down: int) -> np.ndarray:
     if n % down:
         return scipy.signal.resample_poly(x, up, down, axis=-1).astype(np.float32, copy=False)
     d, h = _resample_blocks(up, down)
-    xp = _pad_last(x, down * d, down * d)
+    xp = pad_last(x, down * d, down * d)
     win = np.lib.stride_tricks.sliding_window_view(xp, (2 * d + 1) * down, axis=-1)[..., ::down, :]  # (..., n/down, K)
     return (win @ h.astype(np.float32)).reshape(*x.shape[:-1], n // down * up)
 
@@ -435,7 +435,7 @@ def acc_logmel_naive(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float =
                 y = scipy.signal.resample_poly(sig / cfg.acc_scale_g, up, down)
                 left, right = stft_padding(cfg, len(y))
                 s = s + librosa.feature.melspectrogram(
-                    y=_pad_last(y, left, right), sr=cfg.fs_resample, n_fft=cfg.n_fft, hop_length=cfg.hop_length,
+                    y=pad_last(y, left, right), sr=cfg.fs_resample, n_fft=cfg.n_fft, hop_length=cfg.hop_length,
                     win_length=cfg.win_length, window=cfg.window, center=False, n_mels=cfg.n_mels, fmin=cfg.fmin,
                     fmax=cfg.fmax_hz, htk=cfg.mel_htk, norm=cfg.mel_norm,
                 )[:, : cfg.n_frames]

@@ -241,7 +241,7 @@ class GRURegressor:
     sequences. ``input_standardize``: the network sees each channel shifted and scaled by
     its training-set mean and standard deviation (set in ``fit``); without it, a small
     signal on a large offset (the acc image at pressing: spread ~0.03 around 0.5) left the
-    GRU at the mean predictor (docs/modalities.md, "Where the pressing information is lost").
+    GRU at the mean predictor (docs/experiments/modality_bounds.md, "Where the pressing information is lost").
     ``arch="latent_filter"``: the network is the Latent Filter's own inference path instead
     of the conv + GRU (``LatentFilter(modality, **latent_filter)``, the default sizes of
     configs/model/latent_filter.yaml: encoder, Bayesian fusion with the transition, the y
@@ -418,7 +418,7 @@ def evaluate_code_regression(train: Mapping[str, Any], test: Mapping[str, Any], 
                              alignment: Mapping[str, Any] | None = None, code_sigma: float = 0.5,
                              split: str = "trial", **meta) -> Results:
     """What the label-conditioned prior could put into y at a budget, if its pull acted like a
-    regression (method ``latent_filter_codes``; docs/modalities.md, "The object codes").
+    regression (method ``latent_filter_codes``; docs/experiments/object_codes.md).
 
     Every object id gets a fixed random code, N(0, code_sigma^2) in each of n_y dimensions
     (n_y of ``gru["latent_filter"]``, else LatentFilter's default; drawn with ``gru["seed"]``), as the prior's

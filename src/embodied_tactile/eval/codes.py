@@ -1,5 +1,4 @@
-"""How the label-conditioned prior's object codes and q(y) relate (docs/modalities.md,
-"The object codes"). Arrays only, NumPy.
+"""How the label-conditioned prior's object codes and q(y) relate (docs/experiments/object_codes.md). Arrays only, NumPy.
 
 The hierarchical prior gives every training object n a code e_n and pulls q(y_t) of that
 object's sequences towards it (``KL(q(y_t) || N(e_n, sigma^2))``). Three questions tell

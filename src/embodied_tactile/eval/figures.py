@@ -32,7 +32,7 @@ from scipy.spatial.distance import cdist  # noqa: E402
 
 from ..constants import FACTOR_NAMES, FACTOR_UNITS, get_object  # noqa: E402
 from .metrics import overall  # noqa: E402
-from .results import Results  # noqa: E402
+from .results import POPULATION_GROUP, Results, object_group  # noqa: E402
 from .tables import FACTOR_LABELS, pooled_nmse  # noqa: E402
 
 FRAME_RATE_HZ = 30.0  # preprocessed frames per second (docs/architecture.md)
@@ -193,10 +193,13 @@ def umap_embed(latents, *, n_components: int = 3, n_neighbors: int = 15, seed: i
     return reducer.fit_transform(x)
 
 
-def physical_factors(object_ids) -> np.ndarray:
-    """(n,) object ids -> (n, 4) the catalogue's factors in physical units (FACTOR_UNITS),
-    whatever target encoding the alignment used: figure legends name real levels."""
-    return np.stack([get_object(int(o)).factors() for o in np.asarray(object_ids)]).astype(float)
+def physical_factors(r: Results) -> np.ndarray:
+    """(n, 4) the held-out trials' factors in physical units (FACTOR_UNITS), whatever target
+    encoding the alignment used: figure legends name real levels. From the trials' attributes
+    (``Results.factors_physical``) when the evaluation kept them, else from the catalogue by id."""
+    if r.factors_physical is not None:
+        return np.asarray(r.factors_physical, dtype=float)
+    return np.stack([get_object(int(o)).factors() for o in np.asarray(r.object_id)]).astype(float)
 
 
 def factor_levels(values) -> tuple[np.ndarray, list[str]]:
@@ -281,8 +284,10 @@ def object_order(classes) -> list[int]:
     """Positions of ``classes`` (object ids) ordered by object group (soft, hard,
     heterogeneous: the paper's Table 2) and then by spatial frequency, amplitude, stiffness."""
     def key(i):
-        o = get_object(int(classes[i]))
-        return (GROUP_ORDER.index(o.group), *o.factors()[:3], o.object_id)
+        o = int(classes[i])
+        if object_group(o) == POPULATION_GROUP:  # outside the catalogue: after it, by id
+            return (len(GROUP_ORDER), 0.0, 0.0, 0.0, o)
+        return (GROUP_ORDER.index(object_group(o)), *get_object(o).factors()[:3], o)
     return sorted(range(len(classes)), key=key)
 
 
@@ -305,7 +310,7 @@ def distance_figure(classes, dist, *, title: str = "", normalise: bool = True):
     above = blended_transform_factory(ax.transData, ax.transAxes)
     ax.set_xlabel("object id (ordered by group, then frequency, amplitude, stiffness)", fontsize=8)
     ax.set_ylabel("object id", fontsize=8)
-    groups = [get_object(c).group for c in cls]
+    groups = [object_group(c) for c in cls]
     start = 0
     for i in range(1, len(cls) + 1):
         if i == len(cls) or groups[i] != groups[start]:

@@ -91,9 +91,9 @@ def write_report(
                 continue
             tag = _safe(r.label)
             if umap:
-                # coloured by the catalogue's levels in physical units (the legend's unit), not by
+                # coloured by the trials' factor levels in physical units (the legend's unit), not by
                 # the alignment's target encoding (design_rank would label every level 0 / 1 / 2)
-                written["figures"].append(str(plot_umap(r.latents_last, physical_factors(r.object_id),
+                written["figures"].append(str(plot_umap(r.latents_last, physical_factors(r),
                                                         figs / f"umap_{tag}.png",
                                                         title=f"UMAP of last-step latents: {_title(r)}")))
             cls, dist = class_distances(r.latents_last, r.object_id, mode=distance_mode)

@@ -18,7 +18,6 @@ Split dict (``train`` / ``test`` arguments of :func:`evaluate_latents`)::
 
 from __future__ import annotations
 
-import re
 import time
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
@@ -55,6 +54,7 @@ class Results:
     targets: str = "physical"  # target encoding of `factors` / `pred` (eval.targets); evaluate.py sets it
     split: str = "unknown"  # how the held-out set was drawn: 'trial' (paper) | 'object' (unseen objects)
     unseen_objects: bool | None = None  # True: no held-out object had a trial in training (from split.json)
+    factors_physical: np.ndarray | None = None  # (n, 4) the trials' factors in physical units (figure legends)
 
     def __post_init__(self) -> None:
         self.pred = np.asarray(self.pred, dtype=np.float64)
@@ -76,9 +76,9 @@ class Results:
 
     @property
     def group(self) -> np.ndarray:
-        """Table-2 object group per held-out sequence: 'soft' | 'hard' | 'heterogeneous' for
-        catalogue objects, 'population' for others (the paper's groups are catalogue lists)."""
-        return np.array([get_object(int(o)).group if 0 <= int(o) < N_OBJECTS else "population" for o in self.object_id])
+        """Table-2 object group per held-out sequence: 'soft' | 'hard' | 'heterogeneous' for a
+        catalogue object, 'population' for any other (:func:`object_group`)."""
+        return np.array([object_group(int(o)) for o in self.object_id])
 
     @property
     def label(self) -> str:
@@ -131,7 +131,7 @@ class Results:
         variance (the paper's Table 2 convention); a group without held-out sequences is absent."""
         out = {}
         groups = self.group
-        for g in OBJECT_GROUPS:
+        for g in (*OBJECT_GROUPS, POPULATION_GROUP):
             mask = groups == g
             if mask.any():
                 v = self.subset_nmse(mask)
@@ -227,28 +227,32 @@ def config_axes(configs: Sequence[Mapping], run_names: Sequence[str] = ()) -> li
     return [{k: f.get(k) for k in kept} for f in flat]
 
 
-_TRIAL_OBJECT = re.compile(r"^obj(\d+)_")
+#: the group of an object outside the 32-object catalogue (its factors come from its trials)
+POPULATION_GROUP = "population"
 
 
-def trial_object(name: str) -> int:
-    """The object id of a trial name (``obj07_soft_sliding_a03_r00`` -> 7, io.rawformat.trial_name)."""
-    m = _TRIAL_OBJECT.match(str(name))
-    if not m:
-        raise ValueError(f"trial name {name!r} does not start with obj<id>_ (io.rawformat.trial_name)")
-    return int(m.group(1))
+def object_group(object_id: int) -> str:
+    """The paper's Table 2 group of a catalogue object ('soft' | 'hard' | 'heterogeneous');
+    :data:`POPULATION_GROUP` for an object outside the catalogue."""
+    return get_object(object_id).group if 0 <= int(object_id) < N_OBJECTS else POPULATION_GROUP
 
 
 SPLIT_KINDS = {"trial": "held-out trials of training objects (the paper's split)",
                "object": "whole objects held out (generalisation to unseen objects)"}
 
 
-def split_report(split: Mapping[str, Any]) -> dict:
+def split_report(split: Mapping[str, Any], objects: Mapping[str, int]) -> dict:
     """What a run's ``split.json`` says about generalisation: the split kind, the object ids
     on each side and ``unseen_objects`` = no test object has a trial in training or validation
-    (checked from the trial names, whatever the kind says). ``seen_test_objects`` lists the
-    test objects that do."""
+    (checked from the trials' objects, whatever the kind says). ``objects``: trial name ->
+    object id, from the trials' attributes (a name is a label, never parsed); a trial of the
+    split missing from it is an error. ``seen_test_objects`` lists the test objects that do."""
     sides = {k: [str(n) for n in split.get(k) or []] for k in ("train", "val", "test")}
-    objs = {k: sorted({trial_object(n) for n in v}) for k, v in sides.items()}
+    missing = [n for v in sides.values() for n in v if n not in objects]
+    if missing:
+        raise ValueError(f"{len(missing)} trial(s) of the split have no known object (e.g. {missing[:3]}): "
+                         "the split and the served trials differ")
+    objs = {k: sorted({int(objects[n]) for n in v}) for k, v in sides.items()}
     fitted = set(objs["train"]) | set(objs["val"])
     seen = sorted(set(objs["test"]) & fitted)
     return {"kind": str(split.get("split", "trial")), "n_train": len(sides["train"]), "n_val": len(sides["val"]),
@@ -313,6 +317,7 @@ def evaluate_latents(
         n_train=len(x_tr),
         latents_last=np.asarray(x_te)[:, -1, :] if np.ndim(x_te) == 3 else np.asarray(x_te),
         seq_id=None if test.get("seq_id") is None else np.asarray(test["seq_id"]),
+        factors_physical=None if test.get("factors_physical") is None else np.asarray(test["factors_physical"]),
         params=p,
     )
     return res, align

@@ -1,4 +1,4 @@
-"""``docs/results.md`` from an evaluated study, generated, never typed by hand (issue 9 part 5).
+"""``docs/results.md`` from an evaluated study, generated, never typed by hand.
 
     python train.py -m sweep=study_min hydra.sweeper.params.seed=0 hydra.sweep.dir=logs/train/study/seed0
     ...                                                              # further parts: seed1, seed2, ...
@@ -34,7 +34,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..constants import FACTOR_NAMES, OBJECT_GROUPS, PRIMITIVES
-from .tables import FACTOR_LABELS, MISSING, Table, _fmt, seed_stats
+from .tables import FACTOR_LABELS, MISSING, Table, fmt_cell, seed_stats
 from .verdicts import MIN_SEEDS, PAPER_TABLE2, SCORES, SOFT_SKIN_MODALITIES
 
 #: the paper's 8 modality x e-Skin combinations (configs/combo/); x 3 primitives = its 24 cells
@@ -72,7 +72,7 @@ def load(eval_dir: str | Path) -> dict:
 def _ci(st: Mapping[str, float]) -> str:
     if not (np.isfinite(st["ci95_low"]) and np.isfinite(st["ci95_high"])):
         return MISSING
-    return f"[{_fmt(st['ci95_low'], 3)}, {_fmt(st['ci95_high'], 3)}]"
+    return f"[{fmt_cell(st['ci95_low'], 3)}, {fmt_cell(st['ci95_high'], 3)}]"
 
 
 def _latent_runs(runs: Sequence[Mapping], modality: str | None = None) -> list[Mapping]:

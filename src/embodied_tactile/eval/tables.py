@@ -55,7 +55,7 @@ class Table:
     def to_markdown(self) -> str:
         out = [f"**{self.name}.** {self.full_caption}", "", "| " + " | ".join(self.columns) + " |",
                "|" + "|".join("---" for _ in self.columns) + "|"]
-        out += ["| " + " | ".join(_fmt(v) for v in r) + " |" for r in self.rows]
+        out += ["| " + " | ".join(fmt_cell(v) for v in r) + " |" for r in self.rows]
         return "\n".join(out) + "\n"
 
     def to_csv(self) -> str:
@@ -65,7 +65,7 @@ class Table:
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(self.columns)
         for r in self.rows:
-            w.writerow([_fmt(v, csv_=True) for v in r])
+            w.writerow([fmt_cell(v, csv_=True) for v in r])
         return buf.getvalue()
 
     def to_latex(self) -> str:
@@ -74,7 +74,7 @@ class Table:
             spec = "l" + "c" * (len(self.columns) - 1)
             lines = [rf"\begin{{tabular}}{{{spec}}}", r"\toprule", " & ".join(_tex(c) for c in self.columns) + r" \\",
                      r"\midrule"]
-            lines += [" & ".join(_tex(_fmt(v)) for v in r) + r" \\" for r in self.rows]
+            lines += [" & ".join(_tex(fmt_cell(v)) for v in r) + r" \\" for r in self.rows]
             lines += [r"\bottomrule", r"\end{tabular}"]
             body = "\n".join(lines)
         return ("\\begin{table*}[!tbh]\n\\centering\n\\resizebox{\\textwidth}{!}{%\n" + body + "%\n}\n"
@@ -435,7 +435,7 @@ def table_aggregate(results: Sequence[Results]) -> Table:
 def _interval(st: dict) -> str:
     if not (math.isfinite(st["ci95_low"]) and math.isfinite(st["ci95_high"])):
         return MISSING
-    return f"[{_fmt(st['ci95_low'])}, {_fmt(st['ci95_high'])}]"
+    return f"[{fmt_cell(st['ci95_low'])}, {fmt_cell(st['ci95_high'])}]"
 
 
 RUNTIME_DEFINITION = (
@@ -488,7 +488,7 @@ def _missing(v) -> bool:
     return v is None or (isinstance(v, (float, np.floating)) and not math.isfinite(float(v)))
 
 
-def _fmt(v, nd: int = 4, csv_: bool = False) -> str:
+def fmt_cell(v, nd: int = 4, csv_: bool = False) -> str:
     """A cell as text: a non-finite number / None is ``–`` (empty in CSV), never ``nan``."""
     if _missing(v):
         return "" if csv_ else MISSING
@@ -504,10 +504,10 @@ def _cell(v, column, hue: str, nd: int) -> str:
     if _missing(v):
         return "--"
     if not isinstance(v, (float, np.floating)) or vals.size == 0:
-        return _fmt(v, nd)
+        return fmt_cell(v, nd)
     lo, hi = float(vals.min()), float(vals.max())
     pct = int(round(99 * (float(v) - lo) / (hi - lo))) if hi > lo else 0
-    return rf"\cellcolor{{{hue}!{pct}!white}}{_fmt(v, nd)}"
+    return rf"\cellcolor{{{hue}!{pct}!white}}{fmt_cell(v, nd)}"
 
 
 def _num(v):

@@ -34,7 +34,7 @@ import numpy as np
 from ..constants import FACTOR_NAMES, HETEROGENEOUS_OBJECTS, N_OBJECTS, PRIMITIVES, SOFT_OBJECTS
 from .metrics import overall
 from .results import Results
-from .tables import MISSING, Table, _fmt, seed_stats
+from .tables import MISSING, Table, fmt_cell, seed_stats
 
 VERDICTS = ("reproduced", "contradicted", "inconclusive", "not measured")
 MIN_SEEDS = 3  # the study protocol's t interval needs n >= 3
@@ -271,7 +271,7 @@ def verdict_tables(results: Sequence[Results], method: str = "latent_filter") ->
         for c in comps:
             st = c.stats
             ci = (MISSING if not (math.isfinite(st["ci95_low"]) and math.isfinite(st["ci95_high"]))
-                  else f"[{_fmt(st['ci95_low'])}, {_fmt(st['ci95_high'])}]")
+                  else f"[{fmt_cell(st['ci95_low'])}, {fmt_cell(st['ci95_high'])}]")
             c_rows.append([*tag, f"({c.finding})", c.better.label, c.worse.label, c.score, st["pairing"],
                            f"{st['n_a']}/{st['n_b']}", st["mean"], ci, st["detectable"], c.paper_d, c.verdict])
     head = ["axes"] if ctx_col else []

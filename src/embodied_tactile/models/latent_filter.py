@@ -103,7 +103,7 @@ class LatentFilter(nn.Module):
         obs_sigma_shape: ``"channel"`` (default, one sigma per channel) or ``"pixel"``
             (one learnable sigma per channel and pixel, sigma_{c,ij}: a heteroscedastic
             likelihood for images whose pixels differ in noise, such as the acc log-mel
-            bins; docs/model.md, "Training remedies").
+            bins; docs/model.md, "Options of `model.net`").
         prior: kwargs of :class:`HierarchicalPrior` (sigma_init, learn_sigma, var_floor,
             action_term).
         y_update: ``"direct"`` (the LSTM head is q(y_t)) or ``"evidence"`` (accumulate
@@ -115,35 +115,34 @@ class LatentFilter(nn.Module):
             paper's q(y_t | z_{t-1}, y_{t-1}, a_{t-1}) on the drawn z) or ``"mean"`` (the
             filtered mean of q_filt(z_{t-1}), a function of the frames so far: the LSTM
             integrates the belief over many frames without each draw's noise; still a
-            valid q, so still the ELBO; docs/model.md, "Training remedies") or
+            valid q, so still the ELBO; docs/model.md, "Options of `model.net`") or
             ``"innovation"`` (the draw and the innovation q_filt mean minus the transition's
             mean at t-1: the prediction error that carries a hidden parameter's evidence) or
             ``"measurement"`` (frame t-1's encoder mean and a seen flag, zeros where the
             frame was hidden: y's inference then does not depend on z, as ``y_static`` needs).
-        y_static: y is one latent per sequence in training (docs/model.md, "Training
-            remedies"): the transition gets one draw from q(y | the window's frames), the
+        y_static: y is one latent per sequence in training (docs/model.md, "Options of `model.net`"): the transition gets one draw from q(y | the window's frames), the
             evidence product at the last step, at every step, and kl_y is one KL of that
             posterior to p(y | object) per sequence. Needs ``y_update="evidence"`` and
             ``y_input="measurement"``. In evaluation the filter is causal: the transition at
             step t gets q(y_t | frames before t). False (default) = a y_t per step.
-        obs_dropout: training remedy (docs/model.md, "Observation dropout"): in training
+        obs_dropout: training remedy (docs/model.md, "Options of `model.net`"): in training
             mode each frame t >= 2 is hidden from the filter with this probability, so
             q_filt(z_t) is the transition prior alone there and the likelihood of that
             frame trains the transition. 0 (default) = off.
         obs_dropout_span: observation dropout in runs of this many consecutive frames
-            (docs/model.md, "Observation dropout in runs"): the frames are cut into blocks
+            (docs/model.md, "Options of `model.net`"): the frames are cut into blocks
             of ``span`` (at a random phase per sequence) and each block is hidden with
             probability ``obs_dropout``, so the hidden fraction stays ``obs_dropout`` and the
             transition must predict ``span`` frames or more at a time. 1 (default) = each
             frame on its own.
-        elbo_samples: training remedy (docs/model.md, "Several ELBO samples"): in training
+        elbo_samples: training remedy (docs/model.md, "Options of `model.net`"): in training
             mode ``elbo_terms`` averages the single-sample estimate over K independent
             samples per sequence (K x the compute). 1 (default) = one sample.
-        overshoot: training remedy (docs/model.md, "Latent overshooting"): in training mode
+        overshoot: training remedy (docs/model.md, "Options of `model.net`"): in training mode
             ``kl_z`` adds the mean over d = 2..D of KL(sg[q_filt(z_{t+d})] || p_d(z_{t+d})),
             p_d the transition rolled d steps open loop from a sample of q_filt(z_t), weighted
             by ``overshoot_weight``. 1 (default) = off (one-step prior only).
-        free_bits_z, free_bits_y: training remedy (docs/model.md, "Free bits"): in training
+        free_bits_z, free_bits_y: training remedy (docs/model.md, "Options of `model.net`"): in training
             mode kl_z / kl_y are taken per latent dimension, averaged over the batch and the
             steps, and floored at this many nats per dimension and step
             (:func:`networks.free_bits_kl`): a dimension under the floor costs the floor and
@@ -151,12 +150,12 @@ class LatentFilter(nn.Module):
         transition_form: ``"mlp"`` (default: the transition MLP reads [z, y, a]) or
             ``"affine_y"`` (the drift is affine in y with z- and a-dependent coefficients,
             the linear-in-parameters form of mechanical dynamics; :class:`TransitionNet`,
-            docs/model.md, "Training remedies").
+            docs/model.md, "Options of `model.net`").
         input_standardize: the encoders see each channel shifted and scaled by its
             training-set mean and standard deviation (buffers ``input_shift`` /
             ``input_scale``, set once by :meth:`set_input_stats`, carried by checkpoints);
             the decoder and the likelihood stay in the data's units. False (default) =
-            the [0, 1] images as they are (docs/modalities.md, "Where the pressing
+            the [0, 1] images as they are (docs/experiments/modality_bounds.md, "Where the pressing
             information is lost").
     """
 

@@ -101,7 +101,7 @@ def gaussian_nll(x: Tensor, mean: Tensor, log_sigma: Tensor) -> Tensor:
 
 #: Largest batch at which ``small_batch_convs`` switches oneDNN off. Measured with
 #: ``benchmarks/bench_small_batch_convs.py`` (torch 2.13 CPU, 1 thread, multi_l filter_step,
-#: docs/model.md "Speed"): oneDNN off is 1.32x faster at batch 1 and 1.18x at 2, even at 4,
+#: docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md): oneDNN off is 1.32x faster at batch 1 and 1.18x at 2, even at 4,
 #: and 0.81x (slower) at 8.
 SMALL_BATCH_ONEDNN_OFF = 2
 
@@ -128,7 +128,7 @@ def small_batch_convs(n: int, threshold: int = SMALL_BATCH_ONEDNN_OFF) -> Iterat
 # --------------------------------------------------------------------------- networks
 
 #: Batches of at least this many frames run the conv encoders / decoders in channels_last
-#: on CPU (oneDNN's fast layout; docs/model.md "Speed").
+#: on CPU (oneDNN's fast layout; docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md).
 CHANNELS_LAST_MIN_FRAMES = 64
 
 #: The conv encoders / decoders take batches of more frames than this in chunks of this
@@ -139,7 +139,7 @@ CHANNELS_LAST_MIN_FRAMES = 64
 #: 9.1 -> 5.9 s, where one call over all 14400 frames was slower than the naive per-frame
 #: loop (6.7 s). The default budget's 800-frame batches are one chunk; smaller chunks
 #: were slower there (0.28 s a step unchunked, 0.31 s in chunks of 400, 0.33 s of 200).
-#: ``benchmarks/bench_step_levers.py``, docs/model.md "Speed".
+#: ``benchmarks/bench_step_levers.py``, docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md.
 CONV_CHUNK_FRAMES = 1024
 
 
@@ -162,7 +162,7 @@ def _run(net: nn.Module, x: Tensor) -> Tensor:
 
 def compile_convs(model: nn.Module, enabled: bool = True) -> int:
     """The speed switch of the training step (train.py's ``compile_convs``, default on;
-    docs/model.md "Speed"): ``torch.compile`` (inductor) of the body of every
+    docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md): ``torch.compile`` (inductor) of the body of every
     :class:`ConvEncoder` and :class:`ConvDecoder` in ``model``, used for training steps on
     CPU only; the time loop stays eager. The same weights and the same function, float
     rounding aside (fused elementwise kernels). Returns the number of networks switched."""
@@ -258,7 +258,7 @@ class ConvDecoder(_CompilableBody):
         return self.deconv(h)
 
 
-#: ``transition_form``: how y enters the transition's mean (docs/model.md, "Training remedies")
+#: ``transition_form``: how y enters the transition's mean (docs/model.md, "Options of `model.net`")
 TRANSITION_FORMS = ("mlp", "affine_y")
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from scipy import signal
 
 from embodied_tactile import constants as C
+from embodied_tactile.sim.limits import PHYSICS_RATE_HZ, check_physics  # noqa: F401 (PHYSICS_RATE_HZ re-exported)
 
 # --------------------------------------------------------------------------- constants
 #: Grid of the object heightmaps: 256 x 256 samples at 1 mm (a 256 mm block; the skin
@@ -108,7 +109,6 @@ SURFACE_Z_M = 0.05
 TRACK_ERR_M = 0.1e-3
 TRACK_ERR_RAD = np.deg2rad(0.05)
 PLACEMENT_ERR_M = 0.5e-3
-PHYSICS_RATE_HZ = 100.0  # quasi-static contact solve rate (pose rate)
 LIFT_OFF_M = 0.03
 
 
@@ -135,7 +135,7 @@ class PhysicsOverrides:
     map also moves with the larger shear traction; the accelerometers see the scale only
     through the contact weight of texture and stick-slip.
 
-    Every field is checked on construction (:func:`embodied_tactile.sim.validation.check_physics`;
+    Every field is checked on construction (:func:`embodied_tactile.sim.limits.check_physics`;
     ranges in docs/simulator.md): an invalid value raises ``SimParameterError``.
     """
 
@@ -148,8 +148,6 @@ class PhysicsOverrides:
     friction: float | None = None  # Coulomb coefficient skin/object (0: no shear)
 
     def __post_init__(self) -> None:
-        from embodied_tactile.sim.validation import check_physics  # validation imports this module
-
         check_physics(self)
 
 

@@ -1,0 +1,443 @@
+"""evaluate.py's pipeline: options, run selection, one run's evaluation (the Latent Filter's
+KRR alignment beside the baselines on the same split), the agreement with the training's
+final alignment, the report and the terminal summary.
+
+Per run (docs/evaluation.md): the run's own config and saved split (:mod:`.runs`), latents
+over the training split (fit) and the held-out test split (scored), :func:`evaluate_latents`
+and the baselines, :func:`write_report` into ``<run>/evaluation`` (a multirun's or study's
+folder: every job, aggregated). The terminal gets what was measured: per run the NMSE per
+factor beside the baselines, for a study the findings with at least one measured comparison;
+every table is in the output folder.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Sequence
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import ConfigKeyError
+
+from embodied_tactile.constants import FACTOR_NAMES
+from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect_split, data_config, discover,
+                                        load_module, run_split, trial_names, trial_objects)
+from embodied_tactile.jsonio import read_json
+from embodied_tactile.settings import config_dir
+
+BASELINES = ("handcrafted", "gru", "mean")
+MULTIRUN_BASELINES = ("handcrafted", "mean")
+SELECT_ALIASES = {"modality": "modality.name", "skin": "skin.name", "primitive": "primitive.name"}
+
+log = logging.getLogger("evaluate")
+
+
+def defaults_file() -> Path:
+    """``configs/evaluate.yaml``: evaluation options only (never the scene or the model)."""
+    return Path(config_dir()) / "evaluate.yaml"
+
+
+# ----------------------------------------------------------------------------- options
+def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
+    """``configs/evaluate.yaml`` + ``key=value`` overrides (unknown top-level keys rejected;
+    ``alignment.*`` and ``gru.*`` accept any keyword of fit_alignment / GRURegressor)."""
+    base = OmegaConf.load(defaults_file())
+    OmegaConf.set_struct(base, True)
+    for open_key in ("alignment", "gru"):
+        OmegaConf.set_struct(base[open_key], False)
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise EvaluationError(f"options must be key=value, got {bad}")
+    try:
+        opts = OmegaConf.merge(base, OmegaConf.from_dotlist(list(overrides)))
+    except ConfigKeyError as err:
+        raise EvaluationError(f"unknown evaluation option: {err}. Known: {sorted(base.keys())}. "
+                              "(The scene and model come from the run's own config and cannot be overridden.)") from err
+    if opts.checkpoint not in ("best", "last"):
+        raise EvaluationError(f"checkpoint must be 'best' or 'last', got {opts.checkpoint!r}")
+    if opts.latent not in ("y", "z", "both"):
+        raise EvaluationError(f"latent must be 'y', 'z' or 'both', got {opts.latent!r}")
+    from embodied_tactile.eval.targets import TARGET_ENCODINGS
+
+    if opts.targets is not None and opts.targets not in TARGET_ENCODINGS:
+        raise EvaluationError(f"targets must be null (the run's own) or one of {list(TARGET_ENCODINGS)}, got {opts.targets!r}")
+    if opts.baselines is not None:
+        unknown = [b for b in opts.baselines if b not in BASELINES]
+        if unknown:
+            raise EvaluationError(f"unknown baseline(s) {unknown}; choose from {list(BASELINES)}")
+    return opts
+
+
+
+def split_overrides(overrides: Sequence[str]) -> tuple[list[str], dict[str, list[str]]]:
+    """-> (evaluation options: keys of configs/evaluate.yaml, run selection: every other
+    ``key=value``, e.g. ``modality=multi_l skin=hard seed=[0,1] annealing.name=dvbf``)."""
+    known = set(OmegaConf.load(defaults_file()).keys())
+    options, selection = [], {}
+    for o in overrides:
+        key = o.split("=", 1)[0]
+        if "=" not in o or key.split(".")[0] in known:
+            options.append(o)
+            continue
+        value = OmegaConf.to_container(OmegaConf.from_dotlist([f"v={o.split('=', 1)[1]}"]))["v"]
+        selection[key] = [str(v) for v in value] if isinstance(value, list) else [str(value)]
+    return options, selection
+
+
+def _matches(have, want: list[str]) -> bool:
+    for w in want:
+        if str(have) == w:
+            return True
+        try:
+            if float(have) == float(w):
+                return True
+        except (TypeError, ValueError):
+            pass
+    return False
+
+
+def select_runs(runs: list[Run], selection: dict[str, list[str]]) -> list[Run]:
+    """The runs whose config matches every ``key=value`` of the selection (modality / skin /
+    primitive name their ``.name``; any dotted key of config_resolved.yaml works). A selection
+    picks runs; it never changes a run's scene."""
+    for key, want in selection.items():
+        path = SELECT_ALIASES.get(key, key)
+        have = [OmegaConf.select(r.cfg, path, default=None) for r in runs]
+        if all(h is None for h in have):
+            raise EvaluationError(
+                f"unknown evaluation option or run selector {key!r}: not an option of configs/evaluate.yaml "
+                f"({sorted(OmegaConf.load(defaults_file()).keys())}) nor a key of the runs' config_resolved.yaml")
+        kept = [r for r, h in zip(runs, have) if h is not None and _matches(h, want)]
+        if not kept:
+            raise EvaluationError(f"no run matches {key}={','.join(want)} (the runs have {key} = "
+                                  f"{sorted({str(h) for h in have})}; a selection picks runs, it never changes a run's scene)")
+        runs = kept
+    if selection:
+        log.info("selected %d run(s) by %s", len(runs), selection)
+    return runs
+
+
+
+def agreement_line(c: dict) -> str:
+    """One line: evaluate.py's NMSE beside the training's final alignment, and why they differ."""
+    if c.get("training_nmse_overall") is None:
+        return f"NMSE {c['evaluate_nmse_overall']:.4g} (no training-time final alignment to compare: {c['reasons'][0]})"
+    head = (f"NMSE {c['evaluate_nmse_overall']:.4g} here, {c['training_nmse_overall']:.4g} in the training's final "
+            f"alignment (metrics.json krr_final, epoch {c.get('training_epoch')}), difference {c['difference']:+.2g}")
+    return head + ("; same weights, settings and sequences" if not c["reasons"] else "; differs because: "
+                   + "; ".join(c["reasons"]))
+
+
+# ----------------------------------------------------------------------------- one run
+def run_targets(cfg: DictConfig, opts: DictConfig) -> str:
+    """The target encoding to score: ``opts.targets``, or (null) the run's own ``targets``
+    (train.py's; design_rank for runs that predate it)."""
+    from embodied_tactile.eval.targets import DEFAULT_TARGETS
+
+    return str(opts.targets if opts.targets is not None else cfg.get("targets", DEFAULT_TARGETS))
+
+
+def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequence[str]) -> tuple[list, list[dict], dict]:
+    """-> (Results of every method, krr history rows, info dict)."""
+    from embodied_tactile.eval.results import evaluate_latents
+    from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
+    from embodied_tactile.modality import Modality
+    from embodied_tactile.eval.figures import read_history
+    from embodied_tactile.eval.targets import encode_split
+
+    t_run = time.perf_counter()
+    cfg = run.cfg
+    modality, skin, primitive = str(cfg.modality.name), str(cfg.skin.name), str(cfg.primitive.name)
+    data = data_config(run, opts)
+    source = str(data.get("source", "simulated"))
+    channels = list(Modality.from_config(cfg.modality).channels)  # the run's own modality, defined once
+    if list(data["channels"]) != channels:
+        raise EvaluationError(f"{run.run_dir}: data channels {list(data['channels'])} differ from the run's "
+                              f"modality {modality} channels {channels}; the config was edited by hand")
+    key, dm = cache.get(data)
+    t_data = time.perf_counter()
+
+    model = load_module(run)
+    tr, _ = collect_split(model, cache.batches(key, dm, "train"), trial_names(dm, "train"), opts.latent)
+    te, infer_s = collect_split(model, cache.batches(key, dm, "test"), trial_names(dm, "test"), opts.latent)
+    te["factors_physical"] = te["factors"]  # the trials' own factors, for figure legends
+    targets = run_targets(cfg, opts)
+    tr, te = encode_split(tr, targets), encode_split(te, targets)  # every method: one encoding
+    t_inf = time.perf_counter()
+    split = run_split(run, data["split_file"], trial_objects(dm))
+
+    metrics = read_json(run.run_dir / "metrics.json")
+    hist_path = run.run_dir / "krr_history.jsonl"
+    history = read_history(hist_path) if hist_path.exists() else []
+    # one time base for every method: training wall time without data preparation and without
+    # evaluation (the last krr_history row: training minus the KRR checks; else train_wall_s)
+    train_s = history[-1].get("train_wall_time_s") if history else metrics.get("train_wall_s")
+    final_row = metrics.get("krr_final") or next((h for h in reversed(history) if h.get("final")), None)
+    meta = dict(modality=modality, skin=skin, primitive=primitive, source=source)
+    align = OmegaConf.to_container(opts.alignment, resolve=True)
+    params = {"train_time_s": float("nan") if train_s is None else float(train_s),
+              "inference_s_per_sequence": infer_s / max(1, len(te["factors"])),
+              "inference_s_total_val": infer_s,
+              "train_time_source": "krr_history.jsonl (training minus KRR checks)" if history
+              else "metrics.json train_wall_s", "data_prepare_s": metrics.get("data_prepare_s"),
+              "checkpoint": str(run.ckpt), "run_dir": str(run.run_dir)}
+    res, _ = evaluate_latents(tr, te, latent=opts.latent, alignment=align, params=params, split=split["kind"], **meta)
+    results = [res]
+    timings = {"data_s": t_data - t_run, "load_and_infer_s": t_inf - t_data}
+    for b in baselines:
+        t0 = time.perf_counter()
+        if b == "handcrafted":
+            results.append(evaluate_handcrafted(tr, te, channels, alignment=align, split=split["kind"], **meta))
+        elif b == "gru":
+            gru = OmegaConf.to_container(opts.gru, resolve=True)
+            if gru.get("arch") == "latent_filter":  # the run's own modality, defined once
+                gru["modality"] = OmegaConf.to_container(cfg.modality, resolve=True)
+            results.append(evaluate_gru(tr, te, gru=gru, **meta))
+        elif b == "mean":
+            results.append(evaluate_mean(tr, te, n_frames=te["obs"].shape[1], **meta))
+        timings[f"{b}_s"] = time.perf_counter() - t0
+    for r in results:
+        r.params.setdefault("run_dir", str(run.run_dir))
+        r.targets, r.split, r.unseen_objects = targets, split["kind"], split["unseen_objects"]
+    timings["total_s"] = time.perf_counter() - t_run
+    info = {"run_dir": str(run.run_dir), "checkpoint": str(run.ckpt), "modality": modality, "skin": skin,
+            "primitive": primitive, "source": source, "channels": channels, "latent": opts.latent,
+            "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])),
+            "n_frames": int(te["obs"].shape[1]), "train_wall_s": train_s, "timings": timings,
+            "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"), "targets": targets,
+            "split": split,
+            "training_final_alignment": compare_with_training(res, final_row, run.ckpt, align, opts.latent,
+                                                              targets, split["kind"])}
+    del model
+    return results, history, info
+
+
+
+def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, latent: str,
+                          targets: str = "design_rank", split_kind: str = "trial") -> dict:
+    """evaluate.py's NMSE against the training's final KRR alignment (krr_final of metrics.json /
+    the ``final`` row of krr_history.jsonl): both numbers, the difference and, when they are
+    not the same measurement, why (other weights, other alignment settings, other sequences)."""
+    import inspect
+
+    from embodied_tactile.eval.krr import fit_alignment, resolve_cv_grouping
+
+    ours = float(res.summary()["nmse_trajectory_overall"])
+    if not final_row or final_row.get("nmse_overall") is None:
+        return {"evaluate_nmse_overall": ours, "training_nmse_overall": None,
+                "reasons": ["the run has no final KRR alignment (callback off, or trained before it existed)"]}
+    defaults = {k: p.default for k, p in inspect.signature(fit_alignment).parameters.items()
+                if p.default is not inspect.Parameter.empty and k not in ("ids", "groups", "n_threads")}
+    theirs_kw = {**defaults, **{k: v for k, v in (final_row.get("alignment_settings") or {}).items() if k in defaults}}
+    ours_kw = {**defaults, **{k: v for k, v in align.items() if k in defaults}}
+    norm = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731
+    reasons = []
+    try:
+        import torch
+
+        step = int(torch.load(str(ckpt), map_location="cpu", mmap=True, weights_only=False).get("global_step", -1))
+    except Exception:  # noqa: BLE001 -- a checkpoint without a step: say so below
+        step = -1
+    if step != int(final_row.get("step", -2)):
+        reasons.append(f"other weights: {ckpt.name} (step {step}) against the final weights (step "
+                       f"{final_row.get('step')}); checkpoint=last evaluates the final weights")
+    diff = {k: (theirs_kw[k], ours_kw[k]) for k in defaults if norm(theirs_kw[k]) != norm(ours_kw[k])}
+    if "alignment_settings" not in final_row:
+        reasons.append("the training's last check used the callback's periodic settings")
+    elif diff:
+        reasons.append("alignment settings (training, evaluate.py): "
+                       + ", ".join(f"{k}=({a}, {b})" for k, (a, b) in diff.items()))
+    theirs_groups = (final_row.get("alignment_settings") or {}).get("groups", "sequence")
+    ours_groups = resolve_cv_grouping(align.get("groups", "auto"), split_kind)
+    if "alignment_settings" in final_row and theirs_groups != ours_groups:
+        reasons.append(f"CV folds grouped by {theirs_groups} in training, by {ours_groups} here")
+    if final_row.get("val_frame_stride", 1) != 1:
+        reasons.append(f"training scored every {final_row['val_frame_stride']}th frame")
+    if final_row.get("latent", latent) != latent:
+        reasons.append(f"latent {final_row.get('latent')} against {latent}")
+    if final_row.get("targets", "physical") != targets:  # rows written before targets existed: physical units
+        reasons.append(f"targets {final_row.get('targets', 'physical')} (training) against {targets}")
+    if (final_row.get("n_train"), final_row.get("n_test")) != (res.n_train, res.n_test):
+        reasons.append(f"sequences: training {final_row.get('n_train')} fit / {final_row.get('n_test')} scored, "
+                       f"evaluate.py {res.n_train} / {res.n_test}")
+    theirs = float(final_row["nmse_overall"])
+    if "alignment_settings" in final_row and "alphas" not in final_row["alignment_settings"] and abs(ours - theirs) > 1e-9:
+        reasons.append("the training's alpha grid is not recorded (runs written before the grid reached 100 used "
+                       "1e-4 .. 1; evaluate.py now searches 1e-4 .. 100)")
+    return {"evaluate_nmse_overall": ours, "training_nmse_overall": theirs, "difference": ours - theirs,
+            "training_epoch": final_row.get("epoch"), "reasons": reasons}
+
+
+
+
+# ----------------------------------------------------------------------------- all runs
+def output_folder(target: Path, runs: list[Run], kind: str, opts: DictConfig, selection: dict) -> Path:
+    """``out=`` if given; else ``<run>/evaluation`` (``evaluation-last`` for checkpoint=last,
+    ``evaluation-<ckpt>`` for one checkpoint file), ``<multirun>/evaluation`` for a sweep;
+    a selection gets its own folder so it never overwrites the whole sweep's report."""
+    if opts.out:
+        return Path(opts.out)
+    root = runs[0].run_dir if kind == "run" else target
+    if target.is_file():
+        out = root / f"evaluation-{runs[0].ckpt.stem}"
+    else:
+        out = root / ("evaluation" if opts.checkpoint == "best" else f"evaluation-{opts.checkpoint}")
+    if selection:
+        out = out.with_name(out.name + "-" + ",".join(f"{k}={'+'.join(v)}" for k, v in selection.items()))
+    return out
+
+
+def cell(run: Run) -> tuple:
+    c = run.cfg
+    return (str(c.modality.name), str(c.skin.name), str(c.primitive.name))
+
+
+def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
+    """Evaluate a run / checkpoint / multirun / study folder; return {"out": folder, "runs":
+    [info...], "skipped": [...], "written": write_report's dict}. Prints the measured summary
+    (:func:`terminal_summary`). Raises EvaluationError."""
+    from embodied_tactile.eval.report import write_report
+    from embodied_tactile.eval.results import config_axes
+    from embodied_tactile.runtime import peak_rss_bytes
+
+    overrides, selection = split_overrides(overrides)
+    opts = parse_options(overrides)
+    if opts.torch_threads:
+        from embodied_tactile.runtime import set_threads
+
+        set_threads(int(opts.torch_threads))
+    target = Path(target)
+    kind, runs, skipped = discover(target, opts.checkpoint)
+    runs = select_runs(runs, selection)
+    baselines = list(opts.baselines) if opts.baselines is not None else list(
+        BASELINES if kind == "run" else MULTIRUN_BASELINES)
+    out = output_folder(target, runs, kind, opts, selection)
+
+    t0 = time.perf_counter()
+    cache = DataCache()
+    # every configuration axis that differs between the runs (beyond modality / skin / primitive;
+    # the seed is the replicate axis): tables group by all of them and average over seeds only
+    axes = config_axes([OmegaConf.to_container(r.cfg, resolve=True) for r in runs], [r.name for r in runs])
+    keys = [(cell(r), tuple(sorted(a.items()))) for r, a in zip(runs, axes)]
+    cells = Counter(keys)
+    # stream: runs sharing a data config one after the other, one DataModule in memory at a time
+    data_keys = [DataCache.key(data_config(r, opts)) for r in runs]
+    order = sorted(range(len(runs)), key=lambda i: (data_keys.index(data_keys[i]), i))
+    per_run: dict[int, tuple] = {}
+    for n, i in enumerate(order):
+        run = runs[i]
+        log.info("[%d/%d] %s (%s)", n + 1, len(runs), run.run_dir, run.ckpt.name)
+        results, history, info = evaluate_run(run, opts, cache, baselines)
+        seed = run.cfg.get("seed")
+        for r in results:
+            r.seed, r.axes = (None if seed is None else int(seed)), dict(axes[i])
+            if cells[keys[i]] > 1:  # replicates of one configuration: tell them apart by seed (or folder)
+                same = [runs[j].cfg.get("seed") for j in range(len(runs)) if keys[j] == keys[i]]
+                r.replicate = f"seed={seed}" if same.count(seed) == 1 else run.name
+        label = results[0].label.split("/", 1)[1]
+        info["axes"], info["seed"], info["label"] = dict(axes[i]), seed, label
+        per_run[i] = (results, history, info, label)
+        log.info("    %s: NMSE overall %.4g (%d train / %d held-out, %.1f s)", label,
+                 results[0].summary()["nmse_trajectory_overall"], info["n_train"], info["n_test"],
+                 info["timings"]["total_s"])
+        log.info("    %s", agreement_line(info["training_final_alignment"]))
+    cache.clear()
+    all_results, histories, infos = [], {}, []
+    for i in range(len(runs)):
+        results, history, info, label = per_run.pop(i)
+        if history:
+            histories[label] = history
+        all_results.extend(results)
+        infos.append(info)
+    t_eval = time.perf_counter()
+    sources = sorted({i["source"] for i in infos})
+    split_extra = {i["run_dir"]: {"n_train": i["n_train"], "n_test": i["n_test"],
+                                  "split_file": str(Path(i["run_dir"]) / "split.json")} for i in infos}
+    written = write_report(all_results, out, source=sources[0] if len(sources) == 1 else None,
+                           split_sizes_=split_extra, histories=histories or None,
+                           figures=bool(opts.figures), umap=bool(opts.umap), distance_mode=str(opts.distance_mode))
+    t_rep = time.perf_counter()
+    summary = {"kind": kind, "target": str(target), "out": str(out), "options": OmegaConf.to_container(opts),
+               "baselines": baselines, "runs": infos,
+               "skipped": [{"run_dir": str(d), "reason": r} for d, r in skipped],
+               "selection": selection, "datamodule_reuse": cache.hits,
+               "timings": {"evaluate_s": t_eval - t0, "report_s": t_rep - t_eval},
+               "peak_rss_bytes": peak_rss_bytes()}
+    (out / "evaluation.json").write_text(json.dumps(summary, indent=1, default=str))
+    if opts.print_tables:
+        for p in written["tables"]:
+            if p.endswith(".md"):
+                print(Path(p).read_text())
+    print("\n".join(terminal_summary(all_results, infos, skipped, out, t_rep - t0)))
+    return {"out": str(out), "runs": infos, "skipped": summary["skipped"], "written": written}
+
+
+# ----------------------------------------------------------------------------- terminal
+METHOD_NAMES = {"latent_filter": "Latent Filter", "handcrafted_krr": "hand-crafted KRR", "gru": "GRU",
+                "mean": "mean"}
+
+
+def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence[tuple], out: Path,
+                     seconds: float) -> list[str]:
+    """What was measured, as lines for the terminal. One run: its NMSE per factor, one row per
+    method (the Latent Filter beside the baselines), and its agreement with the training's final
+    alignment. Several runs: one row per run, the Latent Filter per factor beside the baselines'
+    overall NMSE. Then the paper's findings that have at least one measured comparison, the
+    skipped jobs and the output folder (which keeps every table)."""
+    from embodied_tactile.eval.tables import fmt_cell
+    from embodied_tactile.eval.verdicts import VERDICTS, evaluate_findings, summarise
+
+    methods = list(dict.fromkeys(r.method for r in results))
+    by_run: dict[str, dict] = {}
+    for r in results:
+        by_run.setdefault(str(r.params.get("run_dir")), {})[r.method] = r.summary()
+    lines = ["Held-out whole-trajectory NMSE (0 = perfect, 1 = the mean predictor's level):"]
+    if len(infos) == 1:
+        i = infos[0]
+        s = by_run[i["run_dir"]]
+        lines.append(f"{i['label']} ({i['n_train']} train / {i['n_test']} held-out trials, "
+                     f"{Path(i['checkpoint']).name}, split {i['split']['kind']})")
+        lines.append("| method | " + " | ".join(FACTOR_NAMES) + " | overall |")
+        lines.append("|---" * (len(FACTOR_NAMES) + 2) + "|")
+        for m in methods:
+            row = s[m]
+            lines.append(f"| {METHOD_NAMES.get(m, m)} | "
+                         + " | ".join(fmt_cell(row["nmse_trajectory"][f]) for f in FACTOR_NAMES)
+                         + f" | {fmt_cell(row['nmse_trajectory_overall'])} |")
+        lines.append(agreement_line(i["training_final_alignment"]))
+    else:
+        others = [m for m in methods if m != "latent_filter"]
+        lines.append("| run | " + " | ".join(FACTOR_NAMES) + " | overall | "
+                     + " | ".join(METHOD_NAMES.get(m, m) for m in others) + " | agrees with training |")
+        lines.append("|---" * (len(FACTOR_NAMES) + 3 + len(others)) + "|")
+        for i in infos:
+            s = by_run[i["run_dir"]]
+            lf = s.get("latent_filter", {})
+            c = i["training_final_alignment"]
+            agree = "–" if c.get("training_nmse_overall") is None else ("yes" if not c["reasons"] else
+                                                                        f"{c['difference']:+.2g}")
+            lines.append(f"| {i['label']} | " + " | ".join(fmt_cell(lf.get("nmse_trajectory", {}).get(f))
+                                                        for f in FACTOR_NAMES)
+                         + f" | {fmt_cell(lf.get('nmse_trajectory_overall'))} | "
+                         + " | ".join(fmt_cell(s.get(m, {}).get("nmse_trajectory_overall")) for m in others)
+                         + f" | {agree} |")
+        lf = [r for r in results if r.method == "latent_filter"]
+        contexts = sorted({r.cell[4] for r in lf}, key=str)
+        found = []
+        for ctx in contexts:
+            for f in summarise(evaluate_findings([r for r in lf if r.cell[4] == ctx])):
+                if sum(f[v] for v in VERDICTS if v != "not measured"):
+                    tag = "; ".join(f"{k}={v}" for k, v in ctx)
+                    found.append(f"({f['finding']}) {f['claim']}: {f['verdict']} "
+                                 f"({', '.join(f'{f[v]} {v}' for v in VERDICTS if f[v])})" + (f" [{tag}]" if tag else ""))
+        if found:
+            lines.append("The paper's findings with a measured comparison:")
+            lines += [f"- {x}" for x in found]
+    lines += [f"SKIPPED {d}: {r}" for d, r in skipped]
+    lines.append(f"evaluated {len(infos)} run(s) ({len(skipped)} skipped) in {seconds:.1f} s -> {out} "
+                 "(every table, figure and results.json)")
+    return lines

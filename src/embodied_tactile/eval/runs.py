@@ -1,0 +1,307 @@
+"""Loading a trained run: finding runs, choosing the checkpoint, reloading the run's own
+config, data config and saved split, and collecting its latents.
+
+``evaluate.py``, the palpation CLI (:mod:`embodied_tactile.active.load`) and the benchmarks
+load runs through this module. A run folder is what ``train.py`` writes:
+``config_resolved.yaml``, ``split.json``, ``checkpoints/``, ``metrics.json``,
+``provenance.json``. A trial's object and factors come from its attributes (the DataModule's
+trials), never from its name: a name is a label (the leakage guard's ``seq_id``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from omegaconf import DictConfig, OmegaConf
+
+from embodied_tactile import summary
+from embodied_tactile.jsonio import read_json
+
+log = logging.getLogger(__name__)
+
+
+class EvaluationError(RuntimeError):
+    """A run folder / checkpoint / option that cannot be evaluated (message names it)."""
+
+
+@dataclass
+class Run:
+    run_dir: Path
+    ckpt: Path
+    cfg: DictConfig = field(repr=False)
+    name: str = ""
+
+
+def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
+    """best: ``metrics.json`` best_checkpoint, else the newest ``checkpoints/best*.ckpt``;
+    last (or no best): ``checkpoints/last.ckpt``. Raises EvaluationError naming the folder."""
+    ck_dir = run_dir / "checkpoints"
+    last = ck_dir / "last.ckpt"
+    if which == "best":
+        mpath = run_dir / "metrics.json"
+        if mpath.exists():
+            try:
+                best = json.loads(mpath.read_text()).get("best_checkpoint")
+            except ValueError:
+                best = None
+            if best:
+                p = Path(best)
+                cand = p if p.exists() else ck_dir / p.name  # the run folder may have moved
+                if cand.exists():
+                    return cand
+        bests = sorted(ck_dir.glob("best*.ckpt"), key=lambda p: (p.stat().st_mtime, p.name))
+        if bests:
+            return bests[-1]
+        if last.exists():
+            log.warning("%s: no best checkpoint, using %s", run_dir, last)
+            return last
+    elif last.exists():
+        return last
+    have = sorted(p.name for p in ck_dir.glob("*.ckpt")) if ck_dir.is_dir() else []
+    raise EvaluationError(
+        f"no {'checkpoint' if which == 'best' else 'last.ckpt'} in run folder {run_dir} "
+        f"(looked in {ck_dir}; found {have or 'nothing'}). Did training finish or get killed before its first epoch?")
+
+
+def load_module(run: Run):
+    """The run's LightningModule (class from ``cfg.model._target_``) from its checkpoint, on
+    the CPU, in eval mode. A checkpoint whose weights do not fit this code's network (written
+    by an older model layout) is an :class:`EvaluationError` naming the file, the commit that
+    wrote it and the first mismatching key."""
+    from hydra.utils import get_class
+
+    cls = get_class(str(run.cfg.model._target_))
+    try:
+        model = cls.load_from_checkpoint(str(run.ckpt), map_location="cpu")
+    except RuntimeError as err:
+        if "state_dict" not in str(err):
+            raise
+        keys = re.findall(r'"([^"]+)"', str(err))
+        commit = read_json(run.run_dir / "provenance.json").get("git_commit") or "unknown"
+        raise EvaluationError(
+            f"{run.ckpt}: its weights do not fit this code's {cls.__name__} (first mismatching key "
+            f"{keys[0] if keys else '?'}): it was written by commit {commit[:12]}, whose network layout differs; "
+            "evaluate it with that commit's code or retrain") from None
+    model.eval()
+    return model
+
+
+def load_run(run_dir: Path, which: str, ckpt: Path | None = None) -> Run:
+    cpath = run_dir / "config_resolved.yaml"
+    if not cpath.exists():
+        raise EvaluationError(f"{run_dir} is not a training run folder: no config_resolved.yaml "
+                              "(give a run folder made by train.py, one of its checkpoints, or a multirun folder)")
+    cfg = OmegaConf.load(cpath)
+    return Run(run_dir=run_dir, ckpt=ckpt or find_checkpoint(run_dir, which), cfg=cfg, name=run_dir.name)
+
+
+def job_dirs(folder: Path) -> list[Path]:
+    """The training jobs under a multirun folder (its sub-folders holding a
+    ``config_resolved.yaml``) or under a study folder whose sub-folders are multiruns run as
+    separate parts (e.g. one per seed or primitive: ``hydra.sweep.dir=<study>/<part>``); both
+    levels are searched, so ``evaluate.py <study>`` merges the parts."""
+    jobs = []
+    for d in sorted((p for p in folder.iterdir() if p.is_dir()), key=lambda p: p.name):
+        if (d / "config_resolved.yaml").exists():
+            jobs.append(d)
+        else:
+            jobs += sorted((j for j in d.iterdir() if j.is_dir() and (j / "config_resolved.yaml").exists()),
+                           key=lambda j: j.name)
+    return jobs
+
+
+def discover(target: Path, which: str) -> tuple[str, list[Run], list[tuple[Path, str]]]:
+    """-> (kind 'run' | 'multirun', runs, skipped (folder, reason))."""
+    target = Path(target)
+    if not target.exists():
+        raise EvaluationError(f"no such file or folder: {target}")
+    if target.is_file():
+        if target.suffix != ".ckpt":
+            raise EvaluationError(f"{target} is a file but not a checkpoint (*.ckpt)")
+        return "run", [load_run(target.resolve().parent.parent, which, ckpt=target.resolve())], []
+    if (target / "config_resolved.yaml").exists():
+        return "run", [load_run(target, which)], []
+    jobs = job_dirs(target)
+    if not jobs:
+        raise EvaluationError(f"{target} holds no training run: no config_resolved.yaml in it nor in its "
+                              "sub-folders (expected a run folder, a checkpoint or a multirun folder)")
+    runs, skipped = [], []
+    for d in jobs:
+        try:
+            runs.append(load_run(d, which))
+            runs[-1].name = d.relative_to(target).as_posix()  # 'seed1/3' for a job of a study part
+        except EvaluationError as err:
+            skipped.append((d, str(err)))
+            log.warning("skipping %s", err)
+    if not runs:
+        raise EvaluationError(f"multirun folder {target}: none of its {len(jobs)} job(s) has a checkpoint; "
+                              + "; ".join(r for _, r in skipped[:3]))
+    return "multirun", runs, skipped
+
+
+# ----------------------------------------------------------------------------- data
+def training_cwd(run_dir: Path) -> Path | None:
+    """The working directory train.py ran in (``provenance.json``), or None."""
+    cwd = read_json(run_dir / "provenance.json").get("cwd")
+    return Path(cwd) if cwd else None
+
+
+def _resolve_path(value: str, train_cwd: Path | None) -> str:
+    """Relative path: as is when it exists from here, else relative to the training cwd."""
+    p = Path(value)
+    if p.is_absolute() or train_cwd is None:
+        return value
+    globby = any(ch in value for ch in "*?[")
+    here = bool(list(Path().glob(value))) if globby else p.exists()
+    if here:
+        return value
+    there = train_cwd / p
+    return str(there) if (bool(list(train_cwd.glob(value))) if globby else there.exists()) else value
+
+
+def data_config(run: Run, opts: DictConfig) -> dict:
+    """The run's cfg.data with the saved split, loader options and resolved paths."""
+    data = OmegaConf.to_container(run.cfg.data, resolve=True)
+    split = run.run_dir / "split.json"
+    if not split.exists():
+        raise EvaluationError(f"{run.run_dir} has no split.json: the training/held-out split of this run is unknown, "
+                              "so the alignment could be fitted on scored sequences; refusing to evaluate")
+    train_cwd = training_cwd(run.run_dir)
+    data["data_dir"] = _resolve_path(str(data.get("data_dir", "data")), train_cwd)
+    if not Path(data["data_dir"]).exists():
+        log.warning("%s: data folder %s not found (training cwd %s); the DataModule will %s", run.run_dir,
+                    data["data_dir"], train_cwd, "re-simulate the scene" if data.get("source") == "simulated"
+                    else "fail unless raw_files are found")
+    if data.get("raw_files"):
+        data["raw_files"] = [_resolve_path(str(f), train_cwd) for f in data["raw_files"]]
+    data["split_file"] = str(split)
+    if opts.data.batch_size:
+        data["batch_size"] = int(opts.data.batch_size)
+    data["num_workers"] = int(opts.data.num_workers)
+    return data
+
+
+class DataCache:
+    """The prepared DataModule (and its loaded batches) of the current (data config, saved
+    split). Only the latest one is kept: runs are evaluated grouped by data key, so a sweep
+    streams through its scenes and memory does not grow with the number of runs."""
+
+    def __init__(self) -> None:
+        self._dms: dict[str, Any] = {}
+        self._batches: dict[tuple[str, str], list] = {}
+        self.hits = 0
+
+    @staticmethod
+    def key(data: dict) -> str:
+        split = json.loads(Path(data["split_file"]).read_text())
+        d = {k: v for k, v in data.items() if k != "split_file"}
+        return json.dumps([d, split.get("train"), split.get("val"), split.get("test")], sort_keys=True, default=str)
+
+    def get(self, data: dict):
+        from hydra.utils import instantiate
+
+        k = self.key(data)
+        if k in self._dms:
+            self.hits += 1
+            return k, self._dms[k]
+        self.clear()  # free the previous scene before loading the next one
+        dm = instantiate(OmegaConf.create(data), _convert_="all")
+        dm.prepare_data()
+        dm.setup("fit")
+        self._dms[k] = dm
+        return k, dm
+
+    def clear(self) -> None:
+        import gc
+
+        self._dms.clear()
+        self._batches.clear()
+        gc.collect()
+
+    def batches(self, k: str, dm, which: str) -> list:
+        if (k, which) not in self._batches:
+            loader = dm.train_eval_dataloader() if which == "train" else dm.test_dataloader()
+            self._batches[(k, which)] = list(loader)
+        return self._batches[(k, which)]
+
+
+# ----------------------------------------------------------------------------- one run
+def trials(dm, which: str) -> list:
+    """The trials the DataModule serves on one side ('train' | 'val' | 'test'), in loader order."""
+    ds = {"train": dm.train_set, "val": getattr(dm, "val_set", None), "test": dm.test_set}[which]
+    return list(ds.trials) if ds is not None else []
+
+
+def trial_names(dm, which: str) -> list[str]:
+    """The names (labels) of the trials one side serves, in loader order."""
+    return [t.name for t in trials(dm, which)]
+
+
+def trial_objects(dm) -> dict[str, int]:
+    """Trial name -> object id, from the trials' attributes, over every side the DataModule serves."""
+    return {t.name: int(t.object_id) for side in ("train", "val", "test") for t in trials(dm, side)}
+
+
+def collect_split(model, batches: list, names: list[str], latent: str) -> tuple[dict, float]:
+    """collect_latents over pre-loaded batches (so the timing is inference only) + the
+    observations / actions the baselines need + trial names as seq_id."""
+    import numpy as np
+    import torch
+
+    from embodied_tactile.eval.callback import collect_latents
+
+    t0 = time.perf_counter()
+    split = collect_latents(model, batches, latent=latent)
+    dt = time.perf_counter() - t0
+    split["obs"] = torch.cat([b["obs"] for b in batches]).numpy()
+    split["actions"] = torch.cat([b["actions"] for b in batches]).numpy()
+    if len(names) != len(split["factors"]):
+        raise EvaluationError(f"{len(names)} trial names but {len(split['factors'])} sequences served")
+    split["seq_id"] = np.asarray(names)
+    return split, dt
+
+
+def run_split(run: Run, split_file: str, objects: Mapping[str, int]) -> dict:
+    """The run's split from its ``split.json``: kind ('trial' | 'object'), sizes, object ids per
+    side (``objects``: trial name -> object id from the trials' attributes, :func:`trial_objects`)
+    and ``unseen_objects`` (no held-out object has a trial in training or validation). An object
+    split whose held-out objects were seen in training is an error (its numbers would not
+    measure generalisation to unseen objects)."""
+    from embodied_tactile.eval.results import split_report
+
+    try:
+        rep = split_report(json.loads(Path(split_file).read_text()), objects)
+    except (OSError, ValueError) as err:
+        raise EvaluationError(f"{run.run_dir}: cannot read the split {split_file}: {err}") from err
+    if rep["kind"] == "object" and not rep["unseen_objects"]:
+        raise EvaluationError(f"{run.run_dir}: split.json ({split_file}) is an object split but held-out object(s) "
+                              f"{rep['seen_test_objects']} have trials in training or validation")
+    return rep
+
+
+def train_log_dir() -> str:
+    """``paths.log_dir`` as train.py composes it (configs/train.yaml + configs/local/)."""
+    from hydra import compose, initialize_config_dir
+
+    from embodied_tactile.settings import config_dir
+
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        return str(compose(config_name="train").paths.log_dir)
+
+
+def latest_target(log_dir: str | None = None) -> Path:
+    """The most recent run or multirun (with a checkpoint) under ``<log_dir>/train``; says
+    which one on stdout. EvaluationError when there is none."""
+    train_dir = Path(log_dir or train_log_dir()) / "train"
+    try:
+        folder, kind, passed = summary.latest_run(train_dir)
+    except FileNotFoundError as err:
+        raise EvaluationError(str(err)) from None
+    print(summary.picked_message(folder, kind, passed, train_dir), flush=True)
+    return folder
