@@ -1,0 +1,56 @@
+"""The learning-curve page: collected from evaluated population runs, aggregated over seeds."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from omegaconf import OmegaConf
+
+from embodied_tactile.constants import FACTOR_NAMES
+from embodied_tactile.eval import generalisation as G
+
+
+def _run(root, n, seed, lf, labels=True, objects="population"):
+    d = root / f"n{n}_s{seed}_{labels}"
+    (d / "evaluation").mkdir(parents=True)
+    cfg = {"seed": seed, "modality": {"name": "multi_l"}, "model": {"net": {"prior": {"labels": labels}}},
+           "data": {"objects": objects, "split": "object", "n_objects": n}}
+    OmegaConf.save(OmegaConf.create(cfg), d / "config_resolved.yaml")
+    (d / "provenance.json").write_text(json.dumps({"git_commit": "abcdef0123"}))
+    runs = [{"method": m, "nmse_trajectory": {f: v for f in FACTOR_NAMES}, "nmse_trajectory_overall": v,
+             "targets": "physical"} for m, v in (("latent_filter", lf), ("gru", 0.5), ("mean", 1.0))]
+    (d / "evaluation" / "results.json").write_text(json.dumps({"runs": runs}))
+
+
+def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
+    root = tmp_path / "runs"
+    for seed, lf in ((0, 0.8), (1, 0.9), (2, 1.0)):
+        _run(root, 24, seed, lf)
+    _run(root, 24, 0, 0.95, labels=False)
+    _run(root, 256, 0, 0.4)
+    _run(root, 64, 0, 0.1, objects=None)  # not a population run: left out
+    rows = G.collect([root])
+    methods = {r["method"] for r in rows}
+    assert methods == {"Latent Filter multi_l", "Latent Filter multi_l (labels=false)",
+                       "supervised conv + GRU (multi_l)", "mean predictor"}
+    # the GRU and mean of the labels=false run duplicate the labels=true run's: counted once
+    assert sum(1 for r in rows if r["method"] == "mean predictor" and r["n_objects"] == 24) == 3
+    agg = G.aggregate(rows)
+    cell = agg["Latent Filter multi_l"][24]
+    assert cell["mean"] == pytest.approx(0.9) and cell["seeds"] == [0, 1, 2]
+    assert cell["lo"] < 0.9 < cell["hi"] and cell["hi"] - cell["lo"] == pytest.approx(2 * 4.303 * 0.1 / 3**0.5, rel=1e-3)
+    single = agg["Latent Filter multi_l"][256]
+    assert single["mean"] == pytest.approx(0.4) and single["lo"] != single["lo"]  # one seed: no interval
+    page = G.write_page(rows, tmp_path / "docs", command="test")
+    text = page.read_text()
+    assert "0.900 [" in text and "not run" in text and "abcdef0" in text
+    assert (tmp_path / "docs" / "figures" / "generalisation_curve.png").stat().st_size > 1000
+    assert 64 not in {r["n_objects"] for r in rows}
+
+
+def test_cli_refuses_a_folder_without_population_runs(tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        G.main([str(tmp_path), "--out", str(tmp_path / "docs")])
+    assert info.value.code == 2
+    assert "no evaluated population runs" in capsys.readouterr().err
