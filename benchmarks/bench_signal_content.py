@@ -112,6 +112,27 @@ def score(feats, targets, train, val, test, group: str) -> np.ndarray:
     return out
 
 
+def local_relief(n_objects: int, seed: int) -> tuple[float, float, np.ndarray]:
+    """Peak-to-peak height within the patch's window at the block centre (where pressing
+    lands, to within the 0.5 mm placement error) over the block's amplitude, for population
+    objects 0..n-1: -> (variance of log ratio, variance of log amplitude, ratio percentiles 5/50/95)."""
+    from embodied_tactile import constants as C
+    from embodied_tactile.sim import objects as O
+    from embodied_tactile.sim import physics as P
+    from embodied_tactile.sim.population import population_object
+
+    half = int(round(C.FSR_GRID[0] * C.TAXEL_PITCH_M / P.SURFACE_DX_M / 2))
+    c = P.SURFACE_N // 2
+    ratio, log_amp = [], []
+    for k in range(n_objects):
+        o = population_object(k, seed)
+        h = O.surface(o)[c - half:c + half, c - half:c + half] * 1e3
+        ratio.append(np.log((h.max() - h.min()) / o.amplitude_mm))
+        log_amp.append(np.log(o.amplitude_mm))
+    r = np.array(ratio)
+    return float(r.var()), float(np.var(log_amp)), np.exp(np.percentile(r, [5, 50, 95]))
+
+
 def main() -> None:
     from embodied_tactile.sim.population import object_role, population_index
 
@@ -120,6 +141,7 @@ def main() -> None:
     ap.add_argument("--n-train", type=int, nargs="+", default=[24, 64, 128, 256, 512])
     ap.add_argument("--n-val", type=int, default=32)
     ap.add_argument("--n-test", type=int, default=64)
+    ap.add_argument("--population-seed", type=int, default=0, help="for the local-relief line")
     args = ap.parse_args()
     t0 = time.perf_counter()
     objects, feats, targets = object_table(args.raw)
@@ -138,6 +160,10 @@ def main() -> None:
         for group in GROUPS:
             e = score(feats, targets, train_all[:n], val, test, group)
             print(f"| {n} | {group} | " + " | ".join(f"{v:.3f}" for v in e) + f" | {e.mean():.3f} |")
+    v_ratio, v_amp, pct = local_relief(len(objects), args.population_seed)
+    print(f"\nlocal relief under the patch / block amplitude over {len(objects)} objects: median {pct[1]:.2f}, "
+          f"5-95 % {pct[0]:.2f}-{pct[2]:.2f}; var log ratio {v_ratio:.3f} / var log amplitude {v_amp:.3f} "
+          f"= NMSE {v_ratio / v_amp:.2f} of the local relief as a reader of log amplitude")
 
 
 if __name__ == "__main__":
