@@ -1,4 +1,4 @@
-"""Pendulum benchmark (issue 15): the generator's physics, the Latent Filter's observation
+"""Pendulum benchmark: the generator's physics, the Latent Filter's observation
 mask / open-loop prediction, and a short training run with its read-outs."""
 
 from __future__ import annotations
@@ -242,9 +242,9 @@ def test_remedies_put_the_velocity_into_z(remedy_run):
     assert np.all(ol["model"][:10] < ol["last_clean"][:10]), ol
 
 
-@pytest.mark.xfail(strict=True, reason="issue 15: at 300 steps on 64 sequences y does not yet identify the "
+@pytest.mark.xfail(strict=True, reason="targets of docs/experiments/pendulum.md: at 300 steps on 64 sequences y does not yet identify the "
                    "pendulum's frequency / damping (2500 steps: docs/model.md); flips when it does")
-def test_short_training_meets_the_issue_targets(remedy_run):
+def test_short_training_meets_the_pendulum_targets(remedy_run):
     r = remedy_run["readouts"]
     assert r["z_velocity"][1] >= 0.9, r
     assert r["y_frequency"][1] >= 0.8, r

@@ -1,4 +1,4 @@
-"""Every simulator input is checked at its boundary (issue 12, point 4).
+"""Every simulator input is checked at its boundary.
 
 An invalid value raises SimParameterError (a ValueError) naming the parameter, the value
 and the allowed range; the CLI exits 2 with one line on stderr and writes nothing; the
