@@ -32,15 +32,15 @@ def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
     _run(root, 64, 0, 0.1, objects=None)  # not a population run: left out
     rows = G.collect([root])
     methods = {r["method"] for r in rows}
-    assert methods == {"Latent Filter multi_l", "Latent Filter multi_l (labels=false)",
+    assert methods == {"Latent Filter multi_l (labels)", "Latent Filter multi_l (no labels)",
                        "supervised conv + GRU (multi_l)", "mean predictor"}
     # the GRU and mean of the labels=false run duplicate the labels=true run's: counted once
     assert sum(1 for r in rows if r["method"] == "mean predictor" and r["n_objects"] == 24) == 3
     agg = G.aggregate(rows)
-    cell = agg["Latent Filter multi_l"][24]
+    cell = agg["Latent Filter multi_l (labels)"][24]
     assert cell["mean"] == pytest.approx(0.9) and cell["seeds"] == [0, 1, 2]
     assert cell["lo"] < 0.9 < cell["hi"] and cell["hi"] - cell["lo"] == pytest.approx(2 * 4.303 * 0.1 / 3**0.5, rel=1e-3)
-    single = agg["Latent Filter multi_l"][256]
+    single = agg["Latent Filter multi_l (labels)"][256]
     assert single["mean"] == pytest.approx(0.4) and single["lo"] != single["lo"]  # one seed: no interval
     page = G.write_page(rows, tmp_path / "docs", command="test")
     text = page.read_text()
@@ -54,3 +54,12 @@ def test_cli_refuses_a_folder_without_population_runs(tmp_path, capsys):
         G.main([str(tmp_path), "--out", str(tmp_path / "docs")])
     assert info.value.code == 2
     assert "no evaluated population runs" in capsys.readouterr().err
+
+
+def test_recipe_names_the_settings_that_tell_recipes_apart():
+    cfg = OmegaConf.create({"model": {"net": {"prior": {"labels": False}, "y_update": "evidence", "obs_dropout": 0.5}},
+                            "annealing": {"schedule": {"y_weight": 1.0}}})
+    assert G.recipe(cfg) == "no labels, y_weight 1, y evidence, dropout 0.5"
+    cfg.model.net.obs_dropout = 0.0
+    cfg.model.net.prior.labels = True
+    assert G.recipe(cfg) == "labels, y_weight 1, y evidence"

@@ -4,8 +4,7 @@
 
 ``<root>``: folders holding population runs (``experiment=population``, any depth), each
 evaluated by ``evaluate.py`` (``<run>/evaluation/results.json``). Every method of every run
-becomes a point: the Latent Filter of the run's modality (``labels=false`` when the prior
-ignored object ids) and the baselines evaluate.py scored on the same split (hand-crafted
+becomes a point: the Latent Filter of the run's modality and recipe (:func:`recipe`) and the baselines evaluate.py scored on the same split (hand-crafted
 features + KRR, the supervised conv + GRU, the mean predictor). A baseline scored by two runs
 with the same modality, size and seed is counted once. Cells are averaged over seeds with a
 95 % t interval; a cell with one seed has no interval.
@@ -30,9 +29,29 @@ from ..constants import FACTOR_NAMES
 _BASELINE_NAMES = {"handcrafted_krr": "hand-crafted + KRR", "gru": "supervised conv + GRU", "mean": "mean predictor"}
 
 
-def _method_label(method: str, modality: str, labels: bool) -> str:
+def recipe(cfg) -> str:
+    """The settings that tell the learning curve's Latent Filter recipes apart, as the run
+    used them: the prior's object labels, the KL schedule's y weight, the y update and the
+    observation dropout (the last three where the run's config has them)."""
+    from omegaconf import OmegaConf
+
+    labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=True))
+    parts = ["labels" if labels else "no labels"]
+    y_weight = OmegaConf.select(cfg, "annealing.schedule.y_weight", default=None)
+    if y_weight is not None:
+        parts.append(f"y_weight {float(y_weight):g}")
+    y_update = OmegaConf.select(cfg, "model.net.y_update", default=None)
+    if y_update is not None:
+        parts.append(f"y {y_update}")
+    dropout = float(OmegaConf.select(cfg, "model.net.obs_dropout", default=0.0) or 0.0)
+    if dropout > 0:
+        parts.append(f"dropout {dropout:g}")
+    return ", ".join(parts)
+
+
+def _method_label(method: str, modality: str, recipe_: str) -> str:
     if method == "latent_filter":
-        return f"Latent Filter {modality}" + ("" if labels else " (labels=false)")
+        return f"Latent Filter {modality} ({recipe_})"
     if method == "mean":
         return "mean predictor"
     return f"{_BASELINE_NAMES.get(method, method)} ({modality})"
@@ -56,10 +75,10 @@ def collect(roots: Iterable[str | Path]) -> list[dict[str, Any]]:
                 continue
             prov = run_dir / "provenance.json"
             commit = json.loads(prov.read_text()).get("git_commit", "unknown") if prov.exists() else "unknown"
-            labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=True))
+            recipe_ = recipe(cfg)
             n, seed, modality = int(cfg.data.n_objects), int(cfg.seed), str(cfg.modality.name)
             for r in json.loads(res_path.read_text())["runs"]:
-                label = _method_label(r["method"], modality, labels)
+                label = _method_label(r["method"], modality, recipe_)
                 key = (label, n, seed)
                 if key in rows:
                     continue
@@ -168,6 +187,12 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         "standardised by the alignment. Each cell: mean over seeds [95 % t interval] (number of seeds); "
         "'not run' cells were not run. The baselines train on the same training split at the Latent "
         "Filter's optimiser-step budget (480 steps of 16 windows).",
+        "",
+        "What the signals allow on the same population (a kernel reader on physical summary features): "
+        "docs/experiments/signal_content.md. The paper's 32 objects under the object split: "
+        "docs/experiments/study_held_out_objects.md. The runs: `python train.py -m experiment=population "
+        "sweep=generalisation [recipe overrides]`, then `python evaluate.py <run> baselines=[handcrafted,gru,mean] "
+        "gru.epochs=16 gru.max_batches_per_epoch=30` per run (configs/sweep/generalisation.yaml).",
         "",
         "![learning curve](figures/generalisation_curve.png)",
         "",
