@@ -19,8 +19,13 @@ def _run(root, n, seed, lf, labels=True, objects="population"):
     OmegaConf.save(OmegaConf.create(cfg), d / "config_resolved.yaml")
     (d / "provenance.json").write_text(json.dumps({"git_commit": "abcdef0123"}))
     runs = [{"method": m, "nmse_trajectory": {f: v for f in FACTOR_NAMES}, "nmse_trajectory_overall": v,
+             "nmse_last_step": {f: v / 2 for f in FACTOR_NAMES}, "nmse_last_step_overall": v / 2,
              "targets": "physical"} for m, v in (("latent_filter", lf), ("gru", 0.5), ("mean", 1.0))]
     (d / "evaluation" / "results.json").write_text(json.dumps({"runs": runs}))
+    initial = {"epoch": -1, "step": 0, "initial": True, "nmse": {f: 1.05 for f in FACTOR_NAMES}, "nmse_overall": 1.05,
+               "nmse_last": {f: 1.1 for f in FACTOR_NAMES}, "nmse_last_overall": 1.1}
+    later = dict(initial, epoch=0, step=30, initial=False, nmse_overall=0.2)
+    (d / "krr_history.jsonl").write_text(json.dumps(initial) + "\n" + json.dumps(later) + "\n")
 
 
 def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
@@ -33,6 +38,7 @@ def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
     rows = G.collect([root])
     methods = {r["method"] for r in rows}
     assert methods == {"Latent Filter multi_l (labels)", "Latent Filter multi_l (no labels)",
+                       "Latent Filter multi_l (labels), untrained", "Latent Filter multi_l (no labels), untrained",
                        "supervised conv + GRU (multi_l)", "mean predictor"}
     # the GRU and mean of the labels=false run duplicate the labels=true run's: counted once
     assert sum(1 for r in rows if r["method"] == "mean predictor" and r["n_objects"] == 24) == 3
@@ -42,9 +48,14 @@ def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
     assert cell["lo"] < 0.9 < cell["hi"] and cell["hi"] - cell["lo"] == pytest.approx(2 * 4.303 * 0.1 / 3**0.5, rel=1e-3)
     single = agg["Latent Filter multi_l (labels)"][256]
     assert single["mean"] == pytest.approx(0.4) and single["lo"] != single["lo"]  # one seed: no interval
+    assert agg["Latent Filter multi_l (labels), untrained"][24]["mean"] == pytest.approx(1.05)
+    last = G.aggregate(rows, "overall", "last_step")
+    assert last["Latent Filter multi_l (labels)"][24]["mean"] == pytest.approx(0.45)
+    assert last["Latent Filter multi_l (labels), untrained"][24]["mean"] == pytest.approx(1.1)
     page = G.write_page(rows, tmp_path / "docs", command="test")
     text = page.read_text()
-    assert "0.900 [" in text and "not run" in text and "abcdef0" in text
+    assert "0.900 [" in text and "0.450 [" in text and "not run" in text and "abcdef0" in text
+    assert "## Mean over factors, last step" in text
     assert (tmp_path / "docs" / "figures" / "generalisation_curve.png").stat().st_size > 1000
     assert 64 not in {r["n_objects"] for r in rows}
 

@@ -5,7 +5,8 @@
 ``<root>``: folders holding population runs (``experiment=population``, any depth), each
 evaluated by ``evaluate.py`` (``<run>/evaluation/results.json``). Every method of every run
 becomes a point: the Latent Filter of the run's modality and recipe (:func:`recipe`) and the baselines evaluate.py scored on the same split (hand-crafted
-features + KRR, the supervised conv + GRU, the mean predictor). A baseline scored by two runs
+features + KRR, the supervised conv + GRU, the mean predictor), and the same filter untrained
+(the training's KRR check at step 0, ``krr_history.jsonl``: the read-out's floor). A baseline scored by two runs
 with the same modality, size and seed is counted once. Cells are averaged over seeds with a
 95 % t interval; a cell with one seed has no interval.
 
@@ -57,10 +58,25 @@ def _method_label(method: str, modality: str, recipe_: str) -> str:
     return f"{_BASELINE_NAMES.get(method, method)} ({modality})"
 
 
+UNTRAINED = ", untrained"
+
+
+def _untrained(run_dir: Path) -> dict[str, Any] | None:
+    """The training's KRR check at step 0 (the randomly initialised filter's y): the floor
+    of the Latent Filter's read-out; None when the run has no such row."""
+    from .figures import read_history
+
+    path = run_dir / "krr_history.jsonl"
+    if not path.exists():
+        return None
+    return next((h for h in read_history(path) if h.get("initial") and h.get("nmse")), None)
+
+
 def collect(roots: Iterable[str | Path]) -> list[dict[str, Any]]:
-    """One row per (method, training objects, seed): ``{method, n_objects, seed, nmse:
-    {factor: value}, overall, run_dir, commit}`` from every evaluated population run under
-    ``roots``."""
+    """One row per (method, training objects, seed): ``{method, n_objects, seed, trajectory,
+    last_step, run_dir, commit, targets}`` from every evaluated population run under ``roots``;
+    ``trajectory`` / ``last_step``: ``{factor: NMSE, "overall": mean over factors}`` over every
+    frame / at the last frame."""
     from omegaconf import OmegaConf
 
     rows: dict[tuple, dict[str, Any]] = {}
@@ -77,14 +93,20 @@ def collect(roots: Iterable[str | Path]) -> list[dict[str, Any]]:
             commit = json.loads(prov.read_text()).get("git_commit", "unknown") if prov.exists() else "unknown"
             recipe_ = recipe(cfg)
             n, seed, modality = int(cfg.data.n_objects), int(cfg.seed), str(cfg.modality.name)
-            for r in json.loads(res_path.read_text())["runs"]:
-                label = _method_label(r["method"], modality, recipe_)
+            scores = [(_method_label(r["method"], modality, recipe_), r) for r in json.loads(res_path.read_text())["runs"]]
+            floor = _untrained(run_dir)
+            if floor is not None:
+                scores.append((_method_label("latent_filter", modality, recipe_) + UNTRAINED,
+                               {"nmse_trajectory": floor["nmse"], "nmse_trajectory_overall": floor["nmse_overall"],
+                                "nmse_last_step": floor["nmse_last"], "nmse_last_step_overall": floor["nmse_last_overall"],
+                                "targets": floor.get("targets")}))
+            for label, r in scores:
                 key = (label, n, seed)
-                if key in rows:
-                    continue
-                rows[key] = {"method": label, "n_objects": n, "seed": seed, "nmse": dict(r["nmse_trajectory"]),
-                             "overall": float(r["nmse_trajectory_overall"]), "run_dir": str(run_dir),
-                             "commit": commit, "targets": r.get("targets")}
+                if key not in rows:
+                    rows[key] = {"method": label, "n_objects": n, "seed": seed, "run_dir": str(run_dir),
+                                 "commit": commit, "targets": r.get("targets"),
+                                 "trajectory": {**r["nmse_trajectory"], "overall": float(r["nmse_trajectory_overall"])},
+                                 "last_step": {**r["nmse_last_step"], "overall": float(r["nmse_last_step_overall"])}}
     return sorted(rows.values(), key=lambda r: (r["method"], r["n_objects"], r["seed"]))
 
 
@@ -102,11 +124,13 @@ def mean_interval(values: Sequence[float]) -> tuple[float, float, float]:
     return m, m - h, m + h
 
 
-def aggregate(rows: Sequence[Mapping[str, Any]], score: str = "overall") -> dict[str, dict[int, dict[str, Any]]]:
-    """method -> n_objects -> {mean, lo, hi, seeds} of ``score`` ('overall' or a factor name)."""
+def aggregate(rows: Sequence[Mapping[str, Any]], score: str = "overall",
+              readout: str = "trajectory") -> dict[str, dict[int, dict[str, Any]]]:
+    """method -> n_objects -> {mean, lo, hi, seeds} of ``score`` ('overall' or a factor name)
+    of ``readout`` ('trajectory' or 'last_step')."""
     cells: dict[str, dict[int, list[tuple[int, float]]]] = {}
     for r in rows:
-        v = r["overall"] if score == "overall" else r["nmse"][score]
+        v = r[readout][score]
         cells.setdefault(r["method"], {}).setdefault(r["n_objects"], []).append((r["seed"], float(v)))
     out: dict[str, dict[int, dict[str, Any]]] = {}
     for m, by_n in cells.items():
@@ -136,29 +160,43 @@ def _method_order(m: str) -> tuple[int, str]:
     return (0 if m.startswith("Latent Filter") else 2 if m == "mean predictor" else 1, m)
 
 
-def figure(agg: Mapping[str, Mapping[int, Mapping[str, Any]]], path: Path) -> None:
+READOUTS = (("trajectory", "whole trajectory"), ("last_step", "last step"))
+
+
+def figure(rows: Sequence[Mapping[str, Any]], path: Path, sizes: Sequence[int]) -> None:
+    """Mean over factors against training objects (log x), one panel per read-out."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FormatStrFormatter, NullFormatter
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for m in sorted(agg, key=_method_order):
-        ns = sorted(agg[m])
-        mean = np.array([agg[m][n]["mean"] for n in ns])
-        lo = np.array([agg[m][n]["lo"] for n in ns])
-        hi = np.array([agg[m][n]["hi"] for n in ns])
-        style = "--" if m == "mean predictor" else "-"
-        line, = ax.plot(ns, mean, style, marker="o", label=m)
-        ok = np.isfinite(lo)
-        if ok.any():
-            ax.fill_between(np.array(ns)[ok], lo[ok], hi[ok], color=line.get_color(), alpha=0.15)
-    ax.set_xscale("log")
-    ax.set_xlabel("training objects")
-    ax.set_ylabel("held-out-object NMSE (mean over factors)")
-    ax.axhline(1.0, color="0.6", lw=0.8)
-    ax.legend(fontsize=7)
-    ax.grid(alpha=0.3, which="both")
+    fig, axes = plt.subplots(1, len(READOUTS), figsize=(11.0, 4.4), sharey=True)
+    for ax, (readout, title) in zip(axes, READOUTS):
+        agg = aggregate(rows, readout=readout)
+        for m in sorted(agg, key=_method_order):
+            ns = sorted(agg[m])
+            mean = np.array([agg[m][n]["mean"] for n in ns])
+            lo = np.array([agg[m][n]["lo"] for n in ns])
+            hi = np.array([agg[m][n]["hi"] for n in ns])
+            style = "--" if m == "mean predictor" else ":" if m.endswith(UNTRAINED) else "-"
+            line, = ax.plot(ns, mean, style, marker="o", label=m)
+            ok = np.isfinite(lo)
+            if ok.any():
+                ax.fill_between(np.array(ns)[ok], lo[ok], hi[ok], color=line.get_color(), alpha=0.15)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xticks(list(sizes))
+        ax.set_yticks([0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 2.0, 5.0])
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_major_formatter(FormatStrFormatter("%g"))
+            axis.set_minor_formatter(NullFormatter())
+        ax.set_title(f"held-out objects, {title}", fontsize=9)
+        ax.set_xlabel("training objects")
+        ax.axhline(1.0, color="0.6", lw=0.8)
+        ax.grid(alpha=0.3, which="both")
+    axes[0].set_ylabel("NMSE (mean over factors, log scale)")
+    axes[-1].legend(fontsize=6)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
@@ -169,8 +207,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
                sizes: Sequence[int] = (24, 64, 128, 256, 512)) -> Path:
     """docs page + figure from ``collect`` rows. Returns the page's path."""
     out = Path(out)
-    agg = aggregate(rows)
-    figure(agg, out / "figures" / "generalisation_curve.png")
+    figure(rows, out / "figures" / "generalisation_curve.png", sizes)
     commits = sorted({r["commit"][:7] for r in rows})
     lines = [
         "# Generalisation to objects never touched",
@@ -178,15 +215,19 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         f"Generated by `{command}` on {_dt.date.today().isoformat()} from {len(rows)} scores "
         f"(runs at commit(s) {', '.join(commits) or 'none'}). Do not edit: regenerate.",
         "",
-        "Held-out-object NMSE (whole trajectory, 0 = perfect, 1 = the training mean) of the population "
+        "Held-out-object NMSE (0 = perfect, 1 = the training mean) of the population "
         "scene (`experiment=population`: soft e-Skin, pressing at 4 and 8 mm, 0.6 Hz; docs/simulator.md, "
         "\"Object population\") against the number of training objects. Every size is scored on the same "
         "64 test objects and picks checkpoints on the same 32 validation objects; the population and "
         "the simulated noise are those of population_seed 0 and sim_seed 0, the seeds vary the model's "
         "initialisation and training windows. Targets: physical units (1/m, mm, log10 Pa, 0/1), "
-        "standardised by the alignment. Each cell: mean over seeds [95 % t interval] (number of seeds); "
+        "standardised by the alignment. Two read-outs: over the whole trajectory (every frame, the "
+        "project's main NMSE; frames before the first contact count) and at the last frame (the estimate after "
+        "the whole trial). Each cell: mean over seeds [95 % t interval] (number of seeds); "
         "'not run' cells were not run. The baselines train on the same training split at the Latent "
-        "Filter's optimiser-step budget (480 steps of 16 windows).",
+        "Filter's optimiser-step budget (480 steps of 16 windows). 'untrained' rows: the same filter at step 0 "
+        "(its random initialisation), read by the training's KRR check (alignment on at most 256 training "
+        "sequences): the floor a trained filter's read-out is to be compared with.",
         "",
         "What the signals allow on the same population (a kernel reader on physical summary features): "
         "docs/experiments/signal_content.md. The paper's 32 objects under the object split: "
@@ -196,17 +237,19 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         "",
         "![learning curve](figures/generalisation_curve.png)",
         "",
-        "## Mean over factors",
-        "",
-        *table(agg, sizes),
     ]
+    for readout, title in READOUTS:
+        lines += [f"## Mean over factors, {title}", "", *table(aggregate(rows, readout=readout), sizes), ""]
     for f in FACTOR_NAMES:
-        lines += ["", f"## {f}", "", *table(aggregate(rows, f), sizes)]
-    lines += ["", "## Scores", "", "| method | training objects | seed | overall | " + " | ".join(FACTOR_NAMES) + " |",
-              "|---" * (4 + len(FACTOR_NAMES)) + "|"]
+        for readout, title in READOUTS:
+            lines += [f"## {f}, {title}", "", *table(aggregate(rows, f, readout), sizes), ""]
+    head = " | ".join(FACTOR_NAMES)
+    lines += ["## Scores (whole trajectory; last step)", "",
+              f"| method | training objects | seed | overall | {head} | overall (last) | {head} (last) |",
+              "|---" * (4 + 2 * len(FACTOR_NAMES) + 1) + "|"]
     for r in rows:
-        lines.append(f"| {r['method']} | {r['n_objects']} | {r['seed']} | {r['overall']:.3f} | "
-                     + " | ".join(f"{r['nmse'][f]:.3f}" for f in FACTOR_NAMES) + " |")
+        cells = [f"{r[ro][k]:.3f}" for ro in ("trajectory", "last_step") for k in ("overall", *FACTOR_NAMES)]
+        lines.append(f"| {r['method']} | {r['n_objects']} | {r['seed']} | " + " | ".join(cells) + " |")
     page = out / "generalisation.md"
     page.write_text("\n".join(lines) + "\n")
     return page
