@@ -226,8 +226,9 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         "the whole trial). Each cell: mean over seeds [95 % t interval] (number of seeds); "
         "'not run' cells were not run. The baselines train on the same training split at the Latent "
         "Filter's optimiser-step budget (480 steps of 16 windows). 'untrained' rows: the same filter at step 0 "
-        "(its random initialisation), read by the training's KRR check (alignment on at most 256 training "
-        "sequences): the floor a trained filter's read-out is to be compared with.",
+        "(its random initialisation), read by the training's KRR check (alignment on the first 256 training "
+        "sequences in split order, 128 objects, where the trained rows align on all): the floor a trained "
+        "filter's read-out is to be compared with.",
         "",
         "What the signals allow on the same population (a kernel reader on physical summary features): "
         "docs/experiments/signal_content.md. The paper's 32 objects under the object split: "
