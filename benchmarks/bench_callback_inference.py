@@ -38,7 +38,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    net = LatentFilter(args.modality, obs_sigma=0.1).eval()
+    net = LatentFilter(args.modality).eval()
     n = args.train + args.held_out
     obs = torch.rand(n, args.seq, net.n_channels, 28, 28)
     actions = torch.randn(n, args.seq, net.n_a)

@@ -120,3 +120,20 @@ def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
     minimum = cells(small)
     assert minimum == {c for c in full if c[2] == "pressing"} | {("multi_l", "soft", p) for p in ("precession", "sliding")}
     assert _compose_job(["sweep=study"], tmp_path).trainer.max_epochs == 16  # the CPU budget (experiment=cpu_budget)
+
+
+def test_the_class_built_with_no_options_is_the_configured_default_model(tmp_path):
+    """One source of defaults: the default config's network is LatentFilter(modality) with
+    nothing else named (but the scene's code-table size), and a command-line override still
+    reaches the network."""
+    from embodied_tactile.models.latent_filter import LatentFilter, default_option
+
+    cfg = _compose([], tmp_path)
+    configured = instantiate(cfg.model.net)
+    bare = LatentFilter(OmegaConf.to_container(cfg.modality, resolve=True), n_objects=cfg.model.net.n_objects)
+    assert configured.config() == bare.config()
+    assert configured.config()["prior"]["learn_embedding"] is False and configured.config()["obs_sigma"] == 0.1
+    changed = instantiate(_compose(["model.net.obs_dropout=0.5", "model.net.prior.learn_sigma=true"], tmp_path).model.net)
+    assert changed.obs_dropout == 0.5 and changed.config()["prior"]["learn_sigma"] is True
+    with pytest.raises(KeyError, match="not an option"):
+        default_option("prior.no_such_option")

@@ -297,5 +297,16 @@ def prior_rows(objects: Any, n_test: int, n_val: int, n_train: int) -> int:
     return N_OBJECTS
 
 
-if not OmegaConf.has_resolver("prior_rows"):
-    OmegaConf.register_new_resolver("prior_rows", prior_rows)
+def lf_default(name: str) -> Any:
+    """A Latent Filter option's default from the class signatures (``${lf_default:obs_sigma}``,
+    ``${lf_default:prior.learn_sigma}``, ``${lf_default:encoder.widths}`` in
+    configs/model/latent_filter.yaml): :func:`~embodied_tactile.models.latent_filter.default_option`."""
+    from embodied_tactile.models.latent_filter import default_option
+
+    value = default_option(str(name))
+    return OmegaConf.create(value) if isinstance(value, (list, dict)) else value
+
+
+for _name, _resolver in (("prior_rows", prior_rows), ("lf_default", lf_default)):
+    if not OmegaConf.has_resolver(_name):
+        OmegaConf.register_new_resolver(_name, _resolver)

@@ -16,6 +16,7 @@ Time indexing (t = 1..T in the docs, 0-based in code):
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Mapping, Sequence
 from typing import Any, Optional
 
@@ -85,9 +86,38 @@ def _state_to(z: Tensor, z_mean: Tensor, innovation: Tensor, a: Tensor, y_state:
             **dict(zip(_Y_STATE_KEYS, y_state))}
 
 
+ENCODER_DEFAULTS: dict[str, Any] = {"widths": [16, 32], "hidden": 128}
+"""Every encoder's (and its decoder's) convolution widths and hidden width, unless
+``LatentFilter(encoder=...)`` names them."""
+
+
+def _signature_defaults(cls: type, skip: Sequence[str] = ()) -> dict[str, Any]:
+    return {k: p.default for k, p in inspect.signature(cls.__init__).parameters.items()
+            if k != "self" and k not in skip and p.default is not inspect.Parameter.empty}
+
+
+def default_option(name: str) -> Any:
+    """The project's default of one Latent Filter option: ``"obs_sigma"`` (an argument of
+    :class:`LatentFilter`), ``"prior.<name>"`` (of :class:`HierarchicalPrior`) or
+    ``"encoder.<name>"`` (:data:`ENCODER_DEFAULTS`). The signatures are the one source;
+    configs/model/latent_filter.yaml reads them through ``${lf_default:<name>}``."""
+    group, _, key = name.rpartition(".")
+    if group == "encoder" and key in ENCODER_DEFAULTS:
+        value = ENCODER_DEFAULTS[key]
+        return list(value) if isinstance(value, list) else value
+    owner = {"": LatentFilter, "prior": HierarchicalPrior}.get(group)
+    parameter = inspect.signature(owner.__init__).parameters.get(key) if owner else None
+    if parameter is None or parameter.default is inspect.Parameter.empty:
+        raise KeyError(f"{name!r} is not an option of the Latent Filter with a default")
+    return parameter.default
+
+
 class LatentFilter(nn.Module):
     """Action-conditioned deep state-space model with z (directly) and y (indirectly
     observable) latents; see the module docstring for the time indexing.
+
+    The signature's values are the project's defaults (one source: a config names what a
+    scene changes and reads the rest through :func:`default_option`).
 
     Args:
         modality: preset name or mapping (see :func:`resolve_modality`). Its ``fusion``
@@ -95,17 +125,20 @@ class LatentFilter(nn.Module):
             :class:`~.fusion.LateFusion`, :mod:`.fusion`); only this modality's encoders and
             decoders are built.
         n_z, n_y, n_a: latent and action sizes. n_objects: rows of the prior embedding.
-        encoder: ``{"widths": [w1, w2], "hidden": h}`` for every encoder and its decoder.
+        encoder: ``{"widths": [w1, w2], "hidden": h}`` for every encoder and its decoder
+            (:data:`ENCODER_DEFAULTS` where not given).
         transition_hidden, lstm_hidden: widths of the transition MLP and LSTM.
         min_var: variance floor of encoder, transition and q(y) heads.
-        obs_sigma: (initial) observation sigma; ``learn_obs_sigma`` makes it a learnable
-            per-channel parameter sigma_c = obs_sigma_min + softplus(raw_c).
+        obs_sigma: (initial) observation sigma on [0, 1]-scaled inputs; ``learn_obs_sigma``
+            makes it a learnable per-channel parameter sigma_c = obs_sigma_min +
+            softplus(raw_c). 0.1: from 1.0, most of a CPU budget went into shrinking it.
         obs_sigma_shape: ``"channel"`` (default, one sigma per channel) or ``"pixel"``
             (one learnable sigma per channel and pixel, sigma_{c,ij}: a heteroscedastic
             likelihood for images whose pixels differ in noise, such as the acc log-mel
             bins; docs/model.md, "Options of `model.net`").
         prior: kwargs of :class:`HierarchicalPrior` (sigma_init, learn_sigma, var_floor,
-            action_term).
+            action_term, ...; its signature's defaults where not given). The network's
+            ``config()`` stores the full set, so a checkpoint does not depend on defaults.
         y_update: ``"direct"`` (the LSTM head is q(y_t)) or ``"evidence"`` (accumulate
             per-step Gaussian evidence about the trial-constant y); y_prior_precision:
             precision of the N(0, 1/p) start of the evidence product; y_evidence_max: if
@@ -154,20 +187,21 @@ class LatentFilter(nn.Module):
         input_standardize: the encoders see each channel shifted and scaled by its
             training-set mean and standard deviation (buffers ``input_shift`` /
             ``input_scale``, set once by :meth:`set_input_stats`, carried by checkpoints);
-            the decoder and the likelihood stay in the data's units. False (default) =
-            the [0, 1] images as they are (docs/experiments/modality_bounds.md, "Where the pressing
-            information is lost").
+            the decoder and the likelihood stay in the data's units. True (default;
+            docs/experiments/modality_bounds.md, "Where the pressing information is lost");
+            False = the [0, 1] images as they are (a network without data statistics, such
+            as the pendulum benchmark's, whose inputs need none).
     """
 
     def __init__(self, modality: Any, n_z: int = 16, n_y: int = 16, n_a: int = 6,
                  n_objects: int = 32, encoder: Optional[Mapping] = None,
                  transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
-                 obs_sigma: float = 1.0, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
+                 obs_sigma: float = 0.1, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
                  prior: Optional[Mapping] = None, y_update: str = "direct",
                  y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None,
                  y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
                  obs_dropout_span: int = 1, elbo_samples: int = 1, overshoot: int = 1, overshoot_weight: float = 1.0,
-                 input_standardize: bool = False, obs_sigma_shape: str = "channel", y_input: str = "sample",
+                 input_standardize: bool = True, obs_sigma_shape: str = "channel", y_input: str = "sample",
                  free_bits_z: float = 0.0, free_bits_y: float = 0.0, transition_form: str = "mlp",
                  y_static: bool = False) -> None:
         super().__init__()
@@ -194,6 +228,9 @@ class LatentFilter(nn.Module):
         self.obs_dropout, self.elbo_samples = float(obs_dropout), int(elbo_samples)
         self.obs_dropout_span = int(obs_dropout_span)
         args = dict(locals())
+        args["prior"] = {**_signature_defaults(HierarchicalPrior, skip=("n_y", "n_a", "n_objects")),
+                         **(to_plain(prior) or {})}
+        args["encoder"] = {**ENCODER_DEFAULTS, **(to_plain(encoder) or {})}
         self._config = {k: to_plain(v) for k, v in args.items() if k not in ("self", "__class__")}
         self._config["modality"] = _modality_config(modality)
         for name, floor in (("free_bits_z", free_bits_z), ("free_bits_y", free_bits_y)):
@@ -203,8 +240,7 @@ class LatentFilter(nn.Module):
         self.modality = resolve_modality(modality)
         self.n_z, self.n_y, self.n_a = int(n_z), int(n_y), int(n_a)
         self.n_channels = len(self.modality["channels"])
-        enc = {"widths": [16, 32], "hidden": 128}
-        enc.update(to_plain(encoder) or {})
+        enc = dict(self._config["encoder"])
         unknown = set(enc) - {"widths", "hidden"}
         if unknown:
             raise ValueError(f"unknown encoder options {sorted(unknown)}")
@@ -218,7 +254,7 @@ class LatentFilter(nn.Module):
                                       update=y_update,
                                       prior_precision=y_prior_precision, max_evidence=y_evidence_max,
                                       evidence_range=y_evidence_range)
-        self.prior = HierarchicalPrior(n_y, n_a, n_objects, **(to_plain(prior) or {}))
+        self.prior = HierarchicalPrior(n_y, n_a, n_objects, **self._config["prior"])
         if obs_sigma <= obs_sigma_min:
             raise ValueError(f"obs_sigma={obs_sigma} must exceed obs_sigma_min={obs_sigma_min}")
         self.obs_sigma_min = float(obs_sigma_min)

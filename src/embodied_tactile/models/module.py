@@ -138,7 +138,8 @@ class LatentFilterModule(L.LightningModule):
             if not isinstance(net, Mapping):
                 raise TypeError(f"{type(self).__name__}: net must be a LatentFilter or its config mapping, "
                                 f"got {type(net).__name__}")
-            net = LatentFilter(**to_plain(net))
+            # a config saved before input_standardize existed trained without it
+            net = LatentFilter(**{"input_standardize": False, **to_plain(net)})
         if self.fusion is not None and not isinstance(net.observation, self.fusion):
             raise ValueError(f"{type(self).__name__} trains the {self.fusion.__name__} observation model; modality "
                              f"{net.modality['name']!r} (fusion={net.modality['fusion']!r}) builds "
@@ -239,7 +240,8 @@ class LatentFilterModule(L.LightningModule):
         if self.model.input_standardize and not bool(self.model.input_stats_set):
             dm = getattr(self.trainer, "datamodule", None)
             if dm is None or getattr(dm, "train_set", None) is None:
-                raise ValueError("input_standardize needs the training set: fit with a TactileDataModule")
+                raise ValueError("input_standardize (the default) needs the training set's channel statistics: "
+                                 "fit with a TactileDataModule, or build the network with input_standardize=False")
             self.model.set_input_stats(*channel_stats(dm.train_eval_dataloader()))
         # the prior's population term counts once per dataset: 1 / (training sequences) per sequence
         prior = self.model.prior

@@ -390,9 +390,9 @@ class HierarchicalPrior(nn.Module):
     ``e_n`` is one ``nn.Embedding`` row per object id (a point estimate of the object's
     embedding, collision-free), ``W`` a zero-initialised linear action term
     (``action_term=False`` drops it, as in the authors' earlier code), ``sigma^2`` a
-    learnable per-dimension variance ``softplus(raw) + var_floor`` initialised to
-    ``sigma_init**2`` (``learn_sigma=False`` keeps it fixed); tau^2 starts at
-    ``pop_sigma_init**2``.
+    per-dimension variance ``softplus(raw) + var_floor`` at ``sigma_init**2``, fixed by
+    default (``learn_sigma=True`` learns it; a learned sigma widened to make the pull
+    cheap, docs/experiments/object_codes.md); tau^2 starts at ``pop_sigma_init**2``.
 
     The population term ``-log p(E_seen | mu_0, tau)`` over the objects met in training
     (:meth:`population_nll`) makes the embeddings draws of one population and fits the
@@ -406,7 +406,7 @@ class HierarchicalPrior(nn.Module):
     id, in training too: every sequence gets the population marginal, no embedding is used and
     the population term is 0, so y can only carry what the observations and actions carry.
 
-    ``learn_embedding=False`` keeps the object codes e_n at their initial draws from
+    ``learn_embedding=False`` (default) keeps the object codes e_n at their initial draws from
     N(0, pop_sigma_init^2) (a fixed random projection of the one-hot label): the codes cannot
     follow q(y) to one shared point, so KL_y is small only where q(y) tells the training
     objects apart (docs/model.md, "Fixed object codes"). mu_0 and tau are still fitted to
@@ -414,9 +414,9 @@ class HierarchicalPrior(nn.Module):
     """
 
     def __init__(self, n_y: int, n_a: int, n_objects: int = 32, sigma_init: float = 0.5,
-                 learn_sigma: bool = True, var_floor: float = 1e-2, action_term: bool = True,
+                 learn_sigma: bool = False, var_floor: float = 1e-2, action_term: bool = True,
                  pop_sigma_init: float = 0.5, population_weight: Optional[float] = None,
-                 labels: bool = True, learn_embedding: bool = True) -> None:
+                 labels: bool = True, learn_embedding: bool = False) -> None:
         super().__init__()
         self.labels = bool(labels)
         if sigma_init ** 2 <= var_floor:
