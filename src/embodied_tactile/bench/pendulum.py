@@ -19,12 +19,17 @@ Gaussian pixel noise of standard deviation ``noise``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional, Sequence
 
 import numpy as np
 
 FREQUENCIES = (2.0, 3.0, 4.0, 5.0)  # natural frequency w0, rad/s
 DAMPINGS = (0.1, 0.6)  # damping coefficient d, 1/s
 N_OBJECTS = len(FREQUENCIES) * len(DAMPINGS)
+#: systems never seen in training, each parameter strictly between the training grid's
+#: values: w0 in {2.5, 3.5, 4.5} x d in {0.25, 0.45} (object id -1: the prior's population
+#: marginal)
+UNSEEN_SYSTEMS = tuple((w, d) for d in (0.25, 0.45) for w in (2.5, 3.5, 4.5))
 DT = 0.05  # s per frame
 SIZE = 28  # image side, pixels
 
@@ -103,17 +108,25 @@ class PendulumData:
 
 
 def generate(n_per_object: int, seed: int, n_steps: int = 60, hold: int = 5, u_max: float = 3.0,
-             noise: float = 0.05, substeps: int = 10, omega0_max: float = 2.0) -> PendulumData:
+             noise: float = 0.05, substeps: int = 10, omega0_max: float = 2.0,
+             systems: Optional[Sequence[tuple[float, float]]] = None) -> PendulumData:
     """``n_per_object`` sequences of each of the 8 objects (object-major order), fully
     determined by ``seed``. Initial angle uniform in [-pi, pi), initial angular velocity
-    uniform in [-omega0_max, omega0_max] rad/s."""
+    uniform in [-omega0_max, omega0_max] rad/s. ``systems``: (w0, d) pairs to simulate
+    instead of the 8 objects (such as :data:`UNSEEN_SYSTEMS`), each with object id -1."""
     if n_per_object < 1 or n_steps < 1 or hold < 1 or substeps < 1:
         raise ValueError(f"pendulum generate: n_per_object={n_per_object}, n_steps={n_steps}, hold={hold}, "
                          f"substeps={substeps} must all be >= 1")
     rng = np.random.default_rng(seed)
-    ids = np.repeat(np.arange(N_OBJECTS), n_per_object)
+    if systems is None:
+        ids = np.repeat(np.arange(N_OBJECTS), n_per_object)
+        params = np.array([object_params(i) for i in ids])
+    else:
+        params = np.repeat(np.asarray(systems, dtype=np.float64).reshape(-1, 2), n_per_object, axis=0)
+        if len(params) == 0 or not np.all(params[:, 0] > 0) or not np.all(params[:, 1] >= 0):
+            raise ValueError(f"pendulum generate: systems must be (w0 > 0, d >= 0) pairs, got {systems!r}")
+        ids = np.full(len(params), -1)
     n = len(ids)
-    params = np.array([object_params(i) for i in ids])
     w0, d = params[:, 0], params[:, 1]
     n_blocks = -(-n_steps // hold)
     u = np.repeat(rng.uniform(-u_max, u_max, size=(n, n_blocks)), hold, axis=1)[:, :n_steps]

@@ -10,6 +10,8 @@ outputs):
 * ``z_angle``: q_filt mean z_t -> (cos theta_t, sin theta_t), frames t >= ``skip``;
 * ``z_velocity``: z_t -> theta'_t, frames t >= ``skip``;
 * ``y_frequency`` / ``y_damping``: q(y_T) mean at the last frame -> w0 / d;
+* the same read-outs on systems never seen in training (:data:`~.pendulum.UNSEEN_SYSTEMS`,
+  parameters between the training grid's), and every read-out of the untrained network;
 * diagnostics ``z_frequency`` / ``z_damping``: q_filt mean z_T at the last frame -> w0 / d
   (a model can keep the trial-constant parameters in z instead of y), and ``y_velocity``:
   q(y_t) mean -> theta'_t, frames t >= ``skip`` (a per-step y can carry the moving state).
@@ -36,7 +38,7 @@ from embodied_tactile.eval.krr import fit_alignment
 from embodied_tactile.models import LatentFilter, build_schedule
 from embodied_tactile.models.networks import ConvDecoder, ConvEncoder
 
-from .pendulum import N_OBJECTS, PendulumData, generate, render
+from .pendulum import N_OBJECTS, UNSEEN_SYSTEMS, PendulumData, generate, render
 
 #: the benchmark's modality: one image channel (the channel name is only a label here)
 MODALITY = {"name": "pendulum", "channels": ["fsr_t"], "fusion": "single"}
@@ -228,18 +230,28 @@ def open_loop(model: LatentFilter, data: PendulumData, n_filter: int = 20, horiz
             "mean_image": mse(mean_image)}
 
 
-def run(steps: int, seed: int = 0, batch_size: int = 16, n_train: int = 32, n_test: int = 8, n_steps: int = 60,
+def run(steps: int, seed: int = 0, batch_size: int = 16, n_train: int = 128, n_test: int = 8, n_steps: int = 60,
         model_kwargs: Optional[dict] = None, annealing: Any = None, log_every: int = 0,
         n_filter: int = 20, horizon: int = 40, max_rows: int = 1500, snr_draws: int = 16) -> dict[str, Any]:
-    """Generate (train seed ``seed``, test seed ``seed + 1000``), train, read out, predict."""
+    """Generate (train seed ``seed``, held-out sequences of the training systems seed
+    ``seed + 1000``, :data:`~.pendulum.UNSEEN_SYSTEMS` seed ``seed + 2000``, ``n_test`` per
+    system), read out the untrained network (the floor), train, read out, predict.
+    ``readouts`` / ``readouts_unseen``: held-out sequences of the training systems / of the
+    unseen systems, both fitted on the training sequences; ``*_untrained``: the same
+    read-outs of the network at its initialisation."""
     train_data = generate(n_train, seed=seed, n_steps=n_steps)
     test_data = generate(n_test, seed=seed + 1000, n_steps=n_steps)
+    unseen_data = generate(n_test, seed=seed + 2000, n_steps=n_steps, systems=UNSEEN_SYSTEMS)
     torch.manual_seed(seed)
     model = build_model(**(model_kwargs or {}))
+    floor = {f"{key}_untrained": readouts(model, train_data, data, max_rows=max_rows, seed=seed)
+             for key, data in (("readouts", test_data), ("readouts_unseen", unseen_data))}
     fit = train(model, train_data, steps, batch_size, seed, annealing=annealing, log_every=log_every)
     t0 = time.perf_counter()
     res = readouts(model, train_data, test_data, max_rows=max_rows, seed=seed)
+    res_unseen = readouts(model, train_data, unseen_data, max_rows=max_rows, seed=seed)
     pred = open_loop(model, test_data, n_filter, horizon) if n_steps >= n_filter + horizon else None
-    return {"readouts": res, "open_loop": pred, "diagnostics": diagnostics(model, test_data),
+    return {"readouts": res, "readouts_unseen": res_unseen, **floor, "open_loop": pred,
+            "diagnostics": diagnostics(model, test_data),
             "gradient_snr": gradient_snr(model, train_data, snr_draws, seed=seed), "train_s": fit.train_s, "eval_s": time.perf_counter() - t0,
             "model": model, "losses": fit.losses}
