@@ -150,7 +150,7 @@ def main(argv=None) -> None:
         if int(ck.get("n_train", 32)) != a.n_train:
             raise SystemExit(f"{a.load}: the model was trained on {ck.get('n_train', 32)} sequences per object, "
                              f"--n-train is {a.n_train}")
-        model = LatentFilter(**ck["config"])
+        model = LatentFilter.from_config(ck["config"])
         model.load_state_dict(ck["state_dict"])
         model.eval()
         lat = {n: latents(model, d) for n, d in (("train", train), ("held-out", test))}

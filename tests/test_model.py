@@ -22,7 +22,6 @@ from embodied_tactile.models.networks import (
     ConvDecoder,
     ConvEncoder,
     TransitionNet,
-    free_bits_kl,
     fuse_gaussians,
     kl_diag_gaussians,
 )
@@ -297,127 +296,6 @@ def test_bounded_evidence_caps_each_steps_precision():
     assert net.y_posterior.max_evidence == 2.0 and net.config()["y_evidence_max"] == 2.0
 
 
-def test_y_input_mean_feeds_the_y_lstm_the_filtered_mean_not_the_draw():
-    """y_input="mean": q(y_2) reads q_filt(z_1)'s mean, so it is the same for any draw of z_1
-    (with "sample" it moves with the draw); both read the same thing without sampling, and
-    the filter state carries the mean for online filtering."""
-    obs, acts = torch.rand(3, 4, 1, 28, 28), torch.randn(3, 4, 6)
-    y2 = {}
-    for y_input in ("sample", "mean"):
-        torch.manual_seed(0)
-        net = LatentFilter("fsr_t", n_z=4, n_y=2, y_input=y_input)
-        draws = []
-        for seed in (1, 2):
-            torch.manual_seed(seed)
-            draws.append(net(obs, acts, sample=True, decode=False)["y_mean"][:, 1])
-        y2[y_input] = draws
-        eval_y = net(obs, acts, sample=False, decode=False)["y_mean"]
-        y2[y_input + "_eval"] = eval_y
-        out, state = net.filter_step(obs[:, 0], acts[:, 0])
-        assert torch.equal(state["z_mean"], out["z_mean"])
-    assert torch.equal(y2["mean"][0], y2["mean"][1])
-    assert (y2["sample"][0] - y2["sample"][1]).abs().max() > 1e-4
-    assert torch.allclose(y2["mean_eval"], y2["sample_eval"])
-    with pytest.raises(ValueError, match="y_input must be one of"):
-        LatentFilter("fsr_t", n_z=4, n_y=2, y_input="belief")
-
-
-def test_y_input_innovation_feeds_the_y_lstm_the_filters_prediction_error():
-    """y_input="innovation": the y LSTM reads [z_{t-1}, q_filt mean - transition mean at t-1];
-    the innovation is 0 after the first frame (no prediction) and after a hidden frame (q_filt
-    is the prediction there), and y depends on it."""
-    torch.manual_seed(0)
-    net = LatentFilter("fsr_t", n_z=4, n_y=2, y_input="innovation")
-    assert net.y_posterior.cell.input_size == 2 * 4 + 6
-    obs, acts = torch.rand(3, 4, 1, 28, 28), torch.randn(3, 4, 6)
-    out, state = net.filter_step(obs[:, 0], acts[:, 0])
-    assert torch.equal(state["innovation"], torch.zeros(3, 4))
-    out, state = net.filter_step(obs[:, 1], acts[:, 1], state=state)
-    torch.testing.assert_close(state["innovation"], out["z_mean"] - out["zp_mean"])
-    assert state["innovation"].abs().max() > 1e-4
-    enc_m, enc_v = net.encode(obs[:, 2])
-    _, hidden = net.step(enc_m, enc_v, acts[:, 2], state, sample=False, observed=torch.zeros(3, dtype=torch.bool))
-    assert torch.equal(hidden["innovation"], torch.zeros(3, 4))
-    y_seen, _ = net.step(enc_m, enc_v, acts[:, 3], state, sample=False)
-    zeroed = dict(state, innovation=torch.zeros(3, 4))
-    y_zeroed, _ = net.step(enc_m, enc_v, acts[:, 3], zeroed, sample=False)
-    assert (y_seen["y_mean"] - y_zeroed["y_mean"]).abs().max() > 1e-6
-
-
-def test_affine_y_transition_is_affine_in_y_with_a_y_free_variance():
-    """transition_form="affine_y": z_{t-1} + g(z, a) + G(z, a) y, so the mean is affine in y
-    (superposition and scaling hold exactly), the variance ignores y, the untrained drift is
-    0 (a random walk as the MLP form), and the option reaches LatentFilter and its config."""
-    from embodied_tactile.models.networks import TransitionNet
-
-    torch.manual_seed(0)
-    net = LatentFilter("fsr_t", n_z=4, n_y=3, transition_form="affine_y")
-    tr = net.transition
-    assert net.config()["transition_form"] == "affine_y" and tr.body[0].in_features == 4 + 6
-    z, a = torch.randn(5, 4), torch.randn(5, 6)
-    y1, y2 = torch.randn(5, 3), torch.randn(5, 3)
-    m0, _ = tr(z, torch.zeros(5, 3), a)
-    torch.testing.assert_close(m0, z)  # zero-initialised heads: a random walk
-    with torch.no_grad():
-        for head in (tr.mean, tr.gain):
-            nn.init.normal_(head.weight)
-    m0, v0 = tr(z, torch.zeros(5, 3), a)
-    (m1, v1), (m2, _), (m12, _) = tr(z, y1, a), tr(z, y2, a), tr(z, y1 + 2.5 * y2, a)
-    torch.testing.assert_close(m12 - m0, (m1 - m0) + 2.5 * (m2 - m0), rtol=1e-4, atol=1e-4)
-    assert (m1 - m0).abs().max() > 1e-2
-    torch.testing.assert_close(v1, v0)
-    with pytest.raises(ValueError, match="transition_form must be one of"):
-        TransitionNet(4, 3, 6, form="bilinear")
-
-
-def test_measurement_input_keeps_y_off_z_and_blind_to_hidden_frames():
-    """y_input="measurement": the y LSTM reads frame t-1's encoder mean and a seen flag, so y
-    does not change with the transition's weights, and a hidden frame enters as zeros with
-    flag 0 (y then differs from the all-seen filter only from the step after it)."""
-    torch.manual_seed(0)
-    net = LatentFilter("fsr_t", n_z=4, n_y=2, y_update="evidence", y_input="measurement", **TINY).eval()
-    assert net.y_posterior.cell.input_size == 4 + 1 + 6
-    obs, acts = torch.rand(2, 5, 1, 28, 28), torch.randn(2, 5, 6)
-    before = net(obs, acts, sample=False)
-    y0 = before["y_mean"]
-    with torch.no_grad():
-        nn.init.normal_(net.transition.mean.weight)
-    out = net(obs, acts, sample=False)
-    torch.testing.assert_close(out["y_mean"], y0)
-    assert (out["z_mean"][:, 1:] - before["z_mean"][:, 1:]).abs().max() > 1e-4  # z did change
-    hidden = torch.ones(2, 5, dtype=torch.bool)
-    hidden[:, 2] = False
-    y_h = net(obs, acts, sample=False, observed=hidden)["y_mean"]
-    torch.testing.assert_close(y_h[:, :3], y0[:, :3])
-    assert (y_h[:, 3:] - y0[:, 3:]).abs().max() > 1e-6
-
-
-def test_static_y_gives_the_transition_one_y_per_sequence_and_one_kl():
-    """y_static: in training the transition gets one draw of q(y | window) = q(y_T) at every
-    step (the mean with sample=False), and kl_y is one KL of q(y_T) to the prior without its
-    action term (plus the population term); in evaluation the filter is causal (y_t at step
-    t). It needs the evidence update and the measurement input."""
-    torch.manual_seed(0)
-    net = LatentFilter("fsr_t", n_z=4, n_y=2, y_update="evidence", y_input="measurement", y_static=True, **TINY)
-    obs, acts, ids = torch.rand(3, 6, 1, 28, 28), torch.randn(3, 6, 6), torch.tensor([0, 1, 2])
-    net.train()
-    out = net(obs, acts, sample=False)
-    torch.testing.assert_close(out["y"], out["y_mean"][:, -1:].expand(-1, 6, -1))
-    assert (out["y_mean"][:, 1] - out["y_mean"][:, -1]).abs().max() > 1e-4  # q(y_t) itself still moves
-    drawn = net(obs, acts, sample=True)["y"]
-    assert (drawn - drawn[:, :1]).abs().max() == 0.0
-    terms = net.elbo_terms({"obs": obs, "actions": acts, "object_id": ids}, sample=False)
-    o = terms["out"]
-    py_m, py_v = net.prior(ids, torch.zeros(3, 1, 6))
-    ref = kl_diag_gaussians(o["y_mean"][:, -1], o["y_var"][:, -1], py_m[:, 0], py_v[:, 0]).mean() + terms["pop"]
-    torch.testing.assert_close(terms["kl_y"], ref)
-    net.eval()
-    ev = net(obs, acts, sample=False)
-    torch.testing.assert_close(ev["y"], ev["y_mean"])
-    with pytest.raises(ValueError, match="y_static needs y_update='evidence' and y_input='measurement'"):
-        LatentFilter("fsr_t", n_z=4, n_y=2, y_update="evidence", y_static=True)
-
-
 def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
     """y_evidence_range r: evidence means r tanh(raw / r), so with the precision bound L one
     step moves the mean by at most L (r + |mean|) / P_t, however large the head's output."""
@@ -438,47 +316,6 @@ def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
         YPosterior(3, 2, 1, update="direct", evidence_range=1.0)
 
 
-def test_free_bits_floor_each_dimensions_batch_and_step_mean_kl():
-    """free_bits_kl = T * sum_j max(floor, mean_{b,t} kl_{b,t,j}), by hand on a (2, 2, 2)
-    tensor; floor 0 is the plain per-sequence sum averaged over the batch."""
-    kl = torch.tensor([[[0.1, 2.0], [0.3, 4.0]],
-                       [[0.0, 1.0], [0.2, 3.0]]])  # (B=2, T=2, D=2): dimension means 0.15, 2.5
-    assert free_bits_kl(kl, 0.0).item() == pytest.approx(kl.sum(dim=(1, 2)).mean().item())
-    assert free_bits_kl(kl, 0.5).item() == pytest.approx(2 * (0.5 + 2.5))
-    assert free_bits_kl(kl, 3.0).item() == pytest.approx(2 * (3.0 + 3.0))
-    kl = kl.clone().requires_grad_(True)
-    free_bits_kl(kl, 0.5).backward()
-    assert torch.equal(kl.grad[..., 0], torch.zeros(2, 2))  # under the floor: no gradient
-    torch.testing.assert_close(kl.grad[..., 1], torch.full((2, 2), 0.5))  # T / (B T)
-
-
-def test_free_bits_apply_in_training_only_and_are_logged_as_what_they_add():
-    """free_bits_y / free_bits_z floor kl_y / kl_z in training mode (``free_bits`` = the
-    nats they add); in eval mode and with floors 0 the terms are the plain KLs."""
-    batch = make_batch(1, B=3, T=6)
-    torch.manual_seed(0)
-    plain = LatentFilter("fsr_t", n_z=4, n_y=2, **TINY)
-    torch.manual_seed(0)
-    floored = LatentFilter("fsr_t", n_z=4, n_y=2, free_bits_y=50.0, free_bits_z=0.0, **TINY)
-    terms = {}
-    for name, net in (("plain", plain), ("floored", floored)):
-        torch.manual_seed(1)
-        terms[name] = net.elbo_terms(batch)
-    assert "free_bits" not in terms["plain"]
-    torch.testing.assert_close(terms["floored"]["kl_z"], terms["plain"]["kl_z"])
-    # a floor above every dimension's KL: kl_y = (T - 1) * n_y * floor + the population term
-    assert terms["floored"]["kl_y"].item() == pytest.approx(5 * 2 * 50.0 + terms["plain"]["pop"].item(), rel=1e-5)
-    torch.testing.assert_close(terms["floored"]["free_bits"], (terms["floored"]["kl_y"] - terms["plain"]["kl_y"]))
-    floored.eval()
-    torch.manual_seed(1)
-    eval_terms = floored.elbo_terms(batch)
-    assert "free_bits" not in eval_terms
-    assert eval_terms["kl_y"].item() < 5 * 2 * 50.0
-    with pytest.raises(ValueError, match="free_bits_z must be >= 0"):
-        LatentFilter("fsr_t", n_z=4, n_y=2, free_bits_z=-0.1)
-
-
-# ------------------------------------------------------------------ numerics
 def test_kl_matches_torch_distributions():
     torch.manual_seed(0)
     mq, mp = torch.randn(5, 7), torch.randn(5, 7)
@@ -902,22 +739,23 @@ def test_fit_sets_the_input_stats_from_the_training_set_and_checkpoints_carry_th
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
 
 
-def test_per_pixel_likelihood_sigma_enters_the_nll_pixel_by_pixel():
-    """obs_sigma_shape="pixel": one learnable sigma per channel and pixel; the nll term is
-    sum over frames, channels and pixels of -log N(o; recon, sigma_cij^2), by hand."""
+
+def test_saved_configs_with_removed_options_load_when_off_and_are_named_when_on():
+    """A checkpoint's net config from before the removal of measured-and-rejected options
+    (REMOVED_OPTIONS) rebuilds the same network when they were off; one that used an option
+    is refused with the option named, never silently rebuilt as another model."""
+    from embodied_tactile.models.latent_filter import REMOVED_OPTIONS
+
     torch.manual_seed(0)
-    m = LatentFilter("fsr_tb", obs_sigma=0.1, obs_sigma_shape="pixel", **TINY)
-    assert m.obs_sigma_raw.shape == (2, 28, 28) and m.obs_log_sigma().shape == (2, 28, 28)
-    sigma = 0.02 + 0.3 * torch.rand(2, 28, 28)
-    with torch.no_grad():
-        m.obs_sigma_raw.copy_(torch.log(torch.expm1(sigma - m.obs_sigma_min)))
-    batch = make_batch(2)
-    t = m.elbo_terms(batch, sample=False)
-    x, mu = batch["obs"].double(), t["out"]["recon"].double()
-    s = sigma.double()[None, None]
-    hand = (0.5 * ((x - mu) / s) ** 2 + torch.log(s) + 0.5 * math.log(2 * math.pi)).sum(dim=(1, 2, 3, 4)).mean()
-    assert float(t["nll"]) == pytest.approx(float(hand), rel=1e-5)
-    # the default keeps one sigma per channel (checkpoints of earlier runs load unchanged)
-    assert LatentFilter("fsr_tb", obs_sigma=0.1, **TINY).obs_sigma_raw.shape == (2,)
-    with pytest.raises(ValueError, match="obs_sigma_shape must be one of"):
-        LatentFilter("fsr_tb", obs_sigma=0.1, obs_sigma_shape="frame", **TINY)
+    net = LatentFilter("fsr_t", **TINY)
+    old = {**net.config(), **{k: v for k, v in REMOVED_OPTIONS.items() if v is not None}, "overshoot_weight": 1.0}
+    torch.manual_seed(0)
+    rebuilt = LatentFilter.from_config(old)
+    assert rebuilt.config() == net.config()
+    assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), rebuilt.state_dict().values()))
+    with pytest.raises(ValueError, match="elbo_samples=4"):
+        LatentFilter.from_config({**old, "elbo_samples": 4})
+    legacy = {k: v for k, v in net.config().items() if k != "input_standardize"}
+    assert LatentFilter.from_config(legacy).input_standardize is False  # trained before the option existed
+    with pytest.raises(TypeError):
+        LatentFilter("fsr_t", overshoot=2)

@@ -163,39 +163,6 @@ def test_observation_dropout_masks_frames_in_training_only():
     assert "observed" not in _model()(obs, act)  # off by default
 
 
-def test_observation_dropout_in_runs_hides_whole_blocks_of_span_frames():
-    with pytest.raises(ValueError, match="obs_dropout_span must be an integer >= 1"):
-        _model(obs_dropout=0.5, obs_dropout_span=0)
-    span, T = 6, 60
-    m = _model(obs_dropout=0.5, obs_dropout_span=span).train()
-    torch.manual_seed(3)
-    mask = m.observation_mask(400, T, torch.device("cpu"))
-    assert mask.shape == (400, T) and mask[:, 0].all()
-    assert 0.45 < (~mask[:, 1:]).float().mean() < 0.55  # the hidden fraction stays obs_dropout
-    # every change between seen and hidden after frame 1 falls on a block edge of the
-    # sequence's phase: between two edges the frames share one fate
-    changes = (mask[:, 2:] != mask[:, 1:-1]).nonzero().tolist()
-    edges = {}
-    for b, t in changes:
-        edges.setdefault(b, set()).add((t + 2) % span)
-    assert edges and all(len(phases) == 1 for phases in edges.values())
-    # a hidden run (not touching frame 1 or the end) is a multiple of span long
-    runs = []
-    for row in mask[:, 1:].tolist():
-        n = 0
-        for t, seen in enumerate(row):
-            if not seen:
-                n += 1
-            else:
-                if n and t - n > 0:
-                    runs.append(n)
-                n = 0
-    assert runs and all(r % span == 0 for r in runs)
-    assert min(runs) == span
-    m.eval()
-    assert m.observation_mask(4, T, torch.device("cpu")) is None
-
-
 def test_predict_is_the_filter_with_the_future_hidden():
     m = _model()
     m.eval()
@@ -271,79 +238,17 @@ def test_short_training_meets_the_pendulum_targets(remedy_run):
     assert u["y_damping"][1] >= 0.5, u
 
 
-def test_several_elbo_samples_average_independent_samples():
-    with pytest.raises(ValueError, match="elbo_samples must be an integer >= 1"):
-        _model(elbo_samples=0)
-    obs, act = torch.rand(2, 5, 1, 28, 28), torch.randn(2, 5, 1)
-    batch = {"obs": obs, "actions": act, "object_id": torch.tensor([0, 3])}
-
-    def spread(m, n=40):
-        torch.manual_seed(2)
-        with torch.no_grad():
-            vals = [float(sum(m.elbo_terms(batch)[k] for k in ("nll", "kl_z", "kl_y"))) for _ in range(n)]
-        return np.std(vals), np.mean(vals)
-
-    one, four = _model(), _model(elbo_samples=4)
-    four.load_state_dict(one.state_dict())
-    (s1, m1), (s4, m4) = spread(one), spread(four)
-    assert 0.3 < s4 / s1 < 0.75  # independent samples: std / sqrt(4)
-    assert abs(m4 - m1) < 3 * s1 / np.sqrt(40)
-    assert four.elbo_terms(batch)["out"]["z"].shape[0] == 8
-    four.eval()  # evaluation keeps one sample per sequence
-    assert four.elbo_terms(batch)["out"]["z"].shape[0] == 2
-
-
-def test_latent_overshooting_scores_the_d_step_open_loop_prior():
-    """With a transition z_t = z_{t-1} + a_t (variance v) and draws at their means, the d-step
-    prior from z_t is N(z_t + a_{t+1} + ... + a_{t+d}, v): the overshooting term is the mean over d = 2..D of
-    sum_t KL(q_filt(z_{t+d}) || that prior), in training only, inside kl_z."""
-    from embodied_tactile.models.networks import kl_diag_gaussians
-
-    with pytest.raises(ValueError, match="overshoot must be an integer >= 1"):
-        _model(overshoot=0)
-    v = 0.05
-
-    class Shift(torch.nn.Module):
-        def forward(self, z_prev, y, a):
-            return z_prev + a[..., :1], torch.full_like(z_prev, v)
-
-    torch.manual_seed(0)
-    m = _model(overshoot=3)
-    m.transition = Shift()
-    m._draw = lambda mean, var, sample: mean  # no sampling noise: the rolled prior's mean is exact
-    obs, act = torch.rand(2, 7, 1, 28, 28), torch.randn(2, 7, 1)
-    batch = {"obs": obs, "actions": act, "object_id": torch.tensor([0, 3])}
-    m.train()
-    with torch.no_grad():
-        terms = m.elbo_terms(batch)
-        out = terms["out"]
-        z, qm, qv = out["z"], out["z_mean"], out["z_var"]
-        want = 0.0
-        for d in (2, 3):
-            n = 7 - d
-            shift = sum(act[:, j:j + n] for j in range(1, d + 1))
-            want += float(kl_diag_gaussians(qm[:, d:], qv[:, d:], z[:, :n] + shift, torch.full_like(z[:, :n], v))
-                          .sum(1).mean())
-        one_step = kl_diag_gaussians(qm, qv, out["zp_mean"], out["zp_var"]).sum(1).mean()
-    assert float(terms["overshoot"]) == pytest.approx(want / 2, rel=1e-3)
-    assert float(terms["kl_z"]) == pytest.approx(float(one_step) + want / 2, rel=1e-3)
-    m.eval()
-    assert "overshoot" not in m.elbo_terms(batch)  # evaluation: the plain ELBO
-    assert "overshoot" not in _model().train().elbo_terms(batch)  # overshoot=1: off
-
-
 def test_remedies_are_config_switches(tmp_path):
     from hydra.utils import instantiate
     from test_configs import _compose_job
 
-    cfg = _compose_job(["model.net.obs_dropout=0.25", "model.net.elbo_samples=2", "model.net.obs_dropout_span=4"],
+    cfg = _compose_job(["model.net.obs_dropout=0.25", "model.net.y_update=evidence", "model.net.y_evidence_max=1"],
                        tmp_path)
     module = instantiate(cfg.model)
     net = next(m for m in module.modules() if type(m).__name__ == "LatentFilter")
-    assert (net.obs_dropout, net.elbo_samples, net.obs_dropout_span) == (0.25, 2, 4)
-    assert net.config()["obs_dropout"] == 0.25 and net.config()["elbo_samples"] == 2
+    assert net.obs_dropout == 0.25 and net.config()["y_update"] == "evidence" and net.config()["y_evidence_max"] == 1
     default = _compose_job([], tmp_path)
-    assert (default.model.net.obs_dropout, default.model.net.elbo_samples, default.model.net.obs_dropout_span) == (0.0, 1, 1)
+    assert (default.model.net.obs_dropout, default.model.net.y_update) == (0.0, "direct")
 
 
 def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):

@@ -161,12 +161,6 @@ SCHEMA: dict[str, Spec] = {
     "model.net.obs_sigma": Spec(("float",), lo=0, lo_open=True),
     "model.net.obs_sigma_min": NONNEG,
     "model.net.obs_dropout": Spec(("float",), lo=0, hi=1, hi_open=True),
-    "model.net.obs_dropout_span": INT1,
-    "model.net.elbo_samples": INT1,
-    "model.net.overshoot": INT1,
-    "model.net.overshoot_weight": NONNEG,
-    "model.net.free_bits_z": NONNEG,
-    "model.net.free_bits_y": NONNEG,
     "model.code_lr_scale": Spec(("float",), lo=0, lo_open=True),
     "model.optimizer.lr": Spec(("float",), lo=0),
     "callbacks.krr_alignment.every_n_epochs": Spec(("int",), lo=0, nullable=True),  # null = spread `points`

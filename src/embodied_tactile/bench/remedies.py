@@ -14,10 +14,8 @@ def boolean(text: str) -> bool:
 
 
 #: --remedy NAME -> its value type; prior.X -> prior={X: ...}
-REMEDIES = {"obs_dropout": float, "obs_dropout_span": int, "elbo_samples": int, "y_update": str, "y_evidence_max": float, "y_evidence_range": float, "y_input": str,
-            "overshoot": int, "overshoot_weight": float, "prior.learn_embedding": boolean,
-            "prior.learn_sigma": boolean,
-            "free_bits_z": float, "free_bits_y": float, "transition_form": str, "y_static": boolean}
+REMEDIES = {"obs_dropout": float, "y_update": str, "y_evidence_max": float, "y_evidence_range": float,
+            "prior.learn_embedding": boolean, "prior.learn_sigma": boolean}
 
 
 def remedy_kwargs(remedies) -> dict:

@@ -138,8 +138,7 @@ class LatentFilterModule(L.LightningModule):
             if not isinstance(net, Mapping):
                 raise TypeError(f"{type(self).__name__}: net must be a LatentFilter or its config mapping, "
                                 f"got {type(net).__name__}")
-            # a config saved before input_standardize existed trained without it
-            net = LatentFilter(**{"input_standardize": False, **to_plain(net)})
+            net = LatentFilter.from_config(net)
         if self.fusion is not None and not isinstance(net.observation, self.fusion):
             raise ValueError(f"{type(self).__name__} trains the {self.fusion.__name__} observation model; modality "
                              f"{net.modality['name']!r} (fusion={net.modality['fusion']!r}) builds "
@@ -202,10 +201,6 @@ class LatentFilterModule(L.LightningModule):
         for k in ("nll", "kl_z", "kl_y", "pop", "entropy"):
             self.log(f"train/{k}", terms[k].detach(), batch_size=bs)
         self.log("train/elbo", -(terms["nll"] + terms["kl_z"] + terms["kl_y"]).detach(), batch_size=bs)
-        if "overshoot" in terms:  # latent overshooting (inside kl_z in training): logged on its own too
-            self.log("train/overshoot", terms["overshoot"], batch_size=bs)
-        if "free_bits" in terms:  # the nats the free-bits floors add to kl_z + kl_y in training
-            self.log("train/free_bits", terms["free_bits"], batch_size=bs)
         for k, v in logs.items():
             self.log(k, float(v), batch_size=bs)
         return loss

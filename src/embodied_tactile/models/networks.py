@@ -74,17 +74,6 @@ def kl_diag_gaussians(mq: Tensor, vq: Tensor, mp: Tensor, vp: Tensor, per_dim: b
         return kl if per_dim else kl.sum(-1)
 
 
-def free_bits_kl(kl: Tensor, floor: float) -> Tensor:
-    """The free-bits KL (Kingma et al. 2016, "Improved variational inference with inverse
-    autoregressive flow", eq. 15) of per-step, per-dimension KLs ``kl`` (B, T, D), per
-    sequence: T * sum_j max(floor, mean_{b,t} kl_{b,t,j}). A dimension whose KL per step,
-    averaged over the batch, is below ``floor`` nats costs ``floor`` and gets no gradient
-    from the KL; ``floor`` = 0 gives the plain sum_t sum_j kl averaged over the batch."""
-    with float32_region(kl):
-        per_dim = kl.float().mean(dim=(0, 1))
-        return kl.shape[1] * torch.clamp(per_dim, min=float(floor)).sum()
-
-
 def gaussian_entropy(var: Tensor) -> Tensor:
     """Differential entropy of a diagonal Gaussian, summed over the last dim."""
     with float32_region(var):
@@ -258,52 +247,27 @@ class ConvDecoder(_CompilableBody):
         return self.deconv(h)
 
 
-#: ``transition_form``: how y enters the transition's mean (docs/model.md, "Options of `model.net`")
-TRANSITION_FORMS = ("mlp", "affine_y")
-
-
 class TransitionNet(nn.Module):
-    """p(z_t | z_{t-1}, y_t, a_t) = N(z_{t-1} + f_mu(.), softplus(f_v(.)) + floor).
+    """p(z_t | z_{t-1}, y_t, a_t) = N(z_{t-1} + f_mu(.), softplus(f_v(.)) + floor), f_mu and
+    f_v an MLP on the concatenation [z_{t-1}, y_t, a_t].
 
     Residual form: the MLP predicts the change of z; the mean heads are zero-initialised so
     the untrained transition is a random walk around z_{t-1}.
-
-    ``form`` says how y enters:
-
-    * ``"mlp"`` (default): f_mu and f_v read the concatenation [z_{t-1}, y_t, a_t].
-    * ``"affine_y"``: the drift is affine in y, f_mu = g(h) + G(h) y_t with h = MLP(z_{t-1}, a_t),
-      G(h) an (n_z, n_y) matrix, and the variance f_v(h) does not depend on y. Mechanical
-      dynamics are linear in their physical parameters (theta'' = -w0^2 sin theta - d theta'
-      + u is linear in (w0^2, d)), so a parameter only has to scale a state-dependent
-      direction, a product an MLP on the concatenation has to build from its units.
     """
 
-    def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3,
-                 form: str = "mlp") -> None:
+    def __init__(self, n_z: int, n_y: int, n_a: int, hidden: int = 128, min_var: float = 1e-3) -> None:
         super().__init__()
-        if form not in TRANSITION_FORMS:
-            raise ValueError(f"transition_form must be one of {TRANSITION_FORMS}, got {form!r}")
-        self.min_var, self.form, self.n_z, self.n_y = float(min_var), form, int(n_z), int(n_y)
-        n_in = n_z + n_a + (n_y if form == "mlp" else 0)
-        self.body = nn.Sequential(nn.Linear(n_in, hidden), nn.ELU(),
+        self.min_var = float(min_var)
+        self.body = nn.Sequential(nn.Linear(n_z + n_y + n_a, hidden), nn.ELU(),
                                   nn.Linear(hidden, hidden), nn.ELU())
         self.mean = nn.Linear(hidden, n_z)
         self.var = nn.Linear(hidden, n_z)
         nn.init.zeros_(self.mean.weight)
         nn.init.zeros_(self.mean.bias)
-        if form == "affine_y":
-            self.gain = nn.Linear(hidden, n_z * n_y)
-            nn.init.zeros_(self.gain.weight)
-            nn.init.zeros_(self.gain.bias)
 
     def forward(self, z_prev: Tensor, y: Tensor, a: Tensor) -> tuple[Tensor, Tensor]:
-        if self.form == "mlp":
-            h = self.body(torch.cat([z_prev, y, a], dim=-1))
-            return z_prev.float() + self.mean(h).float(), softplus_var(self.var(h), self.min_var)
-        h = self.body(torch.cat([z_prev, a], dim=-1))
-        gain = self.gain(h).float().unflatten(-1, (self.n_z, self.n_y))
-        drift = self.mean(h).float() + (gain @ y.float().unsqueeze(-1)).squeeze(-1)
-        return z_prev.float() + drift, softplus_var(self.var(h), self.min_var)
+        h = self.body(torch.cat([z_prev, y, a], dim=-1))
+        return z_prev.float() + self.mean(h).float(), softplus_var(self.var(h), self.min_var)
 
 
 Y_UPDATES = ("evidence", "direct")
