@@ -13,7 +13,7 @@ from omegaconf import OmegaConf, open_dict
 from conftest import REPO
 
 CONFIGS = REPO / "configs"
-GROUPS = ["data", "modality", "skin", "primitive", "model", "annealing", "trainer", "logger", "callbacks", "experiment", "debug", "combo"]
+GROUPS = ["data", "modality", "skin", "primitive", "model", "annealing", "recipe", "trainer", "logger", "callbacks", "experiment", "debug", "combo"]
 
 
 def options(group: str) -> list[str]:
@@ -137,3 +137,18 @@ def test_the_class_built_with_no_options_is_the_configured_default_model(tmp_pat
     assert changed.obs_dropout == 0.5 and changed.config()["prior"]["learn_sigma"] is True
     with pytest.raises(KeyError, match="not an option"):
         default_option("prior.no_such_option")
+
+
+def test_recipes_name_the_objective(tmp_path):
+    """recipe=recognition (the default) weights kl_y 100 with object labels; elbo and filter
+    are the plain ELBO without labels, filter with the pendulum's inference switches; the
+    paper's experiment keeps its DVBF annealing; a command-line y weight still wins."""
+    default = _compose([], tmp_path)
+    assert default.annealing.schedule.y_weight == 100.0 and default.model.net.prior.labels is True
+    for name in ("elbo", "filter"):
+        cfg = _compose([f"recipe={name}"], tmp_path)
+        assert cfg.annealing.schedule.y_weight == 1.0 and cfg.model.net.prior.labels is False
+    net = instantiate(_compose(["recipe=filter"], tmp_path).model.net)
+    assert net.obs_dropout == 0.5 and net.config()["y_update"] == "evidence" and net.config()["y_evidence_max"] == 1
+    assert "y_weight" not in _compose(["experiment=paper"], tmp_path).annealing.schedule
+    assert _compose(["recipe=elbo", "annealing.schedule.y_weight=3"], tmp_path).annealing.schedule.y_weight == 3
