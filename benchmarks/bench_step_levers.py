@@ -1,4 +1,4 @@
-"""Where the training step's time goes, and the issue-10 speed levers one at a time.
+"""Where the training step's time goes, and the speed levers one at a time.
 
 Part 1 (breakdown): the pieces of one training step (forward + backward), timed alone at
 the same shapes: the batched conv encoders, the batched conv decoders, the Python
