@@ -74,3 +74,18 @@ def test_recipe_names_the_settings_that_tell_recipes_apart():
     cfg.model.net.obs_dropout = 0.0
     cfg.model.net.prior.labels = True
     assert G.recipe(cfg) == "labels, y_weight 1, y evidence"
+
+
+def test_parts_merge_through_the_scores_file_and_a_later_root_replaces_a_score(tmp_path):
+    first, second = tmp_path / "part1", tmp_path / "part2"
+    _run(first, 24, 0, 0.8)
+    _run(first, 256, 0, 0.6)
+    G.write_page(G.collect([first]), tmp_path / "docs", command="test")
+    scores = tmp_path / "docs" / "generalisation_scores.json"
+    _run(second, 256, 0, 0.4)  # seed 0 at 256 run again
+    _run(second, 256, 1, 0.5)
+    rows = G.collect([scores, second])
+    agg = G.aggregate(rows)["Latent Filter multi_l (labels)"]
+    assert agg[24]["mean"] == pytest.approx(0.8)  # only in the scores file: kept
+    assert agg[256]["seeds"] == [0, 1] and agg[256]["mean"] == pytest.approx(0.45)  # 0.6 replaced by 0.4
+    assert G.collect([scores]) == G.collect([first])  # the file holds every score as collected

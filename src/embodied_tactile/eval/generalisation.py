@@ -3,15 +3,17 @@
     python -m embodied_tactile.eval.generalisation <root> [<root> ...] --out docs
 
 ``<root>``: folders holding population runs (``experiment=population``, any depth), each
-evaluated by ``evaluate.py`` (``<run>/evaluation/results.json``). Every method of every run
+evaluated by ``evaluate.py`` (``<run>/evaluation/results.json``), or a scores file written by
+an earlier report (``generalisation_scores.json``): parts run apart merge, a later root's
+score replacing an earlier one's for the same method, size and seed. Every method of every run
 becomes a point: the Latent Filter of the run's modality and recipe (:func:`recipe`) and the baselines evaluate.py scored on the same split (hand-crafted
 features + KRR, the supervised conv + GRU, the mean predictor), and the same filter untrained
 (the training's KRR check at step 0, ``krr_history.jsonl``: the read-out's floor). A baseline scored by two runs
 with the same modality, size and seed is counted once. Cells are averaged over seeds with a
 95 % t interval; a cell with one seed has no interval.
 
-Writes ``<out>/generalisation.md`` and ``<out>/figures/generalisation_curve.png`` (log x axis):
-generated, never edited.
+Writes ``<out>/generalisation.md``, ``<out>/generalisation_scores.json`` (every score, for the
+next merge) and ``<out>/figures/generalisation_curve.png`` (log x axis): generated, never edited.
 """
 
 from __future__ import annotations
@@ -76,38 +78,50 @@ def collect(roots: Iterable[str | Path]) -> list[dict[str, Any]]:
     """One row per (method, training objects, seed): ``{method, n_objects, seed, trajectory,
     last_step, run_dir, commit, targets}`` from every evaluated population run under ``roots``;
     ``trajectory`` / ``last_step``: ``{factor: NMSE, "overall": mean over factors}`` over every
-    frame / at the last frame."""
+    frame / at the last frame; a later root's row replaces an earlier one's."""
+    rows: dict[tuple, dict[str, Any]] = {}
+    for root in roots:
+        rows.update(_collect_root(Path(root)))
+    return sorted(rows.values(), key=lambda r: (r["method"], r["n_objects"], r["seed"]))
+
+
+def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
+    """The rows of one root (a folder of runs, or a scores file); within a folder the first
+    run's score of a baseline stands for the others scored on the same size and seed."""
     from omegaconf import OmegaConf
 
     rows: dict[tuple, dict[str, Any]] = {}
-    for root in roots:
-        for res_path in sorted(Path(root).rglob("evaluation/results.json")):
-            run_dir = res_path.parent.parent
-            cfg_path = run_dir / "config_resolved.yaml"
-            if not cfg_path.exists():
-                continue
-            cfg = OmegaConf.load(cfg_path)
-            if cfg.data.get("objects") != "population" or cfg.data.get("split") != "object":
-                continue
-            prov = run_dir / "provenance.json"
-            commit = json.loads(prov.read_text()).get("git_commit", "unknown") if prov.exists() else "unknown"
-            recipe_ = recipe(cfg)
-            n, seed, modality = int(cfg.data.n_objects), int(cfg.seed), str(cfg.modality.name)
-            scores = [(_method_label(r["method"], modality, recipe_), r) for r in json.loads(res_path.read_text())["runs"]]
-            floor = _untrained(run_dir)
-            if floor is not None:
-                scores.append((_method_label("latent_filter", modality, recipe_) + UNTRAINED,
-                               {"nmse_trajectory": floor["nmse"], "nmse_trajectory_overall": floor["nmse_overall"],
-                                "nmse_last_step": floor["nmse_last"], "nmse_last_step_overall": floor["nmse_last_overall"],
-                                "targets": floor.get("targets")}))
-            for label, r in scores:
-                key = (label, n, seed)
-                if key not in rows:
-                    rows[key] = {"method": label, "n_objects": n, "seed": seed, "run_dir": str(run_dir),
-                                 "commit": commit, "targets": r.get("targets"),
-                                 "trajectory": {**r["nmse_trajectory"], "overall": float(r["nmse_trajectory_overall"])},
-                                 "last_step": {**r["nmse_last_step"], "overall": float(r["nmse_last_step_overall"])}}
-    return sorted(rows.values(), key=lambda r: (r["method"], r["n_objects"], r["seed"]))
+    if root.is_file():
+        for r in json.loads(root.read_text()):
+            rows[(r["method"], int(r["n_objects"]), int(r["seed"]))] = r
+        return rows
+    for res_path in sorted(root.rglob("evaluation/results.json")):
+        run_dir = res_path.parent.parent
+        cfg_path = run_dir / "config_resolved.yaml"
+        if not cfg_path.exists():
+            continue
+        cfg = OmegaConf.load(cfg_path)
+        if cfg.data.get("objects") != "population" or cfg.data.get("split") != "object":
+            continue
+        prov = run_dir / "provenance.json"
+        commit = json.loads(prov.read_text()).get("git_commit", "unknown") if prov.exists() else "unknown"
+        recipe_ = recipe(cfg)
+        n, seed, modality = int(cfg.data.n_objects), int(cfg.seed), str(cfg.modality.name)
+        scores = [(_method_label(r["method"], modality, recipe_), r) for r in json.loads(res_path.read_text())["runs"]]
+        floor = _untrained(run_dir)
+        if floor is not None:
+            scores.append((_method_label("latent_filter", modality, recipe_) + UNTRAINED,
+                           {"nmse_trajectory": floor["nmse"], "nmse_trajectory_overall": floor["nmse_overall"],
+                            "nmse_last_step": floor["nmse_last"], "nmse_last_step_overall": floor["nmse_last_overall"],
+                            "targets": floor.get("targets")}))
+        for label, r in scores:
+            key = (label, n, seed)
+            if key not in rows:
+                rows[key] = {"method": label, "n_objects": n, "seed": seed, "run_dir": str(run_dir),
+                             "commit": commit, "targets": r.get("targets"),
+                             "trajectory": {**r["nmse_trajectory"], "overall": float(r["nmse_trajectory_overall"])},
+                             "last_step": {**r["nmse_last_step"], "overall": float(r["nmse_last_step_overall"])}}
+    return rows
 
 
 def mean_interval(values: Sequence[float]) -> tuple[float, float, float]:
@@ -208,7 +222,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
     """docs page + figure from ``collect`` rows. Returns the page's path."""
     out = Path(out)
     figure(rows, out / "figures" / "generalisation_curve.png", sizes)
-    commits = sorted({r["commit"][:7] for r in rows})
+    commits = sorted({r["commit"][:7] if len(r["commit"]) == 40 else r["commit"] for r in rows})
     lines = [
         "# Generalisation to objects never touched",
         "",
@@ -233,7 +247,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         "What the signals allow on the same population (a kernel reader on physical summary features): "
         "docs/experiments/signal_content.md. The paper's 32 objects under the object split: "
         "docs/experiments/study_held_out_objects.md. The runs: `python train.py -m experiment=population "
-        "sweep=generalisation [recipe overrides]`, then `python evaluate.py <run> baselines=[handcrafted,gru,mean] "
+        "sweep=generalisation [recipe=elbo|filter]` (configs/recipe/), then `python evaluate.py <run> baselines=[handcrafted,gru,mean] "
         "gru.epochs=16 gru.max_batches_per_epoch=30` per run (configs/sweep/generalisation.yaml).",
         "",
         "![learning curve](figures/generalisation_curve.png)",
@@ -253,6 +267,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         lines.append(f"| {r['method']} | {r['n_objects']} | {r['seed']} | " + " | ".join(cells) + " |")
     page = out / "generalisation.md"
     page.write_text("\n".join(lines) + "\n")
+    (out / "generalisation_scores.json").write_text(json.dumps(list(rows), indent=1) + "\n")
     return page
 
 
