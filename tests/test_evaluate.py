@@ -35,10 +35,11 @@ def _train(args, cwd, log):
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """run: modality=fsr_tb, trained in <tmp> with the RELATIVE data_dir 'data' (evaluation
+    """run: modality=fsr_tb, seed 3, trained in <tmp> with the RELATIVE data_dir 'data' (evaluation
     from the repo must find it through provenance.json's cwd); multi: modality=acc,fsr_t."""
     tmp = tmp_path_factory.mktemp("evaluate")
-    _train(["debug=fast", "modality=fsr_tb", "paths.data_dir=data", f"hydra.run.dir={tmp}/run"], tmp, tmp / "run.log")
+    _train(["debug=fast", "modality=fsr_tb", "seed=3", "paths.data_dir=data", f"hydra.run.dir={tmp}/run"], tmp,
+           tmp / "run.log")
     _train(["-m", "debug=fast", "modality=acc,fsr_t", f"paths.data_dir={tmp}/data", f"hydra.sweep.dir={tmp}/multi"],
            REPO, tmp / "multi.log")
     return tmp
@@ -90,6 +91,8 @@ def test_run_cli_writes_everything_as_trained_modality(trained):
         assert math.isfinite(r["nmse_trajectory_overall"]) and math.isfinite(r["nmse_last_step_overall"])
         assert all(math.isfinite(v) for v in r["nmse_trajectory"].values())
     lf = next(r for r in res["runs"] if r["method"] == "latent_filter")
+    gru = next(r for r in res["runs"] if r["method"] == "gru")
+    assert gru["params"]["gru"]["seed"] == 3  # gru.seed null: the run's seed
     assert lf["params"]["train_time_s"] > 0 and lf["params"]["inference_s_per_sequence"] > 0
     assert res["histories"], "krr_history.jsonl rows missing"
     # every table states the NMSE definition, the split sizes and the data source

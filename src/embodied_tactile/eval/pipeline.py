@@ -194,6 +194,8 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
             results.append(evaluate_handcrafted(tr, te, channels, alignment=align, split=split["kind"], **meta))
         elif b == "gru":
             gru = OmegaConf.to_container(opts.gru, resolve=True)
+            if gru.get("seed") is None:  # the run's seed: a baseline's spread over seeds is measured, not assumed 0
+                gru["seed"] = int(cfg.seed)
             if gru.get("arch") == "latent_filter":  # the run's own modality, defined once
                 gru["modality"] = OmegaConf.to_container(cfg.modality, resolve=True)
             results.append(evaluate_gru(tr, te, gru=gru, **meta))
