@@ -71,6 +71,7 @@ def test_run_cli_writes_everything_as_trained_modality(trained):
         assert f"**{name}.**" not in p.stdout  # tables go to files; the terminal gets what was measured
     printed = p.stdout.strip().splitlines()
     assert len(printed) <= 40, p.stdout
+    assert "split trial: held-out trials of training objects: recognition" in p.stdout  # the paper's split, named
     for method in ("Latent Filter", "hand-crafted KRR", "GRU", "mean"):  # NMSE per factor beside the baselines
         assert any(line.startswith(f"| {method} |") for line in printed), p.stdout
     assert "| method | spatial_frequency | amplitude | stiffness | heterogeneity | overall |" in p.stdout

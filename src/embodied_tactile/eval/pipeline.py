@@ -26,6 +26,7 @@ from omegaconf.errors import ConfigKeyError
 from embodied_tactile.constants import FACTOR_NAMES
 from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect_split, data_config, discover,
                                         load_module, run_split, trial_names, trial_objects)
+from embodied_tactile.eval.results import SPLIT_KINDS
 from embodied_tactile.jsonio import read_json
 from embodied_tactile.settings import config_dir
 
@@ -402,7 +403,8 @@ def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence
         i = infos[0]
         s = by_run[i["run_dir"]]
         lines.append(f"{i['label']} ({i['n_train']} train / {i['n_test']} held-out trials, "
-                     f"{Path(i['checkpoint']).name}, split {i['split']['kind']})")
+                     f"{Path(i['checkpoint']).name}, split {i['split']['kind']}: "
+                     f"{SPLIT_KINDS.get(i['split']['kind'], 'not recorded')})")
         lines.append("| method | " + " | ".join(FACTOR_NAMES) + " | overall |")
         lines.append("|---" * (len(FACTOR_NAMES) + 2) + "|")
         for m in methods:

@@ -237,7 +237,7 @@ def object_group(object_id: int) -> str:
     return get_object(object_id).group if 0 <= int(object_id) < N_OBJECTS else POPULATION_GROUP
 
 
-SPLIT_KINDS = {"trial": "held-out trials of training objects (the paper's split)",
+SPLIT_KINDS = {"trial": "held-out trials of training objects: recognition (the paper's split)",
                "object": "whole objects held out (generalisation to unseen objects)"}
 
 
