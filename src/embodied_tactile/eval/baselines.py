@@ -436,11 +436,9 @@ def evaluate_code_regression(train: Mapping[str, Any], test: Mapping[str, Any], 
     assert_disjoint(train.get("seq_id"), test.get("seq_id"))
     n_y = dict(gru.get("latent_filter") or {}).get("n_y")
     if n_y is None:  # the network's own default, defined once in LatentFilter
-        import inspect
+        from ..models.latent_filter import default_option
 
-        from ..models import LatentFilter
-
-        n_y = inspect.signature(LatentFilter).parameters["n_y"].default
+        n_y = default_option("n_y")
     n_y = int(n_y)
     oid_tr, oid_te = np.asarray(train["object_id"]), np.asarray(test["object_id"])
     n_obj = int(max(oid_tr.max(), oid_te.max())) + 1

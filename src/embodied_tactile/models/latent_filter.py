@@ -100,10 +100,10 @@ def default_option(name: str) -> Any:
         value = ENCODER_DEFAULTS[key]
         return list(value) if isinstance(value, list) else value
     owner = {"": LatentFilter, "prior": HierarchicalPrior}.get(group)
-    parameter = inspect.signature(owner.__init__).parameters.get(key) if owner else None
-    if parameter is None or parameter.default is inspect.Parameter.empty:
+    defaults = _signature_defaults(owner) if owner else {}
+    if key not in defaults:
         raise KeyError(f"{name!r} is not an option of the Latent Filter with a default")
-    return parameter.default
+    return defaults[key]
 
 
 class LatentFilter(nn.Module):
