@@ -89,3 +89,11 @@ def test_parts_merge_through_the_scores_file_and_a_later_root_replaces_a_score(t
     assert agg[24]["mean"] == pytest.approx(0.8)  # only in the scores file: kept
     assert agg[256]["seeds"] == [0, 1] and agg[256]["mean"] == pytest.approx(0.45)  # 0.6 replaced by 0.4
     assert G.collect([scores]) == G.collect([first])  # the file holds every score as collected
+
+
+def test_a_file_that_is_not_a_scores_file_is_named(tmp_path, capsys):
+    bad = tmp_path / "results.json"
+    bad.write_text(json.dumps({"runs": []}))
+    with pytest.raises(SystemExit):
+        G.main([str(bad), "--out", str(tmp_path / "docs")])
+    assert "results.json: not a scores file" in capsys.readouterr().err

@@ -28,6 +28,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from ..constants import FACTOR_NAMES
+from ..jsonio import write_json
 
 _BASELINE_NAMES = {"handcrafted_krr": "hand-crafted + KRR", "gru": "supervised conv + GRU", "mean": "mean predictor"}
 
@@ -92,8 +93,11 @@ def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
 
     rows: dict[tuple, dict[str, Any]] = {}
     if root.is_file():
-        for r in json.loads(root.read_text()):
-            rows[(r["method"], int(r["n_objects"]), int(r["seed"]))] = r
+        try:
+            for r in json.loads(root.read_text()):
+                rows[(r["method"], int(r["n_objects"]), int(r["seed"]))] = r
+        except (ValueError, TypeError, KeyError) as e:
+            raise ValueError(f"{root}: not a scores file written by eval.generalisation ({type(e).__name__}: {e})") from None
         return rows
     for res_path in sorted(root.rglob("evaluation/results.json")):
         run_dir = res_path.parent.parent
@@ -267,7 +271,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         lines.append(f"| {r['method']} | {r['n_objects']} | {r['seed']} | " + " | ".join(cells) + " |")
     page = out / "generalisation.md"
     page.write_text("\n".join(lines) + "\n")
-    (out / "generalisation_scores.json").write_text(json.dumps(list(rows), indent=1) + "\n")
+    write_json(out / "generalisation_scores.json", list(rows), indent=1)
     return page
 
 
@@ -276,7 +280,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("roots", nargs="+", help="folders of evaluated population runs")
     ap.add_argument("--out", default="docs", help="where generalisation.md and figures/ go")
     args = ap.parse_args(argv)
-    rows = collect(args.roots)
+    try:
+        rows = collect(args.roots)
+    except ValueError as e:
+        ap.error(str(e))
     if not rows:
         ap.error(f"no evaluated population runs (evaluation/results.json of experiment=population) under {args.roots}")
     page = write_page(rows, args.out, command="python -m embodied_tactile.eval.generalisation "
