@@ -10,7 +10,10 @@ x 4 actions (indices 2, 6, 10, 14), prepared by the project's preparation stage
 (``TactileDataModule.prepare_data``: simulates missing trials into ``<data-dir>/raw``,
 builds the caches), split by ``split_trials`` with ``--seed`` (the paper's trial split;
 the baselines train on the train split, like evaluate.py, and are scored on the test split).
-Targets: ``design_rank`` (evaluate.py's default).
+Targets: ``design_rank`` (evaluate.py's default). ``--population N``: the population scene
+instead (``experiment=population``: N training objects, the object split, actions 6 and 14,
+physical targets), e.g. ``--population 256 --modalities multi_l --gru-max-batches 30
+--gru-epochs 16`` is evaluate.py's GRU baseline of a population run.
 
 For each of the six modalities (channels from ``configs/modality/<name>.yaml``):
 
@@ -63,8 +66,11 @@ BANDS_HZ = ((1.0, 15.0), (15.0, 50.0), (50.0, 150.0), (150.0, 340.0))
 
 
 def load_split(data_dir: Path, skin: str, primitive: str, seed: int, actions, sim_workers: int,
-               preprocess: dict | None = None):
-    """(train, test) dicts with obs over ALL_CHANNELS, actions, factors (design_rank), ids."""
+               preprocess: dict | None = None, population: int | None = None):
+    """(train, test) dicts with obs over ALL_CHANNELS, actions, factors, ids. ``population``:
+    the simulated population with that many training objects under the object split
+    (population and simulator seed 0, targets physical); else the catalogue under the trial
+    split (``seed``, targets design_rank)."""
     import torch
 
     from embodied_tactile.data.datamodule import TactileDataModule
@@ -73,7 +79,9 @@ def load_split(data_dir: Path, skin: str, primitive: str, seed: int, actions, si
     dm = TactileDataModule(data_dir=str(data_dir), skin=skin, primitive=primitive, channels=ALL_CHANNELS,
                            actions=list(actions), sim_seed=0, sim_workers=sim_workers, preprocess=preprocess or {},
                            preprocess_workers=sim_workers,
-                           split_seed=seed, split_file=None, batch_size=16)
+                           split_seed=seed, split_file=None, batch_size=16,
+                           **({} if population is None else dict(objects="population", n_objects=population,
+                                                                 population_seed=0, split="object")))
     dm.prepare_data()
     dm.setup("fit")
     out = []
@@ -82,9 +90,13 @@ def load_split(data_dir: Path, skin: str, primitive: str, seed: int, actions, si
         d = {k: torch.cat([b[k] for b in batches]).numpy() for k in ("obs", "actions", "factors", "object_id",
                                                                         "action_index")}
         d["seq_id"] = np.asarray([t.name for t in ds.trials])
-        out.append(encode_split(d, "design_rank"))
+        out.append(encode_split(d, targets_of(population)))
     raw_paths = [str(p) for p in dm.raw_paths]
     return out[0], out[1], raw_paths
+
+
+def targets_of(population: int | None) -> str:
+    return "design_rank" if population is None else "physical"
 
 
 def _frame_energy(x: np.ndarray, fs: float, n_frames: int, frame_rate: float) -> np.ndarray:
@@ -121,7 +133,7 @@ def raw_acc_features(acc: np.ndarray, fs: float, n_frames: int = 300, frame_rate
     return feats
 
 
-def raw_probe(train, test, raw_paths, *, magnitude: bool, alignment: dict, meta: dict):
+def raw_probe(train, test, raw_paths, *, magnitude: bool, alignment: dict, meta: dict, targets: str):
     from embodied_tactile.eval.results import Results
     from embodied_tactile.eval.krr import fit_alignment
     from embodied_tactile.io.rawformat import read_trial
@@ -146,7 +158,7 @@ def raw_probe(train, test, raw_paths, *, magnitude: bool, alignment: dict, meta:
     pred = align.predict(f_te, ids=test["seq_id"])
     return Results(pred, test["factors"], test["object_id"], test["action_index"],
                    method="raw_mag_krr" if magnitude else "raw_xyz_krr", n_train=len(f_tr),
-                   params={"alignment": align.params}, seq_id=test["seq_id"], targets="design_rank", **meta)
+                   params={"alignment": align.params}, seq_id=test["seq_id"], targets=targets, **meta)
 
 
 def subset(split: dict, channels) -> dict:
@@ -161,7 +173,11 @@ def main(argv=None) -> None:
     ap.add_argument("--data-dir", type=Path, default=Path("/tmp/modality_bounds/data"))
     ap.add_argument("--skin", default="soft")
     ap.add_argument("--primitive", default="pressing")
-    ap.add_argument("--actions", type=int, nargs="+", default=[2, 6, 10, 14])
+    ap.add_argument("--actions", type=int, nargs="+", default=None,
+                    help="action indices (default 2 6 10 14; with --population 6 14, the population scene's)")
+    ap.add_argument("--population", type=int, default=None, metavar="N",
+                    help="the population scene (experiment=population) with N training objects, object split, "
+                         "physical targets, instead of the 32-object catalogue")
     ap.add_argument("--modalities", nargs="+", default=list(MODALITIES), choices=MODALITIES)
     ap.add_argument("--seed", type=int, default=0, help="split seed and GRU seed")
     ap.add_argument("--gru-epochs", type=int, default=20)
@@ -169,6 +185,8 @@ def main(argv=None) -> None:
     ap.add_argument("--gru-standardize", action="store_true",
                     help="GRU input_standardize: each channel standardised by its training-set mean / std")
     ap.add_argument("--gru-windows-per-trial", type=int, default=6, help="GRU crops per trial and epoch")
+    ap.add_argument("--gru-max-batches", type=int, default=None,
+                    help="GRU batches per epoch at most (evaluate.py's population runs: 30, 480 steps in 16 epochs)")
     ap.add_argument("--lf-supervised", action="store_true",
                     help="also train the Latent Filter's inference path supervised (method latent_filter_supervised)")
     ap.add_argument("--lf-codes", action="store_true",
@@ -193,15 +211,18 @@ def main(argv=None) -> None:
 
     t0 = time.perf_counter()
     pre = dict(kv.split("=", 1) for kv in args.preprocess)
-    train, test, raw_paths = load_split(args.data_dir, args.skin, args.primitive, args.seed, args.actions, args.workers,
-                                        pre)
-    print(f"# scene skin={args.skin} primitive={args.primitive} actions={args.actions}: {len(train['seq_id'])} train / "
+    actions = args.actions or ([2, 6, 10, 14] if args.population is None else [6, 14])
+    targets = targets_of(args.population)
+    train, test, raw_paths = load_split(args.data_dir, args.skin, args.primitive, args.seed, actions, args.workers,
+                                        pre, args.population)
+    print(f"# scene skin={args.skin} primitive={args.primitive} actions={actions}: {len(train['seq_id'])} train / "
           f"{len(test['seq_id'])} test trials (split seed {args.seed}); data {time.perf_counter() - t0:.0f} s",
           file=sys.stderr)
     alignment = dict(final_segment=0.1, frames_per_sequence=4, cv=5, n_threads=1)  # evaluate.yaml's
     gru_window = None if args.gru_window.lower() == "none" else int(args.gru_window)
     gru = dict(epochs=args.gru_epochs, window=gru_window, windows_per_trial=args.gru_windows_per_trial, batch_size=16,
-               hidden=64, lr=1e-3, seed=args.seed, input_standardize=args.gru_standardize)
+               hidden=64, lr=1e-3, seed=args.seed, input_standardize=args.gru_standardize,
+               max_batches_per_epoch=args.gru_max_batches)
     rows = []
     for name in args.modalities:
         chans = list(load_modality(name).channels)
@@ -223,16 +244,18 @@ def main(argv=None) -> None:
         if name == "acc" and not args.no_raw:
             for mag in (False, True):
                 t1 = time.perf_counter()
-                res = raw_probe(train, test, raw_paths, magnitude=mag, alignment=alignment, meta=meta)
+                res = raw_probe(train, test, raw_paths, magnitude=mag, alignment=alignment, meta=meta, targets=targets)
                 rows.append((res.summary(), time.perf_counter() - t1))
                 print(f"# acc {res.method}: {rows[-1][0]['nmse_trajectory_overall']:.3f}", file=sys.stderr)
 
     short = {"spatial_frequency": "sf", "amplitude": "amp", "stiffness": "stiff", "heterogeneity": "het"}
     head = [short.get(f, f) for f in FACTOR_NAMES] + ["overall"]
-    print(f"\nHeld-out NMSE, whole trajectory / last frame (targets design_rank), skin={args.skin}, "
+    scene = "catalogue, trial split" if args.population is None else f"population of {args.population}, object split"
+    print(f"\nHeld-out NMSE, whole trajectory / last frame ({scene}, targets {targets}), skin={args.skin}, "
           f"primitive={args.primitive}, preprocess {pre or 'default'}, {len(train['seq_id'])} train / {len(test['seq_id'])} test trials, "
           f"split seed {args.seed}, GRU seed {args.seed} ({args.gru_epochs} epochs, window {gru_window} x "
-          f"{args.gru_windows_per_trial} per trial, input_standardize {args.gru_standardize}"
+          f"{args.gru_windows_per_trial} per trial, at most {args.gru_max_batches} batches per epoch, "
+          f"input_standardize {args.gru_standardize}"
           + (f"; latent_filter_supervised / _codes {args.lf_epochs} epochs, same windows"
              if args.lf_supervised or args.lf_codes else "") + ")\n")
     print("| modality | method | " + " | ".join(head) + " | s |")

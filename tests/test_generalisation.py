@@ -11,7 +11,7 @@ from embodied_tactile.constants import FACTOR_NAMES
 from embodied_tactile.eval import generalisation as G
 
 
-def _run(root, n, seed, lf, labels=True, objects="population"):
+def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None):
     d = root / f"n{n}_s{seed}_{labels}"
     (d / "evaluation").mkdir(parents=True)
     cfg = {"seed": seed, "modality": {"name": "multi_l"}, "model": {"net": {"prior": {"labels": labels}}},
@@ -21,6 +21,8 @@ def _run(root, n, seed, lf, labels=True, objects="population"):
     runs = [{"method": m, "nmse_trajectory": {f: v for f in FACTOR_NAMES}, "nmse_trajectory_overall": v,
              "nmse_last_step": {f: v / 2 for f in FACTOR_NAMES}, "nmse_last_step_overall": v / 2,
              "targets": "physical"} for m, v in (("latent_filter", lf), ("gru", 0.5), ("mean", 1.0))]
+    if gru_std is not None:  # evaluate.py's results carry the GRU's settings
+        runs[1]["params"] = {"gru": {"input_standardize": gru_std}}
     (d / "evaluation" / "results.json").write_text(json.dumps({"runs": runs}))
     initial = {"epoch": -1, "step": 0, "initial": True, "nmse": {f: 1.05 for f in FACTOR_NAMES}, "nmse_overall": 1.05,
                "nmse_last": {f: 1.1 for f in FACTOR_NAMES}, "nmse_last_overall": 1.1}
@@ -33,13 +35,17 @@ def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
     for seed, lf in ((0, 0.8), (1, 0.9), (2, 1.0)):
         _run(root, 24, seed, lf)
     _run(root, 24, 0, 0.95, labels=False)
-    _run(root, 256, 0, 0.4)
+    _run(root, 256, 0, 0.4, gru_std=True)
     _run(root, 64, 0, 0.1, objects=None)  # not a population run: left out
     rows = G.collect([root])
     methods = {r["method"] for r in rows}
     assert methods == {"Latent Filter multi_l (labels)", "Latent Filter multi_l (no labels)",
                        "Latent Filter multi_l (labels), untrained", "Latent Filter multi_l (no labels), untrained",
-                       "supervised conv + GRU (multi_l)", "mean predictor"}
+                       "supervised conv + GRU (multi_l, raw inputs)", "supervised conv + GRU (multi_l, standardised inputs)",
+                       "mean predictor"}
+    gru = {r["method"]: r["n_objects"] for r in rows if "GRU" in r["method"]}
+    assert gru == {"supervised conv + GRU (multi_l, raw inputs)": 24,
+                   "supervised conv + GRU (multi_l, standardised inputs)": 256}
     # the GRU and mean of the labels=false run duplicate the labels=true run's: counted once
     assert sum(1 for r in rows if r["method"] == "mean predictor" and r["n_objects"] == 24) == 3
     agg = G.aggregate(rows)

@@ -53,11 +53,16 @@ def recipe(cfg) -> str:
     return ", ".join(parts)
 
 
-def _method_label(method: str, modality: str, recipe_: str) -> str:
+def _method_label(method: str, modality: str, recipe_: str, params: Mapping[str, Any] | None = None) -> str:
+    """The row name of a method; the GRU's says whether its inputs were standardised
+    (``params["gru"]["input_standardize"]``, as evaluate.py's results carry it)."""
     if method == "latent_filter":
         return f"Latent Filter {modality} ({recipe_})"
     if method == "mean":
         return "mean predictor"
+    if method == "gru":
+        std = bool(((params or {}).get("gru") or {}).get("input_standardize", False))
+        return f"{_BASELINE_NAMES[method]} ({modality}, {'standardised' if std else 'raw'} inputs)"
     return f"{_BASELINE_NAMES.get(method, method)} ({modality})"
 
 
@@ -111,7 +116,7 @@ def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
         commit = json.loads(prov.read_text()).get("git_commit", "unknown") if prov.exists() else "unknown"
         recipe_ = recipe(cfg)
         n, seed, modality = int(cfg.data.n_objects), int(cfg.seed), str(cfg.modality.name)
-        scores = [(_method_label(r["method"], modality, recipe_), r) for r in json.loads(res_path.read_text())["runs"]]
+        scores = [(_method_label(r["method"], modality, recipe_, r.get("params")), r) for r in json.loads(res_path.read_text())["runs"]]
         floor = _untrained(run_dir)
         if floor is not None:
             scores.append((_method_label("latent_filter", modality, recipe_) + UNTRAINED,
