@@ -133,22 +133,31 @@ def test_the_class_built_with_no_options_is_the_configured_default_model(tmp_pat
     bare = LatentFilter(OmegaConf.to_container(cfg.modality, resolve=True), n_objects=cfg.model.net.n_objects)
     assert configured.config() == bare.config()
     assert configured.config()["prior"]["learn_embedding"] is False and configured.config()["obs_sigma"] == 0.1
-    changed = instantiate(_compose(["model.net.obs_dropout=0.5", "model.net.prior.learn_sigma=true"], tmp_path).model.net)
-    assert changed.obs_dropout == 0.5 and changed.config()["prior"]["learn_sigma"] is True
+    changed = instantiate(_compose(["model.net.obs_dropout=0.25", "model.net.prior.learn_sigma=true"], tmp_path).model.net)
+    assert changed.obs_dropout == 0.25 and changed.config()["prior"]["learn_sigma"] is True
     with pytest.raises(KeyError, match="not an option"):
         default_option("prior.no_such_option")
 
 
 def test_recipes_name_the_objective(tmp_path):
-    """recipe=recognition (the default) weights kl_y 100 with object labels; elbo and filter
-    are the plain ELBO without labels, filter with the pendulum's inference switches; the
-    paper's experiment keeps its DVBF annealing; a command-line y weight still wins."""
+    """recipe=filter (the default) is the model class's defaults: the plain ELBO without labels,
+    observation dropout and evidence y; elbo drops the two switches, recognition adds the
+    labels and weights kl_y 100; the paper's experiment is the ELBO with labels under its DVBF
+    annealing; a command-line y weight still wins."""
+    from embodied_tactile.models.latent_filter import LatentFilter
+
     default = _compose([], tmp_path)
-    assert default.annealing.schedule.y_weight == 100.0 and default.model.net.prior.labels is True
-    for name in ("elbo", "filter"):
-        cfg = _compose([f"recipe={name}"], tmp_path)
-        assert cfg.annealing.schedule.y_weight == 1.0 and cfg.model.net.prior.labels is False
-    net = instantiate(_compose(["recipe=filter"], tmp_path).model.net)
+    assert default.annealing.schedule.y_weight == 1.0 and default.model.net.prior.labels is False
+    net = instantiate(default.model.net)
     assert net.obs_dropout == 0.5 and net.config()["y_update"] == "evidence" and net.config()["y_evidence_max"] == 1
-    assert "y_weight" not in _compose(["experiment=paper"], tmp_path).annealing.schedule
+    assert net.config() == instantiate(_compose(["recipe=filter"], tmp_path).model.net).config()
+    assert LatentFilter("multi_l").config()["prior"]["labels"] is False
+    elbo = instantiate(_compose(["recipe=elbo"], tmp_path).model.net).config()
+    assert elbo["obs_dropout"] == 0.0 and elbo["y_update"] == "direct" and elbo["prior"]["labels"] is False
+    recognition = _compose(["recipe=recognition"], tmp_path)
+    assert recognition.annealing.schedule.y_weight == 100.0 and recognition.model.net.prior.labels is True
+    assert instantiate(recognition.model.net).config() == {**elbo, "prior": {**elbo["prior"], "labels": True}}
+    paper = _compose(["experiment=paper"], tmp_path)
+    assert "y_weight" not in paper.annealing.schedule
+    assert instantiate(paper.model.net).config() == {**elbo, "prior": {**elbo["prior"], "labels": True}}
     assert _compose(["recipe=elbo", "annealing.schedule.y_weight=3"], tmp_path).annealing.schedule.y_weight == 3

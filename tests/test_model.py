@@ -277,7 +277,7 @@ def test_evidence_y_posterior_is_the_product_of_its_evidence():
 def test_bounded_evidence_caps_each_steps_precision():
     """y_evidence_max: lambda_k = max * sigmoid(raw_k), so P_t <= p0 + t * max even when the
     head asks for huge precision, and the latest frame's weight in the mean is at most
-    max / P_t; the LatentFilter passes it through and refuses it without evidence."""
+    max / P_t; the LatentFilter passes it through; the direct update ignores it."""
     from embodied_tactile.models.networks import YPosterior
 
     torch.manual_seed(0)
@@ -288,9 +288,8 @@ def test_bounded_evidence_caps_each_steps_precision():
     for t in range(1, 8):
         _, var, state = yp(torch.randn(4, 3), torch.randn(4, 1), state)
         assert (state[2] <= 1.0 + 0.5 * t + 1e-5).all() and (state[2] >= 1.0 + 0.5 * t - 1e-3).all()
-    with pytest.raises(ValueError, match="y_evidence_max=0.5 needs y_update='evidence'"):
-        YPosterior(3, 2, 1, update="direct", max_evidence=0.5)
-    with pytest.raises(ValueError, match="y_evidence_max=0.0 needs"):
+    assert YPosterior(3, 2, 1, update="direct", max_evidence=0.5).max_evidence is None  # direct ignores the bound
+    with pytest.raises(ValueError, match="y_evidence_max=0.0 must be > 0"):
         YPosterior(3, 2, 1, update="evidence", max_evidence=0.0)
     net = LatentFilter("fsr_t", n_z=4, n_y=2, y_update="evidence", y_evidence_max=2.0)
     assert net.y_posterior.max_evidence == 2.0 and net.config()["y_evidence_max"] == 2.0
@@ -312,8 +311,9 @@ def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
         assert ((mean - mean_prev).abs() <= 1.0 * (2.0 + mean_prev.abs()) / state[2] + 1e-5).all()
         assert (mean.abs() < 2.0).all()
         mean_prev = mean
-    with pytest.raises(ValueError, match="y_evidence_range=1.0 needs y_update='evidence'"):
-        YPosterior(3, 2, 1, update="direct", evidence_range=1.0)
+    assert YPosterior(3, 2, 1, update="direct", evidence_range=1.0).evidence_range is None
+    with pytest.raises(ValueError, match="y_evidence_range=-1.0 must be > 0"):
+        YPosterior(3, 2, 1, update="evidence", evidence_range=-1.0)
 
 
 def test_kl_matches_torch_distributions():
@@ -509,7 +509,7 @@ def test_hierarchical_prior_population_marginal_for_unseen_objects():
     from embodied_tactile.models.networks import HierarchicalPrior
 
     torch.manual_seed(0)
-    p = HierarchicalPrior(n_y=3, n_a=2, n_objects=5, sigma_init=0.5, pop_sigma_init=0.4, var_floor=1e-2)
+    p = HierarchicalPrior(n_y=3, n_a=2, n_objects=5, sigma_init=0.5, pop_sigma_init=0.4, var_floor=1e-2, labels=True)
     a = torch.zeros(2, 4, 2)
     p.train()
     p(torch.tensor([0, 2]), a)  # objects 0 and 2 met in training
@@ -561,7 +561,8 @@ def test_fixed_object_codes_stay_at_their_draws_while_the_rest_of_the_prior_lear
     """prior.learn_embedding=False: training moves q(y), sigma, mu_0 and tau but never the
     object codes, which stay distinct draws of N(0, pop_sigma_init^2)."""
     torch.manual_seed(0)
-    net = LatentFilter("fsr_t", prior={"learn_embedding": False, "learn_sigma": True, "pop_sigma_init": 0.5}, **TINY)
+    net = LatentFilter("fsr_t", prior={"labels": True, "learn_embedding": False, "learn_sigma": True, "pop_sigma_init": 0.5},
+                       **TINY)
     codes = net.prior.embedding.weight.detach().clone()
     assert not net.prior.embedding.weight.requires_grad
     assert 0.3 < float(codes.std()) < 0.7  # the draws' spread is pop_sigma_init
@@ -575,7 +576,7 @@ def test_fixed_object_codes_stay_at_their_draws_while_the_rest_of_the_prior_lear
     assert {"pop_mean", "pop_raw_var", "raw_var"} <= set(moved)
     # learned codes (learn_embedding=True) do move under the same training
     torch.manual_seed(0)
-    learned = LatentFilter("fsr_t", prior={"learn_embedding": True}, **TINY)
+    learned = LatentFilter("fsr_t", prior={"labels": True, "learn_embedding": True}, **TINY)
     before = learned.prior.embedding.weight.detach().clone()
     trainer(tmp_path, max_steps=4).fit(EarlyFusionLatentFilter(learned, optimizer={"name": "Adam", "lr": 1e-2}),
                                        DataLoader(data, batch_size=4))
@@ -626,7 +627,7 @@ def test_population_term_enters_kl_y_and_old_checkpoints_load():
     from embodied_tactile.models.networks import HierarchicalPrior
 
     torch.manual_seed(0)
-    m = LatentFilter("fsr_t", **TINY)
+    m = LatentFilter("fsr_t", prior={"labels": True}, **{**TINY, "obs_dropout": 0.0})  # the same frames in both calls
     batch = make_batch(1)
     m.prior.population_weight = 0.0
     t0 = m.elbo_terms(batch, sample=False)
@@ -757,5 +758,12 @@ def test_saved_configs_with_removed_options_load_when_off_and_are_named_when_on(
         LatentFilter.from_config({**old, "elbo_samples": 4})
     legacy = {k: v for k, v in net.config().items() if k != "input_standardize"}
     assert LatentFilter.from_config(legacy).input_standardize is False  # trained before the option existed
+    # a config that names none of the options whose default changed was trained at their old values
+    older = {k: v for k, v in net.config().items()
+             if k not in ("y_update", "y_evidence_max", "y_evidence_range", "obs_dropout")}
+    older["prior"] = {k: v for k, v in older["prior"].items() if k != "labels"}
+    cfg = LatentFilter.from_config(older).config()
+    assert (cfg["y_update"], cfg["y_evidence_max"], cfg["obs_dropout"], cfg["prior"]["labels"]) == ("direct", None, 0.0, True)
+    assert LatentFilter("fsr_t").config()["prior"]["labels"] is False and LatentFilter("fsr_t").obs_dropout == 0.5
     with pytest.raises(TypeError):
         LatentFilter("fsr_t", overshoot=2)

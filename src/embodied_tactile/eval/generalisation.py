@@ -256,8 +256,10 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         "What the signals allow on the same population (a kernel reader on physical summary features): "
         "docs/experiments/signal_content.md. The paper's 32 objects under the object split: "
         "docs/experiments/study_held_out_objects.md. The runs: `python train.py -m experiment=population "
-        "sweep=generalisation [recipe=elbo|filter]` (configs/recipe/), then `python evaluate.py <run> baselines=[handcrafted,gru,mean] "
-        "gru.epochs=16 gru.max_batches_per_epoch=30` per run (configs/sweep/generalisation.yaml).",
+        "sweep=generalisation [recipe=elbo|recognition]` (configs/recipe/), then `python evaluate.py <run> baselines=[handcrafted,gru,mean] "
+        "gru.epochs=16 gru.max_batches_per_epoch=30` per run (configs/sweep/generalisation.yaml). The GRU rows say whether "
+        "its inputs were standardised per channel (evaluate.py's default since 2026-11-25, as the Latent Filter's encoder "
+        "sees them) or raw; the GRU at other budgets: docs/experiments/population_readers.md.",
         "",
         "![learning curve](figures/generalisation_curve.png)",
         "",

@@ -75,6 +75,12 @@ REMOVED_OPTIONS = {"obs_dropout_span": 1, "elbo_samples": 1, "overshoot": 1, "ov
                    "free_bits_z": 0.0, "free_bits_y": 0.0, "y_input": "sample", "y_static": False,
                    "transition_form": "mlp", "obs_sigma_shape": "channel"}
 
+#: the values a saved config that does not name an option was trained with (the option did
+#: not exist, or was not saved, when that config was written): today's defaults differ
+UNSAVED_OPTIONS = {"input_standardize": False, "y_update": "direct", "y_evidence_max": None,
+                   "y_evidence_range": None, "obs_dropout": 0.0}
+UNSAVED_PRIOR_OPTIONS = {"labels": True}
+
 
 def _state_to(z: Tensor, z_mean: Tensor, a: Tensor, y_state: tuple[Tensor, ...]) -> dict[str, Tensor]:
     return {"z": z, "z_mean": z_mean, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
@@ -129,15 +135,16 @@ class LatentFilter(nn.Module):
         prior: kwargs of :class:`HierarchicalPrior` (sigma_init, learn_sigma, var_floor,
             action_term, ...; its signature's defaults where not given). The network's
             ``config()`` stores the full set, so a checkpoint does not depend on defaults.
-        y_update: ``"direct"`` (the LSTM head is q(y_t)) or ``"evidence"`` (accumulate
-            per-step Gaussian evidence about the trial-constant y); y_prior_precision:
+        y_update: ``"evidence"`` (default: accumulate per-step Gaussian evidence about the
+            trial-constant y) or ``"direct"`` (the LSTM head is q(y_t)); y_prior_precision:
             precision of the N(0, 1/p) start of the evidence product; y_evidence_max: if
-            set, one step's evidence precision is at most this; y_evidence_range: if set,
-            the evidence means are squashed into (-r, r) (both ``evidence`` only).
-        obs_dropout: training remedy (docs/model.md, "Options of `model.net`"): in training
-            mode each frame t >= 2 is hidden from the filter with this probability, so
-            q_filt(z_t) is the transition prior alone there and the likelihood of that
-            frame trains the transition. 0 (default) = off.
+            set (default 1), one step's evidence precision is at most this; y_evidence_range:
+            if set (default 2), the evidence means are squashed into (-r, r) (both
+            ``evidence`` only).
+        obs_dropout: in training mode each frame t >= 2 is hidden from the filter with this
+            probability (default 0.5), so q_filt(z_t) is the transition prior alone there and
+            the likelihood of that frame trains the transition (docs/model.md, "The default
+            recipe"). 0 = off.
         input_standardize: the encoders see each channel shifted and scaled by its
             training-set mean and standard deviation (buffers ``input_shift`` /
             ``input_scale``, set once by :meth:`set_input_stats`, carried by checkpoints);
@@ -151,9 +158,9 @@ class LatentFilter(nn.Module):
                  n_objects: int = 32, encoder: Optional[Mapping] = None,
                  transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
                  obs_sigma: float = 0.1, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
-                 prior: Optional[Mapping] = None, y_update: str = "direct",
-                 y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = None,
-                 y_evidence_range: Optional[float] = None, obs_dropout: float = 0.0,
+                 prior: Optional[Mapping] = None, y_update: str = "evidence",
+                 y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = 1.0,
+                 y_evidence_range: Optional[float] = 2.0, obs_dropout: float = 0.5,
                  input_standardize: bool = True) -> None:
         super().__init__()
         if not 0.0 <= float(obs_dropout) < 1.0:
@@ -200,9 +207,12 @@ class LatentFilter(nn.Module):
     def from_config(cls, config: Mapping[str, Any]) -> "LatentFilter":
         """Rebuild a network from its saved :meth:`config` (a checkpoint's ``net``), saved
         configs of earlier versions included: a removed option (:data:`REMOVED_OPTIONS`) at
-        its off value is dropped, any other value of it is a ValueError that names it; a
-        config from before ``input_standardize`` existed trained without it."""
-        config = {"input_standardize": False, **to_plain(config)}
+        its off value is dropped, any other value of it is a ValueError that names it; an
+        option a config does not name takes the value networks were trained with before it
+        was saved (:data:`UNSAVED_OPTIONS`), not today's default."""
+        config = to_plain(config)
+        config = {**UNSAVED_OPTIONS, **config,
+                  "prior": {**UNSAVED_PRIOR_OPTIONS, **(to_plain(config.get("prior")) or {})}}
         for name, off in REMOVED_OPTIONS.items():
             if name in config:
                 value = config.pop(name)

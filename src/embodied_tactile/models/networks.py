@@ -306,12 +306,12 @@ class YPosterior(nn.Module):
             raise ValueError(f"y_update must be one of {Y_UPDATES}, got {update!r}")
         if not prior_precision > 0:
             raise ValueError(f"y_prior_precision must be > 0, got {prior_precision}")
-        if max_evidence is not None and not (update == "evidence" and max_evidence > 0):
-            raise ValueError(f"y_evidence_max={max_evidence} needs y_update='evidence' and a value > 0")
-        self.max_evidence = None if max_evidence is None else float(max_evidence)
-        if evidence_range is not None and not (update == "evidence" and evidence_range > 0):
-            raise ValueError(f"y_evidence_range={evidence_range} needs y_update='evidence' and a value > 0")
-        self.evidence_range = None if evidence_range is None else float(evidence_range)
+        for name, value in (("y_evidence_max", max_evidence), ("y_evidence_range", evidence_range)):
+            if value is not None and not value > 0:
+                raise ValueError(f"{name}={value} must be > 0 (or None: unbounded)")
+        evidence = update == "evidence"  # the bounds act on the evidence update only; direct ignores them
+        self.max_evidence = float(max_evidence) if evidence and max_evidence is not None else None
+        self.evidence_range = float(evidence_range) if evidence and evidence_range is not None else None
         self.hidden, self.n_y = int(hidden), int(n_y)
         self.min_var = float(min_var)
         self.update = update
@@ -366,9 +366,11 @@ class HierarchicalPrior(nn.Module):
     in evaluation an unseen object id, or id -1, gets the population marginal, so an object
     never touched in training still has a prior.
 
-    ``labels=False`` (an ablation of the paper's label-conditioned prior) ignores every object
-    id, in training too: every sequence gets the population marginal, no embedding is used and
-    the population term is 0, so y can only carry what the observations and actions carry.
+    ``labels=False`` (default) ignores every object id, in training too: every sequence gets
+    the population marginal, no embedding is used and the population term is 0, so y can only
+    carry what the observations and actions carry (a new object comes with no label).
+    ``labels=True`` is the paper's label-conditioned prior (``recipe=recognition``,
+    ``experiment=paper``).
 
     ``learn_embedding=False`` (default) keeps the object codes e_n at their initial draws from
     N(0, pop_sigma_init^2) (a fixed random projection of the one-hot label): the codes cannot
@@ -380,7 +382,7 @@ class HierarchicalPrior(nn.Module):
     def __init__(self, n_y: int, n_a: int, n_objects: int = 32, sigma_init: float = 0.5,
                  learn_sigma: bool = False, var_floor: float = 1e-2, action_term: bool = True,
                  pop_sigma_init: float = 0.5, population_weight: Optional[float] = None,
-                 labels: bool = True, learn_embedding: bool = False) -> None:
+                 labels: bool = False, learn_embedding: bool = False) -> None:
         super().__init__()
         self.labels = bool(labels)
         if sigma_init ** 2 <= var_floor:
