@@ -277,6 +277,7 @@ def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):
     assert "raw_var" not in dict(prior.named_parameters()) and "raw_var" in dict(prior.named_buffers())
     with pytest.raises(argparse.ArgumentTypeError, match="'maybe' is not a boolean"):
         parse_remedy("prior.learn_embedding=maybe")
+    assert _model().prior.labels and not _model(**remedy_kwargs([parse_remedy("prior.labels=false")])).prior.labels
     cfg = _compose_job(["model.net.prior.learn_embedding=true", "model.lr_schedule=cosine"], tmp_path)
     module = instantiate(cfg.model)
     assert module.lr_schedule == "cosine" and module.model.prior.learn_embedding

@@ -15,7 +15,7 @@ def boolean(text: str) -> bool:
 
 #: --remedy NAME -> its value type; prior.X -> prior={X: ...}
 REMEDIES = {"obs_dropout": float, "y_update": str, "y_evidence_max": float, "y_evidence_range": float,
-            "prior.learn_embedding": boolean, "prior.learn_sigma": boolean}
+            "prior.labels": boolean, "prior.learn_embedding": boolean, "prior.learn_sigma": boolean}
 
 
 def remedy_kwargs(remedies) -> dict:
