@@ -4,7 +4,7 @@ The driven, damped pendulum of Deep Variational Bayes Filters (Karl et al. 2017)
 objects (natural frequency {2, 3, 4, 5} rad/s x damping {0.1, 0.6} 1/s), random
 piecewise-constant torque, 60 frames of 50 ms rendered as noisy 28x28 images. Trains the
 project's LatentFilter (one channel, n_z = 8, n_y = 4; the project's default recipe: observation
-dropout 0.5, bounded evidence y; a prior with each pendulum's label and learned codes) unsupervised
+dropout 0.5, bounded evidence y, no labels; the prior's sigma learned) unsupervised
 with the ELBO (linear KL warm-up over 10 % of the steps, y_weight 1) and prints the read-outs on held-out
 sequences of the training systems and on systems never seen (parameters between the grid's),
 each beside the untrained network's (linear / RBF kernel ridge R^2), and the open-loop

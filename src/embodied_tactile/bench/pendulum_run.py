@@ -59,11 +59,11 @@ class PendulumRun:
 def build_model(n_z: int = 8, n_y: int = 4, **kwargs: Any) -> LatentFilter:
     """The benchmark's Latent Filter: one channel, 1-D action, 8 objects, the project's
     defaults (:class:`LatentFilter`) except for what the pendulum's measurements used
-    (docs/experiments/pendulum.md): the images as they are (``input_standardize=False``)
-    and the label-conditioned prior (each pendulum's id) whose object codes and sigma are
-    learned. ``kwargs`` go to :class:`LatentFilter` (remedies such as ``obs_dropout``);
-    ``prior`` entries are merged."""
-    prior = {"labels": True, "learn_sigma": True, "learn_embedding": True, **dict(kwargs.pop("prior", None) or {})}
+    (docs/experiments/pendulum.md, default_recipe.md): the images as they are
+    (``input_standardize=False``) and a prior whose sigma (and, with ``prior.labels``, object
+    codes) are learned. ``kwargs`` go to :class:`LatentFilter` (remedies such as
+    ``obs_dropout``); ``prior`` entries are merged."""
+    prior = {"learn_sigma": True, "learn_embedding": True, **dict(kwargs.pop("prior", None) or {})}
     kwargs = {"input_standardize": False, **kwargs}
     return LatentFilter(MODALITY, n_z=n_z, n_y=n_y, n_a=1, n_objects=N_OBJECTS, prior=prior, **kwargs)
 
