@@ -39,7 +39,9 @@ def recipe(cfg) -> str:
     observation dropout (the last three where the run's config has them)."""
     from omegaconf import OmegaConf
 
-    labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=True))
+    from ..models.latent_filter import UNSAVED_PRIOR_OPTIONS
+
+    labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=UNSAVED_PRIOR_OPTIONS["labels"]))
     parts = ["labels" if labels else "no labels"]
     y_weight = OmegaConf.select(cfg, "annealing.schedule.y_weight", default=None)
     if y_weight is not None:
