@@ -212,7 +212,7 @@ class LatentFilter(nn.Module):
         was saved (:data:`UNSAVED_OPTIONS`), not today's default."""
         config = to_plain(config)
         config = {**UNSAVED_OPTIONS, **config,
-                  "prior": {**UNSAVED_PRIOR_OPTIONS, **(to_plain(config.get("prior")) or {})}}
+                  "prior": {**UNSAVED_PRIOR_OPTIONS, **(config.get("prior") or {})}}
         for name, off in REMOVED_OPTIONS.items():
             if name in config:
                 value = config.pop(name)
