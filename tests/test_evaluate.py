@@ -137,6 +137,21 @@ def test_checkpoint_path(trained, tmp_path):
     assert {r["method"] for r in res["runs"]} == {"latent_filter", "mean"}
 
 
+def test_validation_side_scores_the_validation_trials_apart_from_the_test_report(trained):
+    run = trained / "run"
+    out = ev.evaluate(run, [*FAST, "held_out=val", "baselines=[mean]", "umap=false", "figures=false"])
+    split = json.loads((run / "split.json").read_text())
+    assert Path(out["out"]) == run / "evaluation-val"
+    info = out["runs"][0]
+    assert info["held_out"] == "val" and info["n_test"] == len(split["val"]) != len(split["test"])
+    assert info["training_final_alignment"]["training_nmse_overall"] is None  # the training scored the test side
+    res = json.loads((run / "evaluation-val" / "results.json").read_text())
+    assert {r["params"]["held_out"] for r in res["runs"]} == {"val"}
+    assert "validation side" in res["caption_note"]
+    with pytest.raises(ev.EvaluationError, match="held_out"):
+        ev.parse_options(["held_out=train"])
+
+
 def test_multirun_aggregate_and_skip(trained, capsys):
     multi = trained / "multi"
     broken = multi / "modality=broken"  # a job killed before its first checkpoint

@@ -62,6 +62,8 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
         raise EvaluationError(f"checkpoint must be 'best' or 'last', got {opts.checkpoint!r}")
     if opts.latent not in ("y", "z", "both"):
         raise EvaluationError(f"latent must be 'y', 'z' or 'both', got {opts.latent!r}")
+    if opts.held_out not in ("test", "val"):
+        raise EvaluationError(f"held_out must be 'test' or 'val', got {opts.held_out!r}")
     from embodied_tactile.eval.targets import TARGET_ENCODINGS
 
     if opts.targets is not None and opts.targets not in TARGET_ENCODINGS:
@@ -164,7 +166,8 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
 
     model = load_module(run)
     tr, _ = collect_split(model, cache.batches(key, dm, "train"), trial_names(dm, "train"), opts.latent)
-    te, infer_s = collect_split(model, cache.batches(key, dm, "test"), trial_names(dm, "test"), opts.latent)
+    te, infer_s = collect_split(model, cache.batches(key, dm, opts.held_out), trial_names(dm, opts.held_out),
+                                opts.latent)
     te["factors_physical"] = te["factors"]  # the trials' own factors, for figure legends
     targets = run_targets(cfg, opts)
     tr, te = encode_split(tr, targets), encode_split(te, targets)  # every method: one encoding
@@ -206,22 +209,23 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     for r in results:
         r.params.setdefault("run_dir", str(run.run_dir))
         r.targets, r.split, r.unseen_objects = targets, split["kind"], split["unseen_objects"]
+        r.params["held_out"] = opts.held_out
     timings["total_s"] = time.perf_counter() - t_run
     info = {"run_dir": str(run.run_dir), "checkpoint": str(run.ckpt), "modality": modality, "skin": skin,
             "primitive": primitive, "source": source, "channels": channels, "latent": opts.latent,
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])),
             "n_frames": int(te["obs"].shape[1]), "train_wall_s": train_s, "timings": timings,
             "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"), "targets": targets,
-            "split": split,
+            "split": split, "held_out": opts.held_out,
             "training_final_alignment": compare_with_training(res, final_row, run.ckpt, align, opts.latent,
-                                                              targets, split["kind"])}
+                                                              targets, split["kind"], opts.held_out)}
     del model
     return results, history, info
 
 
 
 def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, latent: str,
-                          targets: str = "design_rank", split_kind: str = "trial") -> dict:
+                          targets: str = "design_rank", split_kind: str = "trial", held_out: str = "test") -> dict:
     """evaluate.py's NMSE against the training's final KRR alignment (krr_final of metrics.json /
     the ``final`` row of krr_history.jsonl): both numbers, the difference and, when they are
     not the same measurement, why (other weights, other alignment settings, other sequences)."""
@@ -233,6 +237,9 @@ def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, 
     if not final_row or final_row.get("nmse_overall") is None:
         return {"evaluate_nmse_overall": ours, "training_nmse_overall": None,
                 "reasons": ["the run has no final KRR alignment (callback off, or trained before it existed)"]}
+    if held_out != "test":
+        return {"evaluate_nmse_overall": ours, "training_nmse_overall": None,
+                "reasons": [f"scored on the {held_out} side; the training's final alignment scores the test side"]}
     defaults = {k: p.default for k, p in inspect.signature(fit_alignment).parameters.items()
                 if p.default is not inspect.Parameter.empty and k not in ("ids", "groups", "n_threads")}
     theirs_kw = {**defaults, **{k: v for k, v in (final_row.get("alignment_settings") or {}).items() if k in defaults}}
@@ -289,6 +296,8 @@ def output_folder(target: Path, runs: list[Run], kind: str, opts: DictConfig, se
         out = root / f"evaluation-{runs[0].ckpt.stem}"
     else:
         out = root / ("evaluation" if opts.checkpoint == "best" else f"evaluation-{opts.checkpoint}")
+    if opts.held_out == "val":  # never where the test report lives
+        out = out.with_name(out.name + "-val")
     if selection:
         out = out.with_name(out.name + "-" + ",".join(f"{k}={'+'.join(v)}" for k, v in selection.items()))
     return out

@@ -226,7 +226,7 @@ class DataCache:
 
     def batches(self, k: str, dm, which: str) -> list:
         if (k, which) not in self._batches:
-            loader = dm.train_eval_dataloader() if which == "train" else dm.test_dataloader()
+            loader = {"train": dm.train_eval_dataloader, "val": dm.val_dataloader, "test": dm.test_dataloader}[which]()
             self._batches[(k, which)] = list(loader)
         return self._batches[(k, which)]
 

@@ -122,8 +122,10 @@ def caption_note(results: Sequence[Results]) -> str:
     srcs = sorted({r.source for r in results})
     sz = "; ".join(f"{a} train / {b} held-out sequences" for a, b in sizes) if sizes else "none"
     n_runs = len({(r.cell[1:], r.seed, r.replicate) for r in results})
+    val = any(r.params.get("held_out") == "val" for r in results)
     return (f"{NMSE_DEFINITION} Splits ({n_runs} run(s)): {sz}. {split_note(results)} "
-            f"Data source: {', '.join(srcs) or 'unknown'}. "
+            + ("Scored on the validation side (for choosing settings), not the test side. " if val else "")
+            + f"Data source: {', '.join(srcs) or 'unknown'}. "
             + " ".join(describe_targets(t) if t in TARGET_ENCODINGS else f"Targets: {t}."
                        for t in sorted({r.targets for r in results})))
 
