@@ -335,3 +335,14 @@ def test_study_report_names_a_missing_results_file(tmp_path, capsys):
 
     assert main([str(tmp_path)]) == 2
     assert f"{tmp_path / 'results.json'} does not exist" in capsys.readouterr().err
+
+
+def test_study_report_refuses_validation_side_scores(tmp_path):
+    from embodied_tactile.eval.report import write_report
+    from embodied_tactile.eval.study_report import StudyReportError, load
+
+    runs = [_run("multi_l", "soft", "pressing", s, 0.2) for s in range(3)]
+    runs[1].params["held_out"] = "val"
+    write_report(runs, tmp_path / "evaluation", figures=False)
+    with pytest.raises(StudyReportError, match=r"results\.json: latent_filter scored on the validation side"):
+        load(tmp_path / "evaluation")

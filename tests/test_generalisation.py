@@ -11,7 +11,7 @@ from embodied_tactile.constants import FACTOR_NAMES
 from embodied_tactile.eval import generalisation as G
 
 
-def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None):
+def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None, held_out=None):
     d = root / f"n{n}_s{seed}_{labels}"
     (d / "evaluation").mkdir(parents=True)
     cfg = {"seed": seed, "modality": {"name": "multi_l"}, "model": {"net": {"prior": {"labels": labels}}},
@@ -23,6 +23,8 @@ def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None):
              "targets": "physical"} for m, v in (("latent_filter", lf), ("gru", 0.5), ("mean", 1.0))]
     if gru_std is not None:  # evaluate.py's results carry the GRU's settings
         runs[1]["params"] = {"gru": {"input_standardize": gru_std}}
+    if held_out is not None:  # evaluate.py's held_out option, as its results carry it
+        runs[0]["params"] = {"held_out": held_out}
     (d / "evaluation" / "results.json").write_text(json.dumps({"runs": runs}))
     initial = {"epoch": -1, "step": 0, "initial": True, "nmse": {f: 1.05 for f in FACTOR_NAMES}, "nmse_overall": 1.05,
                "nmse_last": {f: 1.1 for f in FACTOR_NAMES}, "nmse_last_overall": 1.1}
@@ -103,3 +105,13 @@ def test_a_file_that_is_not_a_scores_file_is_named(tmp_path, capsys):
     with pytest.raises(SystemExit):
         G.main([str(bad), "--out", str(tmp_path / "docs")])
     assert "results.json: not a scores file" in capsys.readouterr().err
+
+
+def test_validation_side_scores_are_refused_with_the_file_named(tmp_path, capsys):
+    _run(tmp_path / "runs", 24, 0, 0.8, held_out="test")
+    assert len(G.collect([tmp_path / "runs"])) == 4
+    _run(tmp_path / "val", 24, 1, 0.8, held_out="val")
+    with pytest.raises(SystemExit):
+        G.main([str(tmp_path / "val"), "--out", str(tmp_path / "docs")])
+    err = capsys.readouterr().err
+    assert "n24_s1_True/evaluation/results.json: latent_filter scored on the validation side" in err

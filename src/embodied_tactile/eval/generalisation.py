@@ -118,7 +118,12 @@ def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
         commit = json.loads(prov.read_text()).get("git_commit", "unknown") if prov.exists() else "unknown"
         recipe_ = recipe(cfg)
         n, seed, modality = int(cfg.data.n_objects), int(cfg.seed), str(cfg.modality.name)
-        scores = [(_method_label(r["method"], modality, recipe_, r.get("params")), r) for r in json.loads(res_path.read_text())["runs"]]
+        runs = json.loads(res_path.read_text())["runs"]
+        val = [r["method"] for r in runs if (r.get("params") or {}).get("held_out", "test") != "test"]
+        if val:
+            raise ValueError(f"{res_path}: {', '.join(val)} scored on the validation side (evaluate.py held_out=val); "
+                             "the learning curve reads the test objects only")
+        scores = [(_method_label(r["method"], modality, recipe_, r.get("params")), r) for r in runs]
         floor = _untrained(run_dir)
         if floor is not None:
             scores.append((_method_label("latent_filter", modality, recipe_) + UNTRAINED,

@@ -63,6 +63,10 @@ def load(eval_dir: str | Path) -> dict:
     blob = _read_json(res)
     if "runs" not in blob or "tables" not in blob:
         raise StudyReportError(f"{res}: not an evaluate.py results.json (no 'runs' / 'tables')")
+    val = sorted({r.get("method", "?") for r in blob["runs"] if (r.get("params") or {}).get("held_out", "test") != "test"})
+    if val:
+        raise StudyReportError(f"{res}: {', '.join(val)} scored on the validation side (evaluate.py held_out=val); "
+                               "the study report reads the test side only")
     ev = d / "evaluation.json"
     blob["_evaluation"] = _read_json(ev) if ev.exists() else {}
     blob["_dir"] = str(d)
