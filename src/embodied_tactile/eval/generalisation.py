@@ -29,6 +29,7 @@ import numpy as np
 
 from ..constants import FACTOR_NAMES
 from ..jsonio import write_json
+from .results import scored_on_validation
 
 _BASELINE_NAMES = {"handcrafted_krr": "hand-crafted + KRR", "gru": "supervised conv + GRU", "mean": "mean predictor"}
 
@@ -119,7 +120,7 @@ def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
         recipe_ = recipe(cfg)
         n, seed, modality = int(cfg.data.n_objects), int(cfg.seed), str(cfg.modality.name)
         runs = json.loads(res_path.read_text())["runs"]
-        val = [r["method"] for r in runs if (r.get("params") or {}).get("held_out", "test") != "test"]
+        val = scored_on_validation(runs)
         if val:
             raise ValueError(f"{res_path}: {', '.join(val)} scored on the validation side (evaluate.py held_out=val); "
                              "the learning curve reads the test objects only")

@@ -34,6 +34,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..constants import FACTOR_NAMES, OBJECT_GROUPS, PRIMITIVES
+from .results import scored_on_validation
 from .tables import FACTOR_LABELS, MISSING, Table, fmt_cell, seed_stats
 from .verdicts import MIN_SEEDS, PAPER_TABLE2, SCORES, SOFT_SKIN_MODALITIES
 
@@ -63,7 +64,7 @@ def load(eval_dir: str | Path) -> dict:
     blob = _read_json(res)
     if "runs" not in blob or "tables" not in blob:
         raise StudyReportError(f"{res}: not an evaluate.py results.json (no 'runs' / 'tables')")
-    val = sorted({r.get("method", "?") for r in blob["runs"] if (r.get("params") or {}).get("held_out", "test") != "test"})
+    val = scored_on_validation(blob["runs"])
     if val:
         raise StudyReportError(f"{res}: {', '.join(val)} scored on the validation side (evaluate.py held_out=val); "
                                "the study report reads the test side only")
