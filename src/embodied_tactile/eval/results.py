@@ -327,8 +327,6 @@ def _f(v) -> list:
     return [float(x) for x in np.asarray(v, dtype=np.float64).ravel()]
 
 
-
-
 def scored_on_validation(runs: Sequence[Mapping[str, Any]]) -> list[str]:
     """Methods of a ``results.json``'s ``runs`` that evaluate.py scored on the validation side
     (``held_out=val``, kept in each result's ``params``): readers of test-side reports refuse them."""
