@@ -122,13 +122,13 @@ def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
     assert _compose_job(["sweep=study"], tmp_path).trainer.max_epochs == 16  # the CPU budget (experiment=cpu_budget)
 
 
-def test_the_class_built_with_no_options_is_the_configured_default_model(tmp_path):
-    """One source of defaults: the default config's network is LatentFilter(modality) with
-    nothing else named (but the scene's code-table size), and a command-line override still
-    reaches the network."""
+def test_the_class_built_with_no_options_is_the_configured_filter_recipe(tmp_path):
+    """One source of defaults: recipe=filter's network is LatentFilter(modality) with nothing
+    else named (but the scene's code-table size), and a command-line override still reaches
+    the network."""
     from embodied_tactile.models.latent_filter import LatentFilter, default_option
 
-    cfg = _compose([], tmp_path)
+    cfg = _compose(["recipe=filter"], tmp_path)
     configured = instantiate(cfg.model.net)
     bare = LatentFilter(OmegaConf.to_container(cfg.modality, resolve=True), n_objects=cfg.model.net.n_objects)
     assert configured.config() == bare.config()
@@ -140,24 +140,33 @@ def test_the_class_built_with_no_options_is_the_configured_default_model(tmp_pat
 
 
 def test_recipes_name_the_objective(tmp_path):
-    """recipe=filter (the default) is the model class's defaults: the plain ELBO without labels,
-    observation dropout and evidence y; elbo drops the two switches, recognition adds the
-    labels and weights kl_y 100; the paper's experiment is the ELBO with labels under its DVBF
-    annealing; a command-line y weight still wins."""
+    """recipe=paper (the default of the paper's scene) is the paper's model: the ELBO (kl_y
+    weight 1) with the label-conditioned prior and learned object codes, y direct, no dropout;
+    filter is the model class's defaults (the plain ELBO without labels, observation dropout and
+    evidence y) and the population scene's default; elbo drops the two switches, recognition
+    adds the labels with fixed codes and weights kl_y 100; the paper's experiment is the paper's
+    recipe under its DVBF annealing; a command-line y weight still wins."""
     from embodied_tactile.models.latent_filter import LatentFilter
 
-    default = _compose([], tmp_path)
-    assert default.annealing.schedule.y_weight == 1.0 and default.model.net.prior.labels is False
-    net = instantiate(default.model.net)
-    assert net.obs_dropout == 0.5 and net.config()["y_update"] == "evidence" and net.config()["y_evidence_max"] == 1
-    assert net.config() == instantiate(_compose(["recipe=filter"], tmp_path).model.net).config()
+    filter_ = instantiate(_compose(["recipe=filter"], tmp_path).model.net)
+    assert filter_.obs_dropout == 0.5 and filter_.config()["y_update"] == "evidence"
+    assert filter_.config()["y_evidence_max"] == 1 and filter_.config()["prior"]["labels"] is False
     assert LatentFilter("multi_l").config()["prior"]["labels"] is False
+    population = _compose(["experiment=population"], tmp_path)
+    assert instantiate(population.model.net).config()["prior"] == filter_.config()["prior"] | {
+        "population_weight": population.model.net.prior.population_weight}
+    assert population.model.net.obs_dropout == 0.5 and population.annealing.schedule.y_weight == 1.0
     elbo = instantiate(_compose(["recipe=elbo"], tmp_path).model.net).config()
     assert elbo["obs_dropout"] == 0.0 and elbo["y_update"] == "direct" and elbo["prior"]["labels"] is False
+    default = _compose([], tmp_path)
+    assert default.annealing.schedule.y_weight == 1.0
+    paper_net = {**elbo, "prior": {**elbo["prior"], "labels": True, "learn_embedding": True}}
+    assert instantiate(default.model.net).config() == paper_net
+    assert default.model.net.prior.labels is True and default.model.net.prior.learn_embedding is True
     recognition = _compose(["recipe=recognition"], tmp_path)
     assert recognition.annealing.schedule.y_weight == 100.0 and recognition.model.net.prior.labels is True
     assert instantiate(recognition.model.net).config() == {**elbo, "prior": {**elbo["prior"], "labels": True}}
     paper = _compose(["experiment=paper"], tmp_path)
-    assert "y_weight" not in paper.annealing.schedule
-    assert instantiate(paper.model.net).config() == {**elbo, "prior": {**elbo["prior"], "labels": True}}
+    assert "y_weight" not in paper.annealing.schedule and paper.annealing.name == "dvbf"
+    assert instantiate(paper.model.net).config() == paper_net
     assert _compose(["recipe=elbo", "annealing.schedule.y_weight=3"], tmp_path).annealing.schedule.y_weight == 3

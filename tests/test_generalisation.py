@@ -82,6 +82,8 @@ def test_recipe_names_the_settings_that_tell_recipes_apart():
     cfg.model.net.obs_dropout = 0.0
     cfg.model.net.prior.labels = True
     assert G.recipe(cfg) == "labels, y_weight 1, y evidence"
+    cfg.model.net.prior.learn_embedding = True  # the paper's recipe: the object codes learn
+    assert G.recipe(cfg) == "labels, learned codes, y_weight 1, y evidence"
 
 
 def test_parts_merge_through_the_scores_file_and_a_later_root_replaces_a_score(tmp_path):

@@ -62,6 +62,51 @@ def test_run_summary_lines(tmp_path):
     assert run_summary_lines(odd, cwd=REPO)[-2].endswith(f"python evaluate.py '{odd}'")
 
 
+PAPER_CONFIG = """seed: 0
+data: {split: trial}
+modality: {name: multi_l}
+model: {net: {prior: {labels: true, learn_embedding: true}, y_update: direct, obs_dropout: 0.0}}
+annealing: {schedule: {y_weight: 1.0}}
+"""
+
+
+def test_the_last_lines_say_what_the_number_means(tmp_path, monkeypatch):
+    """After the run's block: the final alignment beside the untrained network (step 0) and the
+    mean predictor, whole trajectory and last frame; what the split measures; the command for
+    objects never touched with the number the learning curve's scores file holds for this
+    recipe (mean over its seeds at 256 training objects)."""
+    import embodied_tactile.summary as S
+
+    initial = {**_row(0, 0.998, (1.0,) * 4), "initial": True, "nmse_last_overall": 0.988}
+    final = {**_row(480, 0.1234, (0.1,) * 4), "final": True, "n_test": 32, "nmse_last_overall": 0.0987,
+             "nmse_mean_predictor_overall": 1.0031}
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config_resolved.yaml").write_text(PAPER_CONFIG)
+    (run / "krr_history.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (initial, final)))
+    method = "Latent Filter multi_l (labels, learned codes, y_weight 1, y direct)"
+    scores = tmp_path / "scores.json"
+    scores.write_text(json.dumps([{"method": method, "n_objects": 256, "seed": s, "trajectory": {"overall": w},
+                                   "last_step": {"overall": l}} for s, w, l in ((0, 1.0, 0.7), (1, 1.2, 0.8))]
+                                 + [{"method": method, "n_objects": 24, "seed": 0, "trajectory": {"overall": 9.0},
+                                     "last_step": {"overall": 9.0}}]))
+    monkeypatch.setattr(S, "POPULATION_SCORES", scores)
+    lines = S.protocol_lines(run)
+    text = "\n".join(lines)
+    assert lines[0] == f"{method} on 32 held-out trials of the training objects (data.split=trial, the paper's protocol):"
+    assert [ln.split()[-2:] for ln in lines[2:5]] == [["0.1234", "0.0987"], ["0.998", "0.988"], ["1.003", "1.003"]]
+    assert "untrained" in lines[3] and "mean predictor" in lines[4]
+    assert "measures recognition" in text
+    assert ("Objects never touched: python train.py experiment=population; measured: " + method
+            + ": whole trajectory 1.100, last frame 0.750 (2 seeds") in text and "docs/generalisation.md" in text
+    # the block closes the run's summary; another split says what it measures; an unmeasured recipe says so
+    assert run_summary_lines(run, cwd=tmp_path)[-len(lines) - 1:-1] == lines
+    (run / "config_resolved.yaml").write_text(PAPER_CONFIG.replace("trial", "object").replace("true", "false"))
+    text = "\n".join(S.protocol_lines(run))
+    assert "generalisation to objects never touched" in text and "recognition" not in text
+    assert "not yet measured for Latent Filter multi_l (no labels, y_weight 1, y direct)" in text
+
+
 def test_run_summary_without_alignment(tmp_path):
     run = fake_run(tmp_path / "r", rows=())
     text = "\n".join(run_summary_lines(run, cwd=tmp_path))

@@ -2,7 +2,9 @@
 
 * :func:`run_summary_lines` -- the end of ``python train.py``: held-out NMSE per factor and
   overall from the run's last KRR alignment (``krr_history.jsonl``), the training time, where
-  the checkpoint, metrics and figures are, and the exact ``python evaluate.py <run>`` command.
+  the checkpoint, metrics and figures are, and the exact ``python evaluate.py <run>`` command;
+  then (:func:`protocol_lines`) what the number means: beside the untrained network and the
+  mean predictor, what the split measures, and where objects never touched are measured.
 * :func:`multirun_summary_lines` -- the end of ``python train.py -m ...`` (printed by the
   Hydra callback :class:`embodied_tactile.settings.EntryCallback`): one line per job, the
   multirun folder and its evaluate command.
@@ -27,19 +29,24 @@ HISTORY = "krr_history.jsonl"
 RULE = "-" * 72
 
 
+def _history(run_dir: str | os.PathLike) -> list[dict]:
+    try:
+        lines = (Path(run_dir) / HISTORY).read_text().splitlines()
+    except OSError:
+        return []
+    rows = []
+    for ln in lines:
+        try:
+            rows.append(json.loads(ln))
+        except ValueError:  # a line cut by a kill
+            continue
+    return rows
+
+
 def last_alignment(run_dir: str | os.PathLike) -> dict | None:
     """The last row of ``<run>/krr_history.jsonl`` (None when the run has none)."""
-    p = Path(run_dir) / HISTORY
-    try:
-        lines = [ln for ln in p.read_text().splitlines() if ln.strip()]
-    except OSError:
-        return None
-    for ln in reversed(lines):
-        try:
-            return json.loads(ln)
-        except ValueError:  # a line cut by a kill: take the one before
-            continue
-    return None
+    rows = _history(run_dir)
+    return rows[-1] if rows else None
 
 
 def show_path(p: str | os.PathLike, cwd: str | os.PathLike | None = None) -> str:
@@ -89,6 +96,81 @@ def nmse_lines(row: Mapping | None) -> list[str]:
             f"  per factor: {parts}"]
 
 
+#: what each split's held-out NMSE measures (the last lines of ``python train.py``)
+SPLIT_MEANING = {
+    "trial": ("held-out trials of the training objects (data.split=trial, the paper's protocol)",
+              "This protocol measures recognition: every held-out trial is another touch of an object met "
+              "in training."),
+    "object": ("trials of objects never touched in training (data.split=object)",
+               "This split measures generalisation to objects never touched in training."),
+}
+POPULATION_COMMAND = "python train.py experiment=population"
+POPULATION_PAGE = "docs/generalisation.md"
+#: the learning curve's scores (written by eval.generalisation beside its page)
+POPULATION_SCORES = Path(__file__).resolve().parents[2] / "docs" / "generalisation_scores.json"
+POPULATION_SIZE = 256  # the population scene's number of training objects (configs/experiment/population.yaml)
+
+
+def population_scores(method: str, path: str | os.PathLike | None = None,
+                      n_objects: int = POPULATION_SIZE) -> tuple[float, float, int] | None:
+    """(whole trajectory, last frame, seeds): the mean over seeds of one method's overall NMSE
+    on the population's test objects at ``n_objects`` training objects, from the learning
+    curve's scores file (:data:`POPULATION_SCORES` unless ``path``); None when the file or the
+    method is missing."""
+    try:
+        rows = json.loads(Path(path or POPULATION_SCORES).read_text())
+    except (OSError, ValueError):
+        return None
+    rows = [r for r in rows if r.get("method") == method and int(r.get("n_objects", -1)) == n_objects]
+    if not rows:
+        return None
+    whole = sum(float(r["trajectory"]["overall"]) for r in rows) / len(rows)
+    last = sum(float(r["last_step"]["overall"]) for r in rows) / len(rows)
+    return whole, last, len(rows)
+
+
+def protocol_lines(run_dir: str | os.PathLike, cfg: Any = None) -> list[str]:
+    """What the run's held-out number means: the final alignment beside the same read-out of
+    the untrained network (the step-0 check) and the mean predictor, whole trajectory and last
+    frame; what the split measures; and the command, number and page for objects never
+    touched. ``cfg``: the run's config (read from ``config_resolved.yaml`` when None)."""
+    from omegaconf import OmegaConf
+
+    rows = _history(run_dir)
+    final = next((r for r in reversed(rows) if r.get("final")), None)
+    if final is None:
+        return []
+    if cfg is None:
+        try:
+            cfg = OmegaConf.load(Path(run_dir) / "config_resolved.yaml")
+        except OSError:
+            cfg = OmegaConf.create({})
+    split = str(OmegaConf.select(cfg, "data.split", default="trial"))
+    where, meaning = SPLIT_MEANING.get(split, (f"data.split={split}", ""))
+    from .eval.generalisation import recipe
+
+    modality = OmegaConf.select(cfg, "modality.name", default="?")
+    label = f"Latent Filter {modality} ({recipe(cfg)})"
+    initial = next((r for r in rows if r.get("initial")), None)
+    table = [("this run", final.get("nmse_overall"), final.get("nmse_last_overall"))]
+    if initial:
+        table.append(("the same, untrained (step 0)", initial.get("nmse_overall"), initial.get("nmse_last_overall")))
+    if final.get("nmse_mean_predictor_overall") is not None:
+        m = final["nmse_mean_predictor_overall"]
+        table.append(("mean predictor", m, m))
+    lines = [f"{label} on {final.get('n_test', '?')} {where}:",
+             f"  {'NMSE, mean over factors':30}  {'whole trajectory':>16}  {'last frame':>10}"]
+    lines += [f"  {name:30}  {_fmt(w):>16}  {_fmt(l):>10}" for name, w, l in table]
+    if meaning:
+        lines.append(meaning)
+    pop = population_scores(label)
+    measured = (f"{label}: whole trajectory {pop[0]:.3f}, last frame {pop[1]:.3f} ({pop[2]} seeds, "
+                f"{POPULATION_SIZE} training objects, 64 test objects)" if pop else
+                f"not yet measured for {label}")
+    lines.append(f"Objects never touched: {POPULATION_COMMAND}; measured: {measured}; {POPULATION_PAGE}")
+    return lines
+
+
 def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None, *,
                       cwd: str | os.PathLike | None = None) -> list[str]:
     """The closing block of one run (``metrics``: the dict train.py writes to metrics.json;
@@ -118,6 +200,9 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     lines.append(f"figures:       {show_path(run / 'evaluation', cwd)}/ (tables, figures/), written by:")
     lines.append(f"next:          {evaluate_command(run, cwd)}")
     lines.append(RULE)
+    protocol = protocol_lines(run)
+    if protocol:
+        lines += protocol + [RULE]
     return lines
 
 

@@ -13,7 +13,8 @@ held-out sequences with :func:`nmse`. It logs ``krr/nmse_<factor>``, ``krr/nmse_
 own time; both continue across a resume, through the callback's ``state_dict`` in the
 checkpoint), ``krr/callback_time_s`` and ``krr/callback_fraction`` (callback time / total
 elapsed) to every logger, and appends one JSON line to ``krr_history.jsonl`` in
-``trainer.log_dir`` (or ``default_root_dir``).
+``trainer.log_dir`` (or ``default_root_dir``); each line also holds the mean predictor's NMSE
+on the same held-out frames (``nmse_mean_predictor``: the training targets' mean).
 
 The final alignment (``on_train_end``, always run unless ``run_on_train_end=False``) is the
 run's number: it uses evaluate.py's settings (``final_alignment``; default: the defaults of
@@ -327,6 +328,11 @@ class KRRAlignmentCallback(Callback):
         pred = align.predict(x_te, ids=te.get("seq_id"))
         curve = nmse_over_time(te["factors"], pred)  # (T', 4)
         per_factor = nmse_trajectory(te["factors"], pred)  # == mean of the curve over frames
+        # the mean predictor: the training targets' mean at every frame (the same at every frame,
+        # so its whole-trajectory and last-frame NMSE are one number)
+        with np.errstate(invalid="ignore"):
+            train_mean = np.nanmean(np.asarray(tr["factors"], dtype=np.float64), axis=0)
+        per_factor_mean = nmse_trajectory(te["factors"], np.broadcast_to(train_mean, (len(te["factors"]), 1, 4)))
         cb = time.perf_counter() - t0
         self._cb_time += cb
         cb_total = self._cb_before + self._cb_time
@@ -350,6 +356,8 @@ class KRRAlignmentCallback(Callback):
             "nmse": {f: _fin(v) for f, v in zip(FACTOR_NAMES, per_factor)},
             "nmse_overall": _fin(metrics["krr/nmse_overall"]), "nmse_last": {f: _fin(v) for f, v in zip(FACTOR_NAMES, curve[-1])},
             "nmse_last_overall": _fin(metrics["krr/nmse_last_overall"]),
+            "nmse_mean_predictor": {f: _fin(v) for f, v in zip(FACTOR_NAMES, per_factor_mean)},
+            "nmse_mean_predictor_overall": _fin(overall(per_factor_mean)),
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])), "latent": self.latent,
             "val_frame_stride": stride, "final": bool(final), "initial": bool(initial), "targets": self.targets,
             "alignment": {k: align.params[k] for k in ("method", "alpha", "gamma", "n_train_rows", "fit_time_s",

@@ -44,6 +44,8 @@ def recipe(cfg) -> str:
 
     labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=UNSAVED_PRIOR_OPTIONS["labels"]))
     parts = ["labels" if labels else "no labels"]
+    if labels and OmegaConf.select(cfg, "model.net.prior.learn_embedding", default=False):
+        parts.append("learned codes")
     y_weight = OmegaConf.select(cfg, "annealing.schedule.y_weight", default=None)
     if y_weight is not None:
         parts.append(f"y_weight {float(y_weight):g}")
