@@ -25,7 +25,7 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile import quiet, runtime, settings, summary
+from embodied_tactile import quiet, runfolder, runtime, settings, summary
 from embodied_tactile.jsonio import write_json
 
 log = logging.getLogger("train")
@@ -38,7 +38,12 @@ def main(cfg: DictConfig) -> float | None:
     try:  # settings.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
     except settings.SettingsError as err:
-        write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
+        if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
+            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
+        settings.fail(err)
+    try:  # one training per folder; a restart continues the same model and data (done at entry for single runs)
+        runfolder.claim(cfg, run_dir)
+    except runfolder.RunFolderError as err:
         settings.fail(err)
     runtime.save_provenance(cfg, run_dir)
     L.seed_everything(cfg.seed, workers=True)

@@ -175,13 +175,14 @@ class _ContinuedExperimentWriter(ExperimentWriter):
     continues from) stay; later rows (training that a resume after a kill discards, or every
     row when the run starts afresh: ``resume_step=None``) move to ``metrics.discarded.csv``
     in the same folder, so the file never mixes two trainings and nothing is deleted. Rows
-    at ``resume_step`` itself that the resumed run logs again move there too (:meth:`save`)."""
+    at ``resume_step`` itself holding a metric that the resumed run logs again move there
+    too (:meth:`save`)."""
 
     DISCARDED_FILE = "metrics.discarded.csv"
 
     def __init__(self, log_dir: str, resume_step: int | None) -> None:
         self.resume_step = resume_step
-        self._first_save = True
+        self._old_at_resume = 0  # rows at resume_step kept from before this run (set by _check_log_dir_exists)
         super().__init__(log_dir=log_dir)
 
     def _discard(self, path: Path, keys: Sequence[str], dropped: Sequence[Mapping[str, str]], why: str) -> None:
@@ -191,24 +192,29 @@ class _ContinuedExperimentWriter(ExperimentWriter):
         log.warning("%s: %d row(s) %s moved to %s", path, len(dropped), why, old)
 
     def save(self) -> None:
-        """On the first save of a resumed run, a kept row at the resume step whose metrics
-        this run logs again at that step (training after the checkpoint was written, e.g.
-        the first step's loss) moves to ``metrics.discarded.csv``: one row per step and
-        metric."""
+        """A kept row at the resume step (written before this run started) holding a metric
+        that this run logs again at that step (training after the checkpoint was written:
+        the next epoch's first step, its learning rate) moves to ``metrics.discarded.csv``
+        before the new rows are written, at whichever save they come: one row per step and
+        metric. (Lightning saves after every ``log_metrics`` call.)"""
         path = Path(self.metrics_file_path)
-        if self._first_save and self.resume_step is not None and self.metrics and path.is_file():
-            again = {k for m in self.metrics if m.get("step") == self.resume_step for k in m} - {"step", "epoch"}
+        if self._old_at_resume and self.metrics and path.is_file():
+            again = {k for m in self.metrics if m.get("step") == self.resume_step
+                     for k, v in m.items() if v is not None} - {"step", "epoch"}
             if again:
                 keys, rows = _read_csv(path)
-
-                def stale(r: Mapping[str, str]) -> bool:
-                    return _row_step(r) == self.resume_step and bool(again & {k for k, v in r.items() if v not in ("", None)})
-
-                dropped = [r for r in rows if stale(r)]
+                seen, keep, dropped = 0, [], []
+                for r in rows:
+                    if _row_step(r) == self.resume_step and seen < self._old_at_resume:
+                        seen += 1
+                        if again & {k for k, v in r.items() if v not in ("", None)}:
+                            dropped.append(r)
+                            continue
+                    keep.append(r)
                 if dropped:
                     self._discard(path, keys, dropped, f"at step {self.resume_step} that this run logs again")
-                    _write_csv(path, keys, [r for r in rows if not stale(r)])
-        self._first_save = False
+                    _write_csv(path, keys, keep)
+                    self._old_at_resume -= len(dropped)
         super().save()
 
     def _check_log_dir_exists(self) -> None:  # called by the base __init__ instead of deleting
@@ -227,6 +233,7 @@ class _ContinuedExperimentWriter(ExperimentWriter):
             if dropped:
                 _write_csv(path, keys, kept)
             self.metrics_keys = sorted(keys)
+            self._old_at_resume = sum(_row_step(r) == self.resume_step for r in kept)
         else:
             path.unlink()  # its rows are in metrics.discarded.csv
 

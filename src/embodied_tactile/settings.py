@@ -256,6 +256,12 @@ class EntryCallback(_HydraCallback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, "hydra.run.dir")
+        from .runfolder import claim_at_entry  # the folder's lock and resume check, before Hydra writes into it
+
+        try:
+            claim_at_entry(config)
+        except SettingsError as err:
+            fail(err)
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, "hydra.sweep.dir")

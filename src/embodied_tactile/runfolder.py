@@ -1,0 +1,291 @@
+"""A run folder belongs to one run: the lock, the resume check, stop signals, atomic checkpoints.
+
+* :func:`claim` -- an exclusive lock on ``<run>/.lock`` (``fcntl.flock``: released by the
+  kernel when the process ends, kill -9 included) held while a training runs; a second
+  start in the folder is refused naming the holder's pid and host. Then, when the folder
+  already holds a run (``checkpoints/*.ckpt`` or a finished / interrupted
+  ``metrics.json``), the saved ``config_resolved.yaml`` is compared with the new config:
+  a difference in a key outside :data:`MAY_CHANGE` (modality, actions, split, model
+  options, seed, ...) is refused, naming the keys. Both refusals happen before anything is
+  written and raise :class:`RunFolderError` (train.py: one line, exit 2).
+* :class:`StopSignals` -- SIGTERM / SIGINT stop the training at the next step:
+  ``last.ckpt`` is saved, ``metrics.json`` says ``interrupted``, the exit status is 143 /
+  130 (128 + signal number), so that a scheduler can requeue the job.
+* :class:`AtomicCheckpointIO` -- a checkpoint is written to ``<name>.tmp-<pid>``, fsync-ed
+  and renamed over ``<name>``: a file with a checkpoint's name is always complete; a full
+  disk leaves the previous file and raises :class:`CheckpointWriteError` naming the file.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import signal
+import socket
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+from omegaconf import DictConfig, OmegaConf
+
+from embodied_tactile.settings import SettingsError
+
+EXIT_REFUSED = 2
+EXIT_SIGINT = 128 + signal.SIGINT    # 130
+EXIT_SIGTERM = 128 + signal.SIGTERM  # 143
+EXIT_CHECKPOINT_WRITE = 74           # EX_IOERR: a checkpoint could not be written (disk full, ...)
+
+LOCK_FILE = ".lock"
+
+#: Keys that may differ between the saved config of a run folder and a restart of it
+#: (prefixes of dotted keys): how long and where it runs, what it logs. Every other key
+#: shapes the model, the data or the optimisation, and a change to it is refused.
+MAY_CHANGE: tuple[str, ...] = (
+    "trainer.max_epochs", "trainer.max_steps", "trainer.max_time", "trainer.enable_progress_bar",
+    "trainer.accelerator", "trainer.devices", "trainer.num_nodes", "trainer.strategy",
+    "trainer.log_every_n_steps",
+    "threads", "plain_progress", "resume", "validate_at_end", "compile_convs", "tags", "task_name",
+    "paths", "logger", "callbacks",
+    "data.data_dir", "data.num_workers", "data.sim_workers", "data.preprocess_workers", "data.split_file",
+)
+
+
+class RunFolderError(SettingsError):
+    """A start refused because the run folder belongs to another run or training."""
+
+
+class CheckpointWriteError(OSError):
+    """A checkpoint could not be written; the previous file of that name is unchanged."""
+
+
+# ----------------------------------------------------------------------------- lock
+_held: dict[str, int] = {}  # resolved run folder -> fd of its lock, for this process
+
+
+def _is_rank_zero() -> bool:
+    """DDP child processes (LOCAL_RANK / RANK > 0) share rank 0's run folder and lock."""
+    return all(os.environ.get(v, "0") in ("", "0") for v in ("LOCAL_RANK", "RANK", "NODE_RANK"))
+
+
+def lock(run_dir: str | os.PathLike) -> None:
+    """Hold ``<run_dir>/.lock`` for the rest of this process (idempotent). RunFolderError
+    naming the holder when another process holds it."""
+    run_dir = Path(run_dir).resolve()
+    if str(run_dir) in _held or not _is_rank_zero():
+        return
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / LOCK_FILE
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as err:
+        os.close(fd)
+        if err.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+            raise
+        try:
+            holder = json.loads(path.read_text() or "{}")
+        except (OSError, ValueError):
+            holder = {}
+        raise RunFolderError(
+            f"run folder {run_dir} is in use by another training (pid {holder.get('pid', '?')} on host "
+            f"{holder.get('host', '?')}, started {holder.get('started', '?')}); wait for it to end or give "
+            "another hydra.run.dir") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode())
+    _held[str(run_dir)] = fd
+
+
+def release(run_dir: str | os.PathLike) -> None:
+    """Drop this process's lock on ``run_dir`` (the file stays; the kernel lock goes)."""
+    fd = _held.pop(str(Path(run_dir).resolve()), None)
+    if fd is not None:
+        os.close(fd)
+
+
+# ----------------------------------------------------------------------------- resume check
+def _flatten(node: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(node, Mapping):
+        out: dict[str, Any] = {}
+        for k, v in node.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out or {prefix[:-1]: {}}
+    return {prefix[:-1]: node}
+
+
+def _may_change(key: str) -> bool:
+    return any(key == p or key.startswith(p + ".") for p in MAY_CHANGE)
+
+
+def config_changes(saved: Mapping[str, Any], new: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:
+    """``{dotted key: (saved value, new value)}`` of the keys outside :data:`MAY_CHANGE`
+    whose values differ (a key present on one side only counts, with ``<absent>``)."""
+    a, b = _flatten(saved), _flatten(new)
+    missing = "<absent>"
+    return {k: (a.get(k, missing), b.get(k, missing)) for k in sorted(set(a) | set(b))
+            if not _may_change(k) and a.get(k, missing) != b.get(k, missing)}
+
+
+def holds_run(run_dir: str | os.PathLike) -> bool:
+    """The folder holds a run's results: a checkpoint, or a finished / interrupted metrics.json."""
+    run_dir = Path(run_dir)
+    if any(p.is_file() for p in (run_dir / "checkpoints").glob("*.ckpt")):
+        return True
+    try:
+        status = json.loads((run_dir / "metrics.json").read_text()).get("status")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return status in ("finished", "interrupted")
+
+
+def task_config(cfg: DictConfig) -> dict:
+    """The resolved config without Hydra's own node (what config_resolved.yaml holds)."""
+    data = OmegaConf.to_container(cfg, resolve=True)
+    data.pop("hydra", None)
+    return data
+
+
+def check_resume(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
+    """RunFolderError when ``run_dir`` holds a run whose saved config differs from ``cfg``
+    in a key that shapes the model or the data, or when ``resume=false`` would start a new
+    training over it."""
+    run_dir = Path(run_dir)
+    saved_path = run_dir / "config_resolved.yaml"
+    if not _is_rank_zero() or not holds_run(run_dir):
+        return
+    if not bool(cfg.get("resume", True)):
+        raise RunFolderError(f"run folder {run_dir} holds a run and resume=false would train a new one over it; "
+                             "give another hydra.run.dir")
+    if not saved_path.is_file():
+        return  # a run of before config_resolved.yaml: nothing to compare
+    try:
+        saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=False)
+    except Exception as err:  # noqa: BLE001 -- a damaged yaml: refuse, naming it
+        raise RunFolderError(f"{saved_path}: unreadable ({type(err).__name__}: {err}); cannot check that "
+                             "this start continues the same run") from None
+    changed = config_changes(saved, task_config(cfg))
+    if changed:
+        shown = "; ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in list(changed.items())[:4])
+        raise RunFolderError(
+            f"run folder {run_dir} holds a run trained with other settings; refusing to resume it with other "
+            f"values of {', '.join(changed)} (saved -> now: {shown}{'; ...' if len(changed) > 4 else ''}); "
+            "a resume may change only how long and where it runs (trainer.max_epochs, threads, paths, logger, "
+            "callbacks, ...): give another hydra.run.dir for a new run")
+
+
+def claim(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
+    """Lock the run folder, then check that this start may continue what it holds."""
+    lock(run_dir)
+    check_resume(cfg, run_dir)
+
+
+def claim_at_entry(config: DictConfig) -> None:
+    """:func:`claim` from Hydra's ``on_run_start`` (before Hydra writes ``.hydra/`` or the
+    log): the run folder is ``hydra.run.dir``; ``hydra.runtime.output_dir`` is set to it
+    (run_job sets the same value later) so that the config resolves."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import open_dict, read_write
+
+    run_dir = OmegaConf.select(config, "hydra.run.dir")
+    if not run_dir:
+        return
+    with read_write(config.hydra.runtime), open_dict(config.hydra.runtime):
+        config.hydra.runtime.output_dir = os.path.abspath(str(run_dir))
+    HydraConfig.instance().set_config(config)
+    claim(config, run_dir)
+
+
+# ----------------------------------------------------------------------------- stop signals
+class StopSignals:
+    """SIGTERM / SIGINT during ``trainer.fit``: the first one asks Lightning to stop after
+    the current step (``trainer.should_stop``); :meth:`exit_code` is then 143 / 130. A second
+    signal of either kind ends the process at once (Python's default for SIGINT)."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self.trainer = None
+        self._old: dict[int, Any] = {}
+
+    def install(self, trainer) -> "StopSignals":
+        self.trainer = trainer
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def restore(self) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old.clear()
+
+    def _handle(self, signum: int, frame) -> None:
+        if self.received is not None:
+            self.restore()
+            raise KeyboardInterrupt(f"second signal {signal.Signals(signum).name}")
+        self.received = signum
+        if self.trainer is not None:
+            self.trainer.should_stop = True
+
+    @property
+    def name(self) -> str | None:
+        return signal.Signals(self.received).name if self.received is not None else None
+
+    def exit_code(self) -> int | None:
+        return None if self.received is None else 128 + int(self.received)
+
+
+# ----------------------------------------------------------------------------- checkpoints
+try:
+    from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO as _TorchIO
+except ImportError:  # pragma: no cover
+    _TorchIO = object  # type: ignore[misc,assignment]
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class AtomicCheckpointIO(_TorchIO):
+    """Lightning's torch checkpoint IO written atomically: ``<path>.tmp-<pid>``, flush,
+    fsync, ``os.replace`` onto ``path``, fsync of the folder. On any error the temporary file
+    is removed, the previous ``path`` is untouched and :class:`CheckpointWriteError` names
+    the file and the OS reason."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Any | None = None) -> None:
+        import torch
+
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+        try:
+            with open(tmp, "wb") as fh:
+                torch.save(checkpoint, fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException as err:
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+            if isinstance(err, (OSError, RuntimeError)):
+                reason = getattr(err, "strerror", None) or str(err).splitlines()[0]
+                raise CheckpointWriteError(f"cannot write checkpoint {path}: {reason} "
+                                           "(the previous file of that name is kept)") from err
+            raise
+        _fsync_dir(path.parent)
+
+
+def is_partial(path: str | os.PathLike) -> bool:
+    """A temporary checkpoint file left by a write that did not finish."""
+    return ".tmp-" in Path(path).name or Path(path).name.endswith(".tmp")

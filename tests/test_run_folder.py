@@ -1,0 +1,165 @@
+"""A run folder belongs to one run: the lock, the resume check, one CSV row per (step, metric),
+stop signals and atomic checkpoints. Each test injects one fault and asserts the exit code,
+the message and what is kept on disk."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from conftest import REPO
+from test_train import ENV, _csv_rows, run_train, train_cmd
+
+
+def _digests(run: Path, names=("metrics.json", "config_resolved.yaml", ".hydra/config.yaml")) -> dict[str, str]:
+    return {n: hashlib.sha256((run / n).read_bytes()).hexdigest() for n in names if (run / n).exists()}
+
+
+@pytest.fixture(scope="module")
+def data_dir(fast_data_dir) -> Path:
+    return fast_data_dir
+
+
+@pytest.fixture(scope="module")
+def finished_run(data_dir, tmp_path_factory) -> Path:
+    """A finished acc run of one epoch (the cheapest train.py run)."""
+    run = tmp_path_factory.mktemp("owned") / "r"
+    run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
+              "callbacks.krr_alignment=null")
+    return run
+
+
+# ----------------------------------------------------------------------------- resume check
+def test_config_changes_names_keys_that_shape_model_or_data():
+    from embodied_tactile.runfolder import config_changes
+
+    saved = {"seed": 0, "data": {"actions": [0, 5], "num_workers": 0, "split": "trial"}, "trainer": {"max_epochs": 2},
+             "model": {"net": {"n_z": 16}}, "callbacks": {"krr": {"points": 8}}}
+    new = {"seed": 1, "data": {"actions": [0], "num_workers": 4, "split": "object"}, "trainer": {"max_epochs": 9},
+           "model": {"net": {"n_z": 16, "extra": 1}}, "callbacks": None}
+    assert set(config_changes(saved, new)) == {"seed", "data.actions", "data.split", "model.net.extra"}
+    assert config_changes(saved, saved) == {}
+
+
+def test_check_resume_refuses_other_settings_before_writing(tmp_path):
+    from embodied_tactile.runfolder import RunFolderError, check_resume
+
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    cfg = OmegaConf.create({"seed": 0, "resume": True, "modality": {"name": "acc"}, "trainer": {"max_epochs": 1}})
+    (run / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg))
+    check_resume(cfg, run)  # no checkpoint and no finished metrics.json: nothing to protect
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    check_resume(OmegaConf.merge(cfg, {"trainer": {"max_epochs": 5}}), run)  # longer: allowed
+    with pytest.raises(RunFolderError, match=r"modality\.name.*'acc' -> 'fsr_t'"):
+        check_resume(OmegaConf.merge(cfg, {"modality": {"name": "fsr_t"}}), run)
+    with pytest.raises(RunFolderError, match="resume=false"):
+        check_resume(OmegaConf.merge(cfg, {"resume": False}), run)
+
+
+def test_refused_restart_with_other_modality_keeps_the_finished_run(finished_run, data_dir):
+    """Fault: a finished run folder re-run with another modality, actions and seed. Before:
+    state_dict mismatch, exit 1, metrics.json rewritten "failed", config_resolved.yaml
+    rewritten. Now: exit 2 before anything is written, the keys named."""
+    before = _digests(finished_run)
+    ckpts = {p.name: p.read_bytes() for p in (finished_run / "checkpoints").iterdir()}
+    res = run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={finished_run}", "modality=fsr_t", "seed=3",
+                    "data.actions=[0,10]", "threads=1", check=False, timeout=120)
+    assert res.returncode == 2, res.stderr[-2000:]
+    err = res.stderr.strip().splitlines()[-1]
+    assert err.startswith("train.py: error: run folder") and str(finished_run) in err
+    for key in ("modality.name", "data.channels", "data.actions", "seed"):
+        assert key in err, key
+    assert "Traceback" not in res.stderr
+    assert _digests(finished_run) == before
+    assert {p.name: p.read_bytes() for p in (finished_run / "checkpoints").iterdir()} == ckpts
+    assert json.loads((finished_run / "metrics.json").read_text())["status"] == "finished"
+
+
+def test_bad_setting_in_a_finished_run_folder_keeps_its_metrics(finished_run, data_dir):
+    before = _digests(finished_run)
+    res = run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={finished_run}", "modality=acc", "data.batch_size=0",
+                    check=False, timeout=120)
+    assert res.returncode == 2 and "data.batch_size=0" in res.stderr
+    assert _digests(finished_run) == before
+
+
+# ----------------------------------------------------------------------------- lock
+def _hold_lock(run: Path) -> subprocess.Popen:
+    """Another process holding the run folder's lock (as a running training does)."""
+    code = ("import sys, time; from embodied_tactile import runfolder; runfolder.lock(sys.argv[1]); "
+            "print('held', flush=True); time.sleep(120)")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(run)], env={**ENV, "PYTHONPATH": str(REPO / "src")},
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def test_lock_refuses_a_second_holder_and_frees_on_exit(tmp_path):
+    from embodied_tactile import runfolder
+
+    run = tmp_path / "run"
+    holder = _hold_lock(run)
+    try:
+        with pytest.raises(runfolder.RunFolderError, match=rf"in use by another training \(pid {holder.pid} on host "):
+            runfolder.lock(run)
+    finally:
+        holder.kill()
+        holder.wait()
+    runfolder.lock(run)  # the kernel released the dead holder's lock
+    runfolder.release(run)
+
+
+def test_second_training_in_a_running_folder_is_refused(finished_run, data_dir):
+    """Fault: two trainings in one run folder at once. Before: both exit 0, every step twice
+    in the CSV, best-epoch003.ckpt beside best-epoch003-v1.ckpt. Now: the second exits 2
+    naming the holder's pid, and writes nothing."""
+    before = _digests(finished_run)
+    rows = (finished_run / "csv" / "metrics.csv").read_bytes()
+    holder = _hold_lock(finished_run)
+    try:
+        res = run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={finished_run}", "modality=acc",
+                        "trainer.max_epochs=3", check=False, timeout=120)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert res.returncode == 2
+    assert f"in use by another training (pid {holder.pid}" in res.stderr
+    assert _digests(finished_run) == before and (finished_run / "csv" / "metrics.csv").read_bytes() == rows
+
+
+# ----------------------------------------------------------------------------- CSV
+def test_resumed_csv_one_row_per_step_and_metric_when_lightning_saves_after_each_log(tmp_path):
+    """Fault: kill -9 after the checkpoint at step 4 while the next epoch had logged its
+    learning rate and first loss at step 4. Lightning saves the CSV after every log call, so
+    the resumed run's rows at step 4 arrive in separate saves; before, only the first save's
+    metric was deduplicated and train/loss at step 4 appeared twice."""
+    from embodied_tactile.runtime import ResumableCSVLogger
+
+    folder = tmp_path / "csv"
+    folder.mkdir()
+    with open(folder / "metrics.csv", "w") as fh:
+        fh.write("epoch,lr,step,train/loss,val/elbo\n"
+                 "0,,3,5.0,\n0,,4,,-9.0\n,0.1,4,,\n1,,4,4.0,\n")  # val before the checkpoint; lr, loss after it
+    lg = ResumableCSVLogger(tmp_path, name="csv", version="", resume_step=4)
+    for metrics in ({"lr": 0.1}, {"train/loss": 3.5, "epoch": 1}, {"train/loss": 3.0, "epoch": 1}):
+        step = 5 if metrics.get("train/loss") == 3.0 else 4
+        lg.log_metrics(metrics, step=step)
+        lg.save()
+    rows = _csv_rows(folder / "metrics.csv")
+    pairs = [(r["step"], k) for r in rows for k in ("lr", "train/loss", "val/elbo") if r[k]]
+    assert len(pairs) == len(set(pairs)), pairs
+    assert [(r["step"], r["lr"], r["train/loss"], r["val/elbo"]) for r in rows] == [
+        ("3", "", "5.0", ""), ("4", "", "", "-9.0"), ("4", "0.1", "", ""), ("4", "", "3.5", ""), ("5", "", "3.0", "")]
+    assert [(r["step"], r["lr"], r["train/loss"]) for r in _csv_rows(folder / "metrics.discarded.csv")] == [
+        ("4", "0.1", ""), ("4", "", "4.0")]
