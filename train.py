@@ -45,6 +45,7 @@ def main(cfg: DictConfig) -> float | None:
         runfolder.claim(cfg, run_dir)
     except runfolder.RunFolderError as err:
         settings.fail(err)
+    stop = runfolder.StopSignals().install()  # SIGTERM / SIGINT: last.ckpt, "interrupted", exit 143 / 130
     runtime.save_provenance(cfg, run_dir)
     L.seed_everything(cfg.seed, workers=True)
     log.info("torch threads: %d (threads=%s)", runtime.configure_threads(cfg), cfg.get("threads", "auto"))
@@ -61,6 +62,7 @@ def main(cfg: DictConfig) -> float | None:
         from lightning.pytorch.callbacks import LearningRateMonitor
 
         callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
+    callbacks.append(stop)
     plain = runtime.use_plain_progress(cfg.plain_progress)
     if plain:
         callbacks.append(runtime.PlainProgress())
@@ -90,13 +92,31 @@ def main(cfg: DictConfig) -> float | None:
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     except BaseException as err:  # any failure: the folder must not look like a finished run
-        metrics.update(status="failed", error=str(err) or type(err).__name__, error_type=type(err).__name__,
+        status = "interrupted" if stop.received is not None else "failed"
+        metrics.update(status=status, error=str(err) or type(err).__name__, error_type=type(err).__name__,
                        train_wall_s=time.perf_counter() - t0)
+        if stop.received is not None:
+            metrics["stopped_by"] = stop.name
         write_json(f"{run_dir}/metrics.json", metrics)
         if isinstance(err, FloatingPointError):  # the model's non-finite-loss guard: name step and term
             log.error("training stopped: %s (last good checkpoint kept in %s/checkpoints)", err, run_dir)
+        if stop.received is not None:
+            log.error("%s before training began: nothing new to save; exit %d", stop.name, stop.exit_code())
+            raise SystemExit(stop.exit_code()) from None
+        if isinstance(err, runfolder.CheckpointWriteError):  # disk full: one line, the previous file kept
+            print(f"train.py: error: {err}", file=sys.stderr)
+            raise SystemExit(runfolder.EXIT_CHECKPOINT_WRITE) from None
         raise
     metrics["train_wall_s"] = time.perf_counter() - t0
+    stop.defer()
+    if stop.received is not None:  # stopped between steps: the state of this step is the run's last.ckpt
+        last = f"{run_dir}/checkpoints/last.ckpt"
+        trainer.save_checkpoint(last)
+        metrics.update(status="interrupted", stopped_by=stop.name, last_checkpoint=last, step=trainer.global_step)
+        write_json(f"{run_dir}/metrics.json", metrics)
+        log.error("%s: stopped at step %d, %s saved; start the same command again to resume; exit %d",
+                  stop.name, trainer.global_step, last, stop.exit_code())
+        raise SystemExit(stop.exit_code())
     metrics["fit_metrics"] = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     # the run's NMSE: the KRR callback's final alignment (evaluate.py's settings, final weights)
     metrics["krr_final"] = next((c.final for c in callbacks if getattr(c, "final", None)), None)
@@ -116,7 +136,7 @@ def main(cfg: DictConfig) -> float | None:
         metrics[key] = (cb.best_model_path if key == "best_checkpoint" else cb.last_model_path or cb.best_model_path) or None
     metrics["data"] = datamodule.describe() if hasattr(datamodule, "describe") else {}
     metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
-    metrics["status"] = "interrupted" if trainer.interrupted else "finished"  # Ctrl-C: Lightning returns
+    metrics["status"] = "interrupted" if trainer.interrupted or stop.received is not None else "finished"
     if trainer.global_rank == 0:
         write_json(f"{run_dir}/metrics.json", metrics)
         log.info("run folder: %s", run_dir)
@@ -128,6 +148,8 @@ def main(cfg: DictConfig) -> float | None:
             import wandb
 
             wandb.finish()
+    if stop.received is not None:  # a signal after the training steps (final validation): still not a success
+        raise SystemExit(stop.exit_code())
     return metrics.get("final_val", {}).get("val/elbo")
 
 

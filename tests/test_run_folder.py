@@ -163,3 +163,47 @@ def test_resumed_csv_one_row_per_step_and_metric_when_lightning_saves_after_each
         ("3", "", "5.0", ""), ("4", "", "", "-9.0"), ("4", "0.1", "", ""), ("4", "", "3.5", ""), ("5", "", "3.0", "")]
     assert [(r["step"], r["lr"], r["train/loss"]) for r in _csv_rows(folder / "metrics.discarded.csv")] == [
         ("4", "0.1", ""), ("4", "", "4.0")]
+
+
+# ----------------------------------------------------------------------------- stop signals
+def _start_and_wait_for_epoch(overrides: tuple[str, ...], last: Path, epoch: int = 1) -> subprocess.Popen:
+    proc = subprocess.Popen(train_cmd(*overrides), cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    deadline = time.time() + 240
+    while time.time() < deadline:
+        try:
+            if last.exists() and int(torch.load(last, map_location="cpu", weights_only=False)["epoch"]) >= epoch:
+                return proc
+        except Exception:  # noqa: BLE001 -- read while being replaced
+            pass
+        if proc.poll() is not None:
+            pytest.fail("training ended before the signal:\n" + proc.stdout.read()[-3000:])
+        time.sleep(0.3)
+    proc.kill()
+    pytest.fail(f"no checkpoint of epoch >= {epoch} appeared")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig,code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_stop_signal_saves_last_checkpoint_and_exits_nonzero(data_dir, tmp_path, sig, code):
+    """Fault: SIGTERM (a cluster's pre-emption) or SIGINT during training. Before: exit 0,
+    metrics.json "failed", no checkpoint of the step reached. Now: last.ckpt of the step the
+    run stopped at, metrics.json "interrupted", exit 128 + signal; the same command resumes."""
+    run = tmp_path / "run"
+    overrides = (f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
+                 "trainer.max_epochs=200", "callbacks.krr_alignment=null")
+    last = run / "checkpoints" / "last.ckpt"
+    proc = _start_and_wait_for_epoch(overrides, last)
+    proc.send_signal(sig)
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == code, out[-3000:]
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted" and metrics["stopped_by"] == signal.Signals(sig).name
+    ck = torch.load(last, map_location="cpu", weights_only=False)
+    assert ck["global_step"] == metrics["step"] > 0
+    assert not list((run / "checkpoints").glob("*.tmp*"))
+    if sig == signal.SIGTERM:  # requeued: the same folder continues from that step
+        res = run_train(*overrides[:-2], f"trainer.max_epochs={ck['epoch'] + 2}", "callbacks.krr_alignment=null")
+        assert "resuming from" in res.stdout + res.stderr
+        after = json.loads((run / "metrics.json").read_text())
+        assert after["status"] == "finished" and after["resumed_from"].endswith("last.ckpt")

@@ -21,6 +21,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import json
+import logging
 import os
 import signal
 import socket
@@ -31,6 +32,8 @@ from typing import Any, Mapping
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile.settings import SettingsError
+
+log = logging.getLogger(__name__)
 
 EXIT_REFUSED = 2
 EXIT_SIGINT = 128 + signal.SIGINT    # 130
@@ -198,34 +201,71 @@ def claim_at_entry(config: DictConfig) -> None:
 
 
 # ----------------------------------------------------------------------------- stop signals
-class StopSignals:
-    """SIGTERM / SIGINT during ``trainer.fit``: the first one asks Lightning to stop after
-    the current step (``trainer.should_stop``); :meth:`exit_code` is then 143 / 130. A second
-    signal of either kind ends the process at once (Python's default for SIGINT)."""
+try:
+    from lightning.pytorch import Callback as _Callback
+except ImportError:  # pragma: no cover
+    _Callback = object  # type: ignore[misc,assignment]
+
+
+class StopRequested(BaseException):
+    """SIGTERM / SIGINT outside the training steps (data preparation, set-up)."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = int(signum)
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+
+
+class StopSignals(_Callback):
+    """SIGTERM / SIGINT stop a training cleanly. :meth:`install` at the start of train.py;
+    as a Lightning callback it takes the signals over from Lightning's own SIGTERM handler
+    (which raises out of the loop without a checkpoint) between ``on_train_start`` and
+    ``on_train_end``: there a signal sets ``trainer.should_stop`` and the step under way
+    finishes; outside it (data preparation, set-up) the signal raises
+    :class:`StopRequested`. A second signal ends the process at once with the default
+    action. :meth:`exit_code` is 128 + the signal number (130 SIGINT, 143 SIGTERM)."""
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
     def __init__(self) -> None:
         self.received: int | None = None
-        self.trainer = None
-        self._old: dict[int, Any] = {}
+        self._trainer = None
+        self._deferred = False
 
-    def install(self, trainer) -> "StopSignals":
-        self.trainer = trainer
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            self._old[sig] = signal.signal(sig, self._handle)
+    def install(self) -> "StopSignals":
+        for sig in self.SIGNALS:
+            signal.signal(sig, self._handle)
         return self
 
     def restore(self) -> None:
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
-        self._old.clear()
+        for sig in self.SIGNALS:
+            signal.signal(sig, signal.SIG_DFL if sig == signal.SIGTERM else signal.default_int_handler)
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self._trainer = trainer
+        self.install()  # over Lightning's SIGTERM handler (Lightning restores ours at teardown)
+        if self.received is not None:
+            trainer.should_stop = True
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        self._trainer = None
+
+    def defer(self) -> None:
+        """From now on a signal is only recorded (after fit: the run's own checkpoints are
+        written; what is left is its final validation and metrics.json)."""
+        self._deferred = True
 
     def _handle(self, signum: int, frame) -> None:
-        if self.received is not None:
-            self.restore()
-            raise KeyboardInterrupt(f"second signal {signal.Signals(signum).name}")
+        if self.received is not None:  # asked twice: stop now
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
         self.received = signum
-        if self.trainer is not None:
-            self.trainer.should_stop = True
+        if self._deferred:
+            return
+        if self._trainer is None:
+            raise StopRequested(signum)
+        self._trainer.should_stop = True
+        log.warning("%s received: stopping after the current step; last.ckpt is saved", signal.Signals(signum).name)
 
     @property
     def name(self) -> str | None:
