@@ -72,6 +72,7 @@ def main(cfg: DictConfig) -> float | None:
         callbacks.append(RichProgressBar())
     trainer: L.Trainer = instantiate(
         cfg.trainer, callbacks=callbacks, logger=loggers or False,
+        plugins=[runfolder.AtomicCheckpointIO()],  # temporary file, fsync, rename: a *.ckpt is always whole
         enable_progress_bar=bool(cfg.trainer.get("enable_progress_bar", True)) and not plain,
     )
 
@@ -89,6 +90,8 @@ def main(cfg: DictConfig) -> float | None:
         datamodule.prepare_data()
         datamodule.setup("fit")
         metrics["data_prepare_s"] = time.perf_counter() - t0
+        if trainer.global_rank == 0 and getattr(datamodule, "cache_files", None):  # evaluate.py compares with it
+            runtime.record_data_identity(run_dir, datamodule.cache_files)
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     except BaseException as err:  # any failure: the folder must not look like a finished run

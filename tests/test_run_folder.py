@@ -207,3 +207,162 @@ def test_stop_signal_saves_last_checkpoint_and_exits_nonzero(data_dir, tmp_path,
         assert "resuming from" in res.stdout + res.stderr
         after = json.loads((run / "metrics.json").read_text())
         assert after["status"] == "finished" and after["resumed_from"].endswith("last.ckpt")
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def test_atomic_checkpoint_write_error_keeps_the_previous_file(tmp_path, monkeypatch):
+    from embodied_tactile import runfolder
+
+    io = runfolder.AtomicCheckpointIO()
+    path = tmp_path / "checkpoints" / "last.ckpt"
+    io.save_checkpoint({"state_dict": {"w": torch.ones(3)}, "global_step": 1}, path)
+    before = path.read_bytes()
+
+    def full(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(runfolder.os, "fsync", full)
+    with pytest.raises(runfolder.CheckpointWriteError, match=rf"cannot write checkpoint {path}: No space left on device"):
+        io.save_checkpoint({"state_dict": {"w": torch.zeros(3)}, "global_step": 2}, path)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in path.parent.iterdir()) == ["last.ckpt"]  # no partial file beside it
+
+
+def _file_size_limit(limit: int):
+    def pre() -> None:  # a disk that fills up: writes past `limit` bytes fail with EFBIG
+        import resource
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return pre
+
+
+def test_full_disk_leaves_previous_checkpoints_and_one_line(finished_run, data_dir, tmp_path):
+    """Fault: the disk fills while a checkpoint is written. Before: OSError traceback and a
+    truncated best-epoch001.ckpt that evaluation and resume then picked. Now: exit 74, one
+    line naming the file, the earlier checkpoints bit for bit, no partial file."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    ck = run / "checkpoints"
+    before = {p.name: p.read_bytes() for p in ck.iterdir()}
+    limit = min(len(b) for b in before.values()) // 2
+    res = subprocess.run(train_cmd(f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
+                                   "callbacks.krr_alignment=null", "trainer.max_epochs=2"),
+                         cwd=REPO, env=ENV, capture_output=True, text=True, timeout=240, preexec_fn=_file_size_limit(limit))
+    assert res.returncode == 74, res.stderr[-3000:]
+    last_line = res.stderr.strip().splitlines()[-1]
+    assert last_line.startswith(f"train.py: error: cannot write checkpoint {ck}/") and "File too large" in last_line
+    assert "Traceback" not in res.stderr
+    assert {p.name: p.read_bytes() for p in ck.iterdir()} == before
+    from embodied_tactile.eval.runs import find_checkpoint
+
+    assert find_checkpoint(run, "best").read_bytes() in before.values()
+
+
+def test_evaluation_skips_a_truncated_checkpoint(finished_run, tmp_path, caplog):
+    import shutil
+
+    from embodied_tactile.eval.runs import EvaluationError, find_checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    (best,) = (run / "checkpoints").glob("best-*.ckpt")
+    best.write_bytes(best.read_bytes()[:5000])
+    with caplog.at_level("WARNING"):
+        assert find_checkpoint(run, "best") == run / "checkpoints" / "last.ckpt"
+    assert str(best) in caplog.text
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"\0" * 100)
+    with pytest.raises(EvaluationError, match=rf"no checkpoint in run folder {run} that can be read.*{best.name}"):
+        find_checkpoint(run, "best")
+
+
+# ----------------------------------------------------------------------------- evaluation
+@pytest.fixture()
+def evaluate_cli():
+    sys.path.insert(0, str(REPO))
+    import evaluate
+
+    return evaluate.main
+
+
+EVAL_FAST = ["baselines=[mean]", "figures=false", "umap=false", "alignment.cv=2", "print_tables=false"]
+
+
+def test_copied_run_folder_never_reads_the_original_checkpoints(finished_run, tmp_path, evaluate_cli, capsys):
+    """Fault: a copy of a run folder whose checkpoints were deleted. Before: exit 0, "same
+    weights", the original's checkpoint read through metrics.json's absolute path. Now: the
+    checkpoints are looked up inside the folder evaluated; none there: exit 2 naming it."""
+    import shutil
+
+    from embodied_tactile.eval.runs import find_checkpoint
+
+    copy = tmp_path / "copy"
+    shutil.copytree(finished_run, copy)
+    assert json.loads((copy / "metrics.json").read_text())["best_checkpoint"].startswith(str(finished_run))
+    assert find_checkpoint(copy, "best").parent == copy / "checkpoints"
+    shutil.rmtree(copy / "checkpoints")
+    assert evaluate_cli([str(copy), *EVAL_FAST]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith(f"evaluate.py: error: no checkpoint in run folder {copy} ")
+    assert not (copy / "evaluation").exists()
+
+
+def test_unreadable_split_and_checkpoints_are_one_line_errors(finished_run, tmp_path, evaluate_cli, capsys):
+    """Faults: split.json that is not JSON; a truncated checkpoint given by path; a
+    checkpoint of another model. Before: tracebacks. Now: exit 2, one line naming the file."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    (run / "split.json").write_text("{not json")
+    assert evaluate_cli([str(run), *EVAL_FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{run / 'split.json'}: not a split file" in err
+    shutil.copy2(finished_run / "split.json", run / "split.json")
+
+    last = run / "checkpoints" / "last.ckpt"
+    truncated = run / "checkpoints" / "cut.ckpt"
+    truncated.write_bytes(last.read_bytes()[:4000])
+    assert evaluate_cli([str(truncated), *EVAL_FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"evaluate.py: error: {truncated}: unreadable")
+
+    other = run / "checkpoints" / "other.ckpt"
+    torch.save({"state_dict": {"linear.weight": torch.zeros(2, 2)}, "global_step": 1, "epoch": 0,
+                "hyper_parameters": {"hidden": 3}}, other)
+    assert evaluate_cli([str(other), *EVAL_FAST]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(other) in err
+
+
+@pytest.mark.slow
+def test_changed_raw_data_is_refused_or_named_at_evaluation(data_dir, tmp_path, evaluate_cli, capsys):
+    """Fault: the raw data changed after training. Before: exit 0, "same weights, settings
+    and sequences". Now: exit 2 naming the raw file and field; allow_changed_data=true scores
+    it and names the change in place of "same sequences"."""
+    import shutil
+
+    import h5py
+
+    data = tmp_path / "data"
+    shutil.copytree(data_dir / "raw", data / "raw")
+    run = tmp_path / "run"
+    run_train(f"paths.data_dir={data}", f"hydra.run.dir={run}", "modality=acc", "threads=1")
+    prov = json.loads((run / "provenance.json").read_text())
+    assert set(prov["raw_data"]) == {"acc", "actions"}
+    raw = data / "raw" / "soft_pressing.h5"
+    with h5py.File(raw, "a") as f:  # one accelerometer sample of one trial
+        g = next(iter(f["trials"].values()))
+        path = g.visit(lambda n: n if isinstance(g[n], h5py.Dataset) and "acc" in n else None)
+        g[path][0] = g[path][0] * 0.5
+    assert evaluate_cli([str(run), *EVAL_FAST]) == 2
+    err = capsys.readouterr().err
+    assert "the data differ from those it was trained on" in err and str(raw) in err and "acc" in err
+    assert evaluate_cli([str(run), *EVAL_FAST, "allow_changed_data=true"]) == 0
+    out = capsys.readouterr()
+    ev = json.loads((run / "evaluation" / "evaluation.json").read_text())
+    reasons = ev["runs"][0]["training_final_alignment"]["reasons"]
+    assert reasons and reasons[0].startswith("the data changed since training") and str(raw) in reasons[0]
+    assert "same weights, settings and sequences" not in out.out + out.err

@@ -48,7 +48,7 @@ LOCK_FILE = ".lock"
 MAY_CHANGE: tuple[str, ...] = (
     "trainer.max_epochs", "trainer.max_steps", "trainer.max_time", "trainer.enable_progress_bar",
     "trainer.accelerator", "trainer.devices", "trainer.num_nodes", "trainer.strategy",
-    "trainer.log_every_n_steps",
+    "trainer.log_every_n_steps", "trainer.default_root_dir",
     "threads", "plain_progress", "resume", "validate_at_end", "compile_convs", "tags", "task_name",
     "paths", "logger", "callbacks",
     "data.data_dir", "data.num_workers", "data.sim_workers", "data.preprocess_workers", "data.split_file",
@@ -179,9 +179,15 @@ def check_resume(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
 
 
 def claim(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
-    """Lock the run folder, then check that this start may continue what it holds."""
+    """Lock the run folder, then check that this start may continue what it holds; remove
+    the temporary files of checkpoint writes that a killed process left (the lock says no
+    writer is alive)."""
     lock(run_dir)
     check_resume(cfg, run_dir)
+    if _is_rank_zero():
+        for tmp in (Path(run_dir) / "checkpoints").glob("*.ckpt.tmp-*"):
+            log.warning("removing %s: a checkpoint write that did not finish", tmp)
+            tmp.unlink(missing_ok=True)
 
 
 def claim_at_entry(config: DictConfig) -> None:
@@ -297,35 +303,32 @@ def _fsync_dir(path: Path) -> None:
 
 class AtomicCheckpointIO(_TorchIO):
     """Lightning's torch checkpoint IO written atomically: ``<path>.tmp-<pid>``, flush,
-    fsync, ``os.replace`` onto ``path``, fsync of the folder. On any error the temporary file
-    is removed, the previous ``path`` is untouched and :class:`CheckpointWriteError` names
-    the file and the OS reason."""
+    fsync, ``os.replace`` onto ``path``, fsync of the folder. On a write error the temporary
+    file is removed, the previous ``path`` is untouched and :class:`CheckpointWriteError`
+    names the file and the OS reason."""
 
     def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Any | None = None) -> None:
+        import io
+
         import torch
 
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+        buf = io.BytesIO()  # serialised first (as Lightning's own writer does): a write error is a plain OSError
+        torch.save(checkpoint, buf)
         try:
             with open(tmp, "wb") as fh:
-                torch.save(checkpoint, fh)
+                fh.write(buf.getbuffer())
                 fh.flush()
                 os.fsync(fh.fileno())
             os.replace(tmp, path)
-        except BaseException as err:
+        except OSError as err:
             try:
                 tmp.unlink()
             except OSError:
                 pass
-            if isinstance(err, (OSError, RuntimeError)):
-                reason = getattr(err, "strerror", None) or str(err).splitlines()[0]
-                raise CheckpointWriteError(f"cannot write checkpoint {path}: {reason} "
-                                           "(the previous file of that name is kept)") from err
-            raise
+            raise CheckpointWriteError(
+                f"cannot write checkpoint {path}: {err.strerror or err} ({len(buf.getbuffer()) / 1e6:.1f} MB; no "
+                "partial file left, the run's earlier checkpoints are kept)") from err
         _fsync_dir(path.parent)
-
-
-def is_partial(path: str | os.PathLike) -> bool:
-    """A temporary checkpoint file left by a write that did not finish."""
-    return ".tmp-" in Path(path).name or Path(path).name.endswith(".tmp")

@@ -85,6 +85,51 @@ def save_provenance(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
     )
 
 
+def data_identity(cache_files: Mapping[str, str | os.PathLike]) -> dict[str, Any]:
+    """What the run's data were: per field, the raw files and the digests of their stored
+    bytes and trial attributes that the preparation stage computed when it built or found
+    the cache (its root attrs ``sources`` / ``source_digests``; nothing is hashed again)."""
+    from embodied_tactile.data.cache import cache_info
+
+    out: dict[str, Any] = {}
+    for field, path in sorted(cache_files.items()):
+        info = cache_info(path)
+        out[field] = {"raw_files": [str(p) for p in info.get("sources", [])],
+                      "digests": list(info.get("source_digests", []))}
+    return out
+
+
+def data_changes(saved: Mapping[str, Any] | None, now: Mapping[str, Any]) -> list[str]:
+    """How the data differ from those a run was trained on (``provenance.json``
+    ``raw_data`` against :func:`data_identity` now): one line per raw file and field whose
+    digest differs, a field missing, or a different number of raw files. [] when the same."""
+    if not saved:
+        return []
+    out = []
+    for field in sorted(set(saved) | set(now)):
+        a, b = saved.get(field), now.get(field)
+        if a is None or b is None:
+            out.append(f"field {field}: {'not prepared now' if b is None else 'not in the training data'}")
+            continue
+        if len(a["digests"]) != len(b["digests"]):
+            out.append(f"field {field}: {len(a['digests'])} raw file(s) at training, {len(b['digests'])} now "
+                       f"({', '.join(b['raw_files'])})")
+            continue
+        for i, (da, db) in enumerate(zip(a["digests"], b["digests"])):
+            if da != db:
+                path = b["raw_files"][i] if i < len(b["raw_files"]) else "?"
+                out.append(f"{path}: its trials or their {field} data changed since training (digest {da[:12]} -> {db[:12]})")
+    return out
+
+
+def record_data_identity(run_dir: str | os.PathLike, cache_files: Mapping[str, str | os.PathLike]) -> None:
+    """Add :func:`data_identity` to ``provenance.json`` as ``raw_data``."""
+    path = Path(run_dir) / "provenance.json"
+    prov = json.loads(path.read_text()) if path.is_file() else {}
+    prov["raw_data"] = data_identity(cache_files)
+    write_json(path, prov)
+
+
 def peak_rss_bytes() -> int:
     """Peak resident memory of this process and its finished children (Linux: KiB units)."""
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
