@@ -49,13 +49,14 @@ import numpy as np
 from embodied_tactile.acquisition.pose import PoseSource
 from embodied_tactile.acquisition.protocol import (
     COMMAND_BYTE,
+    PACKET_DTYPE,
     PACKET_SIZE,
     DeviceMap,
     PlausibilityChecker,
     PlausibilityConfig,
     decode_packets,
 )
-from embodied_tactile.io.rawformat import IncrementalTrialWriter
+from embodied_tactile.io.rawformat import RATE_TOLERANCE, IncrementalTrialWriter
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +107,8 @@ class RecorderSettings:
     late_guard_s: float = 0.1  # drain window after a timeout (a late answer must land in it)
     max_drain_s: float = 2.0  # a line that never goes quiet is treated as a fault
     reserve_mb: float = 64.0  # stop the trial (disk_full) before less than this would stay writable
+    declared_hz: float | None = None  # the trial's fs_tactile: the packet rate of the first rate_check_s is checked against it
+    rate_check_s: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0 < self.flush_s <= 1.0:
@@ -122,7 +125,7 @@ class RecorderSettings:
 
 @dataclass
 class RecordResult:
-    status: str  # complete | interrupted | unplugged | no_data | disk_full | write_error
+    status: str  # complete | interrupted | unplugged | no_data | disk_full | write_error | rate_mismatch
     n_trial: int = 0
     n_baseline: int = 0
     n_pose: int = 0
@@ -139,8 +142,12 @@ class RecordResult:
     trial: str = ""
     unwritten: int = 0  # packets received but not written (disk_full / write_error)
 
+    message: str = ""  # why the trial stopped early, when it did not end by itself (rate_mismatch)
+
     @property
     def exit_code(self) -> int:
+        if self.status == "rate_mismatch":  # the board or the config is wrong: a setting, not a lost recording
+            return EXIT_CONFIG
         return EXIT_COMPLETE if self.status == "complete" else EXIT_INCOMPLETE
 
     def summary(self) -> str:
@@ -154,6 +161,18 @@ class RecordResult:
 
 
 class _Unplugged(Exception):
+    pass
+
+
+#: The first ``rate_check_s`` of packets against the declared ``fs_tactile``: the board's own
+#: sample step (the packets' ``dt_acc``, median) must give the declared rate within
+#: ``RATE_TOLERANCE`` (the tolerance of the raw format's rate check), and no more packets
+#: than that may arrive per second (a slower arrival proves nothing: a loaded host polls
+#: slowly).
+RATE_CHECK_MAX = 1.0 + RATE_TOLERANCE
+
+
+class _RateMismatch(Exception):
     pass
 
 
@@ -204,6 +223,9 @@ class Recorder:
         self._t0 = 0.0
         self._last_t: float | None = None
         self._pose_last = -np.inf
+        self._answers = 0  # packets the board sent (committed, lost or garbage) since polling began
+        self._rate_checked = settings.declared_hz is None
+        self._rate_dt: list[int] = []  # the board's sample steps (us) of the packets of the first rate_check_s
 
     # ------------------------------------------------------------------ serial helpers
     def _in_waiting(self) -> int:
@@ -358,10 +380,27 @@ class Recorder:
             self.pose.start(self._t0, wall0)
         self.on_phase("trial")
 
+    def _check_rate(self, t_poll0: float, now: float) -> None:
+        """After ``rate_check_s`` of polling: the board's sample step and the packets it
+        answered per second (committed, lost or garbage) against the declared rate
+        (:data:`RATE_CHECK_MAX`); _RateMismatch naming both."""
+        self._rate_checked = True
+        declared = float(self.s.declared_hz)
+        arrived = (self._answers + self.lost + self.garbage) / (now - t_poll0)
+        board = 1e6 / float(np.median(self._rate_dt)) if self._rate_dt and np.median(self._rate_dt) > 0 else None
+        bad_board = board is not None and not declared / (1 + RATE_TOLERANCE) <= board <= declared * (1 + RATE_TOLERANCE)
+        if bad_board or arrived > RATE_CHECK_MAX * declared:
+            step = f"a sample step of {1e6 / board:.0f} us ({board:.0f} Hz) and " if board else ""
+            raise _RateMismatch(
+                f"the board reports {step}sent {arrived:.0f} packets/s in the first {now - t_poll0:.1f} s, but "
+                f"fs_tactile declares {declared:g} Hz: set fs_tactile to the board's rate or fix its firmware")
+        self._rate_dt = []
+
     def _loop(self, t_end: float) -> bool:
         """Poll until ``t_end`` (perf_counter). Returns False if stopped early."""
         pending: tuple[bytes, float] | None = None
         next_flush = time.perf_counter() + self.s.flush_s
+        t_poll0 = time.perf_counter()
         while True:
             # commit the previous packet only if nothing is waiting: the pairing held
             if self._in_waiting():
@@ -373,6 +412,8 @@ class Recorder:
                 self._commit(*pending)
                 pending = None
             now = time.perf_counter()
+            if not self._rate_checked and now - t_poll0 >= self.s.rate_check_s:
+                self._check_rate(t_poll0, now)
             if self._phase == "baseline" and now >= self._t0:
                 self._start_trial()
             if now >= next_flush:
@@ -383,10 +424,14 @@ class Recorder:
             if now >= t_end:
                 return True
             pending = self._poll_once()
+            if pending is not None:
+                self._answers += 1
+                if not self._rate_checked:
+                    self._rate_dt.append(int(np.frombuffer(pending[0], dtype=PACKET_DTYPE)["dt_acc"][0]))
 
     def run(self) -> RecordResult:
         s = self.s
-        status = "complete"
+        status, message = "complete", ""
         cpu0 = time.process_time()
         t_start = time.perf_counter()
         try:
@@ -408,6 +453,9 @@ class Recorder:
         except _StorageStop as exc:
             log.error("trial stopped: %s", exc)
             status = exc.reason
+        except _RateMismatch as exc:
+            log.error("trial stopped: %s", exc)
+            status, message = "rate_mismatch", str(exc)
         finally:
             try:
                 self._flush()
@@ -442,15 +490,31 @@ class Recorder:
             trial=self.writer.name,
             wall_s=time.perf_counter() - t_start,
             unwritten=self._unwritten,
+            message=message,
         )
         return res
 
 
+class PortBusy(OSError):
+    """The serial port is held by another program (another recorder)."""
+
+
 def open_port(url: str, baud: int, timeout: float):
-    """Open a device path or pyserial URL (``loop://``, ``socket://host:port``, a pty path)."""
+    """Open a device path or pyserial URL (``loop://``, ``socket://host:port``, a pty path).
+    A device path is opened exclusively (an advisory ``flock`` that every recorder takes):
+    while one recorder holds it, another one gets :class:`PortBusy` and never touches the
+    line, so the running trial goes on undisturbed."""
     import serial  # noqa: PLC0415
 
-    return serial.serial_for_url(url, baudrate=baud, timeout=timeout, write_timeout=max(1.0, timeout))
+    kw = dict(baudrate=baud, timeout=timeout, write_timeout=max(1.0, timeout))
+    if "://" not in str(url):
+        kw["exclusive"] = True
+    try:
+        return serial.serial_for_url(url, **kw)
+    except serial.SerialException as exc:
+        if "exclusively lock" in str(exc):
+            raise PortBusy(f"{url} is in use by another program (a recorder still running?): {exc}") from None
+        raise
 
 
 def finish(writer: IncrementalTrialWriter, res: RecordResult, extra_attrs: dict[str, Any] | None = None) -> None:

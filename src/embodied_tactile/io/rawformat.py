@@ -380,6 +380,12 @@ def _check_attrs(file: str, name: str, attrs: Mapping[str, Any]) -> None:
             raise TrialFormatError(file, name, f"attrs/{key}", "sampling rate must be positive")
 
 
+def check_attrs(file: str | os.PathLike, name: str, attrs: Mapping[str, Any]) -> None:
+    """The attribute checks of :func:`scan_raw` on one trial's attributes (the recorder runs
+    them before its first packet): TrialFormatError naming file, trial and attribute."""
+    _check_attrs(str(file), name, attrs)
+
+
 def _s(v: Any) -> str:
     return v.decode() if isinstance(v, bytes) else str(v)
 
