@@ -52,6 +52,7 @@ MAY_CHANGE: tuple[str, ...] = (
     "threads", "plain_progress", "resume", "validate_at_end", "compile_convs", "tags", "task_name",
     "paths", "logger", "callbacks",
     "data.data_dir", "data.num_workers", "data.sim_workers", "data.preprocess_workers", "data.split_file",
+    "data.allow_large_population",
 )
 
 

@@ -94,6 +94,18 @@ OPTIONAL_ATTRS: Mapping[str, type] = {
     "sim_physics_version": int,  # simulator: version of its physics (sim.physics.PHYSICS_VERSION); absent = 1
 }
 
+#: Documented ranges of the physical attributes (inclusive). The four factors may also be
+#: NaN (unknown: that factor is left out of that factor's alignment); infinite values and
+#: values outside these ranges are a format error. Heterogeneity is a class: 0 or 1.
+PHYSICAL_RANGES: Mapping[str, tuple[float, float]] = {
+    "spatial_frequency": (0.0, 1000.0),  # 1/m (catalogue and population: 10 .. 50)
+    "amplitude": (0.0, 100.0),           # mm peak-to-peak (5 .. 20)
+    "stiffness": (2.0, 11.0),            # log10 Pa of the bulk's Young's modulus (silicones ~4 .. 6, PLA 9.5)
+    "heterogeneity": (0.0, 1.0),         # 0 or 1
+}
+#: Sampling rates may not exceed this (Hz); they must be finite and positive.
+MAX_RATE_HZ = 100_000.0
+
 #: Clock field -> the attribute that declares its sampling rate.
 RATE_ATTRS: Mapping[str, str] = {"t": "fs_tactile", "baseline_t": "fs_tactile", "pose_t": "fs_pose"}
 #: A declared step 1 / fs is accepted within the quartiles of the timestamps' steps widened
@@ -376,8 +388,21 @@ def _check_attrs(file: str, name: str, attrs: Mapping[str, Any]) -> None:
     if not 0 <= int(attrs["action_index"]) < C.N_ACTIONS:
         raise TrialFormatError(file, name, "attrs/action_index", f"must be in 0..{C.N_ACTIONS - 1}")
     for key in ("fs_tactile", "fs_pose"):
-        if not float(attrs[key]) > 0:
-            raise TrialFormatError(file, name, f"attrs/{key}", "sampling rate must be positive")
+        if not 0 < float(attrs[key]) <= MAX_RATE_HZ:
+            raise TrialFormatError(file, name, f"attrs/{key}",
+                                   f"sampling rate {float(attrs[key])!r} Hz: must be finite, positive and <= {MAX_RATE_HZ:g}")
+    for key in ("object_id", "repetition"):
+        if int(attrs[key]) < 0:
+            raise TrialFormatError(file, name, f"attrs/{key}", f"must be >= 0, got {int(attrs[key])}")
+    for key, (lo, hi) in PHYSICAL_RANGES.items():
+        v = float(attrs[key])
+        if math.isnan(v):
+            continue  # unknown: allowed
+        if not lo <= v <= hi:
+            raise TrialFormatError(file, name, f"attrs/{key}", f"{v!r} outside the documented range [{lo:g}, {hi:g}] "
+                                   "(NaN if unknown; docs/data_format.md)")
+        if key == "heterogeneity" and v not in (0.0, 1.0):
+            raise TrialFormatError(file, name, f"attrs/{key}", f"{v!r}: must be 0 or 1 (NaN if unknown)")
 
 
 def check_attrs(file: str | os.PathLike, name: str, attrs: Mapping[str, Any]) -> None:
