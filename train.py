@@ -7,8 +7,12 @@
 
 Each run folder (logs/train/runs/<time> or the multirun sub-folder named after its
 overrides) holds the resolved config, checkpoints/last.ckpt and the best checkpoint,
-metrics.json, split.json and provenance.json (git commit, package versions).
-Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt.
+metrics.json, split.json and provenance.json (git commit, package versions, raw data digests).
+Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt; the folder
+is locked while a training runs, and a restart with settings that shape the model or the
+data differently is refused (embodied_tactile.runfolder). Exit codes: 0 finished, 2 bad
+setting or refused start, 130 / 143 SIGINT / SIGTERM (last.ckpt saved, "interrupted"),
+74 a checkpoint could not be written, 1 any other failure.
 """
 
 from __future__ import annotations
@@ -35,15 +39,15 @@ log = logging.getLogger("train")
 def main(cfg: DictConfig) -> float | None:
     quiet.silence_third_party()
     run_dir = HydraConfig.get().runtime.output_dir
+    try:  # one training per folder; a restart continues the same model and data (done at entry for single runs)
+        runfolder.claim(cfg, run_dir)
+    except runfolder.RunFolderError as err:
+        settings.fail(err)
     try:  # settings.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
     except settings.SettingsError as err:
         if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
             write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
-        settings.fail(err)
-    try:  # one training per folder; a restart continues the same model and data (done at entry for single runs)
-        runfolder.claim(cfg, run_dir)
-    except runfolder.RunFolderError as err:
         settings.fail(err)
     stop = runfolder.StopSignals().install()  # SIGTERM / SIGINT: last.ckpt, "interrupted", exit 143 / 130
     runtime.save_provenance(cfg, run_dir)

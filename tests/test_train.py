@@ -134,6 +134,9 @@ def test_resume_after_sigkill(data_dir, tmp_path):
     assert int(torch.load(last, map_location="cpu", weights_only=False)["global_step"]) == step_at_kill + 2 * steps_per_epoch
     csv = (run / "csv" / "metrics.csv").read_text().splitlines()
     assert len(csv) > 1
+    pairs = [(r["step"], k) for r in _csv_rows(run / "csv" / "metrics.csv") for k, v in r.items()
+             if v and k not in ("step", "epoch")]
+    assert len(pairs) == len(set(pairs)), "a (step, metric) pair appears twice after the resume"
 
 
 def _csv_rows(path: Path) -> list[dict]:
