@@ -35,10 +35,9 @@ from embodied_tactile.settings import SettingsError
 
 log = logging.getLogger(__name__)
 
-EXIT_REFUSED = 2
-EXIT_SIGINT = 128 + signal.SIGINT    # 130
-EXIT_SIGTERM = 128 + signal.SIGTERM  # 143
-EXIT_CHECKPOINT_WRITE = 74           # EX_IOERR: a checkpoint could not be written (disk full, ...)
+#: train.py's exit status when a checkpoint cannot be written (EX_IOERR); a refused start
+#: exits 2 (settings.EXIT_BAD_SETTINGS), a stop signal 128 + its number (130, 143).
+EXIT_CHECKPOINT_WRITE = 74
 
 LOCK_FILE = ".lock"
 
