@@ -449,24 +449,29 @@ def _check_values(file: str, name: str, fld: str, data: np.ndarray) -> None:
         raise TrialFormatError(file, name, path, f"|acc| {float(np.abs(data).max()):.3g} g exceeds the +-{C.ACC_RANGE_G} g range")
 
 
-def _check_rate(file: str, name: str, fld: str, data: np.ndarray, attrs: Mapping[str, Any] | None) -> None:
-    """The rate declared for clock ``fld`` (``RATE_ATTRS``) against its timestamps: the
+def rate_problem(t: np.ndarray, declared: float) -> str | None:
+    """Why timestamps ``t`` do not fit the declared rate ``declared`` (Hz), or None: the
     declared step ``1 / fs`` must lie within the steps' interquartile range widened by
     ``RATE_TOLERANCE`` (regular timestamps: the median step within the tolerance; a polled
-    stream that arrives in bursts or with jitter: anywhere among its typical steps)."""
+    stream that arrives in bursts or with jitter: anywhere among its typical steps). The
+    recorder applies it to its first second, :func:`scan_raw` to the whole clock."""
+    q25, median, q75 = (float(v) for v in np.quantile(np.diff(np.asarray(t, dtype=np.float64)), [0.25, 0.5, 0.75]))
+    if q25 / (1 + RATE_TOLERANCE) <= 1.0 / declared <= q75 * (1 + RATE_TOLERANCE):
+        return None
+    shown = 1.0 / median if median > 0 else math.inf
+    return (f"timestamps show {shown:.4g} Hz (median step {median * 1e3:.4g} ms, quartiles {q25 * 1e3:.4g} to "
+            f"{q75 * 1e3:.4g} ms) but {{key}} declares {declared:g} Hz (a step of {1e3 / declared:.4g} ms; "
+            f"tolerance {RATE_TOLERANCE:.0%})")
+
+
+def _check_rate(file: str, name: str, fld: str, data: np.ndarray, attrs: Mapping[str, Any] | None) -> None:
+    """The rate declared for clock ``fld`` (``RATE_ATTRS``) against its timestamps (:func:`rate_problem`)."""
     key = RATE_ATTRS.get(fld)
     if key is None or attrs is None or key not in attrs or data.shape[0] < 2:
         return
-    declared = float(attrs[key])
-    q25, median, q75 = (float(v) for v in np.quantile(np.diff(data), [0.25, 0.5, 0.75]))
-    if not q25 / (1 + RATE_TOLERANCE) <= 1.0 / declared <= q75 * (1 + RATE_TOLERANCE):
-        shown = 1.0 / median if median > 0 else math.inf
-        raise TrialFormatError(
-            file, name, FIELDS[fld],
-            f"timestamps show {shown:.4g} Hz (median step {median * 1e3:.4g} ms, quartiles {q25 * 1e3:.4g} to "
-            f"{q75 * 1e3:.4g} ms) but attrs/{key} declares {declared:g} Hz (a step of {1e3 / declared:.4g} ms; "
-            f"tolerance {RATE_TOLERANCE:.0%}): fix {key} or the timestamps",
-        )
+    problem = rate_problem(data, float(attrs[key]))
+    if problem:
+        raise TrialFormatError(file, name, FIELDS[fld], problem.format(key=f"attrs/{key}") + f": fix {key} or the timestamps")
 
 
 def _check_lost(file: str, name: str, fld: str, data: np.ndarray, n: int | None) -> None:
