@@ -366,3 +366,28 @@ def test_changed_raw_data_is_refused_or_named_at_evaluation(data_dir, tmp_path, 
     reasons = ev["runs"][0]["training_final_alignment"]["reasons"]
     assert reasons and reasons[0].startswith("the data changed since training") and str(raw) in reasons[0]
     assert "same weights, settings and sequences" not in out.out + out.err
+
+
+def test_stop_signal_outside_the_training_steps_raises_and_inside_sets_should_stop():
+    """SIGTERM during data preparation ends the run as interrupted (StopRequested, which
+    train.py turns into exit 143); during the steps it only asks Lightning to stop."""
+    from types import SimpleNamespace
+
+    from embodied_tactile.runfolder import StopRequested, StopSignals
+
+    old = {s: signal.getsignal(s) for s in StopSignals.SIGNALS}
+    try:
+        stop = StopSignals().install()
+        with pytest.raises(StopRequested, match="stopped by SIGTERM"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+        assert stop.exit_code() == 143
+        stop = StopSignals().install()
+        trainer = SimpleNamespace(should_stop=False)
+        stop.on_train_start(trainer, None)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.1)
+        assert trainer.should_stop and stop.exit_code() == 130 and stop.name == "SIGINT"
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
