@@ -30,7 +30,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile import quiet, runfolder, runtime, settings, summary
-from embodied_tactile.jsonio import write_json
+from embodied_tactile.jsonio import read_json, write_json
 
 log = logging.getLogger("train")
 
@@ -50,7 +50,10 @@ def main(cfg: DictConfig) -> float | None:
             write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
         settings.fail(err)
     stop = runfolder.StopSignals().install()  # SIGTERM / SIGINT: last.ckpt, "interrupted", exit 143 / 130
-    runtime.save_provenance(cfg, run_dir)
+    resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
+    trained_on = read_json(f"{run_dir}/provenance.json").get("raw_data") if resuming else None
+    if not resuming:
+        runtime.save_provenance(cfg, run_dir)
     L.seed_everything(cfg.seed, workers=True)
     log.info("torch threads: %d (threads=%s)", runtime.configure_threads(cfg), cfg.get("threads", "auto"))
     torch.set_float32_matmul_precision("high")
@@ -92,12 +95,21 @@ def main(cfg: DictConfig) -> float | None:
         # (embodied_tactile.data.prepare: simulation, caches, trial listing), setup splits and
         # loads; the DataModule does each once, so fit() below does not repeat it
         datamodule.prepare_data()
+        if resuming and trainer.global_rank == 0:  # a resume continues on the data the run was trained on
+            changed = runtime.data_changes(trained_on, runtime.data_identity(getattr(datamodule, "cache_files", {})))
+            if changed:
+                raise runfolder.RunFolderError(
+                    f"run folder {run_dir} was trained on other data: {'; '.join(changed)}; refusing to resume it "
+                    "on these (give another hydra.run.dir for a new run)")
+            runtime.save_provenance(cfg, run_dir)
         datamodule.setup("fit")
         metrics["data_prepare_s"] = time.perf_counter() - t0
         if trainer.global_rank == 0 and getattr(datamodule, "cache_files", None):  # evaluate.py compares with it
             runtime.record_data_identity(run_dir, datamodule.cache_files)
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    except runfolder.RunFolderError as err:  # refused before anything of the run was rewritten
+        settings.fail(err)
     except BaseException as err:  # any failure: the folder must not look like a finished run
         status = "interrupted" if stop.received is not None else "failed"
         metrics.update(status=status, error=str(err) or type(err).__name__, error_type=type(err).__name__,

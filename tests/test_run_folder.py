@@ -340,8 +340,8 @@ def test_unreadable_split_and_checkpoints_are_one_line_errors(finished_run, tmp_
 @pytest.mark.slow
 def test_changed_raw_data_is_refused_or_named_at_evaluation(data_dir, tmp_path, evaluate_cli, capsys):
     """Fault: the raw data changed after training. Before: exit 0, "same weights, settings
-    and sequences". Now: exit 2 naming the raw file and field; allow_changed_data=true scores
-    it and names the change in place of "same sequences"."""
+    and sequences". Now: exit 2 naming the raw file and field; a resume on them exit 2 too;
+    allow_changed_data=true scores it and names the change in place of "same sequences"."""
     import shutil
 
     import h5py
@@ -360,6 +360,13 @@ def test_changed_raw_data_is_refused_or_named_at_evaluation(data_dir, tmp_path, 
     assert evaluate_cli([str(run), *EVAL_FAST]) == 2
     err = capsys.readouterr().err
     assert "the data differ from those it was trained on" in err and str(raw) in err and "acc" in err
+    # a resume on the changed data is refused too, the run's files as they were
+    before = _digests(run, ("metrics.json", "config_resolved.yaml", "provenance.json"))
+    res = run_train(f"paths.data_dir={data}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
+                    "trainer.max_epochs=2", check=False, timeout=240)
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert res.stderr.strip().splitlines()[-1].startswith(f"train.py: error: run folder {run} was trained on other data: {raw}")
+    assert _digests(run, ("metrics.json", "config_resolved.yaml", "provenance.json")) == before
     assert evaluate_cli([str(run), *EVAL_FAST, "allow_changed_data=true"]) == 0
     out = capsys.readouterr()
     ev = json.loads((run / "evaluation" / "evaluation.json").read_text())

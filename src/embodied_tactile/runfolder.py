@@ -7,7 +7,9 @@
   ``metrics.json``), the saved ``config_resolved.yaml`` is compared with the new config:
   a difference in a key outside :data:`MAY_CHANGE` (modality, actions, split, model
   options, seed, ...) is refused, naming the keys. Both refusals happen before anything is
-  written and raise :class:`RunFolderError` (train.py: one line, exit 2).
+  written and raise :class:`RunFolderError` (train.py: one line, exit 2). train.py refuses
+  a resume on raw data other than the run's (``provenance.json`` ``raw_data``) the same
+  way, once the preparation stage has computed their digests.
 * :class:`StopSignals` -- SIGTERM / SIGINT stop the training at the next step:
   ``last.ckpt`` is saved, ``metrics.json`` says ``interrupted``, the exit status is 143 /
   130 (128 + signal number), so that a scheduler can requeue the job.
