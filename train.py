@@ -7,8 +7,12 @@
 
 Each run folder (logs/train/runs/<time> or the multirun sub-folder named after its
 overrides) holds the resolved config, checkpoints/last.ckpt and the best checkpoint,
-metrics.json, split.json and provenance.json (git commit, package versions).
-Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt.
+metrics.json, split.json and provenance.json (git commit, package versions, raw data digests).
+Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt; the folder
+is locked while a training runs, and a restart with settings that shape the model or the
+data differently is refused (embodied_tactile.runfolder). Exit codes: 0 finished, 2 bad
+setting or refused start, 130 / 143 SIGINT / SIGTERM (last.ckpt saved, "interrupted"),
+74 a checkpoint could not be written, 1 any other failure.
 """
 
 from __future__ import annotations
@@ -25,8 +29,8 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile import quiet, runtime, settings, summary
-from embodied_tactile.jsonio import write_json
+from embodied_tactile import quiet, runfolder, runtime, settings, summary
+from embodied_tactile.jsonio import read_json, write_json
 
 log = logging.getLogger("train")
 
@@ -35,12 +39,21 @@ log = logging.getLogger("train")
 def main(cfg: DictConfig) -> float | None:
     quiet.silence_third_party()
     run_dir = HydraConfig.get().runtime.output_dir
+    try:  # one training per folder; a restart continues the same model and data (done at entry for single runs)
+        runfolder.claim(cfg, run_dir)
+    except runfolder.RunFolderError as err:
+        settings.fail(err)
     try:  # settings.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
     except settings.SettingsError as err:
-        write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
+        if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
+            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
         settings.fail(err)
-    runtime.save_provenance(cfg, run_dir)
+    stop = runfolder.StopSignals().install()  # SIGTERM / SIGINT: last.ckpt, "interrupted", exit 143 / 130
+    resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
+    trained_on = read_json(f"{run_dir}/provenance.json").get("raw_data") if resuming else None
+    if not resuming:
+        runtime.save_provenance(cfg, run_dir)
     L.seed_everything(cfg.seed, workers=True)
     log.info("torch threads: %d (threads=%s)", runtime.configure_threads(cfg), cfg.get("threads", "auto"))
     torch.set_float32_matmul_precision("high")
@@ -56,6 +69,7 @@ def main(cfg: DictConfig) -> float | None:
         from lightning.pytorch.callbacks import LearningRateMonitor
 
         callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
+    callbacks.append(stop)
     plain = runtime.use_plain_progress(cfg.plain_progress)
     if plain:
         callbacks.append(runtime.PlainProgress())
@@ -65,6 +79,7 @@ def main(cfg: DictConfig) -> float | None:
         callbacks.append(RichProgressBar())
     trainer: L.Trainer = instantiate(
         cfg.trainer, callbacks=callbacks, logger=loggers or False,
+        plugins=[runfolder.AtomicCheckpointIO()],  # temporary file, fsync, rename: a *.ckpt is always whole
         enable_progress_bar=bool(cfg.trainer.get("enable_progress_bar", True)) and not plain,
     )
 
@@ -80,18 +95,47 @@ def main(cfg: DictConfig) -> float | None:
         # (embodied_tactile.data.prepare: simulation, caches, trial listing), setup splits and
         # loads; the DataModule does each once, so fit() below does not repeat it
         datamodule.prepare_data()
+        if resuming and trainer.global_rank == 0:  # a resume continues on the data the run was trained on
+            changed = runtime.data_changes(trained_on, runtime.data_identity(getattr(datamodule, "cache_files", {})))
+            if changed:
+                raise runfolder.RunFolderError(
+                    f"run folder {run_dir} was trained on other data: {'; '.join(changed)}; refusing to resume it "
+                    "on these (give another hydra.run.dir for a new run)")
+            runtime.save_provenance(cfg, run_dir)
         datamodule.setup("fit")
         metrics["data_prepare_s"] = time.perf_counter() - t0
+        if trainer.global_rank == 0 and getattr(datamodule, "cache_files", None):  # evaluate.py compares with it
+            runtime.record_data_identity(run_dir, datamodule.cache_files)
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    except runfolder.RunFolderError as err:  # refused before anything of the run was rewritten
+        settings.fail(err)
     except BaseException as err:  # any failure: the folder must not look like a finished run
-        metrics.update(status="failed", error=str(err) or type(err).__name__, error_type=type(err).__name__,
+        status = "interrupted" if stop.received is not None else "failed"
+        metrics.update(status=status, error=str(err) or type(err).__name__, error_type=type(err).__name__,
                        train_wall_s=time.perf_counter() - t0)
+        if stop.received is not None:
+            metrics["stopped_by"] = stop.name
         write_json(f"{run_dir}/metrics.json", metrics)
         if isinstance(err, FloatingPointError):  # the model's non-finite-loss guard: name step and term
             log.error("training stopped: %s (last good checkpoint kept in %s/checkpoints)", err, run_dir)
+        if stop.received is not None:
+            log.error("%s before training began: nothing new to save; exit %d", stop.name, stop.exit_code())
+            raise SystemExit(stop.exit_code()) from None
+        if isinstance(err, runfolder.CheckpointWriteError):  # disk full: one line, the previous file kept
+            print(f"train.py: error: {err}", file=sys.stderr)
+            raise SystemExit(runfolder.EXIT_CHECKPOINT_WRITE) from None
         raise
     metrics["train_wall_s"] = time.perf_counter() - t0
+    stop.defer()
+    if stop.received is not None:  # stopped between steps: the state of this step is the run's last.ckpt
+        last = f"{run_dir}/checkpoints/last.ckpt"
+        trainer.save_checkpoint(last)
+        metrics.update(status="interrupted", stopped_by=stop.name, last_checkpoint=last, step=trainer.global_step)
+        write_json(f"{run_dir}/metrics.json", metrics)
+        log.error("%s: stopped at step %d, %s saved; start the same command again to resume; exit %d",
+                  stop.name, trainer.global_step, last, stop.exit_code())
+        raise SystemExit(stop.exit_code())
     metrics["fit_metrics"] = {k: float(v) for k, v in trainer.callback_metrics.items() if v.numel() == 1}
     # the run's NMSE: the KRR callback's final alignment (evaluate.py's settings, final weights)
     metrics["krr_final"] = next((c.final for c in callbacks if getattr(c, "final", None)), None)
@@ -111,7 +155,7 @@ def main(cfg: DictConfig) -> float | None:
         metrics[key] = (cb.best_model_path if key == "best_checkpoint" else cb.last_model_path or cb.best_model_path) or None
     metrics["data"] = datamodule.describe() if hasattr(datamodule, "describe") else {}
     metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
-    metrics["status"] = "interrupted" if trainer.interrupted else "finished"  # Ctrl-C: Lightning returns
+    metrics["status"] = "interrupted" if trainer.interrupted or stop.received is not None else "finished"
     if trainer.global_rank == 0:
         write_json(f"{run_dir}/metrics.json", metrics)
         log.info("run folder: %s", run_dir)
@@ -123,6 +167,8 @@ def main(cfg: DictConfig) -> float | None:
             import wandb
 
             wandb.finish()
+    if stop.received is not None:  # a signal after the training steps (final validation): still not a success
+        raise SystemExit(stop.exit_code())
     return metrics.get("final_val", {}).get("val/elbo")
 
 

@@ -101,6 +101,13 @@ CORRUPTIONS = {
     "rate_declared_higher": (lambda g: g.attrs.__setitem__("fs_tactile", 1400.0), "tactile/t", "declares 1400 Hz"),
     "rate_declared_lower": (lambda g: g.attrs.__setitem__("fs_tactile", 350.0), "tactile/t", "declares 350 Hz"),
     "pose_rate_declared_lower": (lambda g: g.attrs.__setitem__("fs_pose", 50.0), "pose/t", "attrs/fs_pose declares 50 Hz"),
+    # physical attributes outside their documented ranges (NaN, "unknown", is allowed)
+    "amplitude_huge": (lambda g: g.attrs.__setitem__("amplitude", 1e9), "attrs/amplitude", "outside the documented range [0, 100]"),
+    "spatial_frequency_inf": (lambda g: g.attrs.__setitem__("spatial_frequency", np.inf), "attrs/spatial_frequency", "outside the documented range"),
+    "heterogeneity_half": (lambda g: g.attrs.__setitem__("heterogeneity", 0.5), "attrs/heterogeneity", "must be 0 or 1"),
+    "object_id_negative": (lambda g: g.attrs.__setitem__("object_id", -5), "attrs/object_id", "must be >= 0, got -5"),
+    "stiffness_negative": (lambda g: g.attrs.__setitem__("stiffness", -1.0), "attrs/stiffness", "outside the documented range [2, 11]"),
+    "fs_tactile_inf": (lambda g: g.attrs.__setitem__("fs_tactile", np.inf), "attrs/fs_tactile", "must be finite"),
 }
 
 
@@ -269,6 +276,16 @@ def test_new_files_use_blosc_and_gzip_files_stay_readable(tmp_path, monkeypatch)
         back = rf.read_trial(path, tr.name)
         for fld in ("t", "acc", "fsr", "pose_t", "pose"):
             np.testing.assert_array_equal(getattr(back, fld), getattr(tr, fld))
-    paths = build_cache([path], tmp_path / "cache", fields=("acc",), workers=1)
+    from embodied_tactile.data.preprocess import PreprocessConfig
+
+    cfg = PreprocessConfig(n_frames=30)  # the trials' 1 s
+    paths = build_cache([path], tmp_path / "cache", cfg, fields=("acc",), workers=1)
     for tr in (old, new):
-        np.testing.assert_allclose(load_cached(paths["acc"], tr.name, "acc"), preprocess_trial(tr, fields=("acc",))["acc"], atol=1e-6)
+        np.testing.assert_allclose(load_cached(paths["acc"], tr.name, "acc"), preprocess_trial(tr, cfg, fields=("acc",))["acc"], atol=1e-6)
+
+
+def test_unknown_factor_nan_passes_the_validator(three_trials):
+    path, trials = three_trials
+    _corrupt(path, trials[1].name, lambda g: g.attrs.__setitem__("stiffness", np.nan))
+    good, errors = rf.scan_raw(path, strict=True)
+    assert len(good) == 3 and not errors

@@ -134,6 +134,9 @@ def test_resume_after_sigkill(data_dir, tmp_path):
     assert int(torch.load(last, map_location="cpu", weights_only=False)["global_step"]) == step_at_kill + 2 * steps_per_epoch
     csv = (run / "csv" / "metrics.csv").read_text().splitlines()
     assert len(csv) > 1
+    pairs = [(r["step"], k) for r in _csv_rows(run / "csv" / "metrics.csv") for k, v in r.items()
+             if v and k not in ("step", "epoch")]
+    assert len(pairs) == len(set(pairs)), "a (step, metric) pair appears twice after the resume"
 
 
 def _csv_rows(path: Path) -> list[dict]:
@@ -324,10 +327,13 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(data_dir, tmp_path):
     run_train(*base, "trainer.max_epochs=1")
     last = run / "checkpoints" / "last.ckpt"
     before = last.read_bytes()
-    for cache in (d / "cache").glob("acc-*.h5"):
+    from embodied_tactile.data.cache import _crc
+
+    for cache in (d / "cache").glob("acc-*.h5"):  # overflowing inputs with valid checksums (not a damaged cache)
         with h5py.File(cache, "a") as f:
             for g in f["trials"].values():
                 g["acc"][...] = 1e30
+                g["acc"].attrs["crc32"] = _crc(g["acc"][()])
     res = run_train(*base, "trainer.max_epochs=3", check=False)
     assert res.returncode != 0
     out = res.stdout + res.stderr

@@ -13,8 +13,11 @@ disk or a file-size limit during one trial never touches the others.
 
 Exit codes: 0 the full trial was recorded (``complete=True``); 3 incomplete (Ctrl-C /
 SIGTERM, device unplugged, no data, disk full or a failed write: everything written so
-far is stored, readable, ``complete=False``); 2 configuration or port error, or too little
-room for the baseline and the first second (nothing recorded); 1 unexpected error.
+far is stored, readable, ``complete=False``); 2 configuration or port error (trial
+attributes the raw format's validator rejects, a port held by another recorder, too
+little room for the baseline and the first second: nothing recorded), or a packet rate
+in the first second that does not match ``fs_tactile`` (stopped, ``complete=False``,
+``stop_reason=rate_mismatch``); 1 unexpected error.
 """
 
 from __future__ import annotations
@@ -130,6 +133,7 @@ def run(cfg: DictConfig) -> int:
     from embodied_tactile.acquisition.protocol import DeviceMap, PlausibilityConfig
     from embodied_tactile.acquisition.recorder import (
         EXIT_CONFIG,
+        PortBusy,
         Recorder,
         RecorderSettings,
         default_out,
@@ -137,7 +141,7 @@ def run(cfg: DictConfig) -> int:
         open_port,
         trial_file,
     )
-    from embodied_tactile.io.rawformat import IncrementalTrialWriter, trial_name
+    from embodied_tactile.io.rawformat import IncrementalTrialWriter, check_attrs, trial_name
 
     logging.getLogger("embodied_tactile").setLevel(str(cfg.get("log_level", "INFO")))
     # ---- configuration (exit 2 on any problem, nothing written)
@@ -146,12 +150,14 @@ def run(cfg: DictConfig) -> int:
             port=str(cfg.port), baud=int(cfg.baud), timeout=float(cfg.timeout), settle_s=float(cfg.settle_s),
             baseline_s=float(cfg.baseline_s), duration_s=float(cfg.duration_s), flush_s=float(cfg.flush_s),
             quiet_s=float(cfg.quiet_s), late_guard_s=float(cfg.late_guard_s), reserve_mb=float(cfg.reserve_mb),
+            declared_hz=float(cfg.fs_tactile), rate_check_s=float(cfg.get("rate_check_s", 1.0)),
         )
         device = DeviceMap.from_config(OmegaConf.to_container(cfg.device, resolve=True))
         plaus = PlausibilityConfig.from_config(OmegaConf.to_container(cfg.plausibility, resolve=True))
         pose = make_pose_source(cfg)
         attrs = make_trial_attrs(cfg, device.describe(), getattr(pose, "name", "none") if pose is not None else "none")
         out = trial_file(default_out(cfg.out), trial_name(attrs))
+        check_attrs(str(out), trial_name(attrs), attrs)  # what scan_raw would reject later, refused now
         pose_columns = getattr(pose, "columns", 6) if pose is not None else 0
         _check_not_recorded(out, default_out(cfg.out), trial_name(attrs))
         _check_room(out, settings, float(cfg.fs_tactile), float(cfg.fs_pose), pose_columns)
@@ -162,6 +168,9 @@ def run(cfg: DictConfig) -> int:
     # ---- port
     try:
         ser = open_port(settings.port, settings.baud, settings.timeout)
+    except PortBusy as exc:  # another recorder: refused before the line is touched
+        print(f"record: error: port {exc}", file=sys.stderr, flush=True)
+        return EXIT_CONFIG
     except Exception as exc:  # noqa: BLE001 - SerialException, ValueError (bad URL), OSError
         print(f"record: cannot open port {settings.port!r}: {exc}", file=sys.stderr, flush=True)
         return EXIT_CONFIG
@@ -203,6 +212,9 @@ def run(cfg: DictConfig) -> int:
     if res.garbage_reasons:
         msg += f"; garbage reasons {res.garbage_reasons}"
     print(f"record: {msg}", flush=True)
+    if res.message:  # stopped for a setting (rate_mismatch): the one line that says what to fix
+        print(f"record: error: {out}: trial '{writer.name}': {res.message} (the file is kept, complete=False)",
+              file=sys.stderr, flush=True)
     log.debug(msg)
     if res.status == "write_error":
         # The HDF5 library cannot close a file whose write failed and crashes when the

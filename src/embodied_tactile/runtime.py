@@ -85,6 +85,51 @@ def save_provenance(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
     )
 
 
+def data_identity(cache_files: Mapping[str, str | os.PathLike]) -> dict[str, Any]:
+    """What the run's data were: per field, the raw files and the digests of their stored
+    bytes and trial attributes that the preparation stage computed when it built or found
+    the cache (its root attrs ``sources`` / ``source_digests``; nothing is hashed again)."""
+    from embodied_tactile.data.cache import cache_info
+
+    out: dict[str, Any] = {}
+    for field, path in sorted(cache_files.items()):
+        info = cache_info(path)
+        out[field] = {"raw_files": [str(p) for p in info.get("sources", [])],
+                      "digests": list(info.get("source_digests", []))}
+    return out
+
+
+def data_changes(saved: Mapping[str, Any] | None, now: Mapping[str, Any]) -> list[str]:
+    """How the data differ from those a run was trained on (``provenance.json``
+    ``raw_data`` against :func:`data_identity` now): one line per raw file and field whose
+    digest differs, a field missing, or a different number of raw files. [] when the same."""
+    if not saved:
+        return []
+    out = []
+    for field in sorted(set(saved) | set(now)):
+        a, b = saved.get(field), now.get(field)
+        if a is None or b is None:
+            out.append(f"field {field}: {'not prepared now' if b is None else 'not in the training data'}")
+            continue
+        if len(a["digests"]) != len(b["digests"]):
+            out.append(f"field {field}: {len(a['digests'])} raw file(s) at training, {len(b['digests'])} now "
+                       f"({', '.join(b['raw_files'])})")
+            continue
+        for i, (da, db) in enumerate(zip(a["digests"], b["digests"])):
+            if da != db:
+                path = b["raw_files"][i] if i < len(b["raw_files"]) else "?"
+                out.append(f"{path}: its trials or their {field} data changed since training (digest {da[:12]} -> {db[:12]})")
+    return out
+
+
+def record_data_identity(run_dir: str | os.PathLike, cache_files: Mapping[str, str | os.PathLike]) -> None:
+    """Add :func:`data_identity` to ``provenance.json`` as ``raw_data``."""
+    path = Path(run_dir) / "provenance.json"
+    prov = json.loads(path.read_text()) if path.is_file() else {}
+    prov["raw_data"] = data_identity(cache_files)
+    write_json(path, prov)
+
+
 def peak_rss_bytes() -> int:
     """Peak resident memory of this process and its finished children (Linux: KiB units)."""
     own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -175,13 +220,14 @@ class _ContinuedExperimentWriter(ExperimentWriter):
     continues from) stay; later rows (training that a resume after a kill discards, or every
     row when the run starts afresh: ``resume_step=None``) move to ``metrics.discarded.csv``
     in the same folder, so the file never mixes two trainings and nothing is deleted. Rows
-    at ``resume_step`` itself that the resumed run logs again move there too (:meth:`save`)."""
+    at ``resume_step`` itself holding a metric that the resumed run logs again move there
+    too (:meth:`save`)."""
 
     DISCARDED_FILE = "metrics.discarded.csv"
 
     def __init__(self, log_dir: str, resume_step: int | None) -> None:
         self.resume_step = resume_step
-        self._first_save = True
+        self._old_at_resume = 0  # rows at resume_step kept from before this run (set by _check_log_dir_exists)
         super().__init__(log_dir=log_dir)
 
     def _discard(self, path: Path, keys: Sequence[str], dropped: Sequence[Mapping[str, str]], why: str) -> None:
@@ -191,24 +237,29 @@ class _ContinuedExperimentWriter(ExperimentWriter):
         log.warning("%s: %d row(s) %s moved to %s", path, len(dropped), why, old)
 
     def save(self) -> None:
-        """On the first save of a resumed run, a kept row at the resume step whose metrics
-        this run logs again at that step (training after the checkpoint was written, e.g.
-        the first step's loss) moves to ``metrics.discarded.csv``: one row per step and
-        metric."""
+        """A kept row at the resume step (written before this run started) holding a metric
+        that this run logs again at that step (training after the checkpoint was written:
+        the next epoch's first step, its learning rate) moves to ``metrics.discarded.csv``
+        before the new rows are written, at whichever save they come: one row per step and
+        metric. (Lightning saves after every ``log_metrics`` call.)"""
         path = Path(self.metrics_file_path)
-        if self._first_save and self.resume_step is not None and self.metrics and path.is_file():
-            again = {k for m in self.metrics if m.get("step") == self.resume_step for k in m} - {"step", "epoch"}
+        if self._old_at_resume and self.metrics and path.is_file():
+            again = {k for m in self.metrics if m.get("step") == self.resume_step
+                     for k, v in m.items() if v is not None} - {"step", "epoch"}
             if again:
                 keys, rows = _read_csv(path)
-
-                def stale(r: Mapping[str, str]) -> bool:
-                    return _row_step(r) == self.resume_step and bool(again & {k for k, v in r.items() if v not in ("", None)})
-
-                dropped = [r for r in rows if stale(r)]
+                seen, keep, dropped = 0, [], []
+                for r in rows:
+                    if _row_step(r) == self.resume_step and seen < self._old_at_resume:
+                        seen += 1
+                        if again & {k for k, v in r.items() if v not in ("", None)}:
+                            dropped.append(r)
+                            continue
+                    keep.append(r)
                 if dropped:
                     self._discard(path, keys, dropped, f"at step {self.resume_step} that this run logs again")
-                    _write_csv(path, keys, [r for r in rows if not stale(r)])
-        self._first_save = False
+                    _write_csv(path, keys, keep)
+                    self._old_at_resume -= len(dropped)
         super().save()
 
     def _check_log_dir_exists(self) -> None:  # called by the base __init__ instead of deleting
@@ -227,6 +278,7 @@ class _ContinuedExperimentWriter(ExperimentWriter):
             if dropped:
                 _write_csv(path, keys, kept)
             self.metrics_keys = sorted(keys)
+            self._old_at_resume = sum(_row_step(r) == self.resume_step for r in kept)
         else:
             path.unlink()  # its rows are in metrics.discarded.csv
 

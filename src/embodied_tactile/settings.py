@@ -151,6 +151,7 @@ SCHEMA: dict[str, Spec] = {
     "data.test_fraction": Spec(("float",), lo=0, hi=1, lo_open=True, hi_open=True),
     "data.val_fraction": Spec(("float",), lo=0, hi=1, hi_open=True),
     "data.sim_workers": INT1,
+    "data.allow_large_population": FLAG,
     "data.n_objects": INT1,
     "data.n_val_objects": INT1,
     "data.n_test_objects": INT1,
@@ -200,10 +201,31 @@ def check_train_config(cfg: DictConfig) -> None:
         present, v = _get(cfg, key)
         if present and not spec.accepts(v):
             raise SettingsError(f"{key}={v!r} ({type(v).__name__}): expected {spec.describe()}")
+    _check_population(cfg)
     for a, b, ok, rule in PAIRS:
         (has_a, va), (has_b, vb) = _get(cfg, a), _get(cfg, b)
         if has_a and has_b and va is not None and vb is not None and not ok(va, vb):
             raise SettingsError(f"{a}={va!r} and {b}={vb!r}: expected {rule}")
+
+
+def _check_population(cfg: DictConfig) -> None:
+    """A population scene larger than ``prepare.POPULATION_MAX_TRIALS`` trials needs
+    ``data.allow_large_population=true``: SettingsError with its disk and time estimate."""
+    present, objects = _get(cfg, "data.objects")
+    if not present or objects != "population":
+        return
+    from embodied_tactile import constants as C
+    from embodied_tactile.data.prepare import check_population_size, fields_for_channels
+
+    get = lambda key, default: (lambda p: p[1] if p[0] and p[1] is not None else default)(_get(cfg, key))  # noqa: E731
+    actions = get("data.actions", None)
+    try:
+        check_population_size(int(get("data.n_objects", 256)), int(get("data.n_val_objects", 32)),
+                              int(get("data.n_test_objects", 64)), C.N_ACTIONS if actions is None else len(actions),
+                              int(get("data.repetitions", 1)), fields_for_channels(get("data.channels", ["acc"])),
+                              int(get("data.sim_workers", 2)), bool(get("data.allow_large_population", False)))
+    except ValueError as err:
+        raise SettingsError(str(err)) from None
 
 
 def check_writable_dir(key: str, value: Any) -> Path:
@@ -256,6 +278,12 @@ class EntryCallback(_HydraCallback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, "hydra.run.dir")
+        from .runfolder import claim_at_entry  # the folder's lock and resume check, before Hydra writes into it
+
+        try:
+            claim_at_entry(config)
+        except SettingsError as err:
+            fail(err)
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, "hydra.sweep.dir")

@@ -55,7 +55,7 @@ from embodied_tactile.acquisition.protocol import (
     PlausibilityConfig,
     decode_packets,
 )
-from embodied_tactile.io.rawformat import IncrementalTrialWriter
+from embodied_tactile.io.rawformat import IncrementalTrialWriter, rate_problem
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +106,8 @@ class RecorderSettings:
     late_guard_s: float = 0.1  # drain window after a timeout (a late answer must land in it)
     max_drain_s: float = 2.0  # a line that never goes quiet is treated as a fault
     reserve_mb: float = 64.0  # stop the trial (disk_full) before less than this would stay writable
+    declared_hz: float | None = None  # the trial's fs_tactile: the packet rate of the first rate_check_s is checked against it
+    rate_check_s: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0 < self.flush_s <= 1.0:
@@ -122,7 +124,7 @@ class RecorderSettings:
 
 @dataclass
 class RecordResult:
-    status: str  # complete | interrupted | unplugged | no_data | disk_full | write_error
+    status: str  # complete | interrupted | unplugged | no_data | disk_full | write_error | rate_mismatch
     n_trial: int = 0
     n_baseline: int = 0
     n_pose: int = 0
@@ -139,8 +141,12 @@ class RecordResult:
     trial: str = ""
     unwritten: int = 0  # packets received but not written (disk_full / write_error)
 
+    message: str = ""  # why the trial stopped early, when it did not end by itself (rate_mismatch)
+
     @property
     def exit_code(self) -> int:
+        if self.status == "rate_mismatch":  # the board or the config is wrong: a setting, not a lost recording
+            return EXIT_CONFIG
         return EXIT_COMPLETE if self.status == "complete" else EXIT_INCOMPLETE
 
     def summary(self) -> str:
@@ -154,6 +160,10 @@ class RecordResult:
 
 
 class _Unplugged(Exception):
+    pass
+
+
+class _RateMismatch(Exception):
     pass
 
 
@@ -204,6 +214,8 @@ class Recorder:
         self._t0 = 0.0
         self._last_t: float | None = None
         self._pose_last = -np.inf
+        self._rate_checked = settings.declared_hz is None
+        self._rate_t: list[float] = []  # host receipt times of the packets of the first rate_check_s
 
     # ------------------------------------------------------------------ serial helpers
     def _in_waiting(self) -> int:
@@ -358,10 +370,26 @@ class Recorder:
             self.pose.start(self._t0, wall0)
         self.on_phase("trial")
 
+    def _check_rate(self, t_poll0: float, now: float) -> None:
+        """After ``rate_check_s`` of polling: the host timestamps of the packets committed so
+        far against the declared rate, by the raw format's own rule
+        (:func:`~embodied_tactile.io.rawformat.rate_problem`): a trial stopped here is one
+        that ``scan_raw`` would reject later. _RateMismatch naming both rates."""
+        self._rate_checked = True
+        t = np.asarray(self._rate_t)
+        self._rate_t = []
+        if t.size < 3:
+            return  # nothing arrived: the trial ends as no_data / unplugged on its own
+        problem = rate_problem(t, float(self.s.declared_hz))
+        if problem:
+            raise _RateMismatch(f"in the first {now - t_poll0:.1f} s the packets' {problem.format(key='fs_tactile')}: "
+                                "set fs_tactile to the board's rate or fix its firmware")
+
     def _loop(self, t_end: float) -> bool:
         """Poll until ``t_end`` (perf_counter). Returns False if stopped early."""
         pending: tuple[bytes, float] | None = None
         next_flush = time.perf_counter() + self.s.flush_s
+        t_poll0 = time.perf_counter()
         while True:
             # commit the previous packet only if nothing is waiting: the pairing held
             if self._in_waiting():
@@ -373,6 +401,8 @@ class Recorder:
                 self._commit(*pending)
                 pending = None
             now = time.perf_counter()
+            if not self._rate_checked and now - t_poll0 >= self.s.rate_check_s:
+                self._check_rate(t_poll0, now)
             if self._phase == "baseline" and now >= self._t0:
                 self._start_trial()
             if now >= next_flush:
@@ -383,10 +413,12 @@ class Recorder:
             if now >= t_end:
                 return True
             pending = self._poll_once()
+            if pending is not None and not self._rate_checked:
+                self._rate_t.append(pending[1])
 
     def run(self) -> RecordResult:
         s = self.s
-        status = "complete"
+        status, message = "complete", ""
         cpu0 = time.process_time()
         t_start = time.perf_counter()
         try:
@@ -408,6 +440,9 @@ class Recorder:
         except _StorageStop as exc:
             log.error("trial stopped: %s", exc)
             status = exc.reason
+        except _RateMismatch as exc:
+            log.error("trial stopped: %s", exc)
+            status, message = "rate_mismatch", str(exc)
         finally:
             try:
                 self._flush()
@@ -442,15 +477,31 @@ class Recorder:
             trial=self.writer.name,
             wall_s=time.perf_counter() - t_start,
             unwritten=self._unwritten,
+            message=message,
         )
         return res
 
 
+class PortBusy(OSError):
+    """The serial port is held by another program (another recorder)."""
+
+
 def open_port(url: str, baud: int, timeout: float):
-    """Open a device path or pyserial URL (``loop://``, ``socket://host:port``, a pty path)."""
+    """Open a device path or pyserial URL (``loop://``, ``socket://host:port``, a pty path).
+    A device path is opened exclusively (an advisory ``flock`` that every recorder takes):
+    while one recorder holds it, another one gets :class:`PortBusy` and never touches the
+    line, so the running trial goes on undisturbed."""
     import serial  # noqa: PLC0415
 
-    return serial.serial_for_url(url, baudrate=baud, timeout=timeout, write_timeout=max(1.0, timeout))
+    kw = dict(baudrate=baud, timeout=timeout, write_timeout=max(1.0, timeout))
+    if "://" not in str(url):
+        kw["exclusive"] = True
+    try:
+        return serial.serial_for_url(url, **kw)
+    except serial.SerialException as exc:
+        if "exclusively lock" in str(exc):
+            raise PortBusy(f"{url} is in use by another program (a recorder still running?): {exc}") from None
+        raise
 
 
 def finish(writer: IncrementalTrialWriter, res: RecordResult, extra_attrs: dict[str, Any] | None = None) -> None:

@@ -39,6 +39,7 @@ import mmap
 import multiprocessing as mp
 import os
 import uuid
+import zlib
 from pathlib import Path
 from typing import Any, BinaryIO, Iterable, Iterator, Sequence
 
@@ -52,6 +53,7 @@ from embodied_tactile.data.preprocess import (
     PreprocessConfig,
     output_shape,
     preprocess_trials,
+    time_problems,
 )
 from embodied_tactile.io import rawformat
 from embodied_tactile.jsonio import to_jsonable
@@ -61,7 +63,7 @@ from embodied_tactile.io.rawformat import TrialFormatError
 log = logging.getLogger(__name__)
 
 CACHE_FORMAT = "embodied-tactile-preprocessed"
-CACHE_FORMAT_VERSION = 1
+CACHE_FORMAT_VERSION = 2  # 2: a crc32 of each cached array (dataset attr ``crc32``), checked once per preparation
 
 
 # ============================================================================ fingerprints
@@ -241,11 +243,22 @@ def _process_chunk(task: tuple) -> tuple[list, list]:
         fh = rawformat.open_raw(path)
     except TrialFormatError as exc:  # the file went away or broke since the scan
         return [], [_err(exc.file, name, "*", f"{exc.field}: {exc.problem}") for name in names]
+    long: list[str] = []
+
+    def add(tr, flds) -> None:  # the fields the trial's time coverage allows (time_problems)
+        probs, seconds = time_problems(tr, cfg, flds)
+        errors.extend(_err(path, tr.name, f, p) for f, p in probs.items())
+        keep = tuple(f for f in flds if f not in probs)
+        if keep:
+            groups.setdefault(keep, []).append(tr)
+            if seconds is not None:
+                long.append(f"{tr.name} ({seconds:.3g} s)")
+
     with fh:
         for name, at in zip(names, attrs):
             try:
                 tr = rawformat.read_trial(path, name, fields=raw_union, attrs=at, file=fh)
-                groups.setdefault(tuple(fields), []).append(tr)
+                add(tr, tuple(fields))
                 continue
             except TrialFormatError as exc:
                 first = exc
@@ -262,7 +275,10 @@ def _process_chunk(task: tuple) -> tuple[list, list]:
             if not ok and not errors:
                 errors.append(_err(first.file, first.trial, "*", f"{first.field}: {first.problem}"))
             if ok and tr is not None:
-                groups.setdefault(tuple(ok), []).append(tr)
+                add(tr, tuple(ok))
+    if long:
+        log.warning("%s: %d trial(s) longer than the scene's %g s window are cut to it: %s%s", path, len(long),
+                    cfg.duration, ", ".join(long[:3]), " ..." if len(long) > 3 else "")
     for flds, trials in groups.items():
         try:
             out = preprocess_trials(trials, cfg, flds)
@@ -494,7 +510,7 @@ def build_cache(
                         if arr is None:
                             arr = _slot_array(slot, slot_bytes, pos, trial_bytes, *layout[f])
                         g = files[f]["trials"].create_group(name)  # names are unique: scan_raw checked
-                        g.create_dataset(f, data=arr, compression=compression)
+                        g.create_dataset(f, data=arr, compression=compression).attrs["crc32"] = _crc(arr)
                         _write_attrs(g, trial_attrs)
                         counts[f] += 1
             for f, h in files.items():
@@ -523,6 +539,31 @@ def build_cache(
                 if tmp[f].exists():
                     tmp[f].unlink()
     return targets
+
+
+# ============================================================================ checksums
+def _crc(arr: np.ndarray) -> int:
+    return zlib.crc32(memoryview(np.ascontiguousarray(arr)).cast("B"))
+
+
+def verify_cache(path: str | os.PathLike) -> list[str]:
+    """The ``<trial>/<field>`` arrays of a cache file whose crc32 does not match the one
+    stored when it was written (or that cannot be read); [] when every array is intact. Reads
+    the whole file once (the preparation stage runs it once per run, not per step)."""
+    bad: list[str] = []
+    try:
+        with h5py.File(path, "r") as f:
+            for name, g in f["trials"].items():
+                for fld, ds in g.items():
+                    try:
+                        ok = int(ds.attrs["crc32"]) == _crc(ds[()])
+                    except (OSError, KeyError, RuntimeError, ValueError):
+                        ok = False
+                    if not ok:
+                        bad.append(f"{name}/{fld}")
+    except (OSError, KeyError, RuntimeError) as exc:
+        return [f"*: unreadable ({exc})"]
+    return bad
 
 
 # ============================================================================ reading

@@ -304,6 +304,8 @@ class TactileDataModule(L.LightningDataModule):
         strict: a bad raw trial is fatal instead of skipped.
         include_incomplete: also use recordings marked ``complete=False`` (interrupted);
             by default they are left out and counted in a warning.
+        allow_large_population: prepare a population scene of more than
+            ``prepare.POPULATION_MAX_TRIALS`` trials (refused otherwise, with its estimate).
     """
 
     def __init__(
@@ -339,6 +341,7 @@ class TactileDataModule(L.LightningDataModule):
         windows_per_epoch: int | None = None,
         strict: bool = False,
         include_incomplete: bool = False,
+        allow_large_population: bool = False,
         pin_memory: bool = False,
     ):
         super().__init__()
@@ -349,6 +352,7 @@ class TactileDataModule(L.LightningDataModule):
             n_test_objects=n_test_objects, population_seed=population_seed, actions=actions, repetitions=repetitions,
             sim_seed=sim_seed, sim_workers=sim_workers, preprocess=preprocess or {},
             preprocess_workers=preprocess_workers, strict=strict, include_incomplete=include_incomplete,
+            allow_large_population=allow_large_population,
         )
         self.source = source
         self.skin = skin

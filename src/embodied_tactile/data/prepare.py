@@ -40,6 +40,38 @@ log = logging.getLogger(__name__)
 #: ``data.objects`` value of the simulated object population (``sim.population``)
 POPULATION = "population"
 
+#: A population scene with more trials than this ((training + validation + test objects) x
+#: actions x repetitions) is refused unless ``allow_large_population`` is set: its
+#: estimate is printed first (docs/simulator.md, "Object population").
+POPULATION_MAX_TRIALS = 10_000
+#: Estimates per trial (docs/experiments/population_scene_cost.md; docs/data_format.md):
+#: raw file 3.4 MB, each cached field (acc, fsr) 0.94 MB, 0.41 CPU s of simulation and
+#: preprocessing.
+RAW_MB_PER_TRIAL = 3.4
+CACHE_MB_PER_FIELD = 0.94
+CPU_S_PER_TRIAL = 0.41
+
+
+def population_estimate(n_objects: int, n_val: int, n_test: int, n_actions: int, repetitions: int,
+                        fields: Sequence[str], workers: int) -> tuple[int, float, float]:
+    """``(trials, disk GB, wall hours)`` of preparing a population scene from scratch."""
+    trials = (int(n_objects) + int(n_val) + int(n_test)) * int(n_actions) * int(repetitions)
+    mb = trials * (RAW_MB_PER_TRIAL + CACHE_MB_PER_FIELD * sum(f != "actions" for f in fields))
+    return trials, mb / 1e3, trials * CPU_S_PER_TRIAL / max(1, int(workers)) / 3600
+
+
+def check_population_size(n_objects: int, n_val: int, n_test: int, n_actions: int, repetitions: int,
+                          fields: Sequence[str], workers: int, allow: bool) -> None:
+    """ValueError with the estimate when the population has more than POPULATION_MAX_TRIALS
+    trials and ``allow`` is false."""
+    trials, gb, hours = population_estimate(n_objects, n_val, n_test, n_actions, repetitions, fields, workers)
+    if trials > POPULATION_MAX_TRIALS and not allow:
+        raise ValueError(
+            f"data.n_objects={n_objects}: the population scene has {trials:,} trials ({n_objects} + {n_val} + {n_test} "
+            f"objects x {n_actions} action(s) x {repetitions}), more than the {POPULATION_MAX_TRIALS:,} allowed "
+            f"without data.allow_large_population=true; preparing it takes about {gb:,.0f} GB of disk and "
+            f"{hours:,.1f} h with {workers} worker(s)")
+
 
 @contextlib.contextmanager
 def data_dir_lock(data_dir: Path) -> Iterator[None]:
@@ -107,6 +139,7 @@ class Scene:
     preprocess_workers: int = field(default=2, compare=False)
     strict: bool = False
     include_incomplete: bool = False
+    allow_large_population: bool = field(default=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.source not in C.SOURCES:
@@ -127,6 +160,9 @@ class Scene:
                     raise ValueError(f"{k} must be an integer >= 1, got {getattr(self, k)!r}")
             if isinstance(self.population_seed, bool) or not isinstance(self.population_seed, int) or self.population_seed < 0:
                 raise ValueError(f"population_seed must be an integer >= 0, got {self.population_seed!r}")
+            check_population_size(self.n_objects, self.n_val_objects, self.n_test_objects,
+                                  C.N_ACTIONS if self.actions is None else len(self.actions), self.repetitions,
+                                  fields_for_channels(self.channels), self.sim_workers, self.allow_large_population)
         norm = {
             "data_dir": str(self.data_dir),
             "raw_files": tuple(str(f) for f in (self.raw_files or ())),
@@ -186,7 +222,9 @@ class Scene:
     def raw_paths(self) -> list[Path]:
         """The raw files. Recorded: each ``raw_files`` entry is a path or a glob pattern
         (``*``, ``?``, ``[...]``, ``**``), absolute, ``~`` or relative to the working
-        directory; matches sorted, each file once, as absolute paths. A pattern that matches
+        directory; matches sorted, each file once, as absolute paths. An entry naming an
+        existing file is that file, even with glob characters in its path (``x [1]/a.h5``;
+        ``glob.escape`` writes a pattern for such a folder). A pattern that matches
         nothing, or a path that does not exist, is an error naming it. Simulated:
         ``raw/<skin>_<primitive>.h5`` for simulator seed 0, ``raw/<skin>_<primitive>_sim<seed>.h5``
         for another (one file per simulated dataset: the trial names do not hold the seed)."""
@@ -197,7 +235,9 @@ class Scene:
         paths: list[str] = []
         for pattern in self.raw_files:
             expanded = os.path.expanduser(str(pattern))
-            if glob.has_magic(expanded):
+            if os.path.isfile(expanded):  # an existing file is taken literally, '[', '*' or '?' in its path or not
+                matches = [expanded]
+            elif glob.has_magic(expanded):
                 matches = sorted(p for p in glob.glob(expanded, recursive=True) if os.path.isfile(p))
                 if not matches:
                     raise FileNotFoundError(f"data.raw_files pattern {pattern!r} matches no file (cwd {os.getcwd()})")
@@ -268,7 +308,7 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
 
     ``simulate=False`` (a DDP rank whose rank 0 prepared the scene) only finds the caches:
     their keys are deterministic, so nothing is recomputed when they exist."""
-    from embodied_tactile.data.cache import build_cache
+    from embodied_tactile.data.cache import build_cache, verify_cache
 
     with data_dir_lock(Path(scene.data_dir)):
         simulated = 0
@@ -293,14 +333,33 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
         existing = set(scene.cache_dir.glob("*.h5")) if scene.cache_dir.exists() else set()
         files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=tuple(scene.fields),
                             workers=scene.preprocess_workers, strict=scene.strict)
+        # a cache found (not built now) is checked once per preparation: each array against its crc32
+        damaged = {fld: bad for fld, path in files.items() if Path(path) in existing and (bad := verify_cache(path))}
+        if damaged:  # set the damaged files aside (kept) and rebuild those fields from the raw files
+            for fld, bad in damaged.items():
+                aside = _set_aside(Path(files[fld]))
+                log.warning("%s: %d cached array(s) fail their checksum (e.g. %s); moved to %s, rebuilding %s from "
+                            "the raw files", files[fld], len(bad), ", ".join(bad[:3]), aside.name, fld)
+            files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=tuple(scene.fields),
+                                workers=scene.preprocess_workers, strict=scene.strict)
     cache_files = {k: str(v) for k, v in files.items()}
-    trials, skipped, incomplete = list_trials(scene, cache_files)
+    trials, skipped, incomplete = list_trials(scene, cache_files, raw_paths)
     return PreparedData(scene=scene, raw_files=raw_paths, cache_files=cache_files, trials=trials, skipped=skipped,
                         excluded_incomplete=incomplete, simulated=simulated,
                         cache_built=[k for k, v in files.items() if Path(v) not in existing])
 
 
-def list_trials(scene: Scene, cache_files: Mapping[str, str]
+def _set_aside(path: Path) -> Path:
+    """Rename a damaged cache file to ``<name>.corrupt`` (``-1``, ``-2``... when taken)."""
+    target, n = path.with_name(path.name + ".corrupt"), 0
+    while target.exists():
+        n += 1
+        target = path.with_name(f"{path.name}.corrupt-{n}")
+    path.rename(target)
+    return target
+
+
+def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequence[str] | None = None
                 ) -> tuple[list[TrialRef], list[dict[str, str]], list[str]]:
     """Trials present in every needed cache and matching the scene.
 
@@ -314,15 +373,29 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str]
     per_field: list[dict[str, dict[str, Any]]] = []
     for fld in fields:
         with h5py.File(cache_files[fld], "r") as f:
+            # the raw files a cache was built from, by position, are the ones it stands for now:
+            # its key holds their digests in that order (a copied or moved data folder keeps its
+            # caches; only the paths stored in them are old)
+            try:
+                built_from = [os.path.abspath(p) for p in json.loads(f.attrs.get("sources", "[]"))]
+            except (TypeError, ValueError):
+                built_from = []
+            now = [os.path.abspath(p) for p in raw_paths] if raw_paths is not None else built_from
+            moved = dict(zip(built_from, now)) if len(built_from) == len(now) else {}
             entries = {}
             for name, g in f["trials"].items():
                 entries[name] = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in g.attrs.items()}
+                src = os.path.abspath(str(entries[name].get("source_file")))
+                entries[name]["source_file"] = moved.get(src, src)
             per_field.append(entries)
             try:
                 listed = json.loads(f.attrs.get("skipped", "[]"))
             except (TypeError, ValueError):
                 listed = []
             for entry in listed:  # a trial rejected at scan time is listed by every field's cache
+                if entry.get("file") is not None:
+                    f_abs = os.path.abspath(str(entry["file"]))
+                    entry = {**entry, "file": moved.get(f_abs, entry["file"])}
                 if entry not in skipped:
                     skipped.append(entry)
     names = _whole_trials(fields, per_field, cache_files, skipped)

@@ -37,7 +37,20 @@ from embodied_tactile.io.rawformat import RawTrial
 #: Bump when the numbers this module produces change for the same config and raw data;
 #: part of every cache key (``data.cache``). 2: the accelerometer path runs in float32
 #: (resampling as a block matrix product, STFT, mel), values within 1e-5 of version 1.
-PREPROCESS_VERSION = 2
+PREPROCESS_VERSION = 3
+#: 3: a trial whose tactile clock covers less than MIN_SPAN_FRACTION of the frame grid, or
+#: whose pose log leaves more than the allowed gap of that span, is skipped (listed in the
+#: cache's ``skipped``, file and trial named) instead of padded with its edge values.
+
+#: A trial must cover at least this fraction of the scene's window (n_frames / frame_rate);
+#: a shorter one is skipped. One longer than the window by more than LONG_FRACTION is cut to
+#: the window with a warning (the first window of it is used, as always).
+MIN_SPAN_FRACTION = 0.9
+LONG_FRACTION = 0.05
+#: The pose log may leave at most max(POSE_GAP_MIN_S, POSE_GAP_FRACTION x window) of the
+#: used tactile span uncovered (before its first or after its last sample).
+POSE_GAP_MIN_S = 0.5
+POSE_GAP_FRACTION = 0.05
 
 FIELDS = ("acc", "fsr", "actions")
 #: How the three accelerometer axes become one spectrum per sensor (PreprocessConfig.acc_combine).
@@ -510,6 +523,36 @@ def pose_actions(trial: RawTrial, cfg: PreprocessConfig) -> np.ndarray:
     out[:, :3] *= cfg.pose_pos_scale
     out[:, 3:] *= cfg.pose_ang_scale
     return out.astype(np.float32)
+
+
+# ============================================================================ time coverage
+def time_problems(trial: RawTrial, cfg: PreprocessConfig, fields: Iterable[str]) -> tuple[dict[str, str], float | None]:
+    """``({field: problem}, seconds)``: the fields of ``fields`` that cannot be computed
+    because the trial is much shorter than the window (every field) or its pose log does
+    not cover the tactile span (``actions``); ``seconds`` is the trial's length when it is
+    longer than the window by more than LONG_FRACTION (cut to it), else None."""
+    fields = tuple(fields)
+    window = cfg.duration
+    t = np.asarray(trial.t, dtype=np.float64) if trial.t is not None else np.empty(0)
+    if t.size < 2:
+        return {}, None
+    fs = float(trial.attrs.get("fs_tactile", C.FS_TACTILE))
+    covered = float(t[-1] - t[0]) + 1.0 / fs  # N samples at fs cover N / fs seconds
+    if covered < MIN_SPAN_FRACTION * window:
+        why = (f"tactile/t: the recording covers {covered:.3g} s, the scene's window is {window:g} s "
+               f"(n_frames / frame_rate; at least {MIN_SPAN_FRACTION:.0%} needed)")
+        return {f: why for f in fields}, None
+    out: dict[str, str] = {}
+    if "actions" in fields and trial.pose_t is not None and len(trial.pose_t):
+        pt = np.asarray(trial.pose_t, dtype=np.float64)
+        end = float(t[0]) + min(covered, window)
+        fs_pose = float(trial.attrs.get("fs_pose", C.FS_POSE))
+        gap = max(0.0, float(pt[0]) - float(t[0])) + max(0.0, end - float(pt[-1]) - 1.0 / fs_pose)
+        allowed = max(POSE_GAP_MIN_S, POSE_GAP_FRACTION * window)
+        if gap > allowed:
+            out["actions"] = (f"pose/t: the pose log covers {pt[0] - t[0]:.3g} .. {pt[-1] - t[0]:.3g} s of the tactile "
+                              f"span 0 .. {end - t[0]:.3g} s ({gap:.3g} s uncovered, at most {allowed:.3g} s allowed)")
+    return out, (covered if covered > window * (1 + LONG_FRACTION) else None)
 
 
 # ============================================================================ entry points

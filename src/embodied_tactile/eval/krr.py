@@ -150,6 +150,39 @@ class Alignment:
         return (out * self.y_scale + self.y_mean).reshape(n, t, -1)
 
 
+class FactorwiseAlignment:
+    """Alignments of groups of factor columns, each fitted on the sequences where those
+    factors are known (a factor NaN on some sequences leaves only that factor's alignment
+    without them); a column known on fewer than 2 sequences is predicted NaN. Same
+    interface as :class:`Alignment`; ``params`` are the first fitted part's, with every
+    part under ``parts``."""
+
+    def __init__(self, parts: list[tuple[list[int], "Alignment | None"]], n_factors: int,
+                 train_ids: frozenset | None = None) -> None:
+        self.parts = parts
+        self.n_factors = n_factors
+        self.train_ids = train_ids
+        fitted = [(cols, a) for cols, a in parts if a is not None]
+        if not fitted:
+            raise ValueError("fit_alignment needs at least 2 training rows with finite factors")
+        self.params = {**fitted[0][1].params, "method": fitted[0][1].params["method"],
+                       "parts": [{"factor_columns": cols, **(a.params if a is not None else {"left_out": True})}
+                                 for cols, a in parts]}
+
+    def predict(self, latents, ids=None, *, chunk_rows: int = 16384) -> np.ndarray:
+        if ids is not None and self.train_ids is not None:
+            assert_disjoint(list(self.train_ids), ids)
+        out = None
+        for cols, a in self.parts:
+            if a is None:
+                continue
+            p = a.predict(latents, chunk_rows=chunk_rows)
+            if out is None:
+                out = np.full((*p.shape[:2], self.n_factors), np.nan)
+            out[..., cols] = p
+        return out
+
+
 def fit_alignment(
     latents,
     factors,
@@ -191,6 +224,27 @@ def fit_alignment(
     n = lat.shape[0]
     if factors.shape[0] != n:
         raise ValueError(f"{n} latent sequences but {factors.shape[0]} factor rows")
+    known = np.isfinite(factors)
+    by_mask: dict[bytes, list[int]] = {}
+    for k in range(factors.shape[1]):
+        by_mask.setdefault(known[:, k].tobytes(), []).append(k)
+    if len(by_mask) > 1:  # factors unknown (NaN) on different sequences: one alignment per pattern
+        kw = dict(final_segment=final_segment, reduce=reduce, frames_per_sequence=frames_per_sequence, cv=cv,
+                  alphas=alphas, gammas=gammas, nystroem_threshold=nystroem_threshold, n_components=n_components,
+                  seed=seed, n_threads=None)
+        parts: list[tuple[list[int], Alignment | None]] = []
+        for cols in by_mask.values():
+            mask = known[:, cols[0]]
+            if mask.sum() < 2:
+                warnings.warn(f"fit_alignment: factor column(s) {cols} known on {int(mask.sum())} sequence(s): "
+                              "left out (predicted NaN)", stacklevel=2)
+                parts.append((cols, None))
+                continue
+            parts.append((cols, fit_alignment(
+                lat[mask], factors[mask][:, cols], ids=None if ids is None else np.asarray(ids)[mask],
+                groups=None if groups is None else np.asarray(groups)[mask], **kw)))
+        return FactorwiseAlignment(parts, factors.shape[1],
+                                   frozenset(np.asarray(ids).tolist()) if ids is not None else None)
     if ids is not None and len(set(np.asarray(ids).tolist())) != n:
         raise ValueError("ids must be unique, one per training sequence")
     rows, seq = final_segment_rows(lat, final_segment=final_segment, reduce=reduce,

@@ -151,6 +151,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     from embodied_tactile.modality import Modality
     from embodied_tactile.eval.figures import read_history
     from embodied_tactile.eval.targets import encode_split
+    from embodied_tactile.runtime import data_changes, data_identity
 
     t_run = time.perf_counter()
     cfg = run.cfg
@@ -161,7 +162,23 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     if list(data["channels"]) != channels:
         raise EvaluationError(f"{run.run_dir}: data channels {list(data['channels'])} differ from the run's "
                               f"modality {modality} channels {channels}; the config was edited by hand")
-    key, dm = cache.get(data)
+    data_changed: list[str] = []
+
+    def same_data(dm) -> None:  # the raw data's digests now against those recorded at training
+        data_changed[:] = data_changes(read_json(run.run_dir / "provenance.json").get("raw_data"),
+                                       data_identity(dm.cache_files))
+        if data_changed and not opts.allow_changed_data:
+            raise EvaluationError(f"{run.run_dir}: the data differ from those it was trained on: "
+                                  f"{'; '.join(data_changed)}; the run's numbers would not be reproduced "
+                                  "(allow_changed_data=true scores it anyway, and says so)")
+
+    try:
+        key, dm = cache.get(data, check=same_data)
+    except EvaluationError:
+        raise
+    except (RuntimeError, ValueError, OSError) as err:  # e.g. split.json names trials the data no longer hold
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise EvaluationError(f"{run.run_dir}: cannot prepare its data: {first}") from None
     t_data = time.perf_counter()
 
     model = load_module(run)
@@ -217,8 +234,11 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
             "n_frames": int(te["obs"].shape[1]), "train_wall_s": train_s, "timings": timings,
             "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"), "targets": targets,
             "split": split, "held_out": opts.held_out,
+            "data_changed": data_changed,
             "training_final_alignment": compare_with_training(res, final_row, run.ckpt, align, opts.latent,
                                                               targets, split["kind"], opts.held_out)}
+    if data_changed:  # never "same sequences"
+        info["training_final_alignment"]["reasons"].insert(0, "the data changed since training: " + "; ".join(data_changed))
     del model
     return results, history, info
 

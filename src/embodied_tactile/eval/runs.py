@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import re
 import time
 from dataclasses import dataclass, field
@@ -38,35 +39,55 @@ class Run:
     name: str = ""
 
 
+def _readable(path: Path) -> str | None:
+    """None when ``path`` opens as a Lightning checkpoint, else the reason (cheap: the zip's
+    directory and the pickled header, tensors memory-mapped, not read)."""
+    import torch
+
+    try:
+        ck = torch.load(path, map_location="cpu", mmap=True, weights_only=False)
+    except Exception as err:  # noqa: BLE001 -- torch raises many kinds on damaged files
+        return f"unreadable ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
+    if not isinstance(ck, dict) or "state_dict" not in ck:
+        return "not a Lightning checkpoint (no state_dict)"
+    return None
+
+
 def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
-    """best: ``metrics.json`` best_checkpoint, else the newest ``checkpoints/best*.ckpt``;
-    last (or no best): ``checkpoints/last.ckpt``. Raises EvaluationError naming the folder."""
+    """A checkpoint of this run folder, always looked up inside ``<run_dir>/checkpoints``
+    (metrics.json's ``best_checkpoint`` gives only the file name: a copied or moved folder
+    never reads the original's files). best: that file, else the newest
+    ``checkpoints/best*.ckpt``, else ``last.ckpt``; last: ``checkpoints/last.ckpt``. A file
+    that does not open as a checkpoint (truncated, another format) is skipped with a
+    warning naming it; EvaluationError naming the folder (and the skipped files) when no
+    candidate is readable."""
     ck_dir = run_dir / "checkpoints"
     last = ck_dir / "last.ckpt"
+    cands: list[Path] = []
     if which == "best":
-        mpath = run_dir / "metrics.json"
-        if mpath.exists():
-            try:
-                best = json.loads(mpath.read_text()).get("best_checkpoint")
-            except ValueError:
-                best = None
-            if best:
-                p = Path(best)
-                cand = p if p.exists() else ck_dir / p.name  # the run folder may have moved
-                if cand.exists():
-                    return cand
-        bests = sorted(ck_dir.glob("best*.ckpt"), key=lambda p: (p.stat().st_mtime, p.name))
-        if bests:
-            return bests[-1]
-        if last.exists():
-            log.warning("%s: no best checkpoint, using %s", run_dir, last)
-            return last
-    elif last.exists():
-        return last
+        best = read_json(run_dir / "metrics.json").get("best_checkpoint")
+        if best:
+            cands.append(ck_dir / Path(str(best)).name)
+        bests = [p for p in ck_dir.glob("best*.ckpt") if p.is_file()] if ck_dir.is_dir() else []
+        cands += sorted(bests, key=lambda p: (p.stat().st_mtime, p.name), reverse=True)
+    cands.append(last)
+    bad: list[str] = []
+    for i, cand in enumerate(dict.fromkeys(cands)):
+        if not cand.is_file():
+            continue
+        why = _readable(cand)
+        if why:
+            bad.append(f"{cand}: {why}")
+            log.warning("%s: %s; trying the next checkpoint", cand, why)
+            continue
+        if which == "best" and cand == last and not cand.name.startswith("best"):
+            log.warning("%s: no readable best checkpoint, using %s", run_dir, last)
+        return cand
     have = sorted(p.name for p in ck_dir.glob("*.ckpt")) if ck_dir.is_dir() else []
     raise EvaluationError(
-        f"no {'checkpoint' if which == 'best' else 'last.ckpt'} in run folder {run_dir} "
-        f"(looked in {ck_dir}; found {have or 'nothing'}). Did training finish or get killed before its first epoch?")
+        f"no {'checkpoint' if which == 'best' else 'last.ckpt'} in run folder {run_dir} that can be read "
+        f"(looked in {ck_dir}; found {have or 'nothing'}{'; ' + '; '.join(bad) if bad else ''}). "
+        "Did training finish or get killed before its first epoch?")
 
 
 def load_module(run: Run):
@@ -79,9 +100,11 @@ def load_module(run: Run):
     cls = get_class(str(run.cfg.model._target_))
     try:
         model = cls.load_from_checkpoint(str(run.ckpt), map_location="cpu")
-    except RuntimeError as err:
-        if "state_dict" not in str(err):
-            raise
+    except Exception as err:  # noqa: BLE001 -- one line naming the file, whatever torch / Lightning raise
+        if not (isinstance(err, RuntimeError) and "state_dict" in str(err)):
+            first = str(err).splitlines()[0] if str(err) else ""
+            raise EvaluationError(f"{run.ckpt}: cannot load as the run's {cls.__name__} "
+                                  f"({type(err).__name__}: {first})") from None
         keys = re.findall(r'"([^"]+)"', str(err))
         commit = read_json(run.run_dir / "provenance.json").get("git_commit") or "unknown"
         raise EvaluationError(
@@ -124,7 +147,11 @@ def discover(target: Path, which: str) -> tuple[str, list[Run], list[tuple[Path,
     if target.is_file():
         if target.suffix != ".ckpt":
             raise EvaluationError(f"{target} is a file but not a checkpoint (*.ckpt)")
-        return "run", [load_run(target.resolve().parent.parent, which, ckpt=target.resolve())], []
+        why = _readable(target)
+        if why:
+            raise EvaluationError(f"{target}: {why}")
+        target = Path(os.path.abspath(target))  # absolute, symlinks not followed: the folder given is the run
+        return "run", [load_run(target.parent.parent, which, ckpt=target)], []
     if (target / "config_resolved.yaml").exists():
         return "run", [load_run(target, which)], []
     jobs = job_dirs(target)
@@ -172,6 +199,12 @@ def data_config(run: Run, opts: DictConfig) -> dict:
     if not split.exists():
         raise EvaluationError(f"{run.run_dir} has no split.json: the training/held-out split of this run is unknown, "
                               "so the alignment could be fitted on scored sequences; refusing to evaluate")
+    try:
+        side = json.loads(split.read_text())
+        if not isinstance(side, dict) or not isinstance(side.get("test"), list):
+            raise ValueError("no list of test trials")
+    except (OSError, ValueError) as err:
+        raise EvaluationError(f"{split}: not a split file written by train.py ({type(err).__name__}: {err})") from None
     train_cwd = training_cwd(run.run_dir)
     data["data_dir"] = _resolve_path(str(data.get("data_dir", "data")), train_cwd)
     if not Path(data["data_dir"]).exists():
@@ -203,16 +236,23 @@ class DataCache:
         d = {k: v for k, v in data.items() if k != "split_file"}
         return json.dumps([d, split.get("train"), split.get("val"), split.get("test")], sort_keys=True, default=str)
 
-    def get(self, data: dict):
+    def get(self, data: dict, check=None):
+        """``(key, DataModule)``; ``check(dm)``, when given, runs after the preparation stage
+        and before the saved split is loaded (it sees the caches, e.g. to compare the data
+        with the training's), also on a reused DataModule."""
         from hydra.utils import instantiate
 
         k = self.key(data)
         if k in self._dms:
             self.hits += 1
+            if check is not None:
+                check(self._dms[k])
             return k, self._dms[k]
         self.clear()  # free the previous scene before loading the next one
         dm = instantiate(OmegaConf.create(data), _convert_="all")
         dm.prepare_data()
+        if check is not None:
+            check(dm)
         dm.setup("fit")
         self._dms[k] = dm
         return k, dm

@@ -94,6 +94,18 @@ OPTIONAL_ATTRS: Mapping[str, type] = {
     "sim_physics_version": int,  # simulator: version of its physics (sim.physics.PHYSICS_VERSION); absent = 1
 }
 
+#: Documented ranges of the physical attributes (inclusive). The four factors may also be
+#: NaN (unknown: that factor is left out of that factor's alignment); infinite values and
+#: values outside these ranges are a format error. Heterogeneity is a class: 0 or 1.
+PHYSICAL_RANGES: Mapping[str, tuple[float, float]] = {
+    "spatial_frequency": (0.0, 1000.0),  # 1/m (catalogue and population: 10 .. 50)
+    "amplitude": (0.0, 100.0),           # mm peak-to-peak (5 .. 20)
+    "stiffness": (2.0, 11.0),            # log10 Pa of the bulk's Young's modulus (silicones ~4 .. 6, PLA 9.5)
+    "heterogeneity": (0.0, 1.0),         # 0 or 1
+}
+#: Sampling rates may not exceed this (Hz); they must be finite and positive.
+MAX_RATE_HZ = 100_000.0
+
 #: Clock field -> the attribute that declares its sampling rate.
 RATE_ATTRS: Mapping[str, str] = {"t": "fs_tactile", "baseline_t": "fs_tactile", "pose_t": "fs_pose"}
 #: A declared step 1 / fs is accepted within the quartiles of the timestamps' steps widened
@@ -376,8 +388,27 @@ def _check_attrs(file: str, name: str, attrs: Mapping[str, Any]) -> None:
     if not 0 <= int(attrs["action_index"]) < C.N_ACTIONS:
         raise TrialFormatError(file, name, "attrs/action_index", f"must be in 0..{C.N_ACTIONS - 1}")
     for key in ("fs_tactile", "fs_pose"):
-        if not float(attrs[key]) > 0:
-            raise TrialFormatError(file, name, f"attrs/{key}", "sampling rate must be positive")
+        if not 0 < float(attrs[key]) <= MAX_RATE_HZ:
+            raise TrialFormatError(file, name, f"attrs/{key}",
+                                   f"sampling rate {float(attrs[key])!r} Hz: must be finite, positive and <= {MAX_RATE_HZ:g}")
+    for key in ("object_id", "repetition"):
+        if int(attrs[key]) < 0:
+            raise TrialFormatError(file, name, f"attrs/{key}", f"must be >= 0, got {int(attrs[key])}")
+    for key, (lo, hi) in PHYSICAL_RANGES.items():
+        v = float(attrs[key])
+        if math.isnan(v):
+            continue  # unknown: allowed
+        if not lo <= v <= hi:
+            raise TrialFormatError(file, name, f"attrs/{key}", f"{v!r} outside the documented range [{lo:g}, {hi:g}] "
+                                   "(NaN if unknown; docs/data_format.md)")
+        if key == "heterogeneity" and v not in (0.0, 1.0):
+            raise TrialFormatError(file, name, f"attrs/{key}", f"{v!r}: must be 0 or 1 (NaN if unknown)")
+
+
+def check_attrs(file: str | os.PathLike, name: str, attrs: Mapping[str, Any]) -> None:
+    """The attribute checks of :func:`scan_raw` on one trial's attributes (the recorder runs
+    them before its first packet): TrialFormatError naming file, trial and attribute."""
+    _check_attrs(str(file), name, attrs)
 
 
 def _s(v: Any) -> str:
@@ -418,24 +449,29 @@ def _check_values(file: str, name: str, fld: str, data: np.ndarray) -> None:
         raise TrialFormatError(file, name, path, f"|acc| {float(np.abs(data).max()):.3g} g exceeds the +-{C.ACC_RANGE_G} g range")
 
 
-def _check_rate(file: str, name: str, fld: str, data: np.ndarray, attrs: Mapping[str, Any] | None) -> None:
-    """The rate declared for clock ``fld`` (``RATE_ATTRS``) against its timestamps: the
+def rate_problem(t: np.ndarray, declared: float) -> str | None:
+    """Why timestamps ``t`` do not fit the declared rate ``declared`` (Hz), or None: the
     declared step ``1 / fs`` must lie within the steps' interquartile range widened by
     ``RATE_TOLERANCE`` (regular timestamps: the median step within the tolerance; a polled
-    stream that arrives in bursts or with jitter: anywhere among its typical steps)."""
+    stream that arrives in bursts or with jitter: anywhere among its typical steps). The
+    recorder applies it to its first second, :func:`scan_raw` to the whole clock."""
+    q25, median, q75 = (float(v) for v in np.quantile(np.diff(np.asarray(t, dtype=np.float64)), [0.25, 0.5, 0.75]))
+    if q25 / (1 + RATE_TOLERANCE) <= 1.0 / declared <= q75 * (1 + RATE_TOLERANCE):
+        return None
+    shown = 1.0 / median if median > 0 else math.inf
+    return (f"timestamps show {shown:.4g} Hz (median step {median * 1e3:.4g} ms, quartiles {q25 * 1e3:.4g} to "
+            f"{q75 * 1e3:.4g} ms) but {{key}} declares {declared:g} Hz (a step of {1e3 / declared:.4g} ms; "
+            f"tolerance {RATE_TOLERANCE:.0%})")
+
+
+def _check_rate(file: str, name: str, fld: str, data: np.ndarray, attrs: Mapping[str, Any] | None) -> None:
+    """The rate declared for clock ``fld`` (``RATE_ATTRS``) against its timestamps (:func:`rate_problem`)."""
     key = RATE_ATTRS.get(fld)
     if key is None or attrs is None or key not in attrs or data.shape[0] < 2:
         return
-    declared = float(attrs[key])
-    q25, median, q75 = (float(v) for v in np.quantile(np.diff(data), [0.25, 0.5, 0.75]))
-    if not q25 / (1 + RATE_TOLERANCE) <= 1.0 / declared <= q75 * (1 + RATE_TOLERANCE):
-        shown = 1.0 / median if median > 0 else math.inf
-        raise TrialFormatError(
-            file, name, FIELDS[fld],
-            f"timestamps show {shown:.4g} Hz (median step {median * 1e3:.4g} ms, quartiles {q25 * 1e3:.4g} to "
-            f"{q75 * 1e3:.4g} ms) but attrs/{key} declares {declared:g} Hz (a step of {1e3 / declared:.4g} ms; "
-            f"tolerance {RATE_TOLERANCE:.0%}): fix {key} or the timestamps",
-        )
+    problem = rate_problem(data, float(attrs[key]))
+    if problem:
+        raise TrialFormatError(file, name, FIELDS[fld], problem.format(key=f"attrs/{key}") + f": fix {key} or the timestamps")
 
 
 def _check_lost(file: str, name: str, fld: str, data: np.ndarray, n: int | None) -> None:
