@@ -131,15 +131,21 @@ def test_train_ends_with_the_summary(tmp_path, fast_data_dir):
                           f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={run}"],
                          cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
-    tail = res.stdout.strip().splitlines()[-10:]
+    out = res.stdout.strip().splitlines()
+    start = out.index("run finished: run") - 1
+    tail, protocol = out[start:start + 10], out[start + 10:]
     hist = [json.loads(x) for x in (run / "krr_history.jsonl").read_text().splitlines()]
     assert tail[0].startswith("-----") and tail[-1].startswith("-----")
-    assert tail[1] == "run finished: run"
     assert f"overall {hist[-1]['nmse_overall']:.4g}" in tail[2]
     assert tail[3].startswith("  per factor: spatial freq. ")
     assert tail[4].startswith("training time: ")
     assert tail[5].startswith("checkpoint:    run/checkpoints/")
     assert tail[-2] == "next:          python evaluate.py run"
+    # then what the number means, closing the output
+    assert protocol[-1].startswith("-----") and "held-out trials of the training objects" in protocol[0]
+    assert protocol[2].split()[-2:] == [f"{hist[-1]['nmse_overall']:.4g}", f"{hist[-1]['nmse_last_overall']:.4g}"]
+    assert "untrained" in protocol[3] and "mean predictor" in protocol[4]
+    assert "measures recognition" in protocol[5] and protocol[6].startswith("Objects never touched: python train.py")
 
 
 def test_multirun_ends_with_its_folder_and_evaluate_command(tmp_path, fast_data_dir):
