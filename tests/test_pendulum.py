@@ -255,8 +255,8 @@ def test_remedies_are_config_switches(tmp_path):
     module = instantiate(cfg.model)
     net = next(m for m in module.modules() if type(m).__name__ == "LatentFilter")
     assert net.obs_dropout == 0.25 and net.config()["y_update"] == "evidence" and net.config()["y_evidence_max"] == 1
-    default = _compose_job([], tmp_path)
-    assert (default.model.net.obs_dropout, default.model.net.y_update) == (0.5, "evidence")  # the default recipe
+    filter_ = _compose_job(["recipe=filter"], tmp_path)  # the pendulum benchmark's recipe
+    assert (filter_.model.net.obs_dropout, filter_.model.net.y_update) == (0.5, "evidence")
     elbo = _compose_job(["recipe=elbo"], tmp_path)
     assert (elbo.model.net.obs_dropout, elbo.model.net.y_update) == (0.0, "direct")
 
@@ -283,5 +283,5 @@ def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):
     cfg = _compose_job(["model.net.prior.learn_embedding=true", "model.lr_schedule=cosine"], tmp_path)
     module = instantiate(cfg.model)
     assert module.lr_schedule == "cosine" and module.model.prior.learn_embedding
-    default = _compose_job([], tmp_path)
-    assert default.model.lr_schedule == "constant" and default.model.net.prior.learn_embedding is False
+    filter_ = _compose_job(["recipe=filter"], tmp_path)
+    assert filter_.model.lr_schedule == "constant" and filter_.model.net.prior.learn_embedding is False

@@ -282,9 +282,20 @@ def test_evaluation_skips_a_truncated_checkpoint(finished_run, tmp_path, caplog)
 @pytest.fixture()
 def evaluate_cli():
     sys.path.insert(0, str(REPO))
+    import logging
+
     import evaluate
 
-    return evaluate.main
+    def run(argv):
+        # a handler an earlier in-process run left on a stream pytest has since closed would
+        # print "--- Logging error ---" into this test's stderr: drop such handlers first
+        for logger in [logging.getLogger(), *logging.root.manager.loggerDict.values()]:
+            for h in list(getattr(logger, "handlers", [])):
+                if isinstance(h, logging.StreamHandler) and getattr(h.stream, "closed", False):
+                    logger.removeHandler(h)
+        return evaluate.main(argv)
+
+    return run
 
 
 EVAL_FAST = ["baselines=[mean]", "figures=false", "umap=false", "alignment.cv=2", "print_tables=false"]
