@@ -222,3 +222,22 @@ def test_swapping_y_between_objects_raises_the_target_error_of_a_trained_model()
     err_own = float(((own - target)[:, 1:] ** 2).mean())
     err_swap = float(((swapped - target)[:, 1:] ** 2).mean())
     assert err_swap > 2 * err_own
+
+
+# ------------------------------------------------------------------ the config
+def test_recipe_context_sets_the_pairing_and_the_rungs(tmp_path):
+    """recipe=context: the DataModule's pairing follows model.context.source, the module gets
+    the rung's settings; without the recipe there is no context anywhere."""
+    from hydra.utils import instantiate
+
+    from tests.test_configs import _compose
+
+    cfg = _compose(["experiment=population", "recipe=context"], tmp_path)
+    assert cfg.data.context == "trial" and cfg.model.net.obs_dropout == 0.0
+    assert instantiate(cfg.model).context == {"source": "trial", "initial_frames": 3, "refilter": False}
+    a1 = _compose(["experiment=population", "recipe=context", "model.context.source=window"], tmp_path)
+    assert a1.data.context == "window" and instantiate(a1.data).context == "window"
+    a3 = _compose(["experiment=population", "recipe=context", "model.context.refilter=true"], tmp_path)
+    assert instantiate(a3.model).context["refilter"] is True
+    a0 = _compose(["experiment=population"], tmp_path)
+    assert a0.data.context is None and instantiate(a0.model).context is None
