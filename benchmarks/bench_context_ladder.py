@@ -21,7 +21,8 @@ Each RUN is a train.py folder of the population scene (any recipe). Per run:
     different validation object ("swapped", A4).
 The rung is the run's recipe and context settings; ``--untrained`` writes a run folder
 holding the run's network at initialisation (same config, split and seed, training-set input
-statistics) as ``checkpoints/last.ckpt``, to be evaluated with ``checkpoint=last`` (the floor).
+statistics) as ``checkpoints/last.ckpt``, to be evaluated with ``checkpoint=last`` (the floor;
+it has no metrics.json, and its rung reads "floor (untrained)").
 """
 
 from __future__ import annotations
@@ -39,8 +40,10 @@ REPO = Path(__file__).resolve().parents[1]
 INITIAL_FRAMES = 3
 
 
-def rung(cfg) -> str:
-    """The ladder's name for a run's objective."""
+def rung(cfg, run_dir: Path) -> str:
+    """The ladder's name for a run's objective ("floor" for a folder of --untrained)."""
+    if not (run_dir / "metrics.json").exists():
+        return "floor (untrained)"
     ctx = cfg.model.get("context")
     if not ctx:
         return "A0 filter"
@@ -120,7 +123,7 @@ def score(run_dir: Path, checkpoint: str) -> dict:
     dm, batches = validation_pairs(run)
     objects = np.asarray([t.object_id for t in dm.val_pairs.trials])  # evaluation only: which pairs to swap
     module = load_module(run)
-    out = {"run": run_dir.name, "rung": rung(run.cfg), "seed": int(run.cfg.seed), "checkpoint": run.ckpt.name,
+    out = {"run": run_dir.name, "rung": rung(run.cfg, run_dir), "seed": int(run.cfg.seed), "checkpoint": run.ckpt.name,
            **readout(run_dir, checkpoint), **prediction_scores(module.model, batches, objects)}
     return out
 
