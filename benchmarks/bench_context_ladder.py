@@ -2,6 +2,7 @@
 
     python benchmarks/bench_context_ladder.py RUN [RUN ...]             # one row per run, then rung means
     python benchmarks/bench_context_ladder.py --untrained RUN OUT       # OUT: RUN's network untrained, as a run folder
+    python benchmarks/bench_context_ladder.py --touches RUN [RUN ...]   # y from K = 1, 2 touches of each validation object
 
 Each RUN is a train.py folder of the population scene (any recipe). Per run:
 
@@ -157,6 +158,62 @@ def write_untrained(run_dir: Path, out: Path) -> Path:
     return out
 
 
+def touches(run_dir: Path, checkpoint: str) -> dict:
+    """The K-touch read-out on the validation objects: the KRR alignment of evaluate.py
+    (its default options, fitted on the training objects' filtered y) applied to y at the
+    last frame of one trial (K = 1, every trial) and to the combination of an object's
+    trials' last-frame posteriors (``combine_touches``, the prior counted once: the
+    population marginal) over K = 2 trials (every validation object has 2); NMSE per factor
+    over the predictions, its mean over factors, normalised by the variance of the validation
+    objects' targets."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from embodied_tactile.eval.metrics import nmse, overall, reference_variance
+    from embodied_tactile.eval.pipeline import parse_options
+    from embodied_tactile.eval.results import evaluate_latents
+    from embodied_tactile.eval.runs import collect_split, data_config, load_module, load_run, trial_names
+    from embodied_tactile.eval.targets import encode_split
+    from embodied_tactile.models.latent_filter import combine_touches
+
+    opts = parse_options([])
+    run = load_run(run_dir, checkpoint)
+    dm = instantiate(OmegaConf.create(data_config(run, opts)), _convert_="all")
+    dm.prepare_data()
+    dm.setup("fit")
+    module = load_module(run)
+    targets = str(run.cfg.get("targets") or "design_rank")
+    tr, _ = collect_split(module, list(dm.train_eval_dataloader()), trial_names(dm, "train"), "y")
+    val_batches = list(dm.val_eval_dataloader())
+    te, _ = collect_split(module, val_batches, trial_names(dm, "val"), "y")
+    tr, te = encode_split(tr, targets), encode_split(te, targets)
+    _, align = evaluate_latents(tr, te, latent="y", alignment=OmegaConf.to_container(opts.alignment), split="object")
+    m, v = [], []
+    with torch.no_grad():
+        for b in val_batches:
+            out = module.model.infer_latents(b)
+            m.append(out["y_mean"][:, -1])
+            v.append(out["y_var"][:, -1])
+    m, v = torch.cat(m), torch.cat(v)
+    objects = np.asarray(te["object_id"])
+    var_ref = reference_variance(te["factors"])
+    k1 = align.predict(m.numpy()[:, None, :])[:, 0]
+    rows = {"K=1": overall(nmse(te["factors"], k1, var_ref=var_ref))}
+    with torch.no_grad():
+        pm, pv = module.model.population_marginal(1, m.device)
+    combined, facs = [], []
+    for o in sorted(set(objects.tolist())):
+        idx = np.flatnonzero(objects == o)
+        cm, _ = combine_touches(m[idx][:, None], v[idx][:, None], pm, pv)
+        combined.append(cm[0].numpy())
+        facs.append(te["factors"][idx[0]])
+        if len(idx) != 2:
+            raise SystemExit(f"object {o} has {len(idx)} validation trials; the K = 2 read-out needs 2")
+    k2 = align.predict(np.stack(combined)[:, None, :])[:, 0]
+    rows["K=2"] = overall(nmse(np.stack(facs), k2, var_ref=var_ref))
+    return {"run": run_dir.name, "rung": rung(run.cfg, run_dir), "seed": int(run.cfg.seed), **rows}
+
+
 def table(rows: list[dict]) -> str:
     def f(v):
         return "–" if v is None else f"{v:.3f}"
@@ -183,10 +240,19 @@ def main(argv=None) -> int:
     ap.add_argument("--checkpoint", default="best", choices=("best", "last"))
     ap.add_argument("--untrained", nargs=2, type=Path, metavar=("RUN", "OUT"))
     ap.add_argument("--json", type=Path, help="also write the rows here")
+    ap.add_argument("--touches", action="store_true", help="the K-touch read-out (K = 1, 2) instead of the ladder")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.untrained:
         print(write_untrained(*args.untrained))
+        return 0
+    if args.touches:
+        rows = [touches(r, args.checkpoint) for r in args.runs]
+        print("| run | rung | seed | last-frame NMSE, K = 1 touch | K = 2 touches combined |\n|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['run']} | {r['rung']} | {r['seed']} | {r['K=1']:.3f} | {r['K=2']:.3f} |")
+        if args.json:
+            args.json.write_text(json.dumps(rows, indent=1))
         return 0
     rows = [score(r, args.checkpoint) for r in args.runs]
     if args.json:
