@@ -9,7 +9,8 @@ Each RUN is a train.py folder of the population scene (any recipe). Per run:
 * the read-out: last-frame and whole-trajectory NMSE (mean over factors) of the y latent on
   the validation objects, from ``RUN/evaluation-val/results.json``, written beforehand by
   ``python evaluate.py RUN held_out=val baselines=[mean] umap=false figures=false`` (the
-  project's evaluation path: KRR alignment fitted on the training objects); ``checkpoint=last``
+  project's evaluation path: KRR alignment fitted on the training objects), and the NMSE over
+  time at frames 30, 100 and 200 (mean over factors) from the same file; ``checkpoint=last``
   writes ``evaluation-last-val``, read with ``--checkpoint last``;
 * on the validation objects' context / target pairs (the DataModule's ``context=trial``
   pairing, fixed by the run's split seed; 50-frame windows, the other trial of the same
@@ -39,6 +40,8 @@ import torch
 
 REPO = Path(__file__).resolve().parents[1]
 INITIAL_FRAMES = 3
+#: frames (0-based) at which the NMSE over time (mean over factors) is printed beside the two read-outs
+CURVE_FRAMES = (29, 99, 199)
 
 
 def rung(cfg, run_dir: Path) -> str:
@@ -62,7 +65,9 @@ def readout(run_dir: Path, checkpoint: str) -> dict:
     lf = next(r for r in runs if r["method"] == "latent_filter")
     if (lf.get("params") or {}).get("held_out") != "val":
         raise SystemExit(f"{path}: not scored on the validation objects")
-    return {"last": float(lf["nmse_last_step_overall"]), "traj": float(lf["nmse_trajectory_overall"])}
+    curve = np.asarray(json.loads(path.read_text())["curves_per_run"][lf["label"]], dtype=float)
+    at = {f"f{t}": float(np.nanmean(curve[t])) for t in CURVE_FRAMES if t < len(curve)}
+    return {"last": float(lf["nmse_last_step_overall"]), "traj": float(lf["nmse_trajectory_overall"]), **at}
 
 
 def validation_pairs(run):
@@ -218,10 +223,12 @@ def table(rows: list[dict]) -> str:
     def f(v):
         return "–" if v is None else f"{v:.3f}"
 
-    lines = ["| run | rung | seed | NMSE last frame | NMSE whole trajectory | KL_y | target NMSE own y | "
-             "target NMSE swapped y |", "|---|---|---|---|---|---|---|---|"]
+    frames = " | ".join(f"NMSE frame {t + 1}" for t in CURVE_FRAMES)
+    lines = [f"| run | rung | seed | NMSE last frame | NMSE whole trajectory | {frames} | KL_y | target NMSE own y | "
+             "target NMSE swapped y |", "|---" * (8 + len(CURVE_FRAMES)) + "|"]
     for r in rows:
-        lines.append(f"| {r['run']} | {r['rung']} | {r['seed']} | {f(r.get('last'))} | {f(r.get('traj'))} | "
+        at = " | ".join(f(r.get(f"f{t}")) for t in CURVE_FRAMES)
+        lines.append(f"| {r['run']} | {r['rung']} | {r['seed']} | {f(r.get('last'))} | {f(r.get('traj'))} | {at} | "
                      f"{r['kl_y']:.2f} | {r['pred_own']:.4f} | {r['pred_swapped']:.4f} |")
     lines += ["", "| rung | seeds | NMSE last frame | NMSE whole trajectory | KL_y | target NMSE own y | "
                   "target NMSE swapped y |", "|---|---|---|---|---|---|---|"]
