@@ -163,12 +163,13 @@ def write_untrained(run_dir: Path, out: Path) -> Path:
     return out
 
 
-def touches(run_dir: Path, checkpoint: str) -> dict:
+def touches(run_dir: Path, checkpoint: str, prior: str = "start") -> dict:
     """The K-touch read-out on the validation objects: the KRR alignment of evaluate.py
     (its default options, fitted on the training objects' filtered y) applied to y at the
     last frame of one trial (K = 1, every trial) and to the combination of an object's
-    trials' last-frame posteriors (``combine_touches``, the prior counted once: the
-    population marginal) over K = 2 trials (every validation object has 2); NMSE per factor
+    trials' last-frame posteriors (``combine_touches``, the prior counted once: ``prior``
+    "start", the Gaussian the touches' q(y) was inferred from, ``LatentFilter.touch_prior``;
+    "marginal", the population marginal) over K = 2 trials (every validation object has 2); NMSE per factor
     over the predictions, its mean over factors, normalised by the variance of the validation
     objects' targets."""
     from hydra.utils import instantiate
@@ -204,8 +205,11 @@ def touches(run_dir: Path, checkpoint: str) -> dict:
     var_ref = reference_variance(te["factors"])
     k1 = align.predict(m.numpy()[:, None, :])[:, 0]
     rows = {"K=1": overall(nmse(te["factors"], k1, var_ref=var_ref))}
-    with torch.no_grad():
-        pm, pv = module.model.population_marginal(1, m.device)
+    if prior == "marginal":
+        with torch.no_grad():
+            pm, pv = module.model.population_marginal(1, m.device)
+    else:
+        pm, pv = module.model.touch_prior(m.device)
     combined, facs = [], []
     for o in sorted(set(objects.tolist())):
         idx = np.flatnonzero(objects == o)
@@ -248,13 +252,15 @@ def main(argv=None) -> int:
     ap.add_argument("--untrained", nargs=2, type=Path, metavar=("RUN", "OUT"))
     ap.add_argument("--json", type=Path, help="also write the rows here")
     ap.add_argument("--touches", action="store_true", help="the K-touch read-out (K = 1, 2) instead of the ladder")
+    ap.add_argument("--touch-prior", default="start", choices=("start", "marginal"),
+                    help="the prior combine_touches counts once: the touches' own start (touch_prior) or the population marginal")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.untrained:
         print(write_untrained(*args.untrained))
         return 0
     if args.touches:
-        rows = [touches(r, args.checkpoint) for r in args.runs]
+        rows = [touches(r, args.checkpoint, args.touch_prior) for r in args.runs]
         print("| run | rung | seed | last-frame NMSE, K = 1 touch | K = 2 touches combined |\n|---|---|---|---|---|")
         for r in rows:
             print(f"| {r['run']} | {r['rung']} | {r['seed']} | {r['K=1']:.3f} | {r['K=2']:.3f} |")

@@ -183,6 +183,11 @@ def test_more_touches_give_a_tighter_posterior():
     same_m, same_v = combine_touches(means[:1].expand(2, -1, -1), var[:1].expand(2, -1, -1), prior_m, prior_v)
     assert torch.allclose(1 / same_v, 2 / var[0] - 1 / prior_v)
     # a touch wider than the prior adds no evidence
+    # the evidence update's start: a touch without evidence adds none
+    net = LatentFilter("acc", **TINY)
+    start_m, start_v = net.touch_prior()
+    none_m, none_v = combine_touches(start_m.expand(2, 3, -1), start_v.expand(2, 3, -1), start_m, start_v)
+    assert torch.allclose(none_v, start_v.expand(3, -1)) and torch.allclose(none_m, start_m.expand(3, -1))
     wide_m, wide_v = combine_touches(torch.stack([means[0], means[1]]),
                                      torch.stack([var[0], torch.full((3, 5), 3.0)]), prior_m, prior_v)
     assert torch.allclose(wide_v, var[0]) and torch.allclose(wide_m, means[0], atol=1e-6)

@@ -406,6 +406,20 @@ class LatentFilter(nn.Module):
         m, v = self.prior(none, torch.zeros(batch, 1, self.n_a, device=device))
         return m[:, 0], v[:, 0]
 
+    def touch_prior(self, device: Optional[torch.device] = None) -> tuple[Tensor, Tensor]:
+        """The Gaussian each touch's q(y) was inferred from, for :func:`combine_touches`
+        (n_y,) each: with ``y_update="evidence"`` the start of the evidence product,
+        N(0, 1/y_prior_precision), its variance with the ``min_var`` floor as q(y) reports it
+        (a touch without evidence then adds none); with ``"direct"`` (no explicit start) the
+        population marginal."""
+        yp = self.y_posterior
+        if yp.update == "evidence":
+            m = torch.zeros(self.n_y, device=device)
+            return m, torch.full_like(m, 1.0 / yp.prior_precision + yp.min_var)
+        with torch.no_grad():
+            m, v = self.population_marginal(1, device or torch.device("cpu"))
+        return m[0], v[0]
+
     def context_posterior(self, obs: Tensor, actions: Tensor, sample: bool = False) -> tuple[Tensor, Tensor]:
         """q(y | context): the inference path (encoder, filter, y posterior with its evidence
         accumulation) run over context frames obs (B, T, C, 28, 28) and their actions, every
