@@ -163,64 +163,94 @@ def write_untrained(run_dir: Path, out: Path) -> Path:
     return out
 
 
+def _posteriors(net, batches, names) -> dict:
+    """Filtered y over whole trials (``infer_latents``): y (n, T, d) means, the last frame's
+    mean and var (n, d), factors, object ids, action indices and trial names."""
+    ys, m, v, fac, obj, act = [], [], [], [], [], []
+    with torch.no_grad():
+        for b in batches:
+            out = net.infer_latents(b)
+            ys.append(out["y_mean"].numpy())
+            m.append(out["y_mean"][:, -1])
+            v.append(out["y_var"][:, -1])
+            fac.append(b["factors"].numpy())
+            obj.append(b["object_id"].numpy())
+            act.append(b["action_index"].numpy())
+    return {"y": np.concatenate(ys), "y_last": torch.cat(m), "y_var_last": torch.cat(v), "factors": np.concatenate(fac),
+            "object_id": np.concatenate(obj), "action_index": np.concatenate(act), "seq_id": np.asarray(names)}
+
+
+def _combined(split: dict, prior) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per object: ``combine_touches`` over its trials' last-frame posteriors -> means
+    (n_objects, d), factors (n_objects, 4) and object ids."""
+    from embodied_tactile.models.latent_filter import combine_touches
+
+    objects = np.asarray(split["object_id"])
+    means, facs, ids = [], [], []
+    for o in sorted(set(objects.tolist())):
+        idx = torch.as_tensor(np.flatnonzero(objects == o))
+        cm, _ = combine_touches(split["y_last"][idx][:, None], split["y_var_last"][idx][:, None], *prior)
+        means.append(cm[0].numpy())
+        facs.append(split["factors"][int(idx[0])])
+        ids.append(o)
+    return np.stack(means), np.stack(facs), np.asarray(ids)
+
+
 def touches(run_dir: Path, checkpoint: str, prior: str = "start") -> dict:
-    """The K-touch read-out on the validation objects: the KRR alignment of evaluate.py
-    (its default options, fitted on the training objects' filtered y) applied to y at the
-    last frame of one trial (K = 1, every trial) and to the combination of an object's
-    trials' last-frame posteriors (``combine_touches``, the prior counted once: ``prior``
-    "start", the Gaussian the touches' q(y) was inferred from, ``LatentFilter.touch_prior``;
-    "marginal", the population marginal) over K = 2 trials (every validation object has 2); NMSE per factor
-    over the predictions, its mean over factors, normalised by the variance of the validation
-    objects' targets."""
+    """The K-touch read-out on the validation objects (every one has 2 trials, the population
+    scene's 2 actions), last-frame NMSE (mean over factors, normalised by the variance of the
+    validation targets):
+
+    * ``evaluate K=1``: evaluate.py's alignment (its default options: fitted on the final
+      tenth of the training trials' filtered y) applied to each validation trial's last frame;
+      the last-frame NMSE of ``evaluate.py held_out=val``;
+    * ``evaluate K=2``: the same alignment applied to each validation object's two trials'
+      last-frame posteriors combined by ``combine_touches`` (the prior counted once:
+      ``prior`` "start", ``LatentFilter.touch_prior``, or "marginal", the population marginal);
+    * ``same-K K=1`` / ``same-K K=2``: an alignment (evaluate.py's options, CV folds by object)
+      fitted on the training objects' y at the same K (one latent per trial, the last frame's;
+      one per object, its trials combined) and applied to the validation objects' y at that K.
+    """
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
+    from embodied_tactile.eval.krr import alignment_kwargs, fit_alignment
     from embodied_tactile.eval.metrics import nmse, overall, reference_variance
     from embodied_tactile.eval.pipeline import parse_options
     from embodied_tactile.eval.results import evaluate_latents
-    from embodied_tactile.eval.runs import collect_split, data_config, load_module, load_run, trial_names
+    from embodied_tactile.eval.runs import data_config, load_module, load_run, trial_names
     from embodied_tactile.eval.targets import encode_split
-    from embodied_tactile.models.latent_filter import combine_touches
 
     opts = parse_options([])
     run = load_run(run_dir, checkpoint)
     dm = instantiate(OmegaConf.create(data_config(run, opts)), _convert_="all")
     dm.prepare_data()
     dm.setup("fit")
-    module = load_module(run)
+    net = load_module(run).model
     targets = str(run.cfg.get("targets") or "design_rank")
-    tr, _ = collect_split(module, list(dm.train_eval_dataloader()), trial_names(dm, "train"), "y")
-    val_batches = list(dm.val_eval_dataloader())
-    te, _ = collect_split(module, val_batches, trial_names(dm, "val"), "y")
-    tr, te = encode_split(tr, targets), encode_split(te, targets)
-    _, align = evaluate_latents(tr, te, latent="y", alignment=OmegaConf.to_container(opts.alignment), split="object")
-    m, v = [], []
-    with torch.no_grad():
-        for b in val_batches:
-            out = module.model.infer_latents(b)
-            m.append(out["y_mean"][:, -1])
-            v.append(out["y_var"][:, -1])
-    m, v = torch.cat(m), torch.cat(v)
-    objects = np.asarray(te["object_id"])
-    var_ref = reference_variance(te["factors"])
-    k1 = align.predict(m.numpy()[:, None, :])[:, 0]
-    rows = {"K=1": overall(nmse(te["factors"], k1, var_ref=var_ref))}
+    tr = encode_split(_posteriors(net, dm.train_eval_dataloader(), trial_names(dm, "train")), targets)
+    te = encode_split(_posteriors(net, dm.val_eval_dataloader(), trial_names(dm, "val")), targets)
+    align_opts = OmegaConf.to_container(opts.alignment)
+    _, align = evaluate_latents(tr, te, latent="y", alignment=align_opts, split="object")
     if prior == "marginal":
         with torch.no_grad():
-            pm, pv = module.model.population_marginal(1, m.device)
+            pm, pv = net.population_marginal(1, torch.device("cpu"))
+        touch_prior = (pm[0], pv[0])
     else:
-        pm, pv = module.model.touch_prior(m.device)
-    combined, facs = [], []
-    for o in sorted(set(objects.tolist())):
-        idx = np.flatnonzero(objects == o)
-        cm, _ = combine_touches(m[idx][:, None], v[idx][:, None], pm, pv)
-        combined.append(cm[0].numpy())
-        facs.append(te["factors"][idx[0]])
-        if len(idx) != 2:
-            raise SystemExit(f"object {o} has {len(idx)} validation trials; the K = 2 read-out needs 2")
-    k2 = align.predict(np.stack(combined)[:, None, :])[:, 0]
-    rows["K=2"] = overall(nmse(np.stack(facs), k2, var_ref=var_ref))
-    return {"run": run_dir.name, "rung": rung(run.cfg, run_dir), "seed": int(run.cfg.seed), **rows}
+        touch_prior = net.touch_prior()
+    var_ref = reference_variance(te["factors"])
+    score = lambda f, p: overall(nmse(f, p, var_ref=var_ref))  # noqa: E731
+    val2, val2_f, _ = _combined(te, touch_prior)
+    out = {"evaluate K=1": score(te["factors"], align.predict(te["y_last"].numpy())[:, 0]),
+           "evaluate K=2": score(val2_f, align.predict(val2)[:, 0])}
+    kw = alignment_kwargs(align_opts, "object", tr["object_id"])
+    kw.pop("final_segment", None), kw.pop("frames_per_sequence", None)
+    one = fit_alignment(tr["y_last"].numpy(), tr["factors"], **kw)
+    out["same-K K=1"] = score(te["factors"], one.predict(te["y_last"].numpy())[:, 0])
+    tr2, tr2_f, tr2_o = _combined(tr, touch_prior)
+    two = fit_alignment(tr2, tr2_f, **{**kw, "groups": tr2_o if kw.get("groups") is not None else None})
+    out["same-K K=2"] = score(val2_f, two.predict(val2)[:, 0])
+    return {"run": run_dir.name, "rung": rung(run.cfg, run_dir), "seed": int(run.cfg.seed), **out}
 
 
 def table(rows: list[dict]) -> str:
@@ -261,9 +291,10 @@ def main(argv=None) -> int:
         return 0
     if args.touches:
         rows = [touches(r, args.checkpoint, args.touch_prior) for r in args.runs]
-        print("| run | rung | seed | last-frame NMSE, K = 1 touch | K = 2 touches combined |\n|---|---|---|---|---|")
+        keys = ("evaluate K=1", "evaluate K=2", "same-K K=1", "same-K K=2")
+        print("| run | rung | seed | " + " | ".join(keys) + " |\n" + "|---" * (3 + len(keys)) + "|")
         for r in rows:
-            print(f"| {r['run']} | {r['rung']} | {r['seed']} | {r['K=1']:.3f} | {r['K=2']:.3f} |")
+            print(f"| {r['run']} | {r['rung']} | {r['seed']} | " + " | ".join(f"{r[k]:.3f}" for k in keys) + " |")
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1))
         return 0
