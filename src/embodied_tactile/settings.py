@@ -164,6 +164,7 @@ SCHEMA: dict[str, Spec] = {
     "model.net.obs_dropout": Spec(("float",), lo=0, hi=1, hi_open=True),
     "model.code_lr_scale": Spec(("float",), lo=0, lo_open=True),
     "model.optimizer.lr": Spec(("float",), lo=0),
+    "model.context.initial_frames": INT1,
     "callbacks.krr_alignment.every_n_epochs": Spec(("int",), lo=0, nullable=True),  # null = spread `points`
     "callbacks.krr_alignment.points": INT1,
 }

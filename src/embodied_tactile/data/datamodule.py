@@ -34,6 +34,7 @@ __all__ = ["TactileDataModule", "TactileSequenceDataset", "split_trials", "Trial
 log = logging.getLogger(__name__)
 
 SPLITS = ("trial", "object")
+CONTEXTS = (None, "trial", "window")
 
 
 def _hash_key(seed: int, name: str) -> bytes:
@@ -193,10 +194,22 @@ class TactileSequenceDataset(Dataset):
     ``seed_everything`` makes it reproducible), ``windows_per_trial`` crops per trial and
     pass; only the HDF5 rows of the crop are read. A trial shorter than ``window`` is
     served whole.
+
+    ``context`` pairs every item (the target) with context frames of the same object for
+    the context objective (docs/model.md, "The context objective"), served as
+    ``context_obs`` / ``context_actions`` (with ``context_trial`` and
+    ``context_first_frame``): ``"trial"``, a ``window``-frame crop (the whole trial without
+    ``window``) of another trial of the same object, drawn at random among its trials in
+    this set; ``"window"``, a second ``window``-frame crop of the same trial, disjoint from
+    the target's (two disjoint crops, which one is the target drawn at random). The object
+    id only picks the trials to pair; it is served as before and never used as the pairing's
+    output. ``draw_seed`` makes every item's draws a function of (seed, index) (validation:
+    the same pairs every epoch); None = torch's global RNG.
     """
 
     def __init__(self, cache_files: Mapping[str, str], trials: Sequence[TrialRef], channels: Sequence[str],
-                 seq_len: int | None = None, window: int | None = None, windows_per_trial: int = 1):
+                 seq_len: int | None = None, window: int | None = None, windows_per_trial: int = 1,
+                 context: str | None = None, draw_seed: int | None = None):
         self.cache_files = dict(cache_files)
         self.trials = list(trials)
         self.channels = list(channels)
@@ -211,6 +224,23 @@ class TactileSequenceDataset(Dataset):
             raise ValueError(f"windows_per_trial must be >= 1, got {windows_per_trial}")
         self.window = None if window is None else int(window)
         self.windows_per_trial = int(windows_per_trial)
+        if context not in CONTEXTS:
+            raise ValueError(f"context must be one of {CONTEXTS}, got {context!r}")
+        if context == "window" and self.window is None:
+            raise ValueError("context='window' needs a window: two disjoint crops of one trial")
+        self.context = context
+        self.draw_seed = draw_seed
+        #: trial name -> the other trials of its object in this set (context='trial')
+        self.others: dict[str, list[TrialRef]] = {}
+        if context == "trial":
+            by_obj: dict[int, list[TrialRef]] = {}
+            for tr in self.trials:
+                by_obj.setdefault(tr.object_id, []).append(tr)
+            alone = sorted(o for o, items in by_obj.items() if len(items) < 2)
+            if alone:
+                raise ValueError(f"context='trial' pairs trials of one object, but object(s) {alone[:5]} have a "
+                                 "single trial in this set")
+            self.others = {tr.name: [t for t in by_obj[tr.object_id] if t.name != tr.name] for tr in self.trials}
         self._handles: dict[str, h5py.File] | None = None
 
     def __len__(self) -> int:
@@ -232,22 +262,34 @@ class TactileSequenceDataset(Dataset):
                 h.close()
         self._handles = None
 
-    def _rows(self, h: dict[str, h5py.File], tr: TrialRef) -> slice:
+    def _length(self, h: dict[str, h5py.File], tr: TrialRef) -> int:
+        n = h["actions"]["trials"][tr.name]["actions"].shape[0]
+        return n if self.seq_len is None else min(n, int(self.seq_len))
+
+    def _rows(self, h: dict[str, h5py.File], tr: TrialRef, gen: torch.Generator | None = None) -> slice:
         if self.window is None:
             return slice(None, self.seq_len)
-        n = h["actions"]["trials"][tr.name]["actions"].shape[0]
-        n = n if self.seq_len is None else min(n, int(self.seq_len))
+        n = self._length(h, tr)
         if n <= self.window:
             return slice(None, n)
-        start = int(torch.randint(0, n - self.window + 1, ()))
+        start = int(torch.randint(0, n - self.window + 1, (), generator=gen))
         return slice(start, start + self.window)
 
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        if not 0 <= i < len(self):
-            raise IndexError(f"index {i} out of range for {len(self)} items")
-        tr = self.trials[i % len(self.trials)]
-        h = self._open()
-        sl = self._rows(h, tr)
+    def _disjoint_rows(self, h: dict[str, h5py.File], tr: TrialRef, gen: torch.Generator | None
+                       ) -> tuple[slice, slice]:
+        """Two disjoint ``window``-frame crops of one trial (target, context): the first
+        start uniform over [0, n - 2w], the second over [first + w, n - w], their roles at
+        random."""
+        n, w = self._length(h, tr), int(self.window)
+        if n < 2 * w:
+            raise ValueError(f"trial '{tr.name}' has {n} frames: two disjoint {w}-frame windows need {2 * w}")
+        a = int(torch.randint(0, n - 2 * w + 1, (), generator=gen))
+        b = int(torch.randint(a + w, n - w + 1, (), generator=gen))
+        first, second = slice(a, a + w), slice(b, b + w)
+        return (first, second) if int(torch.randint(0, 2, (), generator=gen)) else (second, first)
+
+    def _read(self, h: dict[str, h5py.File], tr: TrialRef, sl: slice) -> tuple[np.ndarray, np.ndarray]:
+        """Observations (T, C, 28, 28) and actions (T, n_a) of rows ``sl`` of one trial."""
         cache: dict[str, np.ndarray] = {}
         planes = []
         for c in self.channels:
@@ -262,7 +304,26 @@ class TactileSequenceDataset(Dataset):
             if not np.isfinite(arr).all():  # a damaged cache is a bug to report, not to feed the model
                 src = self.cache_files["actions" if fld == "actions" else CHANNELS[self.channels[0]][0]]
                 raise ValueError(f"{src}: trial '{tr.name}', field '{fld}': non-finite values in the preprocessed cache")
-        return {
+        return obs, actions
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        if not 0 <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} items")
+        tr = self.trials[i % len(self.trials)]
+        h = self._open()
+        gen = None if self.draw_seed is None else torch.Generator().manual_seed(self.draw_seed * 1_000_003 + i)
+        ctx_tr, ctx_sl = None, None
+        if self.context == "window":
+            sl, ctx_sl = self._disjoint_rows(h, tr, gen)
+            ctx_tr = tr
+        else:
+            sl = self._rows(h, tr, gen)
+        if self.context == "trial":
+            others = self.others[tr.name]
+            ctx_tr = others[int(torch.randint(0, len(others), (), generator=gen))]
+            ctx_sl = self._rows(h, ctx_tr, gen)
+        obs, actions = self._read(h, tr, sl)
+        item = {
             "obs": torch.from_numpy(np.ascontiguousarray(obs)),
             "actions": torch.from_numpy(np.ascontiguousarray(actions)),
             "object_id": torch.tensor(tr.object_id, dtype=torch.long),
@@ -271,6 +332,13 @@ class TactileSequenceDataset(Dataset):
             "trial": tr.name,  # named in errors (the model's non-finite guard)
             "first_frame": torch.tensor(sl.start or 0, dtype=torch.long),  # of this crop in the trial
         }
+        if ctx_tr is not None:
+            c_obs, c_actions = self._read(h, ctx_tr, ctx_sl)
+            item.update(context_obs=torch.from_numpy(np.ascontiguousarray(c_obs)),
+                        context_actions=torch.from_numpy(np.ascontiguousarray(c_actions)),
+                        context_trial=ctx_tr.name,
+                        context_first_frame=torch.tensor(ctx_sl.start or 0, dtype=torch.long))
+        return item
 
 
 class TactileDataModule(L.LightningDataModule):
@@ -301,6 +369,13 @@ class TactileDataModule(L.LightningDataModule):
         windows_per_epoch: instead of ``windows_per_trial`` (which is then null): this many
             crops per epoch, drawn as shuffled passes over the training trials, so the
             optimiser-step budget does not depend on the number of training objects.
+        context: None, ``"trial"`` or ``"window"``: the context objective's pairing
+            (:class:`TactileSequenceDataset`, ``recipe=context``): the training crops and the
+            validation loader serve targets with context frames of the same object
+            (validation: ``train_window``-frame crops drawn once, seeded by ``split_seed``,
+            the same every epoch). The alignment and evaluation loaders
+            (:meth:`train_eval_dataloader`, :meth:`val_eval_dataloader`,
+            :meth:`test_dataloader`) serve whole trials as without it.
         strict: a bad raw trial is fatal instead of skipped.
         include_incomplete: also use recordings marked ``complete=False`` (interrupted);
             by default they are left out and counted in a warning.
@@ -339,6 +414,7 @@ class TactileDataModule(L.LightningDataModule):
         train_window: int | None = None,
         windows_per_trial: int | None = 1,
         windows_per_epoch: int | None = None,
+        context: str | None = None,
         strict: bool = False,
         include_incomplete: bool = False,
         allow_large_population: bool = False,
@@ -378,12 +454,16 @@ class TactileDataModule(L.LightningDataModule):
         self.windows_per_trial = 1 if windows_per_trial is None else int(windows_per_trial)
         self.windows_per_epoch = None if windows_per_epoch is None else int(windows_per_epoch)
         self.pin_memory = bool(pin_memory)
+        if context not in CONTEXTS:
+            raise ValueError(f"context must be one of {CONTEXTS}, got {context!r}")
+        self.context = context
         #: the preparation stage's result (prepare_data, or attach() with one prepared elsewhere)
         self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
         self.val_set: TactileSequenceDataset | None = None  # model selection (training objects)
         self.test_set: TactileSequenceDataset | None = None  # held out: evaluation only
         self.train_crops: TactileSequenceDataset | None = None  # what train_dataloader serves
+        self.val_pairs: TactileSequenceDataset | None = None  # what val_dataloader serves with a context
 
     # ------------------------------------------------------------------ preparation
     @property
@@ -444,10 +524,16 @@ class TactileDataModule(L.LightningDataModule):
         self.val_set = TactileSequenceDataset(self.cache_files, val, self.channels, self.seq_len)
         self.test_set = TactileSequenceDataset(self.cache_files, test, self.channels, self.seq_len)
         self.train_crops = self.train_set
-        if self.train_window is not None or self.windows_per_trial != 1 or self.windows_per_epoch is not None:
+        if (self.train_window is not None or self.windows_per_trial != 1 or self.windows_per_epoch is not None
+                or self.context is not None):
             self.train_crops = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len,
                                                       window=self.train_window,
-                                                      windows_per_trial=self.windows_per_trial)
+                                                      windows_per_trial=self.windows_per_trial, context=self.context)
+        self.val_pairs = self.val_set
+        if self.context is not None and val:
+            self.val_pairs = TactileSequenceDataset(self.cache_files, val, self.channels, self.seq_len,
+                                                    window=self.train_window, context=self.context,
+                                                    draw_seed=self.split_seed)
         log.info("data: %d train / %d validation / %d test sequences (split=%s), channels %s, skipped %d bad trial(s)",
                  len(train), len(val), len(test), self.split, self.channels, len(self.skipped))
 
@@ -517,7 +603,13 @@ class TactileDataModule(L.LightningDataModule):
         return self._loader(self.train_set, shuffle=False)
 
     def val_dataloader(self) -> DataLoader:
-        """Validation trials of training objects: checkpoint selection, early stopping."""
+        """Validation trials: checkpoint selection, early stopping (with a ``context``: the
+        fixed context / target pairs of the validation trials)."""
+        assert self.val_pairs is not None, "call setup() first"
+        return self._loader(self.val_pairs, shuffle=False)
+
+    def val_eval_dataloader(self) -> DataLoader:
+        """Validation split, whole trials, fixed order (evaluation with ``held_out=val``)."""
         assert self.val_set is not None, "call setup() first"
         return self._loader(self.val_set, shuffle=False)
 
@@ -527,7 +619,7 @@ class TactileDataModule(L.LightningDataModule):
         return self._loader(self.test_set, shuffle=False)
 
     def teardown(self, stage: str | None = None) -> None:
-        for ds in (self.train_set, self.train_crops, self.val_set, self.test_set):
+        for ds in (self.train_set, self.train_crops, self.val_set, self.val_pairs, self.test_set):
             if ds is not None:
                 ds.close()
 

@@ -266,7 +266,7 @@ class DataCache:
 
     def batches(self, k: str, dm, which: str) -> list:
         if (k, which) not in self._batches:
-            loader = {"train": dm.train_eval_dataloader, "val": dm.val_dataloader, "test": dm.test_dataloader}[which]()
+            loader = {"train": dm.train_eval_dataloader, "val": dm.val_eval_dataloader, "test": dm.test_dataloader}[which]()
             self._batches[(k, which)] = list(loader)
         return self._batches[(k, which)]
 

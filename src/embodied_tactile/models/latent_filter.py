@@ -296,20 +296,28 @@ class LatentFilter(nn.Module):
         y_state = tuple(state[k] for k in _Y_STATE_KEYS if k in state)
         y_m, y_v, y_state = self.y_posterior(state["z"], a_prev, y_state)
         y = self._draw(y_m, y_v, sample)
-        if first:
+        out = self._z_step(enc_m, enc_v, None if first else state["z"], y, a_t, sample, observed)
+        out.update(y_mean=y_m, y_var=y_v, y=y)
+        return out, _state_to(out["z"], out["z_mean"], a_t.float(), y_state)
+
+    def _z_step(self, enc_m: Tensor, enc_v: Tensor, z_prev: Optional[Tensor], y: Tensor, a_t: Tensor,
+                sample: bool, observed: Optional[Tensor] = None) -> dict[str, Tensor]:
+        """The z half of one recursion step, given y_t: the transition prior
+        p(z_t | z_{t-1}, y_t, a_t) (N(0, I) when ``z_prev`` is None, the first frame) fused
+        with the measurement Gaussian where ``observed`` (B,) (None = all observed); the
+        prior alone elsewhere. Returns z_mean, z_var (q_filt), zp_mean, zp_var and z."""
+        if z_prev is None:
             # z_1 from the encoder alone; its prior is N(0, I).
             zp_m, zp_v = torch.zeros_like(enc_m), torch.ones_like(enc_v)
             z_m, z_v = enc_m, enc_v
         else:
-            zp_m, zp_v = self.transition(state["z"], y, a_t)
+            zp_m, zp_v = self.transition(z_prev, y, a_t)
             z_m, z_v = fuse_gaussians(zp_m, zp_v, enc_m, enc_v)
         if observed is not None:
             seen = observed.view(-1, 1)
             z_m, z_v = torch.where(seen, z_m, zp_m), torch.where(seen, z_v, zp_v)
         z = self._draw(z_m, z_v, sample)
-        out = {"z_mean": z_m, "z_var": z_v, "z": z, "y_mean": y_m, "y_var": y_v, "y": y,
-               "zp_mean": zp_m, "zp_var": zp_v}
-        return out, _state_to(z, z_m, a_t.float(), y_state)
+        return {"z_mean": z_m, "z_var": z_v, "z": z, "zp_mean": zp_m, "zp_var": zp_v}
 
     # ------------------------------------------------------------------ batched
     def observation_mask(self, B: int, T: int, device: torch.device) -> Optional[Tensor]:
@@ -389,6 +397,102 @@ class LatentFilter(nn.Module):
         return {"nll": nll, "kl_z": kl_z, "kl_y": kl_y, "pop": pop.detach(), "entropy": ent.mean(), "n_dims": n_dims,
                 "out": out}
 
+    # ------------------------------------------------------------------ context objective
+    def population_marginal(self, batch: int, device: torch.device) -> tuple[Tensor, Tensor]:
+        """The prior of a new object's y without labels: the hierarchical prior's population
+        marginal N(mu_0, sigma^2 + tau^2) (its action term at zero action), (B, n_y) each,
+        float32. No object id is read: every row is an object never seen."""
+        none = torch.full((batch,), -1, dtype=torch.long, device=device)
+        m, v = self.prior(none, torch.zeros(batch, 1, self.n_a, device=device))
+        return m[:, 0], v[:, 0]
+
+    def touch_prior(self, device: Optional[torch.device] = None) -> tuple[Tensor, Tensor]:
+        """The Gaussian each touch's q(y) was inferred from, for :func:`combine_touches`
+        (n_y,) each: with ``y_update="evidence"`` the start of the evidence product,
+        N(0, 1/y_prior_precision), its variance with the ``min_var`` floor as q(y) reports it
+        (a touch without evidence then adds none); with ``"direct"`` (no explicit start) the
+        population marginal."""
+        yp = self.y_posterior
+        if yp.update == "evidence":
+            m = torch.zeros(self.n_y, device=device)
+            return m, torch.full_like(m, 1.0 / yp.prior_precision + yp.min_var)
+        with torch.no_grad():
+            m, v = self.population_marginal(1, device or torch.device("cpu"))
+        return m[0], v[0]
+
+    def context_posterior(self, obs: Tensor, actions: Tensor, sample: bool = False) -> tuple[Tensor, Tensor]:
+        """q(y | context): the inference path (encoder, filter, y posterior with its evidence
+        accumulation) run over context frames obs (B, T, C, 28, 28) and their actions, every
+        frame observed; the posterior at the last frame, mean and var (B, n_y). Gradients
+        flow (the context objective trains this path); ``sample`` draws the filter's z."""
+        observed = torch.ones(obs.shape[:2], dtype=torch.bool, device=obs.device)
+        out = self.forward(obs, actions, sample=sample, observed=observed, decode=False)
+        return out["y_mean"][:, -1], out["y_var"][:, -1]
+
+    def rollout(self, obs: Tensor, actions: Tensor, y: Tensor, initial_frames: int, sample: bool = True,
+                refilter: bool = False) -> dict[str, Tensor]:
+        """Target frames from a fixed y and the target's own actions: z filtered from the
+        first ``initial_frames`` encoded frames of obs (B, T, C, 28, 28), then rolled forward
+        by the transition p(z_t | z_{t-1}, y, a_t) with every later frame unobserved (they are
+        never encoded, so they cannot reach z); ``refilter`` filters every frame instead (the
+        per-frame posterior of the target, a leak control). y (B, n_y) is the same at every
+        step. Returns z_mean, z_var, zp_mean, zp_var, z (B, T, n_z) and recon (B, T, C, 28,
+        28), every frame decoded."""
+        self._check_obs(obs)
+        B, T = obs.shape[:2]
+        if actions.shape != (B, T, self.n_a) or y.shape != (B, self.n_y):
+            raise ValueError(f"rollout needs actions {(B, T, self.n_a)} and y {(B, self.n_y)}, "
+                             f"got {tuple(actions.shape)} and {tuple(y.shape)}")
+        if int(initial_frames) < 1:
+            raise ValueError(f"initial_frames must be >= 1 (z_1 comes from the encoder), got {initial_frames}")
+        k = T if refilter else min(int(initial_frames), T)
+        enc_m, enc_v = self.encode(obs[:, :k].reshape(B * k, *obs.shape[2:]))
+        enc_m, enc_v = enc_m.view(B, k, -1), enc_v.view(B, k, -1)
+        none_m, none_v = torch.zeros_like(enc_m[:, 0]), torch.ones_like(enc_v[:, 0])
+        hidden = torch.zeros(B, dtype=torch.bool, device=obs.device)
+        actions = actions.float()
+        z, steps = None, []
+        for t in range(T):
+            seen = t < k
+            out = self._z_step(enc_m[:, t] if seen else none_m, enc_v[:, t] if seen else none_v, z, y,
+                               actions[:, t], sample, observed=None if seen else hidden)
+            z = out["z"]
+            steps.append(out)
+        res = {key: torch.stack([s[key] for s in steps], dim=1) for key in steps[0]}
+        res["recon"] = self.decode(res["z"].reshape(B * T, -1)).view(B, T, *obs.shape[2:])
+        return res
+
+    def context_terms(self, batch: Mapping[str, Tensor], initial_frames: int = 3, refilter: bool = False,
+                      sample: bool = True) -> dict[str, Tensor]:
+        """The context objective (docs/model.md, "The context objective"): per-sequence
+        terms of the negative ELBO of a model in which one y is shared by every trial of an
+        object, averaged over the batch (float32 scalars, the keys of :meth:`elbo_terms`).
+
+        y ~ q(y | context) (:meth:`context_posterior` over ``context_obs`` /
+        ``context_actions``; a reparameterised draw when ``sample``), then the target
+        ``obs`` / ``actions`` by :meth:`rollout`:
+
+        nll  = sum_t sum_{c,pixels} -log N(o_t; dec(z_t), sigma_c^2) over every target frame
+        kl_z = KL(q(z_1) || N(0, I)) + sum_{2<=t<=k} KL(q_filt(z_t) || p(z_t | z_{t-1}, y, a_t))
+               (0 at the rolled-forward frames, where q = p; every frame with ``refilter``)
+        kl_y = KL(q(y | context) || p(y)), p(y) the population marginal (no label)
+        The object id is never read: the pairing of context and target is the data's."""
+        y_m, y_v = self.context_posterior(batch["context_obs"], batch["context_actions"], sample=sample)
+        y = self._draw(y_m, y_v, sample)
+        obs = batch["obs"]
+        out = self.rollout(obs, batch["actions"], y, initial_frames, sample=sample, refilter=refilter)
+        B, T = obs.shape[:2]
+        log_sigma = self.obs_log_sigma().view(1, 1, -1, 1, 1)
+        nll = gaussian_nll(obs, out["recon"], log_sigma).sum(dim=(1, 2, 3, 4)).mean()
+        kl_z = kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"]).sum(1).mean()
+        py_m, py_v = self.population_marginal(B, obs.device)
+        kl_y = kl_diag_gaussians(y_m, y_v, py_m, py_v).mean()
+        ent = (gaussian_entropy(out["z_var"]).sum(1) + gaussian_entropy(y_v)).mean()
+        n_dims = torch.tensor(float(T * obs.shape[2] * 28 * 28), device=obs.device)
+        zero = kl_y.new_zeros(())
+        return {"nll": nll, "kl_z": kl_z, "kl_y": kl_y, "pop": zero, "entropy": ent, "n_dims": n_dims,
+                "out": {**out, "y_mean": y_m, "y_var": y_v}}
+
     # ------------------------------------------------------------------ inference
     @torch.no_grad()
     def infer_latents(self, batch: Mapping[str, Tensor] | Tensor, actions: Optional[Tensor] = None) -> dict[str, Tensor]:
@@ -456,3 +560,30 @@ class LatentFilter(nn.Module):
         with small_batch_convs(obs_t.shape[0]):
             enc_m, enc_v = self.encode(obs_t)
         return self.step(enc_m, enc_v, action_t.float(), state, sample, prev_action)
+
+
+def combine_touches(y_mean: Tensor, y_var: Tensor, prior_mean: Tensor, prior_var: Tensor,
+                    ) -> tuple[Tensor, Tensor]:
+    """q(y | K touches) from the posteriors q(y | touch k) of K separate touches (trials)
+    of one object, y_mean / y_var (K, B, n_y), each inferred from the prior p(y) =
+    N(prior_mean, prior_var) (B, n_y) or (n_y,): the product of the touches' Gaussian
+    evidence with the prior counted once,
+
+        q(y | 1..K) ∝ p(y) prod_k q(y | k) / p(y),
+        precision P = 1/v_0 + sum_k e_k,   e_k = max(1/v_k - 1/v_0, 0),
+        mean      m = (m_0/v_0 + sum_k (m_k/v_k - m_0/v_0 [where e_k > 0])) / P,
+
+    in float32. A touch whose posterior is wider than the prior in a dimension adds no
+    evidence there (e_k clamped at 0), so P never falls with K. K = 1 returns that touch's
+    posterior where it is at least as tight as the prior. Returns mean, var (B, n_y)."""
+    if y_mean.dim() != 3 or y_mean.shape != y_var.shape:
+        raise ValueError(f"y_mean / y_var must be (K, B, n_y) alike, got {tuple(y_mean.shape)}, {tuple(y_var.shape)}")
+    with float32_region(y_mean):
+        m, v = y_mean.float(), y_var.float()
+        p0 = 1.0 / prior_var.float()
+        h0 = prior_mean.float() * p0
+        e = 1.0 / v - p0
+        used = e > 0
+        prec = p0 + torch.where(used, e, torch.zeros_like(e)).sum(0)
+        pm = h0 + torch.where(used, m / v - h0, torch.zeros_like(e)).sum(0)
+        return pm / prec, 1.0 / prec

@@ -94,6 +94,27 @@ def nonfinite_inputs(batch: Mapping[str, Any], max_frames: int = 8) -> list[str]
     return found
 
 
+CONTEXT_SOURCES = ("trial", "window")
+
+
+def check_context(context: Optional[Mapping[str, Any]]) -> Optional[dict[str, Any]]:
+    """The context objective's settings as a plain dict (None: the filtering ELBO):
+    ``source`` in :data:`CONTEXT_SOURCES`, ``initial_frames`` >= 1, ``refilter`` a bool."""
+    if context is None:
+        return None
+    context = dict(to_plain(context))
+    unknown = set(context) - {"source", "initial_frames", "refilter"}
+    if unknown:
+        raise ValueError(f"unknown context options {sorted(unknown)} (source, initial_frames, refilter)")
+    out = {"source": context.get("source", "trial"), "initial_frames": int(context.get("initial_frames", 3)),
+           "refilter": bool(context.get("refilter", False))}
+    if out["source"] not in CONTEXT_SOURCES:
+        raise ValueError(f"context.source must be one of {CONTEXT_SOURCES}, got {out['source']!r}")
+    if out["initial_frames"] < 1:
+        raise ValueError(f"context.initial_frames must be >= 1, got {out['initial_frames']}")
+    return out
+
+
 class LatentFilterModule(L.LightningModule):
     """Latent Filter training module for any modality (``fusion`` single|early|late); the
     subclasses :class:`EarlyFusionLatentFilter` and :class:`LateFusionLatentFilter` each
@@ -118,6 +139,12 @@ class LatentFilterModule(L.LightningModule):
         code_lr_scale: the prior's object codes (``prior.embedding``) train in a parameter
             group of their own at this multiple of the optimizer's lr (1 = one group, the
             default; docs/model.md, "Fixed object codes").
+        context: None (default: the filtering ELBO, :meth:`LatentFilter.elbo_terms`) or
+            ``{source, initial_frames, refilter}``: the context objective
+            (:meth:`LatentFilter.context_terms`, ``recipe=context``, docs/model.md "The
+            context objective"). ``source`` (``trial`` | ``window``) names the DataModule's
+            pairing (configs/data reads it from here); ``initial_frames`` target frames are
+            filtered before the open-loop rollout; ``refilter`` filters every target frame.
 
     Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
     train/elbo, anneal/*; val/loss, val/elbo (per sequence, higher is better),
@@ -128,8 +155,10 @@ class LatentFilterModule(L.LightningModule):
     fusion: Optional[type[nn.Module]] = None
 
     def __init__(self, net: LatentFilter | Mapping[str, Any], annealing: Any = None, optimizer: Any = None,
-                 check_finite: bool = True, lr_schedule: str = "constant", code_lr_scale: float = 1.0) -> None:
+                 check_finite: bool = True, lr_schedule: str = "constant", code_lr_scale: float = 1.0,
+                 context: Optional[Mapping[str, Any]] = None) -> None:
         super().__init__()
+        context = check_context(context)
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
         if not code_lr_scale > 0:
@@ -151,7 +180,9 @@ class LatentFilterModule(L.LightningModule):
         # saved once: the network's own constructor arguments, the schedule and the optimizer
         self.save_hyperparameters({"net": net.config(), "annealing": schedule.config(),
                                    "optimizer": _optimizer_spec(optimizer), "check_finite": bool(check_finite),
-                                   "lr_schedule": lr_schedule, "code_lr_scale": float(code_lr_scale)})
+                                   "lr_schedule": lr_schedule, "code_lr_scale": float(code_lr_scale),
+                                   "context": context})
+        self.context = context
         self.model = net
         self.annealing: AnnealingSchedule = schedule
 
@@ -171,7 +202,14 @@ class LatentFilterModule(L.LightningModule):
 
     # ------------------------------------------------------------------ Lightning
     def _terms(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
-        terms = self.model.elbo_terms(batch, sample=True)
+        if self.context is None:
+            terms = self.model.elbo_terms(batch, sample=True)
+        elif "context_obs" not in batch:
+            raise ValueError("the context objective needs batches with context_obs / context_actions: "
+                             "a TactileDataModule with context=trial|window (configs/recipe/context.yaml)")
+        else:
+            terms = self.model.context_terms(batch, self.context["initial_frames"], self.context["refilter"],
+                                             sample=True)
         terms.pop("out")
         return terms
 
