@@ -26,15 +26,10 @@ def _digests(run: Path, names=("metrics.json", "config_resolved.yaml", ".hydra/c
 
 
 @pytest.fixture(scope="module")
-def data_dir(fast_data_dir) -> Path:
-    return fast_data_dir
-
-
-@pytest.fixture(scope="module")
-def finished_run(data_dir, tmp_path_factory) -> Path:
+def finished_run(fast_data_dir, tmp_path_factory) -> Path:
     """A finished acc run of one epoch (the cheapest train.py run)."""
     run = tmp_path_factory.mktemp("owned") / "r"
-    run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
+    run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
               "callbacks.krr_alignment=null")
     return run
 
@@ -67,13 +62,13 @@ def test_check_resume_refuses_other_settings_before_writing(tmp_path):
         check_resume(OmegaConf.merge(cfg, {"resume": False}), run)
 
 
-def test_refused_restart_with_other_modality_keeps_the_finished_run(finished_run, data_dir):
+def test_refused_restart_with_other_modality_keeps_the_finished_run(finished_run, fast_data_dir):
     """Fault: a finished run folder re-run with another modality, actions and seed. Before:
     state_dict mismatch, exit 1, metrics.json rewritten "failed", config_resolved.yaml
     rewritten. Now: exit 2 before anything is written, the keys named."""
     before = _digests(finished_run)
     ckpts = {p.name: p.read_bytes() for p in (finished_run / "checkpoints").iterdir()}
-    res = run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={finished_run}", "modality=fsr_t", "seed=3",
+    res = run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={finished_run}", "modality=fsr_t", "seed=3",
                     "data.actions=[0,10]", "threads=1", check=False, timeout=120)
     assert res.returncode == 2, res.stderr[-2000:]
     err = res.stderr.strip().splitlines()[-1]
@@ -86,9 +81,9 @@ def test_refused_restart_with_other_modality_keeps_the_finished_run(finished_run
     assert json.loads((finished_run / "metrics.json").read_text())["status"] == "finished"
 
 
-def test_bad_setting_in_a_finished_run_folder_keeps_its_metrics(finished_run, data_dir):
+def test_bad_setting_in_a_finished_run_folder_keeps_its_metrics(finished_run, fast_data_dir):
     before = _digests(finished_run)
-    res = run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={finished_run}", "modality=acc", "data.batch_size=0",
+    res = run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={finished_run}", "modality=acc", "data.batch_size=0",
                     check=False, timeout=120)
     assert res.returncode == 2 and "data.batch_size=0" in res.stderr
     assert _digests(finished_run) == before
@@ -120,7 +115,7 @@ def test_lock_refuses_a_second_holder_and_frees_on_exit(tmp_path):
     runfolder.release(run)
 
 
-def test_second_training_in_a_running_folder_is_refused(finished_run, data_dir):
+def test_second_training_in_a_running_folder_is_refused(finished_run, fast_data_dir):
     """Fault: two trainings in one run folder at once. Before: both exit 0, every step twice
     in the CSV, best-epoch003.ckpt beside best-epoch003-v1.ckpt. Now: the second exits 2
     naming the holder's pid, and writes nothing."""
@@ -128,7 +123,7 @@ def test_second_training_in_a_running_folder_is_refused(finished_run, data_dir):
     rows = (finished_run / "csv" / "metrics.csv").read_bytes()
     holder = _hold_lock(finished_run)
     try:
-        res = run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={finished_run}", "modality=acc",
+        res = run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={finished_run}", "modality=acc",
                         "trainer.max_epochs=3", check=False, timeout=120)
     finally:
         holder.kill()
@@ -185,12 +180,12 @@ def _start_and_wait_for_epoch(overrides: tuple[str, ...], last: Path, epoch: int
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sig,code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
-def test_stop_signal_saves_last_checkpoint_and_exits_nonzero(data_dir, tmp_path, sig, code):
+def test_stop_signal_saves_last_checkpoint_and_exits_nonzero(fast_data_dir, tmp_path, sig, code):
     """Fault: SIGTERM (a cluster's pre-emption) or SIGINT during training. Before: exit 0,
     metrics.json "failed", no checkpoint of the step reached. Now: last.ckpt of the step the
     run stopped at, metrics.json "interrupted", exit 128 + signal; the same command resumes."""
     run = tmp_path / "run"
-    overrides = (f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
+    overrides = (f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
                  "trainer.max_epochs=200", "callbacks.krr_alignment=null")
     last = run / "checkpoints" / "last.ckpt"
     proc = _start_and_wait_for_epoch(overrides, last)
@@ -237,7 +232,7 @@ def _file_size_limit(limit: int):
     return pre
 
 
-def test_full_disk_leaves_previous_checkpoints_and_one_line(finished_run, data_dir, tmp_path):
+def test_full_disk_leaves_previous_checkpoints_and_one_line(finished_run, fast_data_dir, tmp_path):
     """Fault: the disk fills while a checkpoint is written. Before: OSError traceback and a
     truncated best-epoch001.ckpt that evaluation and resume then picked. Now: exit 74, one
     line naming the file, the earlier checkpoints bit for bit, no partial file."""
@@ -248,7 +243,7 @@ def test_full_disk_leaves_previous_checkpoints_and_one_line(finished_run, data_d
     ck = run / "checkpoints"
     before = {p.name: p.read_bytes() for p in ck.iterdir()}
     limit = min(len(b) for b in before.values()) // 2
-    res = subprocess.run(train_cmd(f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
+    res = subprocess.run(train_cmd(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
                                    "callbacks.krr_alignment=null", "trainer.max_epochs=2"),
                          cwd=REPO, env=ENV, capture_output=True, text=True, timeout=240, preexec_fn=_file_size_limit(limit))
     assert res.returncode == 74, res.stderr[-3000:]
@@ -349,7 +344,7 @@ def test_unreadable_split_and_checkpoints_are_one_line_errors(finished_run, tmp_
 
 
 @pytest.mark.slow
-def test_changed_raw_data_is_refused_or_named_at_evaluation(data_dir, tmp_path, evaluate_cli, capsys):
+def test_changed_raw_data_is_refused_or_named_at_evaluation(fast_data_dir, tmp_path, evaluate_cli, capsys):
     """Fault: the raw data changed after training. Before: exit 0, "same weights, settings
     and sequences". Now: exit 2 naming the raw file and field; a resume on them exit 2 too;
     allow_changed_data=true scores it and names the change in place of "same sequences"."""
@@ -358,7 +353,7 @@ def test_changed_raw_data_is_refused_or_named_at_evaluation(data_dir, tmp_path, 
     import h5py
 
     data = tmp_path / "data"
-    shutil.copytree(data_dir / "raw", data / "raw")
+    shutil.copytree(fast_data_dir / "raw", data / "raw")
     run = tmp_path / "run"
     run_train(f"paths.data_dir={data}", f"hydra.run.dir={run}", "modality=acc", "threads=1")
     prov = json.loads((run / "provenance.json").read_text())
