@@ -129,22 +129,21 @@ def population_scores(method: str, path: str | os.PathLike | None = None,
     return whole, last, len(rows)
 
 
-def protocol_lines(run_dir: str | os.PathLike, cfg: Any = None) -> list[str]:
+def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
     """What the run's held-out number means: the final alignment beside the same read-out of
     the untrained network (the step-0 check) and the mean predictor, whole trajectory and last
-    frame; what the split measures; and the command, number and page for objects never
-    touched. ``cfg``: the run's config (read from ``config_resolved.yaml`` when None)."""
+    frame; what the split measures (the run's ``config_resolved.yaml``); and the command,
+    number and page for objects never touched."""
     from omegaconf import OmegaConf
 
     rows = _history(run_dir)
     final = next((r for r in reversed(rows) if r.get("final")), None)
     if final is None:
         return []
-    if cfg is None:
-        try:
-            cfg = OmegaConf.load(Path(run_dir) / "config_resolved.yaml")
-        except OSError:
-            cfg = OmegaConf.create({})
+    try:
+        cfg = OmegaConf.load(Path(run_dir) / "config_resolved.yaml")
+    except OSError:
+        cfg = OmegaConf.create({})
     split = str(OmegaConf.select(cfg, "data.split", default="trial"))
     where, meaning = SPLIT_MEANING.get(split, (f"data.split={split}", ""))
     from .eval.generalisation import recipe
