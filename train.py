@@ -29,7 +29,8 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile import quiet, runfolder, runtime, settings, summary
+import embodied_tactile.config  # noqa: F401  registers the typed configs before Hydra composes
+from embodied_tactile import cli, quiet, runfolder, runtime, settings, summary
 from embodied_tactile.jsonio import read_json, write_json
 
 log = logging.getLogger("train")
@@ -42,13 +43,13 @@ def main(cfg: DictConfig) -> float | None:
     try:  # one training per folder; a restart continues the same model and data (done at entry for single runs)
         runfolder.claim(cfg, run_dir)
     except runfolder.RunFolderError as err:
-        settings.fail(err)
-    try:  # settings.EntryCallback checked before the folder existed; values swept with -m reach only the job
+        cli.fail(err)
+    try:  # cli.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
     except settings.SettingsError as err:
         if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
             write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
-        settings.fail(err)
+        cli.fail(err)
     stop = runfolder.StopSignals().install()  # SIGTERM / SIGINT: last.ckpt, "interrupted", exit 143 / 130
     resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
     trained_on = read_json(f"{run_dir}/provenance.json").get("raw_data") if resuming else None
@@ -63,7 +64,8 @@ def main(cfg: DictConfig) -> float | None:
     if runtime.configure_compile(cfg, model):
         log.info("compile_convs: the conv encoders / decoders of training steps run through torch.compile")
 
-    callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+    callbacks = [runtime.HandOverStatistics()]  # the training split's statistics, from the data to the model
+    callbacks += [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
     if not loggers:  # logger=none: Lightning refuses a LearningRateMonitor without a logger
         from lightning.pytorch.callbacks import LearningRateMonitor
@@ -109,7 +111,7 @@ def main(cfg: DictConfig) -> float | None:
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     except runfolder.RunFolderError as err:  # refused before anything of the run was rewritten
-        settings.fail(err)
+        cli.fail(err)
     except BaseException as err:  # any failure: the folder must not look like a finished run
         status = "interrupted" if stop.received is not None else "failed"
         metrics.update(status=status, error=str(err) or type(err).__name__, error_type=type(err).__name__,
@@ -159,7 +161,7 @@ def main(cfg: DictConfig) -> float | None:
     if trainer.global_rank == 0:
         write_json(f"{run_dir}/metrics.json", metrics)
         log.info("run folder: %s", run_dir)
-        if HydraConfig.get().mode != RunMode.MULTIRUN:  # a multirun ends with settings.EntryCallback's summary
+        if HydraConfig.get().mode != RunMode.MULTIRUN:  # a multirun ends with cli.EntryCallback's summary
             summary.print_run_summary(run_dir, metrics)
 
     for lg in loggers:  # one wandb run per multirun job
@@ -173,4 +175,5 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
+    cli.check_typed_overrides(sys.argv[1:])  # one line for a value of the wrong type, before Hydra merges it
     sys.exit(main())

@@ -141,9 +141,8 @@ def write_untrained(run_dir: Path, out: Path) -> Path:
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    import embodied_tactile.settings  # noqa: F401  the config resolvers
+    import embodied_tactile.config  # noqa: F401  the typed configs and resolver
     from embodied_tactile.eval.runs import data_config, load_run
-    from embodied_tactile.models.module import channel_stats
 
     run = load_run(run_dir, "last")
     out.mkdir(parents=True, exist_ok=True)
@@ -156,7 +155,7 @@ def write_untrained(run_dir: Path, out: Path) -> Path:
         dm = instantiate(OmegaConf.create(data_config(run, opts)), _convert_="all")
         dm.prepare_data()
         dm.setup("fit")
-        module.model.set_input_stats(*channel_stats(dm.train_eval_dataloader()))
+        module.use_data_statistics(dm.statistics)
     (out / "checkpoints").mkdir(exist_ok=True)
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
                 "pytorch-lightning_version": L.__version__}, out / "checkpoints" / "last.ckpt")

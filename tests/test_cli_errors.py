@@ -186,7 +186,7 @@ def test_default_train_run_prints_none_of_the_known_messages(tmp_path, fast_data
 def test_hydra_command_exit_statuses(tmp_path, monkeypatch, capsys):
     """The one wrapper of the Hydra commands (record, palpate): run's status, a listed error
     as one line and 2, a bad override 2, ``--cfg job`` and ``--help`` 0."""
-    from embodied_tactile.settings import hydra_command
+    from embodied_tactile.cli import hydra_command
 
     monkeypatch.chdir(tmp_path)
     seen = []

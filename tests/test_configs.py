@@ -124,9 +124,13 @@ def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
 
 def test_the_class_built_with_no_options_is_the_configured_filter_recipe(tmp_path):
     """One source of defaults: recipe=filter's network is LatentFilter(modality) with nothing
-    else named (but the scene's code-table size), and a command-line override still reaches
-    the network."""
-    from embodied_tactile.models.latent_filter import LatentFilter, default_option
+    else named (but the scene's code-table size), the composed config holds every field of
+    the typed options with the dataclass's values, a command-line override still reaches the
+    network, and an unknown option is refused by name, in Hydra and in the class."""
+    from dataclasses import asdict
+
+    from embodied_tactile.models.latent_filter import LatentFilter
+    from embodied_tactile.models.options import LatentFilterOptions, OptimizerOptions
 
     cfg = _compose(["recipe=filter"], tmp_path)
     configured = instantiate(cfg.model.net)
@@ -135,8 +139,14 @@ def test_the_class_built_with_no_options_is_the_configured_filter_recipe(tmp_pat
     assert configured.config()["prior"]["learn_embedding"] is False and configured.config()["obs_sigma"] == 0.1
     changed = instantiate(_compose(["model.net.obs_dropout=0.25", "model.net.prior.learn_sigma=true"], tmp_path).model.net)
     assert changed.obs_dropout == 0.25 and changed.config()["prior"]["learn_sigma"] is True
-    with pytest.raises(KeyError, match="not an option"):
-        default_option("prior.no_such_option")
+    composed = OmegaConf.to_container(_compose(["recipe=filter"], tmp_path).model.net, resolve=True)
+    options = asdict(LatentFilterOptions())
+    assert {k: composed[k] for k in options if k != "n_objects"} == {k: v for k, v in options.items() if k != "n_objects"}
+    assert _compose([], tmp_path).model.optimizer.lr == OptimizerOptions.lr
+    with pytest.raises(ValueError, match="unknown Latent Filter prior options \\['no_such_option'\\]"):
+        LatentFilter("acc", prior={"no_such_option": 1})
+    with pytest.raises(Exception, match="no_such_option"):
+        _compose(["model.net.prior.no_such_option=1"], tmp_path)
 
 
 def test_recipes_name_the_objective(tmp_path):

@@ -703,6 +703,12 @@ def test_standardised_encoder_does_not_see_the_channels_offset_and_scale():
 
 
 def test_fit_sets_the_input_stats_from_the_training_set_and_checkpoints_carry_them(tmp_path):
+    """The DataModule computes its training split's statistics in setup("fit");
+    HandOverStatistics hands them to the module; without them a standardising network
+    refuses to fit; checkpoints carry them."""
+    from embodied_tactile.data.statistics import DataStatistics
+    from embodied_tactile.runtime import HandOverStatistics
+
     torch.manual_seed(0)
     batch = make_batch(1, B=4, T=6)
     batch["obs"] = 0.5 + 0.03 * batch["obs"]  # the acc image's scale: a small spread on a large offset
@@ -711,6 +717,11 @@ def test_fit_sets_the_input_stats_from_the_training_set_and_checkpoints_carry_th
         def __init__(self):
             super().__init__()
             self.train_set = ListDataset(batch)
+            self.statistics = None
+
+        def setup(self, stage=None):
+            if stage == "fit":
+                self.statistics = DataStatistics.of(self.train_eval_dataloader(), len(self.train_set))
 
         def train_dataloader(self):
             return DataLoader(self.train_set, batch_size=2, shuffle=True)
@@ -723,10 +734,12 @@ def test_fit_sets_the_input_stats_from_the_training_set_and_checkpoints_carry_th
 
     module = LatentFilterModule(LatentFilter("acc", **{**TINY, "input_standardize": True}),
                                 optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
-    tr = trainer(tmp_path, max_steps=2)
+    with pytest.raises(ValueError, match="channel statistics"):
+        trainer(tmp_path, max_steps=2).fit(module, datamodule=DM())
+    tr = trainer(tmp_path, max_steps=2, callbacks=[HandOverStatistics()])
     tr.fit(module, datamodule=DM())
     net = module.model
-    assert bool(net.input_stats_set)
+    assert bool(net.input_stats_set) and net.prior.population_weight == 1 / 4
     o = batch["obs"].double()
     torch.testing.assert_close(net.input_shift, o.mean().float().view(1), rtol=1e-6, atol=1e-7)
     torch.testing.assert_close(net.input_scale, o.std(unbiased=False).float().view(1), rtol=1e-5, atol=1e-7)
@@ -765,5 +778,5 @@ def test_saved_configs_with_removed_options_load_when_off_and_are_named_when_on(
     cfg = LatentFilter.from_config(older).config()
     assert (cfg["y_update"], cfg["y_evidence_max"], cfg["obs_dropout"], cfg["prior"]["labels"]) == ("direct", None, 0.0, True)
     assert LatentFilter("fsr_t").config()["prior"]["labels"] is False and LatentFilter("fsr_t").obs_dropout == 0.5
-    with pytest.raises(TypeError):
+    with pytest.raises(ValueError, match="unknown Latent Filter options \\['overshoot'\\]"):
         LatentFilter("fsr_t", overshoot=2)

@@ -71,8 +71,14 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     torch.manual_seed(0)
     net = LatentFilter("multi_l", encoder={"widths": [4, 8], "hidden": 16}, transition_hidden=16, lstm_hidden=16)
     model = LateFusionLatentFilter(net, optimizer={"name": "Adam", "lr": 1e-3})
-    trainer = L.Trainer(max_epochs=1, accelerator="cpu", logger=False, enable_checkpointing=False,
+    from embodied_tactile.runtime import HandOverStatistics
+
+    trainer = L.Trainer(max_epochs=1, accelerator="cpu", logger=False, enable_checkpointing=False, callbacks=[HandOverStatistics()],
                         enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)
     trainer.fit(model, datamodule=dm)
     test = trainer.test(model, datamodule=dm, verbose=False)
     assert np.isfinite(test[0]["test/elbo"])
+    # the data's own statistics reached the network (the DataModule computed them in setup("fit"))
+    assert dm.statistics.n_train_sequences == len(dm.train_set) == 2
+    np.testing.assert_allclose(net.input_shift.numpy(), dm.statistics.channel_mean, rtol=1e-6)
+    assert float(net.prior.population_weight) == 0.5

@@ -23,7 +23,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile import constants as C
-from embodied_tactile.settings import hydra_command
+from embodied_tactile.cli import hydra_command
 
 log = logging.getLogger("embodied_tactile.palpate")
 

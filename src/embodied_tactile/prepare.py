@@ -24,7 +24,7 @@ import logging
 import sys
 import time
 
-from embodied_tactile.settings import config_dir
+from embodied_tactile.config import config_dir  # registers the typed configs
 
 
 def scene_from_train_config(overrides: list[str]):

@@ -332,6 +332,18 @@ def use_plain_progress(setting: str | bool) -> bool:
     return not sys.stdout.isatty()
 
 
+class HandOverStatistics(L.Callback):
+    """Hands the DataModule's training statistics (``datamodule.statistics``, computed in its
+    ``setup("fit")``) to the module (``use_data_statistics``) before the first step: the data
+    owns its statistics, the model never reaches for the DataModule. A module without
+    ``use_data_statistics`` or a DataModule without statistics is left as it is."""
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        statistics = getattr(trainer.datamodule, "statistics", None)
+        if stage == "fit" and statistics is not None and hasattr(pl_module, "use_data_statistics"):
+            pl_module.use_data_statistics(statistics)
+
+
 class PlainProgress(L.Callback):
     """One log line per epoch with the logged losses and the elapsed wall time."""
 

@@ -1,19 +1,17 @@
-"""Bad settings stop train.py at the entry with one line naming the key and the value.
+"""Which settings can work: the checks that stop train.py at the entry with one line naming
+the key and the value.
 
 :func:`check_train_config` type- and range-checks the keys of the composed train config that reach
 Lightning / the data module / the optimiser as numbers or flags (``SCHEMA``), and
 :func:`check_paths` makes sure the data and log folders can be created and written.
-Both raise :class:`SettingsError`; :class:`EntryCallback` (a Hydra callback, registered in
-``configs/train.yaml``) runs them before Hydra creates the run folder, prints
-``train.py: error: <message>`` and exits with status 2 -- no traceback, no empty run
-folder. ``train.py`` runs the type check again per job (values swept with ``-m``).
+Both raise :class:`SettingsError`; :class:`embodied_tactile.cli.EntryCallback` runs them
+before Hydra creates the run folder and exits with status :data:`EXIT_BAD_SETTINGS`.
+``train.py`` runs the type check again per job (values swept with ``-m``).
 """
 
 from __future__ import annotations
 
 import math
-import os
-import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,52 +21,6 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 EXIT_BAD_SETTINGS = 2
-
-
-def config_dir() -> str:
-    """The Hydra config folder: ``$EMBODIED_TACTILE_CONFIG_DIR`` if set, else the project
-    checkout's ``configs/``."""
-    env = os.environ.get("EMBODIED_TACTILE_CONFIG_DIR")
-    if env:
-        return str(Path(env).resolve())
-    return str(Path(__file__).resolve().parents[2] / "configs")
-
-
-def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
-                  errors: tuple[type[Exception], ...] = ()) -> Callable[[], None]:
-    """``main()`` of a Hydra command (``python -m embodied_tactile.record`` / ``.palpate``)
-    whose ``run(cfg)`` returns the exit status. An exception of ``errors`` prints
-    ``<prog>: error: <message>`` and exits 2; so does a config composition error (Hydra's
-    own exit 1); ``--help`` / ``--cfg`` exit 0."""
-    code: list[int | None] = [None]
-
-    import hydra
-
-    @hydra.main(version_base="1.3", config_path=config_dir(), config_name=config_name)
-    def app(cfg: DictConfig) -> None:
-        try:
-            code[0] = run(cfg)
-        except errors as err:
-            print(f"{prog}: error: {err}", file=sys.stderr)
-            code[0] = EXIT_BAD_SETTINGS
-
-    def main() -> None:
-        code[0] = None
-        try:
-            app()
-        except SystemExit as exc:
-            if code[0] is None and exc.code not in (0, None):
-                sys.exit(EXIT_BAD_SETTINGS)
-            raise
-        # Hydra returned without running the app (--help, --cfg): nothing failed
-        sys.exit(0 if code[0] is None and _info_only() else (EXIT_BAD_SETTINGS if code[0] is None else code[0]))
-
-    return main
-
-
-def _info_only() -> bool:
-    return any(a in ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i") or a.startswith("--cfg=")
-               for a in sys.argv[1:])
 
 
 class SettingsError(ValueError):
@@ -170,7 +122,7 @@ SCHEMA: dict[str, Spec] = {
 }
 
 
-def _get(cfg: DictConfig, key: str) -> tuple[bool, Any]:
+def config_value(cfg: DictConfig, key: str) -> tuple[bool, Any]:
     """(present, value) with interpolations resolved where they can be (a value that only
     resolves inside a Hydra job, e.g. ``${hydra:...}``, is reported absent)."""
     node: Any = cfg
@@ -199,12 +151,12 @@ def check_train_config(cfg: DictConfig) -> None:
     """Raise SettingsError for the first key of SCHEMA whose value is of the wrong type or
     range, then for the first pair of PAIRS that breaks its bound."""
     for key, spec in SCHEMA.items():
-        present, v = _get(cfg, key)
+        present, v = config_value(cfg, key)
         if present and not spec.accepts(v):
             raise SettingsError(f"{key}={v!r} ({type(v).__name__}): expected {spec.describe()}")
     _check_population(cfg)
     for a, b, ok, rule in PAIRS:
-        (has_a, va), (has_b, vb) = _get(cfg, a), _get(cfg, b)
+        (has_a, va), (has_b, vb) = config_value(cfg, a), config_value(cfg, b)
         if has_a and has_b and va is not None and vb is not None and not ok(va, vb):
             raise SettingsError(f"{a}={va!r} and {b}={vb!r}: expected {rule}")
 
@@ -212,13 +164,13 @@ def check_train_config(cfg: DictConfig) -> None:
 def _check_population(cfg: DictConfig) -> None:
     """A population scene larger than ``prepare.POPULATION_MAX_TRIALS`` trials needs
     ``data.allow_large_population=true``: SettingsError with its disk and time estimate."""
-    present, objects = _get(cfg, "data.objects")
+    present, objects = config_value(cfg, "data.objects")
     if not present or objects != "population":
         return
     from embodied_tactile import constants as C
     from embodied_tactile.data.prepare import check_population_size, fields_for_channels
 
-    get = lambda key, default: (lambda p: p[1] if p[0] and p[1] is not None else default)(_get(cfg, key))  # noqa: E731
+    get = lambda key, default: (lambda p: p[1] if p[0] and p[1] is not None else default)(config_value(cfg, key))  # noqa: E731
     actions = get("data.actions", None)
     try:
         check_population_size(int(get("data.n_objects", 256)), int(get("data.n_val_objects", 32)),
@@ -249,87 +201,14 @@ def check_writable_dir(key: str, value: Any) -> Path:
 def check_paths(cfg: DictConfig, *, run_dir_key: str | None = None) -> None:
     """paths.data_dir, paths.log_dir (and the run / sweep folder's parent when given)."""
     for key in ("paths.data_dir", "paths.log_dir"):
-        present, v = _get(cfg, key)
+        present, v = config_value(cfg, key)
         if present:
             check_writable_dir(key, v)
     if run_dir_key:
-        present, v = _get(cfg, run_dir_key)
+        present, v = config_value(cfg, run_dir_key)
         if present and v:
             check_writable_dir(run_dir_key, Path(str(v)).parent)
 
 
-def fail(err: SettingsError, prog: str = "train.py") -> None:
-    """The one line and exit status 2."""
-    print(f"{prog}: error: {err}", file=sys.stderr)
-    raise SystemExit(EXIT_BAD_SETTINGS)
-
-
-try:  # Hydra is a dependency of train.py; keep this module importable without it
-    from hydra.experimental.callback import Callback as _HydraCallback
-except ImportError:  # pragma: no cover
-    _HydraCallback = object  # type: ignore[misc,assignment]
-
-
-class EntryCallback(_HydraCallback):
-    """Hydra callback of train.py: check settings before any folder is made; at the end of a
-    multirun, print its summary (:mod:`embodied_tactile.summary`)."""
-
-    def __init__(self) -> None:
-        self._sweep_dir: str | None = None
-
-    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._check(config, "hydra.run.dir")
-        from .runfolder import claim_at_entry  # the folder's lock and resume check, before Hydra writes into it
-
-        try:
-            claim_at_entry(config)
-        except SettingsError as err:
-            fail(err)
-
-    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._check(config, "hydra.sweep.dir")
-        present, v = _get(config, "hydra.sweep.dir")
-        self._sweep_dir = str(v) if present else None
-
-    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from .summary import print_multirun_summary
-
-        if self._sweep_dir and Path(self._sweep_dir).is_dir():
-            print_multirun_summary(self._sweep_dir)
-
-    @staticmethod
-    def _check(config: DictConfig, run_dir_key: str) -> None:
-        try:
-            check_train_config(config)
-            check_paths(config, run_dir_key=run_dir_key)
-        except SettingsError as err:
-            fail(err)
-
-
-__all__ = ["SettingsError", "SCHEMA", "Spec", "check_train_config", "check_paths", "check_writable_dir",
-           "fail", "EntryCallback", "EXIT_BAD_SETTINGS"]
-
-
-def prior_rows(objects: Any, n_test: int, n_val: int, n_train: int) -> int:
-    """Rows of the prior's object-code table for a scene (``${prior_rows:...}`` in
-    configs/model/latent_filter.yaml): the catalogue's 32, or every population id."""
-    from embodied_tactile.constants import N_OBJECTS, POPULATION_ID_BASE
-
-    if objects == "population":
-        return POPULATION_ID_BASE + int(n_test) + int(n_val) + int(n_train)
-    return N_OBJECTS
-
-
-def lf_default(name: str) -> Any:
-    """A Latent Filter option's default from the class signatures (``${lf_default:obs_sigma}``,
-    ``${lf_default:prior.learn_sigma}``, ``${lf_default:encoder.widths}`` in
-    configs/model/latent_filter.yaml): :func:`~embodied_tactile.models.latent_filter.default_option`."""
-    from embodied_tactile.models.latent_filter import default_option
-
-    value = default_option(str(name))
-    return OmegaConf.create(value) if isinstance(value, (list, dict)) else value
-
-
-for _name, _resolver in (("prior_rows", prior_rows), ("lf_default", lf_default)):
-    if not OmegaConf.has_resolver(_name):
-        OmegaConf.register_new_resolver(_name, _resolver)
+__all__ = ["EXIT_BAD_SETTINGS", "SettingsError", "SCHEMA", "Spec", "check_train_config", "check_paths",
+           "check_writable_dir"]

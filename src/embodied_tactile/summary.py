@@ -6,7 +6,7 @@
   then (:func:`protocol_lines`) what the number means: beside the untrained network and the
   mean predictor, what the split measures, and where objects never touched are measured.
 * :func:`multirun_summary_lines` -- the end of ``python train.py -m ...`` (printed by the
-  Hydra callback :class:`embodied_tactile.settings.EntryCallback`): one line per job, the
+  Hydra callback :class:`embodied_tactile.cli.EntryCallback`): one line per job, the
   multirun folder and its evaluate command.
 * :func:`latest_run` -- the most recent run or multirun under ``<log_dir>/train`` (what
   ``python evaluate.py`` with no argument evaluates).

@@ -25,6 +25,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from embodied_tactile.data.prepare import PreparedData, Scene, TrialRef, data_dir_lock, prepare_scene
+from embodied_tactile.data.statistics import DataStatistics
 from embodied_tactile.jsonio import write_json
 from embodied_tactile.modality import CHANNELS, fields_for_channels
 
@@ -460,6 +461,9 @@ class TactileDataModule(L.LightningDataModule):
         #: the preparation stage's result (prepare_data, or attach() with one prepared elsewhere)
         self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
+        #: the training split's channel statistics and size (setup("fit")), handed to the model by
+        #: :class:`embodied_tactile.runtime.HandOverStatistics`
+        self.statistics: DataStatistics | None = None
         self.val_set: TactileSequenceDataset | None = None  # model selection (training objects)
         self.test_set: TactileSequenceDataset | None = None  # held out: evaluation only
         self.train_crops: TactileSequenceDataset | None = None  # what train_dataloader serves
@@ -505,8 +509,14 @@ class TactileDataModule(L.LightningDataModule):
             self.prepared = prepare_scene(self.scene)
 
     def setup(self, stage: str | None = None) -> None:
-        if self.train_set is not None:
-            return
+        """The split and its datasets (once); for fitting, the training split's
+        :attr:`statistics` too."""
+        if self.train_set is None:
+            self._build_sets()
+        if stage == "fit" and self.statistics is None:
+            self.statistics = DataStatistics.of(self.train_eval_dataloader(), len(self.train_set))
+
+    def _build_sets(self) -> None:
         if self.prepared is None:
             # prepare_data ran in another process (DDP rank 0): the cache keys are
             # deterministic, so the stage finds the existing files without recomputing.

@@ -45,6 +45,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from ..models.options import LatentFilterOptions
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment
 from .results import Results, evaluate_latents
 
@@ -336,7 +337,7 @@ class GRURegressor:
         else:  # loader: one pass for the target statistics
             fac = np.concatenate([np.asarray(b["factors"], np.float64) for b in data])
         if c["input_standardize"]:
-            from ..models.module import channel_stats
+            from ..data.statistics import channel_stats
 
             chunks = ({"obs": data[i:i + 16]} for i in range(0, len(data), 16)) if actions is not None else data
             mean, sd = channel_stats(chunks)
@@ -435,11 +436,7 @@ def evaluate_code_regression(train: Mapping[str, Any], test: Mapping[str, Any], 
                          f"'latent_filter', got {gru.get('arch')!r}")
     assert_disjoint(train.get("seq_id"), test.get("seq_id"))
     n_y = dict(gru.get("latent_filter") or {}).get("n_y")
-    if n_y is None:  # the network's own default, defined once in LatentFilter
-        from ..models.latent_filter import default_option
-
-        n_y = default_option("n_y")
-    n_y = int(n_y)
+    n_y = int(LatentFilterOptions.n_y if n_y is None else n_y)  # the network's own default
     oid_tr, oid_te = np.asarray(train["object_id"]), np.asarray(test["object_id"])
     n_obj = int(max(oid_tr.max(), oid_te.max())) + 1
     codes = np.random.default_rng(int(gru.get("seed", 0))).normal(0.0, code_sigma, size=(n_obj, n_y))

@@ -28,7 +28,7 @@ from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect
                                         load_module, run_split, trial_names, trial_objects)
 from embodied_tactile.eval.results import SPLIT_KINDS
 from embodied_tactile.jsonio import read_json
-from embodied_tactile.settings import config_dir
+from embodied_tactile.paths import config_dir
 
 BASELINES = ("handcrafted", "gru", "mean")
 MULTIRUN_BASELINES = ("handcrafted", "mean")

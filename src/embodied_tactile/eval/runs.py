@@ -253,7 +253,7 @@ class DataCache:
         dm.prepare_data()
         if check is not None:
             check(dm)
-        dm.setup("fit")
+        dm.setup("test")  # the split and its datasets; no training statistics
         self._dms[k] = dm
         return k, dm
 
@@ -329,7 +329,7 @@ def train_log_dir() -> str:
     """``paths.log_dir`` as train.py composes it (configs/train.yaml + configs/local/)."""
     from hydra import compose, initialize_config_dir
 
-    from embodied_tactile.settings import config_dir
+    from embodied_tactile.config import config_dir  # registers the typed configs
 
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         return str(compose(config_name="train").paths.log_dir)

@@ -1,23 +1,24 @@
 """Latent Filter networks, observation models (early / late fusion), annealing schedules and
-LightningModules (torch + lightning only)."""
+LightningModules (torch + lightning only), and their typed options (:mod:`.options`, plain
+dataclasses). The names below load on first use, so that ``models.options`` imports
+without torch."""
 
-from .annealing import (
-    SCHEDULES,
-    AnnealingSchedule,
-    ConstrainedAnnealing,
-    DVBFAnnealing,
-    GeometricKLWeights,
-    LinearKLWarmup,
-    NoAnnealing,
-    build_schedule,
-    check_finite,
-)
-from .fusion import EarlyFusion, LateFusion
-from .latent_filter import LatentFilter, resolve_modality
-from .module import EarlyFusionLatentFilter, LateFusionLatentFilter, LatentFilterModule
+from importlib import import_module
+from typing import Any
 
-__all__ = [
-    "SCHEDULES", "AnnealingSchedule", "ConstrainedAnnealing", "DVBFAnnealing", "GeometricKLWeights",
-    "LinearKLWarmup", "NoAnnealing", "build_schedule", "check_finite", "EarlyFusion", "LateFusion", "LatentFilter",
-    "resolve_modality", "EarlyFusionLatentFilter", "LateFusionLatentFilter", "LatentFilterModule",
-]
+_WHERE = {
+    **{name: ".annealing" for name in ("SCHEDULES", "AnnealingSchedule", "ConstrainedAnnealing", "DVBFAnnealing",
+                                       "GeometricKLWeights", "LinearKLWarmup", "NoAnnealing", "build_schedule",
+                                       "check_finite")},
+    "EarlyFusion": ".fusion", "LateFusion": ".fusion",
+    "LatentFilter": ".latent_filter", "resolve_modality": ".latent_filter",
+    "EarlyFusionLatentFilter": ".module", "LateFusionLatentFilter": ".module", "LatentFilterModule": ".module",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(import_module(_WHERE[name], __name__), name)

@@ -16,8 +16,8 @@ Time indexing (t = 1..T in the docs, 0-based in code):
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Mapping, Sequence
+from dataclasses import asdict
 from typing import Any, Optional
 
 import torch
@@ -25,6 +25,8 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from embodied_tactile.modality import Modality, load_modality
+
+from .options import ContextOptions, LatentFilterOptions, build
 
 from .fusion import ObservationModel, observation_model
 from .networks import (
@@ -86,38 +88,13 @@ def _state_to(z: Tensor, z_mean: Tensor, a: Tensor, y_state: tuple[Tensor, ...])
     return {"z": z, "z_mean": z_mean, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
 
 
-ENCODER_DEFAULTS: dict[str, Any] = {"widths": [16, 32], "hidden": 128}
-"""Every encoder's (and its decoder's) convolution widths and hidden width, unless
-``LatentFilter(encoder=...)`` names them."""
-
-
-def _signature_defaults(cls: type, skip: Sequence[str] = ()) -> dict[str, Any]:
-    return {k: p.default for k, p in inspect.signature(cls.__init__).parameters.items()
-            if k != "self" and k not in skip and p.default is not inspect.Parameter.empty}
-
-
-def default_option(name: str) -> Any:
-    """The project's default of one Latent Filter option: ``"obs_sigma"`` (an argument of
-    :class:`LatentFilter`), ``"prior.<name>"`` (of :class:`HierarchicalPrior`) or
-    ``"encoder.<name>"`` (:data:`ENCODER_DEFAULTS`). The signatures are the one source;
-    configs/model/latent_filter.yaml reads them through ``${lf_default:<name>}``."""
-    group, _, key = name.rpartition(".")
-    if group == "encoder" and key in ENCODER_DEFAULTS:
-        value = ENCODER_DEFAULTS[key]
-        return list(value) if isinstance(value, list) else value
-    owner = {"": LatentFilter, "prior": HierarchicalPrior}.get(group)
-    defaults = _signature_defaults(owner) if owner else {}
-    if key not in defaults:
-        raise KeyError(f"{name!r} is not an option of the Latent Filter with a default")
-    return defaults[key]
-
-
 class LatentFilter(nn.Module):
     """Action-conditioned deep state-space model with z (directly) and y (indirectly
     observable) latents; see the module docstring for the time indexing.
 
-    The signature's values are the project's defaults (one source: a config names what a
-    scene changes and reads the rest through :func:`default_option`).
+    The options are keywords of :class:`~.options.LatentFilterOptions`, whose fields hold
+    the project's defaults (the one source; Hydra composes the same dataclass as
+    ``model.net``): a caller names only what it changes.
 
     Args:
         modality: preset name or mapping (see :func:`resolve_modality`). Its ``fusion``
@@ -126,7 +103,7 @@ class LatentFilter(nn.Module):
             decoders are built.
         n_z, n_y, n_a: latent and action sizes. n_objects: rows of the prior embedding.
         encoder: ``{"widths": [w1, w2], "hidden": h}`` for every encoder and its decoder
-            (:data:`ENCODER_DEFAULTS` where not given).
+            (:class:`~.options.EncoderOptions` where not given).
         transition_hidden, lstm_hidden: widths of the transition MLP and LSTM.
         min_var: variance floor of encoder, transition and q(y) heads.
         obs_sigma: (initial) observation sigma on [0, 1]-scaled inputs; ``learn_obs_sigma``
@@ -154,50 +131,39 @@ class LatentFilter(nn.Module):
             as the pendulum benchmark's, whose inputs need none).
     """
 
-    def __init__(self, modality: Any, n_z: int = 16, n_y: int = 16, n_a: int = 6,
-                 n_objects: int = 32, encoder: Optional[Mapping] = None,
-                 transition_hidden: int = 128, lstm_hidden: int = 128, min_var: float = 1e-3,
-                 obs_sigma: float = 0.1, learn_obs_sigma: bool = True, obs_sigma_min: float = 1e-2,
-                 prior: Optional[Mapping] = None, y_update: str = "evidence",
-                 y_prior_precision: float = 1.0, y_evidence_max: Optional[float] = 1.0,
-                 y_evidence_range: Optional[float] = 2.0, obs_dropout: float = 0.5,
-                 input_standardize: bool = True) -> None:
+    def __init__(self, modality: Any, **options: Any) -> None:
         super().__init__()
-        if not 0.0 <= float(obs_dropout) < 1.0:
-            raise ValueError(f"obs_dropout must be in [0, 1), got {obs_dropout}")
-        self.obs_dropout = float(obs_dropout)
-        args = dict(locals())
-        args["prior"] = {**_signature_defaults(HierarchicalPrior, skip=("n_y", "n_a", "n_objects")),
-                         **(to_plain(prior) or {})}
-        args["encoder"] = {**ENCODER_DEFAULTS, **(to_plain(encoder) or {})}
-        self._config = {k: to_plain(v) for k, v in args.items() if k not in ("self", "__class__")}
+        opts: LatentFilterOptions = build(LatentFilterOptions, options, "Latent Filter")
+        if not 0.0 <= float(opts.obs_dropout) < 1.0:
+            raise ValueError(f"obs_dropout must be in [0, 1), got {opts.obs_dropout}")
+        self.obs_dropout = float(opts.obs_dropout)
+        self._config = to_plain(asdict(opts))
         self._config["modality"] = _modality_config(modality)
         self.modality = resolve_modality(modality)
-        self.n_z, self.n_y, self.n_a = int(n_z), int(n_y), int(n_a)
+        n_z, n_y, n_a, min_var = int(opts.n_z), int(opts.n_y), int(opts.n_a), float(opts.min_var)
+        self.n_z, self.n_y, self.n_a = n_z, n_y, n_a
         self.n_channels = len(self.modality["channels"])
-        enc = dict(self._config["encoder"])
-        unknown = set(enc) - {"widths", "hidden"}
-        if unknown:
-            raise ValueError(f"unknown encoder options {sorted(unknown)}")
+        enc = opts.encoder
         # built first: the same seed gives the same initial parameters as before the
         # fusion code moved to models/fusion.py
         self.observation: ObservationModel = observation_model(
-            self.modality["fusion"], self.modality["pathways"], n_z, enc["widths"], enc["hidden"], min_var)
-        self.transition = TransitionNet(n_z, n_y, n_a, transition_hidden, min_var)
-        self.y_posterior = YPosterior(n_z, n_y, n_a, lstm_hidden, min_var,
-                                      update=y_update,
-                                      prior_precision=y_prior_precision, max_evidence=y_evidence_max,
-                                      evidence_range=y_evidence_range)
-        self.prior = HierarchicalPrior(n_y, n_a, n_objects, **self._config["prior"])
-        if obs_sigma <= obs_sigma_min:
-            raise ValueError(f"obs_sigma={obs_sigma} must exceed obs_sigma_min={obs_sigma_min}")
-        self.obs_sigma_min = float(obs_sigma_min)
-        raw = torch.full((self.n_channels,), float(torch.log(torch.expm1(torch.tensor(obs_sigma - obs_sigma_min)))))
-        if learn_obs_sigma:
+            self.modality["fusion"], self.modality["pathways"], n_z, list(enc.widths), enc.hidden, min_var)
+        self.transition = TransitionNet(n_z, n_y, n_a, opts.transition_hidden, min_var)
+        self.y_posterior = YPosterior(n_z, n_y, n_a, opts.lstm_hidden, min_var,
+                                      update=opts.y_update,
+                                      prior_precision=opts.y_prior_precision, max_evidence=opts.y_evidence_max,
+                                      evidence_range=opts.y_evidence_range)
+        self.prior = HierarchicalPrior(n_y, n_a, opts.n_objects, **self._config["prior"])
+        if opts.obs_sigma <= opts.obs_sigma_min:
+            raise ValueError(f"obs_sigma={opts.obs_sigma} must exceed obs_sigma_min={opts.obs_sigma_min}")
+        self.obs_sigma_min = float(opts.obs_sigma_min)
+        raw = torch.full((self.n_channels,),
+                         float(torch.log(torch.expm1(torch.tensor(opts.obs_sigma - opts.obs_sigma_min)))))
+        if opts.learn_obs_sigma:
             self.obs_sigma_raw = nn.Parameter(raw)
         else:
             self.register_buffer("obs_sigma_raw", raw)
-        self.input_standardize = bool(input_standardize)
+        self.input_standardize = bool(opts.input_standardize)
         if self.input_standardize:  # only then: checkpoints without the option load unchanged
             self.register_buffer("input_shift", torch.zeros(self.n_channels))
             self.register_buffer("input_scale", torch.ones(self.n_channels))
@@ -462,7 +428,8 @@ class LatentFilter(nn.Module):
         res["recon"] = self.decode(res["z"].reshape(B * T, -1)).view(B, T, *obs.shape[2:])
         return res
 
-    def context_terms(self, batch: Mapping[str, Tensor], initial_frames: int = 3, refilter: bool = False,
+    def context_terms(self, batch: Mapping[str, Tensor], initial_frames: int = ContextOptions.initial_frames,
+                      refilter: bool = ContextOptions.refilter,
                       sample: bool = True) -> dict[str, Tensor]:
         """The context objective (docs/model.md, "The context objective"): per-sequence
         terms of the negative ELBO of a model in which one y is shared by every trial of an

@@ -3,19 +3,20 @@
 from __future__ import annotations
 
 import functools
+from dataclasses import asdict
 from collections.abc import Mapping
 from typing import Any, Callable, Optional
 
 import lightning as L
-import numpy as np
 import torch
 from torch import Tensor, nn
 
 from .annealing import AnnealingSchedule, build_schedule, check_finite
 from .fusion import EarlyFusion, LateFusion
 from .latent_filter import LatentFilter, to_plain
+from .options import ContextOptions, ModuleOptions, OptimizerOptions, build, defaults
 
-DEFAULT_OPTIMIZER = {"name": "Adam", "lr": 1e-5}  # the paper's setting
+_DEFAULT = ModuleOptions()
 LR_SCHEDULES = ("constant", "cosine")
 
 
@@ -34,7 +35,7 @@ def _optimizer_spec(optimizer: Any) -> Optional[dict[str, Any]]:
 
 def _optimizer_factory(optimizer: Any) -> Callable:
     if optimizer is None:
-        optimizer = DEFAULT_OPTIMIZER
+        optimizer = defaults(OptimizerOptions)
     if callable(optimizer):
         return optimizer
     if isinstance(optimizer, Mapping):
@@ -45,22 +46,6 @@ def _optimizer_factory(optimizer: Any) -> Callable:
             raise ValueError(f"unknown torch.optim optimizer {name!r}")
         return functools.partial(cls, **spec)
     raise TypeError(f"optimizer must be a callable (functools.partial) or a mapping, got {type(optimizer).__name__}")
-
-
-def channel_stats(batches) -> tuple[np.ndarray, np.ndarray]:
-    """Per-channel mean and standard deviation (C,) over every frame and pixel of an
-    iterable of batches with ``obs`` (B, T, C, H, W) (float64 sums)."""
-    n, s, ss = 0, None, None
-    for b in batches:
-        o = np.asarray(b["obs"], dtype=np.float64)
-        o = np.moveaxis(o, 2, 0).reshape(o.shape[2], -1)
-        s = o.sum(1) if s is None else s + o.sum(1)
-        ss = (o ** 2).sum(1) if ss is None else ss + (o ** 2).sum(1)
-        n += o.shape[1]
-    if not n:
-        raise ValueError("channel_stats: no observations")
-    mean = s / n
-    return mean, np.sqrt(np.maximum(ss / n - mean ** 2, 0.0))
 
 
 def _trial_label(batch: Mapping[str, Any], row: int) -> str:
@@ -99,18 +84,14 @@ CONTEXT_SOURCES = ("trial", "window")
 
 def check_context(context: Optional[Mapping[str, Any]]) -> Optional[dict[str, Any]]:
     """The context objective's settings as a plain dict (None: the filtering ELBO):
-    ``source`` in :data:`CONTEXT_SOURCES`, ``initial_frames`` >= 1, ``refilter`` a bool."""
+    :class:`~.options.ContextOptions` filled from ``context``, ``source`` in
+    :data:`CONTEXT_SOURCES`, ``initial_frames`` >= 1."""
     if context is None:
         return None
-    context = dict(to_plain(context))
-    unknown = set(context) - {"source", "initial_frames", "refilter"}
-    if unknown:
-        raise ValueError(f"unknown context options {sorted(unknown)} (source, initial_frames, refilter)")
-    out = {"source": context.get("source", "trial"), "initial_frames": int(context.get("initial_frames", 3)),
-           "refilter": bool(context.get("refilter", False))}
+    out = asdict(build(ContextOptions, to_plain(context), "context"))
     if out["source"] not in CONTEXT_SOURCES:
         raise ValueError(f"context.source must be one of {CONTEXT_SOURCES}, got {out['source']!r}")
-    if out["initial_frames"] < 1:
+    if int(out["initial_frames"]) < 1:
         raise ValueError(f"context.initial_frames must be >= 1, got {out['initial_frames']}")
     return out
 
@@ -128,7 +109,7 @@ class LatentFilterModule(L.LightningModule):
         annealing: an :class:`AnnealingSchedule`, a name, or ``{name, **kwargs}``
             (None -> plain ELBO). Stored in the hyperparameters as its ``config()``.
         optimizer: ``functools.partial(torch.optim.X, **kw)`` (Hydra ``_partial_: true``)
-            or ``{name: "Adam", lr: ...}``; None -> Adam(lr=1e-5). Stored as
+            or ``{name: "Adam", lr: ...}``; None -> :class:`~.options.OptimizerOptions`. Stored as
             ``{name, **kw}`` when it is a torch.optim partial with plain keywords.
         check_finite: raise FloatingPointError on non-finite inputs (naming trial and frame)
             or a non-finite loss (naming the terms and the batch's trials), in training and
@@ -155,8 +136,8 @@ class LatentFilterModule(L.LightningModule):
     fusion: Optional[type[nn.Module]] = None
 
     def __init__(self, net: LatentFilter | Mapping[str, Any], annealing: Any = None, optimizer: Any = None,
-                 check_finite: bool = True, lr_schedule: str = "constant", code_lr_scale: float = 1.0,
-                 context: Optional[Mapping[str, Any]] = None) -> None:
+                 check_finite: bool = _DEFAULT.check_finite, lr_schedule: str = _DEFAULT.lr_schedule,
+                 code_lr_scale: float = _DEFAULT.code_lr_scale, context: Optional[Mapping[str, Any]] = None) -> None:
         super().__init__()
         context = check_context(context)
         if lr_schedule not in LR_SCHEDULES:
@@ -262,26 +243,23 @@ class LatentFilterModule(L.LightningModule):
     def test_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
         return self._eval_step(batch, "test", batch_idx)
 
-    def _fit_budget(self) -> None:
-        """Resolve what depends on the run: schedule lengths given as a fraction of its
-        optimiser steps, and the prior's population weight. Called from
-        ``configure_optimizers``, where Lightning documents ``estimated_stepping_batches``."""
-        if getattr(self, "_trainer", None) is None:
-            return
-        # schedule lengths given as a fraction of the run resolve against its optimiser steps
-        self.annealing.set_total_steps(self.trainer.estimated_stepping_batches)
+    def use_data_statistics(self, statistics: Any) -> None:
+        """What the network needs from its training data, handed over by the data side
+        (:class:`embodied_tactile.runtime.HandOverStatistics` at ``setup("fit")``; any object
+        with ``channel_mean``, ``channel_std`` (C,) and ``n_train_sequences``): the encoders'
+        input statistics (``input_standardize``) and the prior's population weight,
+        1 / (training sequences) per sequence, unless the config fixes it. A resumed run's
+        checkpoint then restores the statistics it was trained with."""
+        if self.model.input_standardize:
+            self.model.set_input_stats(statistics.channel_mean, statistics.channel_std)
+        if (self.hparams["net"].get("prior") or {}).get("population_weight") is None and statistics.n_train_sequences:
+            self.model.prior.population_weight = 1.0 / int(statistics.n_train_sequences)
+
+    def on_fit_start(self) -> None:
         if self.model.input_standardize and not bool(self.model.input_stats_set):
-            dm = getattr(self.trainer, "datamodule", None)
-            if dm is None or getattr(dm, "train_set", None) is None:
-                raise ValueError("input_standardize (the default) needs the training set's channel statistics: "
-                                 "fit with a TactileDataModule, or build the network with input_standardize=False")
-            self.model.set_input_stats(*channel_stats(dm.train_eval_dataloader()))
-        # the prior's population term counts once per dataset: 1 / (training sequences) per sequence
-        prior = self.model.prior
-        if (self.hparams["net"].get("prior") or {}).get("population_weight") is None:
-            train_set = getattr(self.trainer.datamodule, "train_set", None)
-            if train_set is not None and getattr(train_set, "trials", None):
-                prior.population_weight = 1.0 / len(train_set.trials)
+            raise ValueError("input_standardize (the default) needs the training set's channel statistics: fit with a "
+                             "TactileDataModule and the HandOverStatistics callback (embodied_tactile.runtime; "
+                             "train.py adds it), or build the network with input_standardize=False")
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Checkpoints written before the fusion code moved into :mod:`.fusion` (commit
@@ -306,7 +284,8 @@ class LatentFilterModule(L.LightningModule):
         checkpoint["state_dict"] = {rename(k): v for k, v in state.items()}
 
     def configure_optimizers(self):
-        self._fit_budget()
+        if getattr(self, "_trainer", None) is not None:  # schedule lengths given as a fraction of the run's steps
+            self.annealing.set_total_steps(self.trainer.estimated_stepping_batches)
         if self.code_lr_scale == 1.0:
             optimizer = self._optimizer(self.parameters())
         else:  # the object codes in a group of their own, at code_lr_scale x the optimizer's lr

@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager, nullcontext
-from typing import Iterator, Optional, Sequence
+from typing import Any, Iterator, Optional, Sequence
 
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
+
+from .options import PriorOptions, build
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -379,11 +381,12 @@ class HierarchicalPrior(nn.Module):
     the codes, so a new object keeps its population marginal.
     """
 
-    def __init__(self, n_y: int, n_a: int, n_objects: int = 32, sigma_init: float = 0.5,
-                 learn_sigma: bool = False, var_floor: float = 1e-2, action_term: bool = True,
-                 pop_sigma_init: float = 0.5, population_weight: Optional[float] = None,
-                 labels: bool = False, learn_embedding: bool = False) -> None:
+    def __init__(self, n_y: int, n_a: int, n_objects: int, **options: Any) -> None:
         super().__init__()
+        opts: PriorOptions = build(PriorOptions, options, "prior")
+        sigma_init, learn_sigma, var_floor = opts.sigma_init, opts.learn_sigma, opts.var_floor
+        pop_sigma_init, population_weight = opts.pop_sigma_init, opts.population_weight
+        labels, learn_embedding, action_term = opts.labels, opts.learn_embedding, opts.action_term
         self.labels = bool(labels)
         if sigma_init ** 2 <= var_floor:
             raise ValueError(f"prior sigma_init**2={sigma_init ** 2} must exceed var_floor={var_floor}")

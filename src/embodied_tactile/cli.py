@@ -1,0 +1,145 @@
+"""The command-line side of the Hydra entry points: one line and exit status 2 for a bad
+setting (:func:`fail`), ``main()`` of a Hydra command (:func:`hydra_command`), and train.py's
+Hydra callback (:class:`EntryCallback`, registered in ``configs/train.yaml``): settings are
+checked (:mod:`embodied_tactile.settings`) and the run folder claimed
+(:mod:`embodied_tactile.runfolder`) before Hydra creates it; a multirun ends with its summary
+(:mod:`embodied_tactile.summary`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import typing
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import hydra
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
+from embodied_tactile.config import config_dir
+from embodied_tactile.runfolder import claim_at_entry
+from embodied_tactile.settings import EXIT_BAD_SETTINGS, SettingsError, check_paths, check_train_config, config_value
+
+
+def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
+                  errors: tuple[type[Exception], ...] = ()) -> Callable[[], None]:
+    """``main()`` of a Hydra command (``python -m embodied_tactile.record`` / ``.palpate``)
+    whose ``run(cfg)`` returns the exit status. An exception of ``errors`` prints
+    ``<prog>: error: <message>`` and exits 2; so does a config composition error (Hydra's
+    own exit 1); ``--help`` / ``--cfg`` exit 0."""
+    code: list[int | None] = [None]
+
+    @hydra.main(version_base="1.3", config_path=config_dir(), config_name=config_name)
+    def app(cfg: DictConfig) -> None:
+        try:
+            code[0] = run(cfg)
+        except errors as err:
+            print(f"{prog}: error: {err}", file=sys.stderr)
+            code[0] = EXIT_BAD_SETTINGS
+
+    def main() -> None:
+        code[0] = None
+        try:
+            app()
+        except SystemExit as exc:
+            if code[0] is None and exc.code not in (0, None):
+                sys.exit(EXIT_BAD_SETTINGS)
+            raise
+        # Hydra returned without running the app (--help, --cfg): nothing failed
+        sys.exit(0 if code[0] is None and _info_only() else (EXIT_BAD_SETTINGS if code[0] is None else code[0]))
+
+    return main
+
+
+def _info_only() -> bool:
+    return any(a in ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i") or a.startswith("--cfg=")
+               for a in sys.argv[1:])
+
+
+def fail(err: SettingsError, prog: str = "train.py") -> None:
+    """The one line and exit status 2."""
+    print(f"{prog}: error: {err}", file=sys.stderr)
+    raise SystemExit(EXIT_BAD_SETTINGS)
+
+
+_KINDS = {int: "an integer", float: "a number", bool: "true/false", str: "a string"}
+
+
+def _declared(cls: type, path: Sequence[str]) -> tuple[Any, bool]:
+    """(declared type, None allowed) of a field of a (nested) dataclass."""
+    hint: Any = cls
+    for part in path:
+        hint = typing.get_type_hints(hint).get(part, Any)
+        if not dataclasses.is_dataclass(hint):
+            break
+    args = typing.get_args(hint)
+    nullable = type(None) in args
+    return (next((a for a in args if a is not type(None)), Any) if args else hint), nullable
+
+
+def check_typed_overrides(args: Sequence[str]) -> None:
+    """Command-line values of the typed model options (``model.*``,
+    :class:`~embodied_tactile.config.ModelNode`) checked against their dataclass types before
+    Hydra merges them, every value of a sweep included: one line naming key, value and the
+    type, exit 2 (Hydra's own merge error is several lines, exit 1)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from embodied_tactile.config import ModelNode
+
+    try:
+        overrides = OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
+    except Exception:  # a malformed override: Hydra names it itself
+        return
+    for o in overrides:
+        if not o.key_or_group.startswith("model.") or o.is_delete():
+            continue
+        path = o.key_or_group.split(".")[1:]
+        for value in (list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]):
+            try:
+                OmegaConf.update(OmegaConf.structured(ModelNode), ".".join(path), value, merge=True)
+            except OmegaConfBaseException:
+                kind, nullable = _declared(ModelNode, path)
+                expected = _KINDS.get(kind, getattr(kind, "__name__", str(kind))) + (" or null" if nullable else "")
+                fail(SettingsError(f"{o.key_or_group}={value!r} ({type(value).__name__}): expected {expected}"))
+
+
+class EntryCallback(Callback):
+    """Hydra callback of train.py: check settings before any folder is made; at the end of a
+    multirun, print its summary (:mod:`embodied_tactile.summary`)."""
+
+    def __init__(self) -> None:
+        self._sweep_dir: str | None = None
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config, "hydra.run.dir")
+
+        try:
+            claim_at_entry(config)
+        except SettingsError as err:
+            fail(err)
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config, "hydra.sweep.dir")
+        present, v = config_value(config, "hydra.sweep.dir")
+        self._sweep_dir = str(v) if present else None
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        from embodied_tactile.summary import print_multirun_summary  # loads torch: only at the end of a multirun
+
+        if self._sweep_dir and Path(self._sweep_dir).is_dir():
+            print_multirun_summary(self._sweep_dir)
+
+    @staticmethod
+    def _check(config: DictConfig, run_dir_key: str) -> None:
+        try:
+            check_train_config(config)
+            check_paths(config, run_dir_key=run_dir_key)
+        except SettingsError as err:
+            fail(err)
+
+
+__all__ = ["EntryCallback", "check_typed_overrides", "fail", "hydra_command"]

@@ -1,0 +1,77 @@
+"""The typed part of the Hydra configuration: the Latent Filter's options
+(:mod:`embodied_tactile.models.options`) as structured configs, and the one resolver.
+
+Registered on import (idempotent), so that every entry point that composes ``configs/``
+(train.py, evaluate.py, ``python -m embodied_tactile.prepare``, the tests) imports this
+module first:
+
+* ``model: schema`` (:class:`ModelNode`): the LightningModule's options
+  (:class:`~embodied_tactile.models.options.ModuleOptions`), the network ``net``
+  (:class:`~embodied_tactile.models.options.LatentFilterOptions` with ``_target_`` and
+  ``modality``), the optimizer (Adam as a partial with the learning rate of
+  :class:`~embodied_tactile.models.options.OptimizerOptions`) and the context objective's
+  options (:class:`~embodied_tactile.models.options.ContextOptions`, null unless a recipe
+  sets them). configs/model/latent_filter.yaml composes it and names only what depends on
+  the scene.
+* ``${prior_rows:objects,n_test,n_val,n_train}``: rows of the prior's object-code table.
+"""
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, OmegaConf
+
+from embodied_tactile.models.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
+from embodied_tactile.paths import config_dir
+
+
+@dataclass
+class LatentFilterNode(LatentFilterOptions):
+    """``model.net``: what Hydra instantiates into a :class:`~embodied_tactile.models.LatentFilter`."""
+
+    _target_: str = "embodied_tactile.models.latent_filter.LatentFilter"
+    modality: Any = MISSING
+
+
+@dataclass
+class OptimizerNode:
+    """``model.optimizer``: ``torch.optim.<name>(params, lr=...)`` built by the module."""
+
+    _target_: str = f"torch.optim.{OptimizerOptions.name}"
+    _partial_: bool = True
+    lr: float = OptimizerOptions.lr
+
+
+@dataclass
+class ModelNode(ModuleOptions):
+    """``model``: the LightningModule (its class follows the modality: ``${modality.module}``)."""
+
+    _target_: str = MISSING
+    net: LatentFilterNode = field(default_factory=LatentFilterNode)
+    annealing: Any = MISSING
+    optimizer: OptimizerNode = field(default_factory=OptimizerNode)
+    context: Optional[ContextOptions] = None
+
+
+def prior_rows(objects: Any, n_test: int, n_val: int, n_train: int) -> int:
+    """Rows of the prior's object-code table for a scene (``${prior_rows:...}`` in
+    configs/model/latent_filter.yaml): the catalogue's 32, or every population id."""
+    from embodied_tactile.constants import N_OBJECTS, POPULATION_ID_BASE
+
+    if objects == "population":
+        return POPULATION_ID_BASE + int(n_test) + int(n_val) + int(n_train)
+    return N_OBJECTS
+
+
+def register() -> None:
+    """Store the structured configs and the resolver (a second call changes nothing)."""
+    cs = ConfigStore.instance()
+    cs.store(group="model", name="schema", node=ModelNode)
+    if not OmegaConf.has_resolver("prior_rows"):
+        OmegaConf.register_new_resolver("prior_rows", prior_rows)
+
+
+register()
+
+__all__ = ["LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "prior_rows", "register"]
