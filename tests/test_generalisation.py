@@ -9,6 +9,7 @@ from omegaconf import OmegaConf
 
 from embodied_tactile.constants import FACTOR_NAMES
 from embodied_tactile.eval import generalisation as G
+from embodied_tactile.summary import recipe
 
 
 def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None, held_out=None):
@@ -78,12 +79,12 @@ def test_cli_refuses_a_folder_without_population_runs(tmp_path, capsys):
 def test_recipe_names_the_settings_that_tell_recipes_apart():
     cfg = OmegaConf.create({"model": {"net": {"prior": {"labels": False}, "y_update": "evidence", "obs_dropout": 0.5}},
                             "annealing": {"schedule": {"y_weight": 1.0}}})
-    assert G.recipe(cfg) == "no labels, y_weight 1, y evidence, dropout 0.5"
+    assert recipe(cfg) == "no labels, y_weight 1, y evidence, dropout 0.5"
     cfg.model.net.obs_dropout = 0.0
     cfg.model.net.prior.labels = True
-    assert G.recipe(cfg) == "labels, y_weight 1, y evidence"
+    assert recipe(cfg) == "labels, y_weight 1, y evidence"
     cfg.model.net.prior.learn_embedding = True  # the paper's recipe: the object codes learn
-    assert G.recipe(cfg) == "labels, learned codes, y_weight 1, y evidence"
+    assert recipe(cfg) == "labels, learned codes, y_weight 1, y evidence"
 
 
 def test_parts_merge_through_the_scores_file_and_a_later_root_replaces_a_score(tmp_path):

@@ -758,7 +758,7 @@ def test_saved_configs_with_removed_options_load_when_off_and_are_named_when_on(
     """A checkpoint's net config from before the removal of measured-and-rejected options
     (REMOVED_OPTIONS) rebuilds the same network when they were off; one that used an option
     is refused with the option named, never silently rebuilt as another model."""
-    from embodied_tactile.models.latent_filter import REMOVED_OPTIONS
+    from embodied_tactile.models.compat import REMOVED_OPTIONS
 
     torch.manual_seed(0)
     net = LatentFilter("fsr_t", **TINY)

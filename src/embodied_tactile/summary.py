@@ -22,11 +22,34 @@ from typing import Any, Mapping, Sequence
 
 from .constants import FACTOR_NAMES
 from .jsonio import read_json
+from .models.compat import UNSAVED_PRIOR_OPTIONS
 
 FACTOR_SHORT = {"spatial_frequency": "spatial freq.", "amplitude": "amplitude", "stiffness": "stiffness",
                 "heterogeneity": "heterogeneity"}
 HISTORY = "krr_history.jsonl"
 RULE = "-" * 72
+
+
+def recipe(cfg) -> str:
+    """The settings that tell the learning curve's Latent Filter recipes apart, as the run
+    used them: the prior's object labels, the KL schedule's y weight, the y update and the
+    observation dropout (the last three where the run's config has them)."""
+    from omegaconf import OmegaConf
+
+    labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=UNSAVED_PRIOR_OPTIONS["labels"]))
+    parts = ["labels" if labels else "no labels"]
+    if labels and OmegaConf.select(cfg, "model.net.prior.learn_embedding", default=False):
+        parts.append("learned codes")
+    y_weight = OmegaConf.select(cfg, "annealing.schedule.y_weight", default=None)
+    if y_weight is not None:
+        parts.append(f"y_weight {float(y_weight):g}")
+    y_update = OmegaConf.select(cfg, "model.net.y_update", default=None)
+    if y_update is not None:
+        parts.append(f"y {y_update}")
+    dropout = float(OmegaConf.select(cfg, "model.net.obs_dropout", default=0.0) or 0.0)
+    if dropout > 0:
+        parts.append(f"dropout {dropout:g}")
+    return ", ".join(parts)
 
 
 def _history(run_dir: str | os.PathLike) -> list[dict]:
@@ -146,7 +169,6 @@ def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
         cfg = OmegaConf.create({})
     split = str(OmegaConf.select(cfg, "data.split", default="trial"))
     where, meaning = SPLIT_MEANING.get(split, (f"data.split={split}", ""))
-    from .eval.generalisation import recipe
 
     modality = OmegaConf.select(cfg, "modality.name", default="?")
     label = f"Latent Filter {modality} ({recipe(cfg)})"

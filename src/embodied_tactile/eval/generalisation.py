@@ -29,33 +29,10 @@ import numpy as np
 
 from ..constants import FACTOR_NAMES
 from ..jsonio import write_json
+from ..summary import recipe
 from .results import scored_on_validation
 
 _BASELINE_NAMES = {"handcrafted_krr": "hand-crafted + KRR", "gru": "supervised conv + GRU", "mean": "mean predictor"}
-
-
-def recipe(cfg) -> str:
-    """The settings that tell the learning curve's Latent Filter recipes apart, as the run
-    used them: the prior's object labels, the KL schedule's y weight, the y update and the
-    observation dropout (the last three where the run's config has them)."""
-    from omegaconf import OmegaConf
-
-    from ..models.latent_filter import UNSAVED_PRIOR_OPTIONS
-
-    labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=UNSAVED_PRIOR_OPTIONS["labels"]))
-    parts = ["labels" if labels else "no labels"]
-    if labels and OmegaConf.select(cfg, "model.net.prior.learn_embedding", default=False):
-        parts.append("learned codes")
-    y_weight = OmegaConf.select(cfg, "annealing.schedule.y_weight", default=None)
-    if y_weight is not None:
-        parts.append(f"y_weight {float(y_weight):g}")
-    y_update = OmegaConf.select(cfg, "model.net.y_update", default=None)
-    if y_update is not None:
-        parts.append(f"y {y_update}")
-    dropout = float(OmegaConf.select(cfg, "model.net.obs_dropout", default=0.0) or 0.0)
-    if dropout > 0:
-        parts.append(f"dropout {dropout:g}")
-    return ", ".join(parts)
 
 
 def _method_label(method: str, modality: str, recipe_: str, params: Mapping[str, Any] | None = None) -> str:

@@ -26,6 +26,7 @@ from torch.nn import functional as F
 
 from embodied_tactile.modality import Modality, load_modality
 
+from .compat import upgrade_net_config
 from .options import ContextOptions, LatentFilterOptions, build
 
 from .fusion import ObservationModel, observation_model
@@ -70,19 +71,6 @@ def _modality_config(modality: Any) -> dict[str, Any]:
 
 
 _Y_STATE_KEYS = ("h", "c", "y_prec", "y_pm")
-
-#: options that were measured, rejected and removed (docs/model.md, "Removed options"),
-#: with the value that meant "off": a saved config holding the off value still loads
-REMOVED_OPTIONS = {"obs_dropout_span": 1, "elbo_samples": 1, "overshoot": 1, "overshoot_weight": None,
-                   "free_bits_z": 0.0, "free_bits_y": 0.0, "y_input": "sample", "y_static": False,
-                   "transition_form": "mlp", "obs_sigma_shape": "channel"}
-
-#: the values a saved config that does not name an option was trained with (the option did
-#: not exist, or was not saved, when that config was written): today's defaults differ
-UNSAVED_OPTIONS = {"input_standardize": False, "y_update": "direct", "y_evidence_max": None,
-                   "y_evidence_range": None, "obs_dropout": 0.0}
-UNSAVED_PRIOR_OPTIONS = {"labels": True}
-
 
 def _state_to(z: Tensor, z_mean: Tensor, a: Tensor, y_state: tuple[Tensor, ...]) -> dict[str, Tensor]:
     return {"z": z, "z_mean": z_mean, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
@@ -172,19 +160,8 @@ class LatentFilter(nn.Module):
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> "LatentFilter":
         """Rebuild a network from its saved :meth:`config` (a checkpoint's ``net``), saved
-        configs of earlier versions included: a removed option (:data:`REMOVED_OPTIONS`) at
-        its off value is dropped, any other value of it is a ValueError that names it; an
-        option a config does not name takes the value networks were trained with before it
-        was saved (:data:`UNSAVED_OPTIONS`), not today's default."""
-        config = to_plain(config)
-        config = {**UNSAVED_OPTIONS, **config,
-                  "prior": {**UNSAVED_PRIOR_OPTIONS, **(config.get("prior") or {})}}
-        for name, off in REMOVED_OPTIONS.items():
-            if name in config:
-                value = config.pop(name)
-                if off is not None and value != off:
-                    raise ValueError(f"this network was trained with {name}={value!r}, an option that was measured, "
-                                     f"rejected and removed (docs/model.md, 'Removed options'); only {off!r} loads")
+        configs of earlier versions included (:func:`~.compat.upgrade_net_config`)."""
+        config = upgrade_net_config(to_plain(config))
         return cls(**config)
 
     def config(self) -> dict[str, Any]:

@@ -13,6 +13,7 @@ from torch import Tensor, nn
 
 from .annealing import AnnealingSchedule, build_schedule, check_finite
 from .fusion import EarlyFusion, LateFusion
+from .compat import upgrade_state_dict
 from .latent_filter import LatentFilter, to_plain
 from .options import ContextOptions, ModuleOptions, OptimizerOptions, build, defaults
 
@@ -262,26 +263,9 @@ class LatentFilterModule(L.LightningModule):
                              "train.py adds it), or build the network with input_standardize=False")
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Checkpoints written before the fusion code moved into :mod:`.fusion` (commit
-        3c3e49b) hold the same weights under ``model.encoders.<pathway>.*`` /
-        ``model.decoders.<pathway>.*``; they are renamed to this layout
-        (``model.observation.encoder.*`` for early fusion, ``model.observation.encoders.<pathway>.*``
-        for late fusion) before the state dict loads. Any other mismatch still fails."""
-        state = checkpoint.get("state_dict") or {}
-        if not any(k.startswith(("model.encoders.", "model.decoders.")) for k in state):
-            return
-        late = isinstance(self.model.observation, LateFusion)
-
-        def rename(key: str) -> str:
-            for part in ("encoders", "decoders"):
-                prefix = f"model.{part}."
-                if key.startswith(prefix):
-                    pathway, rest = key[len(prefix):].split(".", 1)
-                    return (f"model.observation.{part}.{pathway}.{rest}" if late
-                            else f"model.observation.{part[:-1]}.{rest}")
-            return key
-
-        checkpoint["state_dict"] = {rename(k): v for k, v in state.items()}
+        """Checkpoints of earlier layouts load (:func:`~.compat.upgrade_state_dict`)."""
+        checkpoint["state_dict"] = upgrade_state_dict(checkpoint.get("state_dict") or {},
+                                                      late=isinstance(self.model.observation, LateFusion))
 
     def configure_optimizers(self):
         if getattr(self, "_trainer", None) is not None:  # schedule lengths given as a fraction of the run's steps

@@ -1,0 +1,53 @@
+"""What lets configs and checkpoints of earlier versions load, in one place, out of the
+model's hot path: options that were measured, rejected and removed; the values of options a
+saved config did not name; the parameter names of the layout before the fusion code moved
+into :mod:`.fusion`. Plain Python: no torch."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+#: options that were measured, rejected and removed (docs/model.md, "Removed options"),
+#: with the value that meant "off": a saved config holding the off value still loads
+REMOVED_OPTIONS = {"obs_dropout_span": 1, "elbo_samples": 1, "overshoot": 1, "overshoot_weight": None,
+                   "free_bits_z": 0.0, "free_bits_y": 0.0, "y_input": "sample", "y_static": False,
+                   "transition_form": "mlp", "obs_sigma_shape": "channel"}
+
+#: the values a saved config that does not name an option was trained with (the option did
+#: not exist, or was not saved, when that config was written): today's defaults differ
+UNSAVED_OPTIONS = {"input_standardize": False, "y_update": "direct", "y_evidence_max": None,
+                   "y_evidence_range": None, "obs_dropout": 0.0}
+UNSAVED_PRIOR_OPTIONS = {"labels": True}
+
+
+def upgrade_net_config(config: Mapping[str, Any]) -> dict[str, Any]:
+    """A saved network config (a checkpoint's ``net``) as today's constructor arguments: a
+    removed option (:data:`REMOVED_OPTIONS`) at its off value is dropped, any other value of
+    it is a ValueError that names it; an option the config does not name takes the value
+    networks were trained with before it was saved (:data:`UNSAVED_OPTIONS`), not today's
+    default."""
+    config = {**UNSAVED_OPTIONS, **config, "prior": {**UNSAVED_PRIOR_OPTIONS, **(config.get("prior") or {})}}
+    for name, off in REMOVED_OPTIONS.items():
+        if name in config:
+            value = config.pop(name)
+            if off is not None and value != off:
+                raise ValueError(f"this network was trained with {name}={value!r}, an option that was measured, "
+                                 f"rejected and removed (docs/model.md, 'Removed options'); only {off!r} loads")
+    return config
+
+
+def upgrade_state_dict(state: Mapping[str, Any], late: bool) -> dict[str, Any]:
+    """Checkpoints written before the fusion code moved into :mod:`.fusion` (commit 3c3e49b)
+    hold the same weights under ``model.encoders.<pathway>.*`` / ``model.decoders.<pathway>.*``;
+    they are renamed to this layout (``model.observation.encoder.*`` for early fusion,
+    ``model.observation.encoders.<pathway>.*`` for late fusion). Any other key is kept."""
+
+    def rename(key: str) -> str:
+        for part in ("encoders", "decoders"):
+            prefix = f"model.{part}."
+            if key.startswith(prefix):
+                pathway, rest = key[len(prefix):].split(".", 1)
+                return f"model.observation.{part}.{pathway}.{rest}" if late else f"model.observation.{part[:-1]}.{rest}"
+        return key
+
+    return {rename(k): v for k, v in state.items()}
