@@ -19,7 +19,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 
-from embodied_tactile.bench.step import make_batch, matmul_ceiling, step  # noqa: E402
+from steps import make_batch, matmul_ceiling, step, training_module  # noqa: E402
 from embodied_tactile.models import LatentFilter  # noqa: E402
 from embodied_tactile.models.networks import ConvDecoder, ConvEncoder  # noqa: E402
 
@@ -46,12 +46,13 @@ def main() -> None:
                 for k, child in list(parent.named_children()):
                     if isinstance(child, (ConvEncoder, ConvDecoder)):
                         setattr(parent, k, torch.compile(child, dynamic=False))
+        module = training_module(m)
         opt = torch.optim.Adam(m.parameters(), lr=1e-5)
         with FlopCounterMode(display=False) as fc:  # also the warm-up (and compilation)
-            step(m, batch, opt, ctx)
+            step(module, batch, opt, ctx)
         flops = fc.get_total_flops()
         c0 = matmul_ceiling()
-        ts = [step(m, batch, opt, ctx) for _ in range(args.repeats)]
+        ts = [step(module, batch, opt, ctx) for _ in range(args.repeats)]
         c1 = matmul_ceiling()
         t = min(ts)
         rate = flops / t / 1e9

@@ -44,7 +44,7 @@ import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-from embodied_tactile.bench.step import make_batch, matmul_ceiling, naive_terms  # noqa: E402
+from steps import make_batch, matmul_ceiling, naive_terms  # noqa: E402
 
 from embodied_tactile.models import LatentFilter  # noqa: E402
 from embodied_tactile.models import networks  # noqa: E402

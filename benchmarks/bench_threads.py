@@ -36,20 +36,21 @@ def worker(args: argparse.Namespace) -> None:
 
     import torch
 
-    from embodied_tactile.bench.step import make_batch, step
+    from steps import make_batch, step, training_module
     from embodied_tactile.models import LatentFilter
 
     torch.manual_seed(0)
     m = LatentFilter(args.modality)
     batch = make_batch(m.n_channels, args.batch, args.seq)
+    module = training_module(m)
     opt = torch.optim.Adam(m.parameters(), lr=1e-5)
-    step(m, batch, opt, contextlib.nullcontext)  # warm-up
+    step(module, batch, opt, contextlib.nullcontext)  # warm-up
     barrier = Path(args.barrier)
     (barrier / f"ready-{os.getpid()}").touch()
     while len(list(barrier.glob("ready-*"))) < args.jobs:
         time.sleep(0.01)
     c0 = time.process_time()
-    ts = [step(m, batch, opt, contextlib.nullcontext) for _ in range(args.steps)]
+    ts = [step(module, batch, opt, contextlib.nullcontext) for _ in range(args.steps)]
     print(json.dumps({"threads": threads, "torch_threads": torch.get_num_threads(), "steps": ts,
                       "cpu_s": time.process_time() - c0}), flush=True)
 

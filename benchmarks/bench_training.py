@@ -22,7 +22,7 @@ import torch
 
 from embodied_tactile.models import LatentFilter
 from embodied_tactile.modality import modality_names
-from embodied_tactile.bench.step import make_batch, naive_terms
+from steps import make_batch, naive_terms
 
 
 def one_step(fn, opt) -> float:

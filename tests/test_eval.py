@@ -576,3 +576,19 @@ def test_code_diagnostics_against_hand_computations():
         affine_r2(init, np.ones_like(init))
     with pytest.raises(ValueError, match="variances must be > 0"):
         code_spread(codes, [1.0, 0.0])
+
+
+def test_a_relative_data_folder_means_the_training_cwds_even_when_one_of_that_name_is_here(tmp_path, monkeypatch):
+    """A run trained elsewhere with paths.data_dir=data reads <training cwd>/data, never a
+    ``data`` folder of the evaluating cwd (another data set); a path absent there stays as given."""
+    from embodied_tactile.eval.runs import _resolve_path
+
+    train_cwd, here = tmp_path / "train", tmp_path / "here"
+    (train_cwd / "data").mkdir(parents=True)
+    (here / "data").mkdir(parents=True)
+    monkeypatch.chdir(here)
+    assert _resolve_path("data", train_cwd) == str(train_cwd / "data")
+    assert _resolve_path("elsewhere", train_cwd) == "elsewhere"
+    assert _resolve_path(str(here / "data"), train_cwd) == str(here / "data")
+    (train_cwd / "raw_1.h5").touch()
+    assert _resolve_path("raw_*.h5", train_cwd) == str(train_cwd / "raw_*.h5")

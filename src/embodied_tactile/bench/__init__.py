@@ -1,3 +1,3 @@
-"""Helpers the benchmarks in ``benchmarks/`` share: the pendulum benchmark outside the tactile
-scene (:mod:`.pendulum`, numpy only; :mod:`.pendulum_run`), its ``--remedy`` options
-(:mod:`.remedies`) and the training-step timing helpers (:mod:`.step`)."""
+"""The pendulum benchmark outside the tactile scene (:mod:`.pendulum`, numpy only;
+:mod:`.pendulum_run`, trained by the project's LightningModule and Trainer) and its
+``--remedy`` options (:mod:`.remedies`), shared by ``benchmarks/`` and the tests."""

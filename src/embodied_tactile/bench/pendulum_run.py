@@ -26,17 +26,28 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Optional
 
+import lightning as L
 import numpy as np
 import torch
-from torch import nn
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
 from sklearn.linear_model import LinearRegression
 from sklearn.metrics import r2_score
+from torch import nn
+from torch.utils.data import DataLoader, Dataset, RandomSampler
 
+from embodied_tactile import quiet
+from embodied_tactile.data.statistics import DataStatistics
 from embodied_tactile.eval.krr import fit_alignment
-from embodied_tactile.models import LatentFilter, build_schedule
+from embodied_tactile.models.annealing import AnnealingSchedule
+from embodied_tactile.models.latent_filter import LatentFilter
+from embodied_tactile.models.module import LatentFilterModule
 from embodied_tactile.models.networks import ConvDecoder, ConvEncoder
+from embodied_tactile.paths import config_dir
+from embodied_tactile.runtime import HandOverStatistics
 
 from .pendulum import N_OBJECTS, UNSEEN_SYSTEMS, PendulumData, generate, render
 
@@ -73,33 +84,82 @@ def _batch(data: PendulumData, idx: np.ndarray) -> dict[str, torch.Tensor]:
             "object_id": torch.from_numpy(data.object_id[idx])}
 
 
+#: the pendulum measurements' learning rate (docs/experiments/pendulum.md), the benchmark's own setting
+LR = 1e-3
+
+
+class PendulumSequences(Dataset):
+    """One pendulum sequence per item: ``obs`` (T, 1, 28, 28), ``actions`` (T, 1), ``object_id``."""
+
+    def __init__(self, data: PendulumData) -> None:
+        self.data = data
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {"obs": torch.from_numpy(self.data.obs[i]), "actions": torch.from_numpy(self.data.actions[i]),
+                "object_id": torch.as_tensor(self.data.object_id[i])}
+
+
+class PendulumDataModule(L.LightningDataModule):
+    """The benchmark's training data for the project's Trainer: ``steps`` batches of
+    ``batch_size`` sequences drawn with replacement (seeded), and the data's
+    :class:`~embodied_tactile.data.statistics.DataStatistics` (handed to the module by
+    :class:`~embodied_tactile.runtime.HandOverStatistics`)."""
+
+    def __init__(self, data: PendulumData, steps: int, batch_size: int = 16, seed: int = 0) -> None:
+        super().__init__()
+        self.sequences = PendulumSequences(data)
+        self.steps, self.batch_size, self.seed = int(steps), int(batch_size), int(seed)
+        self.statistics = DataStatistics.of([{"obs": data.obs}], len(data))
+
+    def train_dataloader(self) -> DataLoader:
+        draws = RandomSampler(self.sequences, replacement=True, num_samples=self.steps * self.batch_size,
+                              generator=torch.Generator().manual_seed(self.seed))
+        return DataLoader(self.sequences, batch_size=self.batch_size, sampler=draws)
+
+
+class _Losses(L.Callback):
+    """Every step's training loss, printed every ``log_every`` steps (0: never)."""
+
+    def __init__(self, log_every: int = 0) -> None:
+        self.losses: list[float] = []
+        self.log_every = int(log_every)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        self.losses.append(float(outputs["loss"]))
+        if self.log_every and trainer.global_step % self.log_every == 0:
+            m = trainer.callback_metrics
+            print(f"step {trainer.global_step}: loss {self.losses[-1]:.1f} nll {float(m['train/nll']):.1f} "
+                  f"kl_z {float(m['train/kl_z']):.1f} kl_y {float(m['train/kl_y']):.2f}", flush=True)
+
+
+def default_annealing() -> AnnealingSchedule:
+    """The tactile scenes' default schedule, read from configs/annealing/linear.yaml."""
+    return instantiate(OmegaConf.load(Path(config_dir()) / "annealing" / "linear.yaml").schedule)
+
+
 def train(model: LatentFilter, data: PendulumData, steps: int, batch_size: int = 16, seed: int = 0,
-          lr: float = 1e-3, annealing: Any = None, log_every: int = 0) -> PendulumRun:
-    """Unsupervised training with the project's annealing schedule (default: linear KL
-    warm-up over the first 10 % of the steps, y_weight 1 = the plain ELBO afterwards)
-    and Adam; the object label goes to the prior only, as in training on the tactile data."""
+          lr: float = LR, annealing: Any = None, log_every: int = 0) -> PendulumRun:
+    """Unsupervised training by the project's LightningModule and Trainer (the training step,
+    annealing and optimiser of the tactile scenes): the annealing group's default schedule
+    (configs/annealing/linear.yaml: linear KL warm-up over the first 10 % of the steps, the
+    plain ELBO afterwards) unless ``annealing`` names one, and Adam at ``lr``; the object
+    label goes to the prior only, as in training on the tactile data."""
     torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
-    schedule = build_schedule(annealing if annealing is not None else
-                              {"name": "linear", "beta0": 0.01, "fraction": 0.1, "y_weight": 1.0})
-    schedule.set_total_steps(steps)
-    model.prior.population_weight = 1.0 / len(data)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    model.train()
-    schedule.train()
-    losses = []
+    module = LatentFilterModule(model, annealing=annealing if annealing is not None else default_annealing(),
+                                optimizer={"name": "Adam", "lr": lr})
+    losses = _Losses(log_every)
+    trainer = L.Trainer(max_steps=steps, accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+                        num_sanity_val_steps=0, callbacks=[HandOverStatistics(), losses])
     t0 = time.perf_counter()
-    for step in range(steps):
-        terms = model.elbo_terms(_batch(data, rng.integers(0, len(data), batch_size)))
-        loss, _ = schedule(step, terms)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        losses.append(float(loss.detach()))
-        if log_every and (step + 1) % log_every == 0:
-            print(f"step {step + 1}: loss {float(loss.detach()):.1f} nll {float(terms['nll']):.1f} "
-                  f"kl_z {float(terms['kl_z']):.1f} kl_y {float(terms['kl_y']):.2f}", flush=True)
-    return PendulumRun(model, steps, time.perf_counter() - t0, losses)
+    quiet.silence_third_party()
+    trainer.fit(module, datamodule=PendulumDataModule(data, steps, batch_size, seed))
+    model.eval()
+    return PendulumRun(model, steps, time.perf_counter() - t0, losses.losses)
 
 
 @torch.no_grad()
@@ -193,16 +253,19 @@ def gradient_snr(model: LatentFilter, data: PendulumData, n_draws: int = 16, bat
     for name, value in PLAIN_ELBO.items():  # the plain single-sample ELBO, whatever remedies trained the model
         setattr(model, name, value)
     try:
-        for _ in range(n_draws):
-            model.zero_grad(set_to_none=True)
+        params = {k: [p for p in mod.parameters() if p.requires_grad] for k, mod in parts.items()}
+        flat = [p for ps in params.values() for p in ps]
+        for _ in range(n_draws):  # gradients by autograd.grad: the parameters' .grad stays untouched
             t = model.elbo_terms(batch)
-            (t["nll"] + t["kl_z"] + t["kl_y"]).backward()
-            for k, mod in parts.items():
-                grads[k].append(torch.cat([p.grad.flatten() for p in mod.parameters() if p.grad is not None]))
+            g = torch.autograd.grad(t["nll"] + t["kl_z"] + t["kl_y"], flat, allow_unused=True)
+            at = 0
+            for k, ps in params.items():
+                part = [gi for gi in g[at:at + len(ps)] if gi is not None]
+                at += len(ps)
+                grads[k].append(torch.cat([gi.flatten() for gi in part]))
     finally:
         for name, value in saved.items():
             setattr(model, name, value)
-        model.zero_grad(set_to_none=True)
     out = {}
     for k, g in grads.items():
         g = torch.stack(g)

@@ -326,8 +326,6 @@ class GRURegressor:
         return t
 
     def fit(self, data, actions=None, factors=None) -> "GRURegressor":
-        import torch
-
         c = self.cfg
         if actions is not None:
             data, actions = np.asarray(data, np.float32), np.asarray(actions, np.float32)
@@ -345,10 +343,9 @@ class GRURegressor:
         self.y_mean_ = np.nanmean(fac, 0)
         sd = np.nanstd(fac, 0)
         self.y_scale_ = np.where(sd > 1e-12, sd, 1.0)
-        opt = torch.optim.Adam(self.net.parameters(), lr=c["lr"], weight_decay=c["weight_decay"])
         rng = np.random.default_rng(c["seed"])
-        self.net.train()
         t0 = time.perf_counter()
+
         def epoch_batches():
             if actions is None:
                 yield from _batches(data, batch_size=c["batch_size"], shuffle=True, rng=rng)
@@ -363,24 +360,15 @@ class GRURegressor:
                     obs_e, act_e = data[rows, idx], actions[rows, idx]
                 yield from _batches(obs_e, act_e, fac, batch_size=c["batch_size"], shuffle=True, rng=rng)
 
-        for _ in range(c["epochs"]):
-            tot, cnt = 0.0, 0
-            for bi, b in enumerate(epoch_batches()):
-                if c["max_batches_per_epoch"] is not None and bi >= c["max_batches_per_epoch"]:
-                    break
-                y = (np.asarray(b["factors"], np.float64) - self.y_mean_) / self.y_scale_
-                y = self._t(y)
-                mask = torch.isfinite(y)
-                out = self.net(self._obs(b["obs"]), self._t(b["actions"]))
-                target = torch.where(mask, y, torch.zeros_like(y))[:, None, :].expand_as(out)
-                m = mask[:, None, :].expand_as(out).float()
-                loss = (((out - target) ** 2) * m).sum() / m.sum().clamp_min(1.0)
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                tot += float(loss.detach())
-                cnt += 1
-            self.history.append(tot / max(cnt, 1))
+        def to_batch(b):
+            y = (np.asarray(b["factors"], np.float64) - self.y_mean_) / self.y_scale_
+            return {"obs": self._obs(b["obs"]), "actions": self._t(b["actions"]), "target": self._t(y)}
+
+        from .supervised import EpochBatches, SupervisedRegression, fit
+
+        module = SupervisedRegression(self.net, c["lr"], c["weight_decay"])
+        fit(module, EpochBatches(epoch_batches, to_batch), c["epochs"], c["max_batches_per_epoch"], c["device"])
+        self.history = module.epoch_losses
         self.train_time_s_ = time.perf_counter() - t0
         return self
 

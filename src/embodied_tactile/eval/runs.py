@@ -180,14 +180,13 @@ def training_cwd(run_dir: Path) -> Path | None:
 
 
 def _resolve_path(value: str, train_cwd: Path | None) -> str:
-    """Relative path: as is when it exists from here, else relative to the training cwd."""
+    """A relative path of the run's config means what it meant to train.py: relative to the
+    training cwd when it exists there (a folder of the same name here is another data set),
+    else as is from here."""
     p = Path(value)
     if p.is_absolute() or train_cwd is None:
         return value
     globby = any(ch in value for ch in "*?[")
-    here = bool(list(Path().glob(value))) if globby else p.exists()
-    if here:
-        return value
     there = train_cwd / p
     return str(there) if (bool(list(train_cwd.glob(value))) if globby else there.exists()) else value
 

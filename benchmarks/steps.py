@@ -1,14 +1,16 @@
 """Training-step timing helpers of the speed benchmarks (bench_training, bench_step_ceiling,
-bench_step_levers, bench_threads): a synthetic batch, the per-step reference loss, the
-matmul ceiling and a timed optimiser step."""
+bench_step_levers, bench_threads; benchmark code, imported as a sibling module): a synthetic
+batch, the per-step reference loss, the matmul ceiling and a timed optimiser step of the
+LightningModule's own training step."""
 
 from __future__ import annotations
 
 import time
+import warnings
 
 import torch
 
-from embodied_tactile.models import LatentFilter
+from embodied_tactile.models import LatentFilter, LatentFilterModule
 from embodied_tactile.models.networks import gaussian_entropy, gaussian_nll, kl_diag_gaussians
 
 
@@ -55,13 +57,21 @@ def timed(fn) -> float:
     return time.perf_counter() - t0
 
 
-def step(m: LatentFilter, batch: dict, opt, ctx) -> float:
-    """Seconds of one optimiser step on the ELBO terms, the forward pass under ``ctx()``."""
+def training_module(m: LatentFilter) -> LatentFilterModule:
+    """The network in the LightningModule that trains it (plain ELBO: no annealing), for
+    :func:`step` outside a Trainer (its ``self.log`` calls then do nothing)."""
+    warnings.filterwarnings("ignore", message=r".*self\.log\(\)` but the `self\.trainer` reference is not registered")
+    return LatentFilterModule(m)
+
+
+def step(module: LatentFilterModule, batch: dict, opt, ctx) -> float:
+    """Seconds of one optimiser step on the module's own training step (its loss: the ELBO
+    terms under its annealing schedule), the forward pass under ``ctx()``."""
     def run():
         opt.zero_grad(set_to_none=True)
         with ctx():
-            terms = m.elbo_terms(batch)
-        (terms["nll"] + terms["kl_z"] + terms["kl_y"]).backward()
+            loss = module.training_step(batch, 0)
+        loss.backward()
         opt.step()
     return timed(run)
 
