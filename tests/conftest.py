@@ -73,6 +73,24 @@ def fast_data_dir(tiny_data_dir, tmp_path_factory) -> Path:
     return d
 
 
+@pytest.fixture()
+def restore_logging():
+    """For a test that runs a Hydra app in this process (record / palpate main): Hydra's job
+    logging replaces the root logger's handlers (a console handler on this test's captured
+    output, a file handler); put the handlers and levels back so later tests log as before."""
+    import logging
+
+    root, pkg = logging.getLogger(), logging.getLogger("embodied_tactile")
+    handlers, levels = root.handlers[:], (root.level, pkg.level)
+    yield
+    for h in root.handlers:
+        if h not in handlers:
+            h.close()
+    root.handlers[:] = handlers
+    root.setLevel(levels[0])
+    pkg.setLevel(levels[1])
+
+
 def stable_seed(text: str, modulo: int = 1000) -> int:
     """A seed from a label that is the same in every process (``hash()`` of a str is salted
     per process, which made synthetic tables differ between runs)."""

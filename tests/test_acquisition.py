@@ -267,6 +267,7 @@ def _read_cli(tmp_path, rep=0):
     return R.read_trial(path, good[0].name)
 
 
+@pytest.mark.slow  # recorder CLI subprocess
 def test_cli_disconnect_exit_3(tmp_path, trial3s):
     emu = Emulator(trial3s, faults=Faults(disconnect_after_packets=500))
     port = emu.start()
@@ -283,6 +284,7 @@ def test_cli_disconnect_exit_3(tmp_path, trial3s):
     _check_genuine(trial3s, rec)
 
 
+@pytest.mark.slow  # recorder CLI subprocess
 def test_cli_sigint_clean_close(tmp_path, trial3s):
     emu = Emulator(trial3s)
     port = emu.start()
@@ -302,6 +304,7 @@ def test_cli_sigint_clean_close(tmp_path, trial3s):
     assert len(rec.pose_t) >= 2
 
 
+@pytest.mark.slow  # recorder CLI subprocess
 def test_cli_sigkill_leaves_readable_file(tmp_path, trial3s):
     emu = Emulator(trial3s)
     port = emu.start()
@@ -321,6 +324,7 @@ def test_cli_sigkill_leaves_readable_file(tmp_path, trial3s):
     _check_genuine(trial3s, rec)
 
 
+@pytest.mark.slow  # emulate CLI subprocess
 def test_emulate_cli_serves_packets(tmp_path):
     import serial
 
@@ -345,6 +349,7 @@ def test_emulate_cli_serves_packets(tmp_path):
     assert proc.returncode == 0 and '"sent": 3' in err
 
 
+@pytest.mark.slow  # recorder CLI subprocess
 def test_cli_config_and_port_errors(tmp_path):
     p = _cli(tmp_path, tmp_path / "no-such-port", "duration_s=1")
     _, err = p.communicate(timeout=30)
@@ -380,6 +385,7 @@ def _limit_file_size(nbytes):
     return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
 
 
+@pytest.mark.slow  # recorder CLI subprocess
 @pytest.mark.parametrize("where", ["small_disk", "file_size_limit"])
 def test_cli_full_disk_or_file_size_limit_stops_cleanly(tmp_path, trial3s, where, request):
     """A first trial recorded in full, a second onto a disk that fills up (or under
@@ -413,6 +419,7 @@ def test_cli_full_disk_or_file_size_limit_stops_cleanly(tmp_path, trial3s, where
     _check_genuine(trial3s, SimpleNamespace(t=rec.t[:1000], acc=rec.acc[:1000], fsr=rec.fsr[:1000]))  # before the 3 s loop wraps
 
 
+@pytest.mark.slow  # recorder CLI subprocess
 def test_cli_refuses_a_trial_that_has_no_room_to_start(tmp_path):
     p = _cli(tmp_path, "loop://", "duration_s=5", preexec_fn=_limit_file_size(2**20))
     _, err = p.communicate(timeout=60)
@@ -455,3 +462,79 @@ def test_failed_write_stops_the_trial_and_keeps_what_was_flushed(tmp_path, trial
     assert rec.attrs["complete"] is False and rec.attrs["stop_reason"] == "write_error"
     assert len(rec.t) == res.n_trial > 0 and len(rec.acc) == len(rec.t)  # the half-written batch cut back
     _check_genuine(trial3s, rec)
+
+
+# --------------------------------------------------------------------------- the entry points in this process
+# (the CLI tests above start them in subprocesses and are marked slow; these keep their logic in -m "not slow")
+def _record_main(tmp_path, monkeypatch, port, *over):
+    """``record.main()`` here with :func:`_cli`'s settings; returns its exit status."""
+    from embodied_tactile import record
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [
+        "record", f"port={port}", f"out={tmp_path / 'cli.h5'}", "settle_s=0.1", "baseline_s=0",
+        f"hydra.run.dir={tmp_path.parent / (tmp_path.name + '_hydra')}", "record/device@device=ideal", "trial.object_id=40",
+        "reserve_mb=0.25", *over])
+    with pytest.raises(SystemExit) as exc:
+        record.main()
+    return exc.value.code
+
+
+def test_record_main_in_process_config_port_and_unplugged(tmp_path, trial3s, monkeypatch, capsys, restore_logging):
+    """A bad trial setting and a missing port: exit 2, nothing written; a board unplugged
+    after 500 packets: exit 3, the 500 frames stored intact with complete=False."""
+    assert _record_main(tmp_path, monkeypatch, "loop://", "trial.primitive=juggling") == 2
+    assert "configuration error" in capsys.readouterr().err
+    assert _record_main(tmp_path, monkeypatch, tmp_path / "no-such-port", "duration_s=1") == 2
+    assert "cannot open port" in capsys.readouterr().err
+    assert not list(tmp_path.glob("cli*.h5"))
+    emu = Emulator(trial3s, faults=Faults(disconnect_after_packets=500))
+    port = emu.start()
+    try:
+        code = _record_main(tmp_path, monkeypatch, port, "duration_s=5")
+    finally:
+        emu.stop()
+    out = capsys.readouterr().out
+    assert code == 3 and "unplugged" in out, out
+    rec = _read_cli(tmp_path)
+    assert rec.attrs["complete"] is False and rec.attrs["stop_reason"] == "unplugged" and len(rec.t) == 500
+    _check_genuine(trial3s, rec)
+
+
+def test_emulate_main_in_process_serves_packets_until_stopped(tmp_path, monkeypatch, capsys):
+    """``emulate.main`` in a thread: its pty (through ``--link``) answers requests with the
+    synthetic trial's packets; its SIGTERM handler stops it, exit 0 with the count sent;
+    an unreadable trial file is exit 2."""
+    import threading
+
+    import serial
+
+    from embodied_tactile import emulate
+
+    handlers = {}
+    monkeypatch.setattr(emulate.signal, "signal", lambda sig, handler: handlers.__setitem__(sig, handler))
+    link = tmp_path / "eskin"
+    code = []
+    th = threading.Thread(target=lambda: code.append(emulate.main(
+        ["--synthetic", "1", "--max-seconds", "60", "--rate", "0", "--link", str(link)])))
+    th.start()
+    try:
+        deadline = time.monotonic() + 30
+        while not (link.exists() and signal.SIGTERM in handlers) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        trial = synthetic_trial(1.0)
+        with serial.serial_for_url(str(link), baudrate=500000, timeout=2) as ser:
+            for k in range(3):
+                ser.write(bytes([0xD0]))
+                acc, fsr, dt_acc, dt_fsr = P.decode_packet(ser.read(1128))
+                np.testing.assert_array_equal(fsr, trial.fsr[k])
+                assert np.abs(acc - trial.acc[k]).max() <= LSB and abs(dt_acc - 1e6 / 700) < 2
+    finally:
+        if signal.SIGTERM in handlers:
+            handlers[signal.SIGTERM](signal.SIGTERM, None)
+        th.join(timeout=30)
+    assert code == [0] and not th.is_alive()
+    out, err = capsys.readouterr()
+    assert out.splitlines()[0].startswith("/dev/") and '"sent": 3' in err, (out, err)
+    assert emulate.main(["--trial-file", str(tmp_path / "missing.h5")]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"emulate: {tmp_path / 'missing.h5'}")

@@ -123,6 +123,7 @@ def test_online_posterior_across_touches_equals_batched_concatenation():
     torch.testing.assert_close(out["z_mean"], batched["z_mean"][:, -1], atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.slow  # three simulated palpation episodes of 300-frame touches
 def test_episode_is_deterministic_under_a_seed():
     model = _model(_net("direct", seed=5), T=300)
     model.nominal_actions = {a: model.nominal_actions[a] for a in (6, 14)}
@@ -140,12 +141,79 @@ def test_episode_is_deterministic_under_a_seed():
     assert not np.array_equal(a.estimates, c.estimates)  # another seed: other sensor data
 
 
+def test_touch_seed_stream_and_a_touch_is_the_trial_of_its_stream():
+    """sim.episode: touch ``use`` of an action in episode s is the simulator's trial with
+    repetition ``use`` and seed EPISODE_SEED_BASE + s; a bad episode seed is refused."""
+    from embodied_tactile.sim import simulate_trial
+    from embodied_tactile.sim.episode import EPISODE_SEED_BASE, simulate_touch, touch_seed
+
+    assert touch_seed(0) == EPISODE_SEED_BASE and touch_seed(7) == EPISODE_SEED_BASE + 7
+    for bad in (-1, 1.5):
+        with pytest.raises(ValueError, match="episode seed must be an integer >= 0"):
+            touch_seed(bad)
+    touch = simulate_touch(8, "soft", "pressing", 6, use=1, episode_seed=2)
+    same = simulate_trial(8, "soft", "pressing", 6, repetition=1, seed=EPISODE_SEED_BASE + 2)
+    np.testing.assert_array_equal(touch.acc, same.acc)
+    np.testing.assert_array_equal(touch.fsr, same.fsr)
+    assert touch.attrs["repetition"] == 1 and touch.attrs["seed"] == EPISODE_SEED_BASE + 2
+
+
+def test_touches_to_reach_and_the_target_summary():
+    """active.evaluation: the touches the active policy needs to reach random's final NMSE,
+    on the seed-mean curves and per seed, and the per-touch table."""
+    from embodied_tactile.active.evaluation import curve_table, summarise, touches_to_reach
+
+    assert touches_to_reach([0.9, 0.5, 0.3], 0.5) == 2 and touches_to_reach([0.9, 0.8], 0.5) is None
+    curves = {"random": np.array([[0.9, 0.6, 0.5, 0.45, 0.4], [0.8, 0.7, 0.5, 0.45, 0.4]]),
+              "active": np.array([[0.7, 0.4, 0.3, 0.3, 0.3], [0.8, 0.5, 0.4, 0.35, 0.3]])}
+    s = summarise(curves)
+    assert s["budget"] == 5 and s["stats"]["active"][0]["mean"] == pytest.approx(0.75)
+    t = s["target"]
+    assert t["reference_final_nmse"] == pytest.approx(0.4)
+    # active's seed-mean curve 0.75, 0.45, 0.35, ...: at random's final 0.4 after 3 of 5 touches
+    assert t["touches_needed"] == 3 and t["fraction"] == pytest.approx(0.6) and t["met"]
+    assert t["touches_needed_per_seed"] == [2, 3]
+    assert "target" not in summarise({"active": curves["active"]})  # no reference: no target check
+    table = curve_table(s, "NMSE per touch")
+    assert [r[0] for r in table.rows] == [1, 2, 3, 4, 5] and table.columns[0] == "Touches"
+    assert table.rows[0][1:3] == [pytest.approx(0.85), pytest.approx(0.75)]  # random, active means
+
+
+def test_palpate_main_in_process_errors_clearly_on_a_missing_run(tmp_path, monkeypatch, capsys, restore_logging):
+    """What test_cli_errors_clearly_on_a_missing_run checks of the CLI, through palpate.main
+    in this process (the subprocess test is slow)."""
+    from embodied_tactile import palpate
+
+    monkeypatch.chdir(tmp_path)
+    threads = torch.get_num_threads()  # palpate.run sets torch's threads from its config
+
+    def status(*argv):
+        monkeypatch.setattr(sys, "argv", ["palpate", f"hydra.run.dir={tmp_path / 'hydra'}", *argv])
+        with pytest.raises(SystemExit) as exc:
+            palpate.main()
+        return exc.value.code, capsys.readouterr().err
+
+    try:
+        code, err = status(f"run={tmp_path / 'nope'}", "object=3", "budget=2")
+        assert code == 2 and f"palpate: error: no such run folder: {tmp_path / 'nope'}" in err, err
+        code, err = status("object=3")
+        assert code == 2 and "run=<folder of a trained run> is required" in err, err
+        (tmp_path / "empty").mkdir()
+        code, err = status(f"run={tmp_path / 'empty'}")
+        assert code == 2 and "holds no training run" in err, err
+        code, err = status(f"run={tmp_path / 'empty'}", "budget=0")
+        assert code == 2 and "budget must be an integer >= 1" in err, err
+    finally:
+        torch.set_num_threads(threads)
+
+
 def _palpate(args, cwd=REPO, timeout=240):
     env = dict(os.environ, WANDB_MODE="disabled", OMP_NUM_THREADS="1")
     return subprocess.run([sys.executable, "-m", "embodied_tactile.palpate", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout)
 
 
+@pytest.mark.slow  # palpate CLI subprocesses
 def test_cli_errors_clearly_on_a_missing_run(tmp_path):
     p = _palpate([f"run={tmp_path / 'nope'}", "object=3", "budget=2"])
     assert p.returncode == 2

@@ -37,6 +37,7 @@ def _one_line_exit_2(res: subprocess.CompletedProcess, *needles: str) -> str:
     return err
 
 
+@pytest.mark.slow  # train.py subprocess
 @pytest.mark.parametrize("override, needles", [
     ("trainer.max_epochs=abc", ("trainer.max_epochs='abc'", "integer")),
     ("data.batch_size=0", ("data.batch_size=0", ">= 1")),
@@ -50,6 +51,7 @@ def test_wrongly_typed_setting_names_key_and_value(tmp_path, override, needles):
     assert not (runs.exists() and any(runs.iterdir())), "a bad setting must not leave a run folder"
 
 
+@pytest.mark.slow  # train.py subprocess
 def test_log_dir_that_cannot_be_created(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
@@ -59,6 +61,7 @@ def test_log_dir_that_cannot_be_created(tmp_path):
     _one_line_exit_2(res, f"paths.log_dir={blocker}/logs", "cannot create or write")
 
 
+@pytest.mark.slow  # train.py subprocess
 def test_data_dir_that_is_a_file(tmp_path):
     blocker = tmp_path / "data.txt"
     blocker.write_text("not a folder")
@@ -66,6 +69,7 @@ def test_data_dir_that_is_a_file(tmp_path):
     _one_line_exit_2(res, f"paths.data_dir={blocker}", "not a folder")
 
 
+@pytest.mark.slow  # train.py subprocess
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
 def test_unwritable_data_dir(tmp_path):
     ro = tmp_path / "ro"
@@ -78,6 +82,7 @@ def test_unwritable_data_dir(tmp_path):
     _one_line_exit_2(res, f"paths.data_dir={ro}")
 
 
+@pytest.mark.slow  # train.py subprocess
 def test_swept_bad_value_fails_its_job_with_exit_2(tmp_path):
     """A value swept with -m reaches only the job: train.py checks again there and marks the
     job folder failed."""
@@ -93,6 +98,7 @@ def test_swept_bad_value_fails_its_job_with_exit_2(tmp_path):
     assert not (sweep / "seed=x" / "config_resolved.yaml").exists()
 
 
+@pytest.mark.slow  # train.py subprocess
 def test_failed_run_is_marked_failed(tmp_path):
     res = train(tmp_path, f"paths.data_dir={tmp_path / 'data'}", "data=recorded",
                 f"data.raw_files=[{tmp_path / 'missing.h5'}]")
@@ -143,6 +149,7 @@ def test_known_third_party_warnings_are_silenced_project_warnings_kept():
                                               "some other torch deprecation"]
 
 
+@pytest.mark.slow  # numba compiles UMAP once per process (as test_eval's UMAP test)
 def test_real_umap_and_pytree_warnings_are_silenced():
     """The filters match the libraries' real messages (not copies that could drift)."""
     import numpy as np
@@ -175,6 +182,7 @@ def test_litlogger_tip_dropped_other_lightning_info_kept(caplog):
     assert "litlogger" not in text and "GPU available" in text
 
 
+@pytest.mark.slow  # train.py subprocess
 def test_default_train_run_prints_none_of_the_known_messages(tmp_path, fast_data_dir):
     res = train(tmp_path, f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={tmp_path / 'run'}")
     out = res.stdout + res.stderr

@@ -104,6 +104,7 @@ def _sweep_jobs(name: str, tmp_path) -> list[dict]:
     return [dict(zip(keys, vals)) for vals in itertools.product(*(str(params[k]).split(",") for k in keys))]
 
 
+@pytest.mark.slow  # composes every job of the study and study_min sweeps (~100 Hydra compositions)
 def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
     cells = lambda jobs: {(c.modality.name, c.skin.name, c.primitive.name)  # noqa: E731
                           for c in (_compose_job([f"combo={j['combo']}"] + ([f"primitive={j['primitive']}"]

@@ -194,6 +194,7 @@ def test_more_touches_give_a_tighter_posterior():
 
 
 # ------------------------------------------------------------------ the swap test
+@pytest.mark.slow  # trains a Latent Filter 60 steps
 def test_swapping_y_between_objects_raises_the_target_error_of_a_trained_model():
     """Two synthetic 'objects' whose frames start alike and drift with the action at
     object-specific rates: after 60 steps on context / target pairs (one seed; the KL at

@@ -592,3 +592,42 @@ def test_a_relative_data_folder_means_the_training_cwds_even_when_one_of_that_na
     assert _resolve_path(str(here / "data"), train_cwd) == str(here / "data")
     (train_cwd / "raw_1.h5").touch()
     assert _resolve_path("raw_*.h5", train_cwd) == str(train_cwd / "raw_*.h5")
+
+
+def test_evaluation_options_and_run_selection_without_a_trained_run(tmp_path):
+    """eval.pipeline's options (configs/evaluate.yaml + key=value), the split of evaluate.py's
+    arguments into options and run selectors, the selection and the output folder, on
+    configs alone (test_evaluate.py checks them on trained runs and is slow)."""
+    from omegaconf import OmegaConf
+
+    from embodied_tactile.eval import pipeline as ev
+    from embodied_tactile.eval.runs import Run
+
+    opts = ev.parse_options(["checkpoint=last", "alignment.cv=2", "baselines=[mean]"])
+    assert opts.checkpoint == "last" and opts.alignment.cv == 2 and list(opts.baselines) == ["mean"]
+    for bad, match in [(["checkpoint=middle"], "checkpoint must be 'best' or 'last'"), (["latent=w"], "latent must be"),
+                       (["held_out=train"], "held_out must be"), (["no_such_key=1"], "unknown evaluation option"),
+                       (["cv"], "options must be key=value"), (["baselines=[knn]"], r"unknown baseline\(s\) \['knn'\]")]:
+        with pytest.raises(ev.EvaluationError, match=match):
+            ev.parse_options(bad)
+    options, selection = ev.split_overrides(["alignment.cv=2", "modality=[acc,fsr_t]", "seed=0", "annealing.name=dvbf"])
+    assert options == ["alignment.cv=2"]
+    assert selection == {"modality": ["acc", "fsr_t"], "seed": ["0"], "annealing.name": ["dvbf"]}
+
+    def run(name, modality, seed):
+        cfg = OmegaConf.create({"modality": {"name": modality}, "skin": {"name": "soft"},
+                                "primitive": {"name": "pressing"}, "seed": seed})
+        return Run(run_dir=tmp_path / name, ckpt=tmp_path / name / "checkpoints" / "best.ckpt", cfg=cfg, name=name)
+
+    runs = [run("a", "acc", 0), run("b", "fsr_t", 1), run("c", "multi_l", 0)]
+    assert [r.name for r in ev.select_runs(runs, {"modality": ["acc", "fsr_t"], "seed": ["0.0"]})] == ["a"]
+    assert ev.select_runs(runs, {}) == runs
+    with pytest.raises(ev.EvaluationError, match="no run matches skin=hard"):
+        ev.select_runs(runs, {"skin": ["hard"]})
+    with pytest.raises(ev.EvaluationError, match="unknown evaluation option or run selector 'nope'"):
+        ev.select_runs(runs, {"nope": ["1"]})
+    assert ev.cell(runs[2]) == ("multi_l", "soft", "pressing")
+    base = ev.parse_options([])
+    assert ev.output_folder(tmp_path / "a", runs[:1], "run", base, {}) == tmp_path / "a" / "evaluation"
+    assert ev.output_folder(tmp_path, runs, "multirun", ev.parse_options(["held_out=val"]), {"modality": ["acc"]}) \
+        == tmp_path / "evaluation-val-modality=acc"

@@ -22,6 +22,9 @@ import evaluate as cli  # noqa: E402  (the script: main())
 from embodied_tactile.eval import pipeline as ev  # noqa: E402
 from embodied_tactile.eval import runs  # noqa: E402
 
+# every test uses `trained`: train.py subprocesses (a run and a two-job multirun)
+pytestmark = pytest.mark.slow
+
 FAST = ["print_tables=false", "alignment.cv=2"]
 
 

@@ -780,3 +780,27 @@ def test_saved_configs_with_removed_options_load_when_off_and_are_named_when_on(
     assert LatentFilter("fsr_t").config()["prior"]["labels"] is False and LatentFilter("fsr_t").obs_dropout == 0.5
     with pytest.raises(ValueError, match="unknown Latent Filter options \\['overshoot'\\]"):
         LatentFilter("fsr_t", overshoot=2)
+
+
+def test_benchmark_reference_loss_equals_the_vectorised_elbo_terms():
+    """benchmarks/steps.py's naive_terms (encoder and decoder per time step, the speed
+    benchmarks' reference) gives LatentFilter.elbo_terms' terms; its kl_y leaves out the
+    population term."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("steps", Path(__file__).parents[1] / "benchmarks" / "steps.py")
+    steps = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(steps)
+    bench_batch, naive_terms = steps.make_batch, steps.naive_terms
+
+    torch.manual_seed(0)
+    m = LatentFilter("multi_l", **TINY).eval()
+    batch = bench_batch(3, B=2, T=5)
+    assert batch["obs"].shape == (2, 5, 3, 28, 28) and batch["object_id"].max() < 32
+    with torch.no_grad():
+        ref = m.elbo_terms(batch, sample=False)
+        got = naive_terms(m, batch, sample=False)
+    for k in ("nll", "kl_z", "entropy"):
+        torch.testing.assert_close(got[k], ref[k], rtol=1e-4, atol=1e-3, msg=k)
+    torch.testing.assert_close(got["kl_y"], ref["kl_y"] - ref["pop"], rtol=1e-4, atol=1e-3)

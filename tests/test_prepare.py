@@ -25,6 +25,7 @@ def _prepare_cli(tmp_path, data_dir, *overrides):
     return subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow  # prepare CLI subprocess
 def test_cli_prepares_the_tiny_scene_and_a_second_call_is_a_cache_hit(tiny_data_dir, tmp_path):
     d = tmp_path / "data"
     shutil.copytree(tiny_data_dir / "raw", d / "raw")
@@ -43,6 +44,7 @@ def test_cli_prepares_the_tiny_scene_and_a_second_call_is_a_cache_hit(tiny_data_
     assert hits == built, second.stdout
 
 
+@pytest.mark.slow  # prepare CLI subprocess
 def test_cli_simulates_missing_trials_and_reports_skipped_ones(tiny_data_dir, tmp_path):
     """Trials absent from the raw file are simulated; a bad one is listed with its reason."""
     import h5py
@@ -64,6 +66,7 @@ def test_cli_simulates_missing_trials_and_reports_skipped_ones(tiny_data_dir, tm
     assert re.search(rf"skipped \S*{raw.name} / {names[1]} \(\S+\): .*tactile/acc", res.stdout), res.stdout
 
 
+@pytest.mark.slow  # prepare CLI subprocess
 @pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])
 def test_cli_bad_setting_is_one_line_exit_2(tmp_path, override, needle):
     res = _prepare_cli(tmp_path, tmp_path / "data", override)
@@ -133,3 +136,35 @@ def test_each_simulator_seed_has_its_own_raw_file(tmp_path):
     assert Scene(data_dir=str(tmp_path)).raw_paths == [tmp_path / "raw" / "soft_pressing.h5"]
     assert Scene(data_dir=str(tmp_path), skin="hard", primitive="sliding", sim_seed=2).raw_paths == [
         tmp_path / "raw" / "hard_sliding_sim2.h5"]
+
+
+# ----------------------------------------------------------------------------- the entry point in this process
+# (the CLI tests above start it in a subprocess and are marked slow; these keep its logic in -m "not slow")
+def _prepare_args(data_dir, *overrides):
+    return [f"paths.data_dir={data_dir}", "modality=acc", f"data.objects=[{','.join(map(str, TINY_OBJECTS))}]",
+            f"data.actions=[{','.join(map(str, TINY_ACTIONS))}]", "data.repetitions=2", "data.sim_workers=1",
+            "data.preprocess_workers=1", *overrides]
+
+
+def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp_path, capsys):
+    from embodied_tactile import prepare
+
+    d = tmp_path / "data"
+    shutil.copytree(tiny_data_dir, d)  # raw file and caches of the tiny scene
+    assert prepare.main(_prepare_args(d)) == 0
+    out = capsys.readouterr().out
+    assert f"trials: {N_TINY} usable, 0 skipped, 0 incomplete left out" in out, out
+    assert "simulated: 0 new trial(s)" in out
+    hits = dict(re.findall(r"^  (\w+): (\S+) \(cache hit\)$", out, re.M))
+    assert sorted(hits) == ["acc", "actions"] and all(p.startswith(str(d)) for p in hits.values()), out
+    assert prepare.main(["--help"]) == 0 and "python -m embodied_tactile.prepare" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])
+def test_main_in_process_bad_setting_is_one_line_exit_2(tmp_path, capsys, override, needle):
+    from embodied_tactile import prepare
+
+    assert prepare.main(_prepare_args(tmp_path / "data", override)) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("prepare: error: ") and needle in err, err
+    assert not (tmp_path / "data").exists()  # nothing prepared

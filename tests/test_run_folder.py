@@ -62,6 +62,7 @@ def test_check_resume_refuses_other_settings_before_writing(tmp_path):
         check_resume(OmegaConf.merge(cfg, {"resume": False}), run)
 
 
+@pytest.mark.slow  # finished_run: a train.py subprocess
 def test_refused_restart_with_other_modality_keeps_the_finished_run(finished_run, fast_data_dir):
     """Fault: a finished run folder re-run with another modality, actions and seed. Before:
     state_dict mismatch, exit 1, metrics.json rewritten "failed", config_resolved.yaml
@@ -81,6 +82,7 @@ def test_refused_restart_with_other_modality_keeps_the_finished_run(finished_run
     assert json.loads((finished_run / "metrics.json").read_text())["status"] == "finished"
 
 
+@pytest.mark.slow  # finished_run: a train.py subprocess
 def test_bad_setting_in_a_finished_run_folder_keeps_its_metrics(finished_run, fast_data_dir):
     before = _digests(finished_run)
     res = run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={finished_run}", "modality=acc", "data.batch_size=0",
@@ -115,6 +117,7 @@ def test_lock_refuses_a_second_holder_and_frees_on_exit(tmp_path):
     runfolder.release(run)
 
 
+@pytest.mark.slow  # finished_run: a train.py subprocess
 def test_second_training_in_a_running_folder_is_refused(finished_run, fast_data_dir):
     """Fault: two trainings in one run folder at once. Before: both exit 0, every step twice
     in the CSV, best-epoch003.ckpt beside best-epoch003-v1.ckpt. Now: the second exits 2
@@ -232,6 +235,7 @@ def _file_size_limit(limit: int):
     return pre
 
 
+@pytest.mark.slow  # finished_run: a train.py subprocess
 def test_full_disk_leaves_previous_checkpoints_and_one_line(finished_run, fast_data_dir, tmp_path):
     """Fault: the disk fills while a checkpoint is written. Before: OSError traceback and a
     truncated best-epoch001.ckpt that evaluation and resume then picked. Now: exit 74, one
@@ -256,6 +260,7 @@ def test_full_disk_leaves_previous_checkpoints_and_one_line(finished_run, fast_d
     assert find_checkpoint(run, "best").read_bytes() in before.values()
 
 
+@pytest.mark.slow  # finished_run: a train.py subprocess
 def test_evaluation_skips_a_truncated_checkpoint(finished_run, tmp_path, caplog):
     import shutil
 
@@ -296,6 +301,7 @@ def evaluate_cli():
 EVAL_FAST = ["baselines=[mean]", "figures=false", "umap=false", "alignment.cv=2", "print_tables=false"]
 
 
+@pytest.mark.slow  # finished_run: a train.py subprocess
 def test_copied_run_folder_never_reads_the_original_checkpoints(finished_run, tmp_path, evaluate_cli, capsys):
     """Fault: a copy of a run folder whose checkpoints were deleted. Before: exit 0, "same
     weights", the original's checkpoint read through metrics.json's absolute path. Now: the
@@ -315,6 +321,7 @@ def test_copied_run_folder_never_reads_the_original_checkpoints(finished_run, tm
     assert not (copy / "evaluation").exists()
 
 
+@pytest.mark.slow  # finished_run: a train.py subprocess
 def test_unreadable_split_and_checkpoints_are_one_line_errors(finished_run, tmp_path, evaluate_cli, capsys):
     """Faults: split.json that is not JSON; a truncated checkpoint given by path; a
     checkpoint of another model. Before: tracebacks. Now: exit 2, one line naming the file."""

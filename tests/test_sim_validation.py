@@ -139,6 +139,7 @@ def test_cli_in_process_exit_2_for_every_bad_physics(tmp_path, capsys):
         assert not out.exists()
 
 
+@pytest.mark.slow  # simulate CLI subprocess
 @pytest.mark.parametrize("arg,name", [
     ("physics.youngs_modulus=-1e5", "physics.youngs_modulus"),
     ("physics.relaxation_time=.nan", "physics.relaxation_time"),

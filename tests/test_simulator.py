@@ -348,6 +348,7 @@ def test_generate_dataset_resumes_and_passes_scan(tmp_path):
         assert PENDING_ATTR not in f.attrs
 
 
+@pytest.mark.slow  # simulate CLI subprocess
 def test_cli_writes_requested_trials(tmp_path):
     out = tmp_path / "cli.h5"
     cmd = [sys.executable, "-m", "embodied_tactile.simulate", "skin=soft", "primitive=sliding", f"out={out}",

@@ -125,6 +125,7 @@ def test_multirun_summary_lines(tmp_path):
     assert lines[-2] == "next: python evaluate.py multi"
 
 
+@pytest.mark.slow  # train.py subprocess
 def test_train_ends_with_the_summary(tmp_path, fast_data_dir):
     run = tmp_path / "run"
     res = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "trainer.max_epochs=2",
@@ -148,6 +149,7 @@ def test_train_ends_with_the_summary(tmp_path, fast_data_dir):
     assert "measures recognition" in protocol[5] and protocol[6].startswith("Objects never touched: python train.py")
 
 
+@pytest.mark.slow  # train.py -m (Hydra multirun) subprocess
 def test_multirun_ends_with_its_folder_and_evaluate_command(tmp_path, fast_data_dir):
     sweep = tmp_path / "multi"
     res = subprocess.run([sys.executable, str(REPO / "train.py"), "-m", "debug=fast", "modality=acc",

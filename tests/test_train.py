@@ -45,6 +45,7 @@ def one_run(data_dir, tmp_path_factory) -> Path:
     return run
 
 
+@pytest.mark.slow  # one_run: a train.py subprocess
 def test_run_folder_contents(one_run):
     for name in ("config_resolved.yaml", ".hydra/config.yaml", "metrics.json", "split.json", "provenance.json",
                  "checkpoints/last.ckpt", "csv/metrics.csv", "krr_history.jsonl"):
@@ -67,6 +68,7 @@ def test_run_folder_contents(one_run):
     assert [(h["epoch"], h["final"]) for h in history] == [(-1, False), (0, False), (1, True)]
 
 
+@pytest.mark.slow  # one_run: a train.py subprocess
 def test_checkpoint_round_trip(one_run):
     from omegaconf import OmegaConf
     from hydra.utils import get_class
@@ -83,6 +85,7 @@ def test_checkpoint_round_trip(one_run):
     assert a["y_mean"].shape == (2, 5, 16)
 
 
+@pytest.mark.slow  # one_run: a train.py subprocess
 def test_same_seed_same_weights_and_alignment(one_run, data_dir, tmp_path):
     """A run repeated with the same seed on the same data trains the same weights and scores
     the same held-out NMSE: two runs of one command differ only where the code changed."""
@@ -101,6 +104,7 @@ def _ckpt_epoch(path: Path) -> int:
     return int(torch.load(path, map_location="cpu", weights_only=False)["epoch"])
 
 
+@pytest.mark.slow  # trains with train.py in a subprocess
 def test_resume_after_sigkill(data_dir, tmp_path):
     run = tmp_path / "run"
     overrides = (f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "trainer.max_epochs=40", "callbacks.krr_alignment=null")
@@ -146,6 +150,7 @@ def _csv_rows(path: Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow  # trains with train.py in a subprocess
 def test_resume_continues_csv_history_and_krr_wall_time(data_dir, tmp_path):
     """Train 2 epochs, restart in the same folder up to 4: csv/metrics.csv holds the rows of
     all 4 epochs, and krr_history.jsonl's training wall time keeps increasing."""
@@ -258,6 +263,7 @@ def test_find_resume_checkpoint_skips_unreadable_files(tmp_path, caplog):
     assert (ck / "last.ckpt.unreadable").read_bytes() == data[: len(data) // 2]
 
 
+@pytest.mark.slow  # trains with train.py in a subprocess
 def test_corrupt_last_checkpoint_falls_back_or_starts_fresh(one_run, data_dir, tmp_path):
     """A truncated last.ckpt: the restart continues from the newest readable checkpoint and
     names the bad file; with no readable checkpoint it starts afresh, never crashes."""
@@ -292,6 +298,7 @@ def test_corrupt_last_checkpoint_falls_back_or_starts_fresh(one_run, data_dir, t
     assert len(list((run / "checkpoints").glob("*.unreadable*"))) == 1 + len(corrupted)
 
 
+@pytest.mark.slow  # train.py -m (Hydra multirun)
 def test_multirun_two_modalities(data_dir, tmp_path):
     # logger=none as well: the default callbacks include a LearningRateMonitor, which
     # Lightning refuses without a logger; train.py must drop it
@@ -307,6 +314,7 @@ def test_multirun_two_modalities(data_dir, tmp_path):
         assert m["data"]["channels"] == [name.split("=")[-1]]
 
 
+@pytest.mark.slow  # train.py with DDP (two processes)
 def test_ddp_two_cpu_processes(data_dir, tmp_path):
     run = tmp_path / "ddp"
     res = run_train("trainer=ddp", f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "callbacks.krr_alignment=null", timeout=400)
@@ -315,6 +323,7 @@ def test_ddp_two_cpu_processes(data_dir, tmp_path):
     assert "world_size=2" in res.stdout + res.stderr or "distributed_backend=gloo" in res.stdout + res.stderr
 
 
+@pytest.mark.slow  # trains with train.py in a subprocess
 def test_nonfinite_loss_stops_and_keeps_last_checkpoint(data_dir, tmp_path):
     """Overflowing (finite) inputs make the loss non-finite: the run stops, names step and
     term, and last.ckpt from the previous epoch survives unchanged."""
@@ -378,6 +387,7 @@ def test_ablation_sweep_composes_all_24_jobs(tmp_path):
         assert len(seen) == 24
 
 
+@pytest.mark.slow  # train.py -m with the joblib launcher
 def test_joblib_launcher_parallel_jobs_share_a_fresh_data_dir(tmp_path):
     """Two sweep jobs in parallel (joblib) on an empty data folder: both prepare the same raw
     file; the data-folder lock serialises that, and both runs finish."""
@@ -389,6 +399,7 @@ def test_joblib_launcher_parallel_jobs_share_a_fresh_data_dir(tmp_path):
         assert json.loads((job / "metrics.json").read_text())["status"] == "finished"
 
 
+@pytest.mark.slow  # trains with train.py in a subprocess
 def test_last_checkpoint_follows_every_epoch_even_when_validation_worsens(data_dir, tmp_path):
     """last.ckpt is the last epoch's state whatever val/elbo did (Lightning 2.6's save_last
     refreshes it only together with a best checkpoint), so a resume never repeats epochs."""

@@ -174,6 +174,7 @@ def test_trial_absent_from_one_cache_without_reason_is_reported(tiny_data_dir, n
     assert "absent from the cache" in dm.skipped[0]["problem"] and names[2] in caplog.text
 
 
+@pytest.mark.slow  # train.py subprocess
 def test_evaluation_takes_each_trials_object_from_its_attributes_not_its_name(tiny_data_dir, names, tmp_path):
     """A group named ``obj05_...`` that holds object 0, and one named ``session2_trial7``:
     both train as their attributes say, and evaluate.py scores them as the same objects
