@@ -163,6 +163,7 @@ def main(cfg: DictConfig) -> float | None:
         log.info("run folder: %s", run_dir)
         if HydraConfig.get().mode != RunMode.MULTIRUN:  # a multirun ends with cli.EntryCallback's summary
             summary.print_run_summary(run_dir, metrics)
+    runfolder.release(run_dir)  # the folder is free once its run is written (a multirun's next job goes on in this process)
 
     for lg in loggers:  # one wandb run per multirun job
         if lg.__class__.__name__ == "WandbLogger":

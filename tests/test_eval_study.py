@@ -346,3 +346,33 @@ def test_study_report_refuses_validation_side_scores(tmp_path):
     write_report(runs, tmp_path / "evaluation", figures=False)
     with pytest.raises(StudyReportError, match=r"results\.json: latent_filter scored on the validation side"):
         load(tmp_path / "evaluation")
+
+
+def test_study_report_puts_each_cells_untrained_floor_beside_the_trained_filter(tmp_path):
+    """The floor table reads every evaluated run's krr_history.jsonl: the final alignment
+    beside the step-0 check, whole trajectory and last frame, mean over seeds, and counts the
+    seeds below the floor on both read-outs."""
+    import json
+
+    from embodied_tactile.eval.study_report import floor_table
+
+    runs = []
+    for seed, (final, first) in enumerate([((0.2, 0.1), (0.9, 0.8)), ((0.4, 0.3), (0.9, 0.8)), ((0.95, 0.5), (0.9, 0.8))]):
+        d = tmp_path / f"run{seed}"
+        d.mkdir()
+        (d / "config_resolved.yaml").write_text("modality: {name: multi_l}\nskin: {name: soft}\nprimitive: {name: pressing}\n")
+        rows = [{"initial": True, "nmse_overall": first[0], "nmse_last_overall": first[1]},
+                {"nmse_overall": 0.5, "nmse_last_overall": 0.5},
+                {"final": True, "nmse_overall": final[0], "nmse_last_overall": final[1]}]
+        (d / "krr_history.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+        runs.append({"run_dir": str(d), "seed": seed})
+    (tmp_path / "untrained_only").mkdir()  # a run without a final row is left out
+    runs.append({"run_dir": str(tmp_path / "untrained_only"), "seed": 9})
+    table = floor_table({"_evaluation": {"runs": runs}})
+    assert len(table.rows) == 1
+    cell, n, trained_w, untrained_w, trained_l, untrained_l, below = (table.rows[0][:3], *table.rows[0][3:])
+    assert cell == ["multi_l", "soft", "pressing"] and n == 3
+    assert trained_w == pytest.approx((0.2 + 0.4 + 0.95) / 3) and untrained_w == pytest.approx(0.9)
+    assert trained_l == pytest.approx(0.3) and untrained_l == pytest.approx(0.8)
+    assert below == "2 of 3"  # seed 2 is above its floor on the whole trajectory
+    assert floor_table({"_evaluation": {"runs": runs[3:]}}) is None

@@ -417,3 +417,28 @@ def test_cache_key_changes_with_preprocess_version(monkeypatch, cfg):
     key = cache_mod.cache_key("acc", cfg, ["digest"])
     monkeypatch.setattr(cache_mod, "PREPROCESS_VERSION", P.PREPROCESS_VERSION + 1)
     assert cache_mod.cache_key("acc", cfg, ["digest"]) != key
+
+
+def test_pool_workers_end_on_sigterm_whatever_handler_train_py_installed(monkeypatch):
+    """A forked worker inherits train.py's stop handlers (SIGTERM recorded, not fatal); the
+    pools' initialisers give SIGTERM its default action back (Pool.terminate ends workers with
+    it; a worker that only recorded it left a sweep's data preparation waiting forever) and
+    leave Ctrl-C to the parent."""
+    import signal
+
+    from embodied_tactile.runfolder import StopSignals
+    from embodied_tactile.sim import dataset as sim_dataset
+
+    monkeypatch.setattr(cache_mod, "one_blas_thread", lambda: None)  # the worker's thread limit, not this process's
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        monkeypatch.setenv(var, os.environ.get(var, ""))  # restored after the test
+    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        for init in (cache_mod._init_worker, sim_dataset._init_worker):
+            StopSignals().install()
+            init()
+            assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)

@@ -52,7 +52,7 @@ def recipe(cfg) -> str:
     return ", ".join(parts)
 
 
-def _history(run_dir: str | os.PathLike) -> list[dict]:
+def krr_history(run_dir: str | os.PathLike) -> list[dict]:
     try:
         lines = (Path(run_dir) / HISTORY).read_text().splitlines()
     except OSError:
@@ -68,7 +68,7 @@ def _history(run_dir: str | os.PathLike) -> list[dict]:
 
 def last_alignment(run_dir: str | os.PathLike) -> dict | None:
     """The last row of ``<run>/krr_history.jsonl`` (None when the run has none)."""
-    rows = _history(run_dir)
+    rows = krr_history(run_dir)
     return rows[-1] if rows else None
 
 
@@ -159,7 +159,7 @@ def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
     number and page for objects never touched."""
     from omegaconf import OmegaConf
 
-    rows = _history(run_dir)
+    rows = krr_history(run_dir)
     final = next((r for r in reversed(rows) if r.get("final")), None)
     if final is None:
         return []

@@ -36,6 +36,7 @@ import hashlib
 import json
 import logging
 import mmap
+import signal
 import multiprocessing as mp
 import os
 import uuid
@@ -316,6 +317,11 @@ def one_blas_thread():
 
 def _init_worker() -> None:
     one_blas_thread()  # applied on construction; holds for the worker's life (3 ms per call)
+    # a forked worker inherits train.py's stop handlers; Pool.terminate ends its workers with
+    # SIGTERM, which must end them (a handler that records the signal left a worker waiting on
+    # the task queue's lock and the pool's join hanging: seen in a sweep on 2026-11-26)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
 
 
 def _merge(a: rawformat.RawTrial, b: rawformat.RawTrial) -> rawformat.RawTrial:

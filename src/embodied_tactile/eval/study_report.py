@@ -213,6 +213,40 @@ def _json_table(blob: Mapping, name: str) -> Table | None:
     return None
 
 
+def floor_table(blob: Mapping) -> Table | None:
+    """Per cell (modality, e-Skin, primitive): the training's final KRR alignment beside the
+    same read-out of the untrained network (its step-0 check, ``krr_history.jsonl``), whole
+    trajectory and last frame, mean over seeds, and in how many seeds the trained filter is
+    below its own floor on both; None when no run has both rows."""
+    from ..summary import krr_history
+
+    cells: dict[tuple, list[tuple[float, float, float, float]]] = defaultdict(list)
+    for f in _run_files(blob):
+        cfg = f.get("config") or {}
+        rows = krr_history(f["run_dir"])
+        first = next((r for r in rows if r.get("initial")), None)
+        final = next((r for r in reversed(rows) if r.get("final")), None)
+        if not (first and final and cfg):
+            continue
+        key = tuple(str((cfg.get(k) or {}).get("name")) for k in ("modality", "skin", "primitive"))
+        cells[key].append(tuple(float(r.get(k, np.nan)) for r, k in ((final, "nmse_overall"), (first, "nmse_overall"),
+                                                                     (final, "nmse_last_overall"),
+                                                                     (first, "nmse_last_overall"))))
+    if not cells:
+        return None
+    rows = []
+    for key in sorted(cells):
+        v = np.asarray(cells[key])
+        below = int(np.sum((v[:, 0] < v[:, 1]) & (v[:, 2] < v[:, 3])))
+        rows.append([*key, len(v), *(float(np.mean(v[:, i])) for i in range(4)), f"{below} of {len(v)}"])
+    return Table("untrained_floor", "The trained filter beside its own floor: the training's final KRR alignment "
+                 "and the same alignment of the untrained network (the step-0 check), overall NMSE on the "
+                 "held-out test trials, mean over seeds; 'below floor' counts the seeds in which the trained "
+                 "filter is below the untrained one on both read-outs.",
+                 ["modality", "skin", "primitive", "n seeds", "trained whole", "untrained whole", "trained last",
+                  "untrained last", "below floor"], rows)
+
+
 def objects_section(blob: Mapping) -> list[str]:
     """'Objects never touched in training': the commands and the per-configuration statistics
     over seeds (evaluate.py's ``aggregate`` table) of an evaluation of held-out-object runs
@@ -261,6 +295,9 @@ def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: 
     agg = _json_table(blob, "aggregate")
     if agg is not None:
         out += ["## Every cell (all methods), statistics over seeds", "", agg.to_markdown()]
+    floor = floor_table(blob)
+    if floor is not None:
+        out += ["## The untrained floor per cell", "", floor.to_markdown()]
     for name, head in (("findings", "The paper's findings and their verdicts"), ("comparisons", "Comparisons")):
         t = _json_table(blob, name)
         out += [f"## {head}", ""]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Iterable
@@ -122,6 +123,10 @@ def _init_worker() -> None:
     # one BLAS/OpenMP thread per worker process: the pool provides the parallelism
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
+    # a forked worker inherits train.py's stop handlers; the pool ends its workers with
+    # SIGTERM, which must end them (a handler that records the signal left one waiting forever)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
 
 
 def _aside_path(path: Path, version: int) -> Path:
