@@ -4,7 +4,8 @@
 Time indexing (t = 1..T in the docs, 0-based in code):
 
 * y_t ~ q(y_t | z_{t-1}, y_{t-1}, a_{t-1}): LSTMCell fed [z_{t-1}, a_{t-1}]. With
-  ``y_update="direct"`` (default) its head gives q(y_t) itself; with ``"evidence"`` it gives
+  ``y_update="direct"`` (the paper's recipe) its head gives q(y_t) itself; with ``"evidence"``
+  (the class default, :class:`~.options.LatentFilterOptions`) it gives
   one step's Gaussian evidence about the trial-constant y and q(y_t) is the product of all
   evidence so far (see :class:`~embodied_tactile.models.networks.YPosterior`). At t = 1 the LSTM gets zeros from a zero state.
 * p(z_t | z_{t-1}, y_t, a_t): residual MLP, N(z_{t-1} + f_mu, softplus(f_v) + floor).
@@ -27,8 +28,6 @@ from torch.nn import functional as F
 from embodied_tactile.modality import Modality, load_modality
 
 from .compat import upgrade_net_config
-from .options import ContextOptions, LatentFilterOptions, build
-
 from .fusion import ObservationModel, observation_model
 from .networks import (
     HierarchicalPrior,
@@ -41,6 +40,8 @@ from .networks import (
     kl_diag_gaussians,
     small_batch_convs,
 )
+from .options import ContextOptions, LatentFilterOptions, build
+
 
 def to_plain(cfg: Any) -> Any:
     """Mapping / sequence (a Hydra DictConfig or ListConfig included: they are mappings and
