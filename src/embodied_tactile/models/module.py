@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import functools
-from dataclasses import asdict
 from collections.abc import Mapping
+from dataclasses import asdict
 from typing import Any, Callable, Optional
 
 import lightning as L
@@ -12,8 +12,8 @@ import torch
 from torch import Tensor, nn
 
 from .annealing import AnnealingSchedule, build_schedule, check_finite
-from .fusion import EarlyFusion, LateFusion
 from .compat import upgrade_state_dict
+from .fusion import EarlyFusion, LateFusion
 from .latent_filter import LatentFilter, to_plain
 from .options import ContextOptions, ModuleOptions, OptimizerOptions, build, defaults
 
