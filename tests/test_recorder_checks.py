@@ -83,7 +83,7 @@ def test_second_recorder_on_a_running_port_is_refused(tmp_path, trial3s):
         out1, err1 = first.communicate(timeout=60)
     finally:
         emu.stop()
-    assert second.returncode == 2, err2 + "\nfirst: " + first.stderr.read() if first.poll() is not None else err2
+    assert second.returncode == 2, err2 + "\nfirst: " + err1
     assert err2.strip().splitlines()[-1].startswith(f"record: error: port {port} is in use by another program")
     assert not list(second_dir.glob("cli.*.h5"))
     assert first.returncode == 0, err1

@@ -20,6 +20,10 @@ CASES = {
     "embodied_tactile.data.preprocess": ["torch", "lightning"],
     "embodied_tactile.data.prepare": ["torch", "lightning"],  # the preparation stage: files only
     "embodied_tactile.prepare": ["torch", "lightning"],
+    # the recorder's command starts in a fraction of a second (a second recorder on a busy port
+    # is refused while the first one records); the typed configs need no torch
+    "embodied_tactile.record": ["torch", "lightning", "librosa"],
+    "embodied_tactile.config": ["torch", "lightning"],
     # (librosa is not checked here: lightning -> torchmetrics.functional.audio imports it
     # whenever it is installed, which is outside this project's control.)
     "embodied_tactile.models.latent_filter": ["h5py"],

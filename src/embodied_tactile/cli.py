@@ -19,7 +19,6 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from embodied_tactile.config import config_dir
-from embodied_tactile.runfolder import claim_at_entry
 from embodied_tactile.settings import EXIT_BAD_SETTINGS, SettingsError, check_paths, check_train_config, config_value
 
 
@@ -116,6 +115,9 @@ class EntryCallback(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, "hydra.run.dir")
+        # runfolder loads lightning (seconds): only train.py's callback needs it, so that record /
+        # palpate start at once (a recorder on a busy port must be refused while the other runs)
+        from embodied_tactile.runfolder import claim_at_entry
 
         try:
             claim_at_entry(config)

@@ -246,12 +246,12 @@ class LatentFilterModule(L.LightningModule):
 
     def use_data_statistics(self, statistics: Any) -> None:
         """What the network needs from its training data, handed over by the data side
-        (:class:`embodied_tactile.runtime.HandOverStatistics` at ``setup("fit")``; any object
+        (:class:`embodied_tactile.runtime.HandOverStatistics` at the start of fit; any object
         with ``channel_mean``, ``channel_std`` (C,) and ``n_train_sequences``): the encoders'
         input statistics (``input_standardize``) and the prior's population weight,
         1 / (training sequences) per sequence, unless the config fixes it. Input statistics a
-        network already holds (a trained network fitted further) stay; a resumed run's
-        checkpoint restores the ones it was trained with."""
+        network already holds (a trained network fitted further, a resumed run's restored
+        checkpoint) stay."""
         if self.model.input_standardize and not bool(self.model.input_stats_set):
             self.model.set_input_stats(statistics.channel_mean, statistics.channel_std)
         if (self.hparams["net"].get("prior") or {}).get("population_weight") is None and statistics.n_train_sequences:
