@@ -19,7 +19,8 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from embodied_tactile.config import config_dir
-from embodied_tactile.settings import EXIT_BAD_SETTINGS, SettingsError, check_paths, check_train_config, config_value
+from embodied_tactile.settings import (EXIT_BAD_SETTINGS, SettingsError, Spec, check_paths, check_train_config,
+                                       config_value)
 
 
 def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
@@ -63,7 +64,8 @@ def fail(err: SettingsError, prog: str = "train.py") -> None:
     raise SystemExit(EXIT_BAD_SETTINGS)
 
 
-_KINDS = {int: "an integer", float: "a number", bool: "true/false", str: "a string"}
+#: a dataclass field's Python type -> the kind :class:`~embodied_tactile.settings.Spec` describes
+_KINDS = {int: "int", float: "float", bool: "bool", str: "str"}
 
 
 def _declared(cls: type, path: Sequence[str]) -> tuple[Any, bool]:
@@ -102,7 +104,8 @@ def check_typed_overrides(args: Sequence[str]) -> None:
                 OmegaConf.update(OmegaConf.structured(ModelNode), ".".join(path), value, merge=True)
             except OmegaConfBaseException:
                 kind, nullable = _declared(ModelNode, path)
-                expected = _KINDS.get(kind, getattr(kind, "__name__", str(kind))) + (" or null" if nullable else "")
+                expected = (Spec((_KINDS[kind],), nullable=nullable).describe() if kind in _KINDS
+                            else getattr(kind, "__name__", str(kind)) + (" or null" if nullable else ""))
                 fail(SettingsError(f"{o.key_or_group}={value!r} ({type(value).__name__}): expected {expected}"))
 
 
