@@ -170,6 +170,37 @@ def test_module_trains_on_pairs_and_refuses_batches_without_a_context(tmp_path):
         EarlyFusionLatentFilter(LatentFilter("acc", **TINY), context={"source": "object"})
 
 
+def test_y_filter_can_start_at_the_population_marginal():
+    """y_start=population: before any evidence q(y) is the prior of an object never seen
+    (the population marginal, learned), the start that touch_prior reports and the one
+    the context KL measures from; gradients reach the marginal's parameters."""
+    torch.manual_seed(0)
+    net = LatentFilter("acc", y_start="population", **TINY)
+    with torch.no_grad():
+        net.prior.pop_mean.add_(torch.linspace(-1, 1, net.n_y))
+    pm, pv = net.population_marginal(1, torch.device("cpu"))
+    state = net.initial_state(3, torch.device("cpu"))
+    assert torch.allclose(state["y_pm"] / state["y_prec"], pm.expand(3, -1))
+    assert torch.allclose(1 / state["y_prec"], pv.expand(3, -1))
+    tm, tv = net.touch_prior()
+    assert torch.allclose(tm, pm[0]) and torch.allclose(tv, pv[0] + net.y_posterior.min_var)
+    batch = pair_batch()
+    with torch.no_grad():  # no evidence at all: the posterior is the start
+        net.y_posterior.head.bias[net.n_y:].fill_(-30.0)
+        net.y_posterior.head.weight[net.n_y:].zero_()
+    t = net.context_terms(batch, sample=False)
+    assert float(t["kl_y"]) < 1e-2 * net.n_y
+    m, _ = net.context_posterior(batch["context_obs"], batch["context_actions"])
+    m.sum().backward()
+    assert net.prior.pop_mean.grad is not None and net.prior.pop_mean.grad.abs().sum() > 0
+    fixed = LatentFilter("acc", **TINY).initial_state(3, torch.device("cpu"))
+    assert torch.equal(fixed["y_pm"], torch.zeros_like(fixed["y_pm"]))
+    with pytest.raises(ValueError, match="y_start"):
+        LatentFilter("acc", y_start="object", **TINY)
+    with pytest.raises(ValueError, match="needs y_update='evidence'"):
+        LatentFilter("acc", y_start="population", y_update="direct", **TINY)
+
+
 # ------------------------------------------------------------------ K touches
 def test_more_touches_give_a_tighter_posterior():
     torch.manual_seed(0)

@@ -72,6 +72,9 @@ def _modality_config(modality: Any) -> dict[str, Any]:
 
 
 _Y_STATE_KEYS = ("h", "c", "y_prec", "y_pm")
+#: where the evidence product of q(y) starts (``y_start``): N(0, 1/y_prior_precision) or the
+#: hierarchical prior's population marginal
+Y_STARTS = ("fixed", "population")
 
 def _state_to(z: Tensor, z_mean: Tensor, a: Tensor, y_state: tuple[Tensor, ...]) -> dict[str, Tensor]:
     return {"z": z, "z_mean": z_mean, "a": a, **dict(zip(_Y_STATE_KEYS, y_state))}
@@ -103,7 +106,10 @@ class LatentFilter(nn.Module):
             ``config()`` stores the full set, so a checkpoint does not depend on defaults.
         y_update: ``"evidence"`` (default: accumulate per-step Gaussian evidence about the
             trial-constant y) or ``"direct"`` (the LSTM head is q(y_t)); y_prior_precision:
-            precision of the N(0, 1/p) start of the evidence product; y_evidence_max: if
+            precision of the N(0, 1/p) start of the evidence product; y_start: that start
+            (``"fixed"``, default) or the prior's population marginal N(mu_0, sigma^2 + tau^2)
+            (``"population"``: q(y_t) is then the posterior of an object never seen, and
+            the frames before any evidence read as the population's centre); y_evidence_max: if
             set (default 1), one step's evidence precision is at most this; y_evidence_range:
             if set (default 2), the evidence means are squashed into (-r, r) (both
             ``evidence`` only).
@@ -143,6 +149,11 @@ class LatentFilter(nn.Module):
                                       prior_precision=opts.y_prior_precision, max_evidence=opts.y_evidence_max,
                                       evidence_range=opts.y_evidence_range)
         self.prior = HierarchicalPrior(n_y, n_a, opts.n_objects, **self._config["prior"])
+        if opts.y_start not in Y_STARTS:
+            raise ValueError(f"y_start must be one of {Y_STARTS}, got {opts.y_start!r}")
+        if opts.y_start == "population" and opts.y_update != "evidence":
+            raise ValueError("y_start='population' starts the evidence product: it needs y_update='evidence'")
+        self.y_start = opts.y_start
         if opts.obs_sigma <= opts.obs_sigma_min:
             raise ValueError(f"obs_sigma={opts.obs_sigma} must exceed obs_sigma_min={opts.obs_sigma_min}")
         self.obs_sigma_min = float(opts.obs_sigma_min)
@@ -215,7 +226,8 @@ class LatentFilter(nn.Module):
     def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32) -> dict[str, Tensor]:
         z = torch.zeros(batch, self.n_z, device=device, dtype=dtype)
         a = torch.zeros(batch, self.n_a, device=device, dtype=dtype)
-        return _state_to(z, z.clone(), a, self.y_posterior.initial_state(batch, device, dtype))
+        start = self.population_marginal(batch, device) if self.y_start == "population" else None
+        return _state_to(z, z.clone(), a, self.y_posterior.initial_state(batch, device, dtype, start))
 
     @staticmethod
     def _draw(m: Tensor, v: Tensor, sample: bool) -> Tensor:
@@ -353,10 +365,14 @@ class LatentFilter(nn.Module):
     def touch_prior(self, device: Optional[torch.device] = None) -> tuple[Tensor, Tensor]:
         """The Gaussian each touch's q(y) was inferred from, for :func:`combine_touches`
         (n_y,) each: with ``y_update="evidence"`` the start of the evidence product,
-        N(0, 1/y_prior_precision), its variance with the ``min_var`` floor as q(y) reports it
-        (a touch without evidence then adds none); with ``"direct"`` (no explicit start) the
-        population marginal."""
+        N(0, 1/y_prior_precision) or with ``y_start="population"`` the population marginal,
+        its variance with the ``min_var`` floor as q(y) reports it (a touch without evidence
+        then adds none); with ``"direct"`` (no explicit start) the population marginal."""
         yp = self.y_posterior
+        if yp.update == "evidence" and self.y_start == "population":
+            with torch.no_grad():
+                m, v = self.population_marginal(1, device or torch.device("cpu"))
+            return m[0], v[0] + yp.min_var
         if yp.update == "evidence":
             m = torch.zeros(self.n_y, device=device)
             return m, torch.full_like(m, 1.0 / yp.prior_precision + yp.min_var)

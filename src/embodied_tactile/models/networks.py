@@ -321,12 +321,20 @@ class YPosterior(nn.Module):
         self.cell = nn.LSTMCell(n_z + n_a, hidden)
         self.head = nn.Linear(hidden, 2 * n_y)
 
-    def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32) -> tuple[Tensor, ...]:
+    def initial_state(self, batch: int, device: torch.device, dtype: torch.dtype = torch.float32,
+                      start: Optional[tuple[Tensor, Tensor]] = None) -> tuple[Tensor, ...]:
+        """Zero LSTM state and, with ``update="evidence"``, the start of the evidence product:
+        N(0, 1/prior_precision), or ``start`` = (mean, var) (batch, n_y) when given (the
+        population marginal, ``y_start="population"``)."""
         h = torch.zeros(batch, self.hidden, device=device, dtype=dtype)
         if self.update == "direct":
             return h, h.clone()
-        prec = torch.full((batch, self.n_y), self.prior_precision, device=device, dtype=torch.float32)
-        return h, h.clone(), prec, torch.zeros_like(prec)
+        if start is None:
+            prec = torch.full((batch, self.n_y), self.prior_precision, device=device, dtype=torch.float32)
+            return h, h.clone(), prec, torch.zeros_like(prec)
+        with float32_region(start[0]):
+            prec = 1.0 / start[1].float()
+            return h, h.clone(), prec, start[0].float() * prec
 
     def forward(self, z_prev: Tensor, a_prev: Tensor, state: tuple[Tensor, ...]
                 ) -> tuple[Tensor, Tensor, tuple[Tensor, ...]]:

@@ -58,6 +58,7 @@ class LatentFilterOptions:
     prior: PriorOptions = field(default_factory=PriorOptions)
     y_update: str = "evidence"
     y_prior_precision: float = 1.0
+    y_start: str = "fixed"
     y_evidence_max: Optional[float] = 1.0
     y_evidence_range: Optional[float] = 2.0
     obs_dropout: float = 0.5
