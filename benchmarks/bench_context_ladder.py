@@ -3,6 +3,8 @@
     python benchmarks/bench_context_ladder.py RUN [RUN ...]             # one row per run, then rung means
     python benchmarks/bench_context_ladder.py --untrained RUN OUT       # OUT: RUN's network untrained, as a run folder
     python benchmarks/bench_context_ladder.py --touches RUN [RUN ...]   # y from K = 1, 2 touches of each validation object
+    python benchmarks/bench_context_ladder.py --held-out test RUN ...   # the same on the test objects (the targets;
+                                                                        # needs evaluate.py RUN held_out=test first)
 
 Each RUN is a train.py folder of the population scene (any recipe). Per run:
 
@@ -53,28 +55,36 @@ def rung(cfg, run_dir: Path) -> str:
         return "A0 filter"
     if ctx.source == "window":
         return "A1 window" + (" refilter" if ctx.refilter else "")
+    if cfg.model.net.get("y_start", "fixed") == "population":
+        name = "A6 trial, population start, random length" if ctx.get("random_length") else "A5 trial, population start"
+        return name + (" refilter" if ctx.refilter else "")
     return "A3 trial refilter" if ctx.refilter else "A2 trial"
 
 
-def readout(run_dir: Path, checkpoint: str) -> dict:
-    name = "evaluation-val" if checkpoint == "best" else f"evaluation-{checkpoint}-val"
+def readout(run_dir: Path, checkpoint: str, held_out: str = "val") -> dict:
+    suffix = "-val" if held_out == "val" else ""
+    name = f"evaluation{suffix}" if checkpoint == "best" else f"evaluation-{checkpoint}{suffix}"
     path = run_dir / name / "results.json"
     if not path.exists():
         return {}
     runs = json.loads(path.read_text())["runs"]
     lf = next(r for r in runs if r["method"] == "latent_filter")
-    if (lf.get("params") or {}).get("held_out") != "val":
-        raise SystemExit(f"{path}: not scored on the validation objects")
+    if (lf.get("params") or {}).get("held_out", "test") != held_out:
+        raise SystemExit(f"{path}: not scored on the {held_out} objects")
     curve = np.asarray(json.loads(path.read_text())["curves_per_run"][lf["label"]], dtype=float)
     at = {f"f{t}": float(np.nanmean(curve[t])) for t in CURVE_FRAMES if t < len(curve)}
     return {"last": float(lf["nmse_last_step_overall"]), "traj": float(lf["nmse_trajectory_overall"]), **at}
 
 
-def validation_pairs(run):
-    """The run's DataModule with the trial pairing, and its validation pairs' batches."""
+def held_out_pairs(run, held_out: str = "val"):
+    """The held-out objects' context / target pairs (the DataModule's ``context=trial``
+    pairing: validation pairs as training sees them; test pairs built the same way, draws
+    seeded by the split seed) -> their trials and batches."""
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
+    from torch.utils.data import DataLoader
 
+    from embodied_tactile.data.datamodule import TactileSequenceDataset
     from embodied_tactile.eval.runs import data_config
 
     opts = OmegaConf.create({"data": {"batch_size": 64, "num_workers": 0}})
@@ -83,7 +93,11 @@ def validation_pairs(run):
     dm = instantiate(OmegaConf.create(data), _convert_="all")
     dm.prepare_data()
     dm.setup("fit")
-    return dm, list(dm.val_dataloader())
+    if held_out == "val":
+        return dm.val_pairs.trials, list(dm.val_dataloader())
+    pairs = TactileSequenceDataset(dm.cache_files, dm.test_set.trials, dm.channels, dm.seq_len,
+                                   window=dm.train_window, context="trial", draw_seed=dm.split_seed)
+    return pairs.trials, list(DataLoader(pairs, batch_size=64, shuffle=False))
 
 
 @torch.no_grad()
@@ -122,15 +136,15 @@ def prediction_scores(net, batches, objects: np.ndarray) -> dict:
             "pairs": n}
 
 
-def score(run_dir: Path, checkpoint: str) -> dict:
+def score(run_dir: Path, checkpoint: str, held_out: str = "val") -> dict:
     from embodied_tactile.eval.runs import load_module, load_run
 
     run = load_run(run_dir, checkpoint)
-    dm, batches = validation_pairs(run)
-    objects = np.asarray([t.object_id for t in dm.val_pairs.trials])  # evaluation only: which pairs to swap
+    trials, batches = held_out_pairs(run, held_out)
+    objects = np.asarray([t.object_id for t in trials])  # evaluation only: which pairs to swap
     module = load_module(run)
     out = {"run": run_dir.name, "rung": rung(run.cfg, run_dir), "seed": int(run.cfg.seed), "checkpoint": run.ckpt.name,
-           **readout(run_dir, checkpoint), **prediction_scores(module.model, batches, objects)}
+           **readout(run_dir, checkpoint, held_out), **prediction_scores(module.model, batches, objects)}
     return out
 
 
@@ -278,6 +292,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("runs", nargs="*", type=Path)
     ap.add_argument("--checkpoint", default="best", choices=("best", "last"))
+    ap.add_argument("--held-out", default="val", choices=("val", "test"),
+                    help="the objects read: validation (screening) or test (the targets; read once a rung is chosen)")
     ap.add_argument("--untrained", nargs=2, type=Path, metavar=("RUN", "OUT"))
     ap.add_argument("--json", type=Path, help="also write the rows here")
     ap.add_argument("--touches", action="store_true", help="the K-touch read-out (K = 1, 2) instead of the ladder")
@@ -297,7 +313,7 @@ def main(argv=None) -> int:
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1))
         return 0
-    rows = [score(r, args.checkpoint) for r in args.runs]
+    rows = [score(r, args.checkpoint, args.held_out) for r in args.runs]
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
     print(table(rows))

@@ -13,6 +13,7 @@ prediction error. 128 training sequences per object by default.
     python benchmarks/bench_pendulum.py                                # 2500 steps, seed 0
     python benchmarks/bench_pendulum.py --steps 500 --seed 1 --batch-size 16
     python benchmarks/bench_pendulum.py --remedy obs_dropout=0 --remedy y_update=direct   # recipe=elbo's inference
+    python benchmarks/bench_pendulum.py --context --remedy y_start=population             # the context objective
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import torch
 
 from embodied_tactile.bench.pendulum_run import DIAGNOSTIC_READOUTS, READOUTS, run
 from embodied_tactile.bench.remedies import REMEDIES, parse_remedy, remedy_kwargs
+from embodied_tactile.models.options import ContextOptions
 from embodied_tactile.runtime import set_threads
 
 def main(argv=None) -> None:
@@ -35,6 +37,11 @@ def main(argv=None) -> None:
     p.add_argument("--y-weight", type=float, default=1.0, help="linear warm-up y_weight (1 = plain ELBO)")
     p.add_argument("--remedy", type=parse_remedy, action="append", default=[], metavar="NAME=VALUE",
                    help=f"training remedy, repeatable; NAME in {sorted(REMEDIES)}")
+    p.add_argument("--context", action="store_true",
+                   help="train with the context objective (recipe=context): y from another sequence of the same "
+                        "system, the sequence rolled forward open-loop after --initial-frames filtered frames")
+    p.add_argument("--initial-frames", type=int, default=ContextOptions.initial_frames,
+                   help="with --context: target frames filtered before the rollout")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--log-every", type=int, default=0, help="print the loss every N steps (0: never)")
     p.add_argument("--save", metavar="PATH", help="write the trained network (config + state_dict, torch.save) here")
@@ -43,12 +50,14 @@ def main(argv=None) -> None:
     t0 = time.perf_counter()
     res = run(a.steps, seed=a.seed, batch_size=a.batch_size, n_train=a.n_train, model_kwargs=remedy_kwargs(a.remedy),
               annealing={"name": "linear", "beta0": 0.01, "fraction": 0.1, "y_weight": a.y_weight},
-              log_every=a.log_every)
+              log_every=a.log_every,
+              context={"source": "trial", "initial_frames": a.initial_frames} if a.context else None)
     if a.save:
         torch.save({"config": res["model"].config(), "state_dict": res["model"].state_dict(), "seed": a.seed,
                     "steps": a.steps, "n_train": a.n_train}, a.save)
     print(f"pendulum: {a.steps} steps, batch {a.batch_size}, seed {a.seed}, {a.n_train} training sequences per object, "
-          f"y_weight {a.y_weight}, remedies {dict(a.remedy) or 'none'}")
+          f"y_weight {a.y_weight}, remedies {dict(a.remedy) or 'none'}, objective "
+          f"{f'context (y from another sequence of the system, {a.initial_frames} initial frames)' if a.context else 'filtering ELBO'}")
     print("R^2 linear / kernel; held-out sequences of the training systems, and the unseen systems (w0, d between "
           "the training grid's); 'untrained': the same network at its initialisation")
     print("| read-out | held-out | held-out, untrained | unseen systems | unseen, untrained |\n|---|---|---|---|---|")
@@ -60,7 +69,7 @@ def main(argv=None) -> None:
     print(f"\nheld-out: transition weight in q_filt {dg['transition_weight']:.3f}, median variance encoder "
           f"{dg['encoder_var']:.2e} / transition {dg['transition_var']:.2e}; per sequence nll {dg['nll']:.0f}, "
           f"kl_z {dg['kl_z']:.1f}, kl_y {dg['kl_y']:.2f}")
-    print("gradient SNR (median |mean| / std over 16 samples, one batch): "
+    print("gradient SNR of the filtering ELBO (median |mean| / std over 16 samples, one batch): "
           + ", ".join(f"{k} {v:.2f}" for k, v in res["gradient_snr"].items()))
     ol = res["open_loop"]
     print("\nopen loop after 20 filtered frames, image MSE x 1e3 against the noiseless frame")

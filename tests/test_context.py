@@ -153,7 +153,8 @@ def test_module_trains_on_pairs_and_refuses_batches_without_a_context(tmp_path):
     torch.manual_seed(0)
     module = EarlyFusionLatentFilter(LatentFilter("acc", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
                                      context={"source": "trial", "initial_frames": 2})
-    assert module.hparams["context"] == {"source": "trial", "initial_frames": 2, "refilter": False}
+    assert module.hparams["context"] == {"source": "trial", "initial_frames": 2, "refilter": False,
+                                         "random_length": False}
     batch = pair_batch()
     opt = module.configure_optimizers()
     first = None
@@ -199,6 +200,30 @@ def test_y_filter_can_start_at_the_population_marginal():
         LatentFilter("acc", y_start="object", **TINY)
     with pytest.raises(ValueError, match="needs y_update='evidence'"):
         LatentFilter("acc", y_start="population", y_update="direct", **TINY)
+
+
+def test_random_context_length_cuts_training_contexts_only():
+    """random_length: a training batch's y comes from the context's first L frames (L drawn
+    per batch), validation from the whole context; context_frames=L is exactly that cut."""
+    torch.manual_seed(0)
+    net = LatentFilter("acc", **TINY)
+    batch = pair_batch(Tc=12)
+    cut = {**batch, "context_obs": batch["context_obs"][:, :5], "context_actions": batch["context_actions"][:, :5]}
+    assert terms(net, batch, context_frames=5) == terms(net, cut)
+    assert terms(net, batch, context_frames=5) != terms(net, batch)
+    with pytest.raises(ValueError, match="context_frames must be in 1..12"):
+        net.context_terms(batch, context_frames=13)
+    module = EarlyFusionLatentFilter(net, context={"source": "trial", "random_length": True})
+    seen = []
+    original = net.context_terms
+    net.context_terms = lambda b, *a, context_frames=None, **k: seen.append(context_frames) or original(
+        b, *a, context_frames=context_frames, **k)
+    module.train()
+    for _ in range(8):
+        module._terms(batch)
+    module.eval()
+    module._terms(batch)
+    assert all(1 <= n <= 12 for n in seen[:8]) and len(set(seen[:8])) > 1 and seen[8] is None
 
 
 # ------------------------------------------------------------------ K touches
@@ -271,7 +296,8 @@ def test_recipe_context_sets_the_pairing_and_the_rungs(tmp_path):
 
     cfg = _compose(["experiment=population", "recipe=context"], tmp_path)
     assert cfg.data.context == "trial" and cfg.model.net.obs_dropout == 0.0
-    assert instantiate(cfg.model).context == {"source": "trial", "initial_frames": 3, "refilter": False}
+    assert instantiate(cfg.model).context == {"source": "trial", "initial_frames": 3, "refilter": False,
+                                              "random_length": False}
     a1 = _compose(["experiment=population", "recipe=context", "model.context.source=window"], tmp_path)
     assert a1.data.context == "window" and instantiate(a1.data).context == "window"
     a3 = _compose(["experiment=population", "recipe=context", "model.context.refilter=true"], tmp_path)

@@ -320,3 +320,38 @@ def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):
     assert module.lr_schedule == "cosine" and module.model.prior.learn_embedding
     filter_ = _compose_job(["recipe=filter"], tmp_path)
     assert filter_.model.lr_schedule == "constant" and filter_.model.net.prior.learn_embedding is False
+
+
+def test_context_pairing_draws_another_sequence_of_the_same_system():
+    """PendulumSequences(context=True): each item's context is a different sequence of the
+    same system, the draws repeat with the seed; without context there is none."""
+    from embodied_tactile.bench.pendulum_run import PendulumSequences
+
+    data = generate(3, seed=2, n_steps=12)
+    paired = PendulumSequences(data, context=True, seed=5)
+    for i in range(len(data)):
+        item = paired[i]
+        j = [k for k in range(len(data)) if np.array_equal(data.obs[k], item["context_obs"].numpy())]
+        assert len(j) == 1 and j[0] != i and data.object_id[j[0]] == data.object_id[i]
+        assert np.array_equal(data.actions[j[0]], item["context_actions"].numpy())
+    first = [PendulumSequences(data, context=True, seed=5)[i]["context_obs"] for i in range(len(data))]
+    second = [PendulumSequences(data, context=True, seed=5)[i]["context_obs"] for i in range(len(data))]
+    assert all(torch.equal(a, b) for a, b in zip(first, second))
+    assert "context_obs" not in PendulumSequences(data)[0]
+    with pytest.raises(ValueError, match="at least 2 sequences per system"):
+        PendulumSequences(generate(1, seed=2, n_steps=12), context=True)
+
+
+def test_run_trains_the_context_objective_after_a_few_steps():
+    """run(context=...): the module trains on context / target pairs (the loss is the
+    context objective's), and the read-outs are there."""
+    from embodied_tactile.bench.pendulum_run import run
+
+    tiny = {"encoder": {"widths": [2, 2], "hidden": 8}, "transition_hidden": 8, "lstm_hidden": 8}
+    res = run(steps=3, seed=0, batch_size=4, n_train=2, n_test=1, n_steps=12, n_filter=4, horizon=6, max_rows=200,
+              snr_draws=2, model_kwargs={"y_start": "population", **tiny},
+              context={"source": "trial", "initial_frames": 2})
+    assert len(res["losses"]) == 3 and np.isfinite(res["losses"]).all()
+    assert all(np.isfinite(v).all() for v in res["readouts_unseen"].values())
+    with pytest.raises(ValueError, match="context.source must be 'trial'"):
+        run(steps=1, n_train=2, n_test=1, n_steps=12, context={"source": "window"})

@@ -89,17 +89,34 @@ LR = 1e-3
 
 
 class PendulumSequences(Dataset):
-    """One pendulum sequence per item: ``obs`` (T, 1, 28, 28), ``actions`` (T, 1), ``object_id``."""
+    """One pendulum sequence per item: ``obs`` (T, 1, 28, 28), ``actions`` (T, 1), ``object_id``.
 
-    def __init__(self, data: PendulumData) -> None:
+    ``context=True`` (the context objective, docs/model.md "The context objective") adds
+    ``context_obs`` / ``context_actions``: another sequence of the same system, drawn by a
+    generator seeded with ``seed`` (the loader reads items in one process, in order, so the
+    draws repeat with the seed). The system id pairs the sequences and reaches the model
+    only as ``object_id``, which the context objective never reads."""
+
+    def __init__(self, data: PendulumData, context: bool = False, seed: int = 0) -> None:
         self.data = data
+        self.context = bool(context)
+        self._rng = np.random.default_rng(seed)
+        self._same = {int(o): np.flatnonzero(data.object_id == o) for o in np.unique(data.object_id)}
+        if self.context and min(len(v) for v in self._same.values()) < 2:
+            raise ValueError("pendulum context pairing needs at least 2 sequences per system")
 
     def __len__(self) -> int:
         return len(self.data)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        return {"obs": torch.from_numpy(self.data.obs[i]), "actions": torch.from_numpy(self.data.actions[i]),
+        item = {"obs": torch.from_numpy(self.data.obs[i]), "actions": torch.from_numpy(self.data.actions[i]),
                 "object_id": torch.as_tensor(self.data.object_id[i])}
+        if self.context:
+            others = self._same[int(self.data.object_id[i])]
+            j = int(self._rng.choice(others[others != i]))
+            item.update(context_obs=torch.from_numpy(self.data.obs[j]),
+                        context_actions=torch.from_numpy(self.data.actions[j]))
+        return item
 
 
 class PendulumDataModule(L.LightningDataModule):
@@ -108,9 +125,10 @@ class PendulumDataModule(L.LightningDataModule):
     :class:`~embodied_tactile.data.statistics.DataStatistics` (handed to the module by
     :class:`~embodied_tactile.runtime.HandOverStatistics`)."""
 
-    def __init__(self, data: PendulumData, steps: int, batch_size: int = 16, seed: int = 0) -> None:
+    def __init__(self, data: PendulumData, steps: int, batch_size: int = 16, seed: int = 0,
+                 context: bool = False) -> None:
         super().__init__()
-        self.sequences = PendulumSequences(data)
+        self.sequences = PendulumSequences(data, context=context, seed=seed)
         self.steps, self.batch_size, self.seed = int(steps), int(batch_size), int(seed)
         self.statistics = DataStatistics.of([{"obs": data.obs}], len(data))
 
@@ -142,22 +160,28 @@ def default_annealing() -> AnnealingSchedule:
 
 
 def train(model: LatentFilter, data: PendulumData, steps: int, batch_size: int = 16, seed: int = 0,
-          lr: float = LR, annealing: Any = None, log_every: int = 0) -> PendulumRun:
+          lr: float = LR, annealing: Any = None, log_every: int = 0,
+          context: Optional[dict] = None) -> PendulumRun:
     """Unsupervised training by the project's LightningModule and Trainer (the training step,
     annealing and optimiser of the tactile scenes): the annealing group's default schedule
     (configs/annealing/linear.yaml: linear KL warm-up over the first 10 % of the steps, the
     plain ELBO afterwards) unless ``annealing`` names one, and Adam at ``lr``; the object
-    label goes to the prior only, as in training on the tactile data."""
+    label goes to the prior only, as in training on the tactile data. ``context``: the
+    context objective's settings (:class:`~embodied_tactile.models.options.ContextOptions`;
+    ``source`` must be ``trial``: y from another sequence of the same system); None = the
+    filtering ELBO."""
     torch.manual_seed(seed)
+    if context is not None and dict(context).get("source", "trial") != "trial":
+        raise ValueError(f"the pendulum pairs whole sequences: context.source must be 'trial', got {context}")
     module = LatentFilterModule(model, annealing=annealing if annealing is not None else default_annealing(),
-                                optimizer={"name": "Adam", "lr": lr})
+                                optimizer={"name": "Adam", "lr": lr}, context=context)
     losses = _Losses(log_every)
     trainer = L.Trainer(max_steps=steps, accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
                         num_sanity_val_steps=0, callbacks=[HandOverStatistics(), losses])
     t0 = time.perf_counter()
     quiet.silence_third_party()
-    trainer.fit(module, datamodule=PendulumDataModule(data, steps, batch_size, seed))
+    trainer.fit(module, datamodule=PendulumDataModule(data, steps, batch_size, seed, context=context is not None))
     model.eval()
     return PendulumRun(model, steps, time.perf_counter() - t0, losses.losses)
 
@@ -296,13 +320,14 @@ def open_loop(model: LatentFilter, data: PendulumData, n_filter: int = 20, horiz
 
 def run(steps: int, seed: int = 0, batch_size: int = 16, n_train: int = 128, n_test: int = 8, n_steps: int = 60,
         model_kwargs: Optional[dict] = None, annealing: Any = None, log_every: int = 0,
-        n_filter: int = 20, horizon: int = 40, max_rows: int = 1500, snr_draws: int = 16) -> dict[str, Any]:
+        n_filter: int = 20, horizon: int = 40, max_rows: int = 1500, snr_draws: int = 16,
+        context: Optional[dict] = None) -> dict[str, Any]:
     """Generate (train seed ``seed``, held-out sequences of the training systems seed
     ``seed + 1000``, :data:`~.pendulum.UNSEEN_SYSTEMS` seed ``seed + 2000``, ``n_test`` per
     system), read out the untrained network (the floor), train, read out, predict.
     ``readouts`` / ``readouts_unseen``: held-out sequences of the training systems / of the
     unseen systems, both fitted on the training sequences; ``*_untrained``: the same
-    read-outs of the network at its initialisation."""
+    read-outs of the network at its initialisation. ``context``: see :func:`train`."""
     train_data = generate(n_train, seed=seed, n_steps=n_steps)
     test_data = generate(n_test, seed=seed + 1000, n_steps=n_steps)
     unseen_data = generate(n_test, seed=seed + 2000, n_steps=n_steps, systems=UNSEEN_SYSTEMS)
@@ -310,7 +335,8 @@ def run(steps: int, seed: int = 0, batch_size: int = 16, n_train: int = 128, n_t
     model = build_model(**(model_kwargs or {}))
     floor = {f"{key}_untrained": readouts(model, train_data, data, max_rows=max_rows, seed=seed)
              for key, data in (("readouts", test_data), ("readouts_unseen", unseen_data))}
-    fit = train(model, train_data, steps, batch_size, seed, annealing=annealing, log_every=log_every)
+    fit = train(model, train_data, steps, batch_size, seed, annealing=annealing, log_every=log_every,
+                context=context)
     t0 = time.perf_counter()
     res = readouts(model, train_data, test_data, max_rows=max_rows, seed=seed)
     res_unseen = readouts(model, train_data, unseen_data, max_rows=max_rows, seed=seed)

@@ -14,7 +14,7 @@ def boolean(text: str) -> bool:
 
 
 #: --remedy NAME -> its value type; prior.X -> prior={X: ...}
-REMEDIES = {"obs_dropout": float, "y_update": str, "y_evidence_max": float, "y_evidence_range": float,
+REMEDIES = {"obs_dropout": float, "y_update": str, "y_start": str, "y_evidence_max": float, "y_evidence_range": float,
             "prior.labels": boolean, "prior.learn_embedding": boolean, "prior.learn_sigma": boolean}
 
 
