@@ -33,7 +33,8 @@ RULE = "-" * 72
 def recipe(cfg) -> str:
     """The settings that tell the learning curve's Latent Filter recipes apart, as the run
     used them: the prior's object labels, the KL schedule's y weight, the y update and the
-    observation dropout (the last three where the run's config has them)."""
+    observation dropout (the last three where the run's config has them); with the context
+    objective its context source and the settings that tell its rungs apart."""
     from omegaconf import OmegaConf
 
     labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=UNSAVED_PRIOR_OPTIONS["labels"]))
@@ -49,6 +50,13 @@ def recipe(cfg) -> str:
     dropout = float(OmegaConf.select(cfg, "model.net.obs_dropout", default=0.0) or 0.0)
     if dropout > 0:
         parts.append(f"dropout {dropout:g}")
+    if OmegaConf.select(cfg, "model.net.y_start", default="fixed") == "population":
+        parts.append("y from the population")
+    context = OmegaConf.select(cfg, "model.context", default=None)
+    if context:
+        parts.insert(0, f"context objective ({context.get('source', 'trial')}"
+                     + (", refilter" if context.get("refilter") else "")
+                     + (", random length" if context.get("random_length") else "") + ")")
     return ", ".join(parts)
 
 
