@@ -37,6 +37,19 @@ def _one_line_exit_2(res: subprocess.CompletedProcess, *needles: str) -> str:
     return err
 
 
+def test_typed_check_covers_the_optional_context_group(capsys):
+    """model.context.* is None unless a recipe sets it: its keys are still checked by type,
+    and a right value passes (it used to stop train.py with an AssertionError)."""
+    from embodied_tactile.cli import check_typed_overrides
+
+    check_typed_overrides(["recipe=context", "model.context.source=window", "model.context.random_length=true",
+                           "model.net.y_start=population"])
+    with pytest.raises(SystemExit) as info:
+        check_typed_overrides(["model.context.initial_frames=many"])
+    assert info.value.code == 2
+    assert "model.context.initial_frames='many' (str): expected an integer" in capsys.readouterr().err
+
+
 @pytest.mark.slow  # train.py subprocess
 @pytest.mark.parametrize("override, needles", [
     ("trainer.max_epochs=abc", ("trainer.max_epochs='abc'", "integer")),

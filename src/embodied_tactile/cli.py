@@ -71,8 +71,11 @@ _KINDS = {int: "int", float: "float", bool: "bool", str: "str"}
 def _declared(cls: type, path: Sequence[str]) -> tuple[Any, bool]:
     """(declared type, None allowed) of a field of a (nested) dataclass."""
     hint: Any = cls
-    for part in path:
+    for i, part in enumerate(path):
         hint = typing.get_type_hints(hint).get(part, Any)
+        inner = [a for a in typing.get_args(hint) if a is not type(None)]
+        if i < len(path) - 1 and len(inner) == 1 and dataclasses.is_dataclass(inner[0]):
+            hint = inner[0]  # an optional group (Optional[ContextOptions]): its fields' types
         if not dataclasses.is_dataclass(hint):
             break
     args = typing.get_args(hint)
@@ -90,6 +93,7 @@ def check_typed_overrides(args: Sequence[str]) -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     from embodied_tactile.config import ModelNode
+    from embodied_tactile.models.options import ContextOptions
 
     try:
         overrides = OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
@@ -100,8 +104,9 @@ def check_typed_overrides(args: Sequence[str]) -> None:
             continue
         path = o.key_or_group.split(".")[1:]
         for value in (list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]):
-            try:
-                OmegaConf.update(OmegaConf.structured(ModelNode), ".".join(path), value, merge=True)
+            try:  # the optional group (context, None unless a recipe sets it) present, so its keys are typed too
+                OmegaConf.update(OmegaConf.structured(ModelNode(context=ContextOptions())), ".".join(path), value,
+                                 merge=True)
             except OmegaConfBaseException:
                 kind, nullable = _declared(ModelNode, path)
                 expected = (Spec((_KINDS[kind],), nullable=nullable).describe() if kind in _KINDS
