@@ -209,8 +209,8 @@ def _combined(split: dict, prior) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.stack(means), np.stack(facs), np.asarray(ids)
 
 
-def touches(run_dir: Path, checkpoint: str, prior: str = "start") -> dict:
-    """The K-touch read-out on the validation objects (every one has 2 trials, the population
+def touches(run_dir: Path, checkpoint: str, prior: str = "start", held_out: str = "val") -> dict:
+    """The K-touch read-out on the validation (or test) objects (every one has 2 trials, the population
     scene's 2 actions), last-frame NMSE (mean over factors, normalised by the variance of the
     validation targets):
 
@@ -242,7 +242,8 @@ def touches(run_dir: Path, checkpoint: str, prior: str = "start") -> dict:
     net = load_module(run).model
     targets = str(run.cfg.get("targets") or "design_rank")
     tr = encode_split(_posteriors(net, dm.train_eval_dataloader(), trial_names(dm, "train")), targets)
-    te = encode_split(_posteriors(net, dm.val_eval_dataloader(), trial_names(dm, "val")), targets)
+    loader = dm.val_eval_dataloader() if held_out == "val" else dm.test_dataloader()
+    te = encode_split(_posteriors(net, loader, trial_names(dm, held_out)), targets)
     align_opts = OmegaConf.to_container(opts.alignment)
     _, align = evaluate_latents(tr, te, latent="y", alignment=align_opts, split="object")
     if prior == "marginal":
@@ -305,7 +306,7 @@ def main(argv=None) -> int:
         print(write_untrained(*args.untrained))
         return 0
     if args.touches:
-        rows = [touches(r, args.checkpoint, args.touch_prior) for r in args.runs]
+        rows = [touches(r, args.checkpoint, args.touch_prior, args.held_out) for r in args.runs]
         keys = ("evaluate K=1", "evaluate K=2", "same-K K=1", "same-K K=2")
         print("| run | rung | seed | " + " | ".join(keys) + " |\n" + "|---" * (3 + len(keys)) + "|")
         for r in rows:
