@@ -56,8 +56,7 @@ def rung(cfg, run_dir: Path) -> str:
     if ctx.source == "window":
         return "A1 window" + (" refilter" if ctx.refilter else "")
     if cfg.model.net.get("y_start", "fixed") == "population":
-        name = "A6 trial, population start, random length" if ctx.get("random_length") else "A5 trial, population start"
-        return name + (" refilter" if ctx.refilter else "")
+        return "A5 trial, population start" + (" refilter" if ctx.refilter else "")
     return "A3 trial refilter" if ctx.refilter else "A2 trial"
 
 

@@ -42,8 +42,8 @@ def test_typed_check_covers_the_optional_context_group(capsys):
     and a right value passes (it used to stop train.py with an AssertionError)."""
     from embodied_tactile.cli import check_typed_overrides
 
-    check_typed_overrides(["recipe=context", "model.context.source=window", "model.context.random_length=true",
-                           "model.net.y_start=population"])
+    check_typed_overrides(["recipe=context", "model.context.source=window", "model.context.refilter=true",
+                           "model.net.y_start=fixed"])
     with pytest.raises(SystemExit) as info:
         check_typed_overrides(["model.context.initial_frames=many"])
     assert info.value.code == 2

@@ -154,7 +154,8 @@ def test_recipes_name_the_objective(tmp_path):
     """recipe=paper (the default of the paper's scene) is the paper's model: the ELBO (kl_y
     weight 1) with the label-conditioned prior and learned object codes, y direct, no dropout;
     filter is the model class's defaults (the plain ELBO without labels, observation dropout and
-    evidence y) and the population scene's default; elbo drops the two switches, recognition
+    evidence y); the population scene's default is the context objective without labels, y's
+    filter starting at the population marginal (test_context.py); elbo drops the two switches, recognition
     adds the labels with fixed codes and weights kl_y 100; the paper's experiment is the paper's
     recipe under its DVBF annealing; a command-line y weight still wins."""
     from embodied_tactile.models.latent_filter import LatentFilter
@@ -166,7 +167,8 @@ def test_recipes_name_the_objective(tmp_path):
     population = _compose(["experiment=population"], tmp_path)
     assert instantiate(population.model.net).config()["prior"] == filter_.config()["prior"] | {
         "population_weight": population.model.net.prior.population_weight}
-    assert population.model.net.obs_dropout == 0.5 and population.annealing.schedule.y_weight == 1.0
+    assert population.model.context.source == "trial" and population.model.net.y_start == "population"
+    assert population.model.net.obs_dropout == 0.0 and population.annealing.schedule.y_weight == 1.0
     elbo = instantiate(_compose(["recipe=elbo"], tmp_path).model.net).config()
     assert elbo["obs_dropout"] == 0.0 and elbo["y_update"] == "direct" and elbo["prior"]["labels"] is False
     default = _compose([], tmp_path)

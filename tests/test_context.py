@@ -153,8 +153,7 @@ def test_module_trains_on_pairs_and_refuses_batches_without_a_context(tmp_path):
     torch.manual_seed(0)
     module = EarlyFusionLatentFilter(LatentFilter("acc", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
                                      context={"source": "trial", "initial_frames": 2})
-    assert module.hparams["context"] == {"source": "trial", "initial_frames": 2, "refilter": False,
-                                         "random_length": False}
+    assert module.hparams["context"] == {"source": "trial", "initial_frames": 2, "refilter": False}
     batch = pair_batch()
     opt = module.configure_optimizers()
     first = None
@@ -200,30 +199,6 @@ def test_y_filter_can_start_at_the_population_marginal():
         LatentFilter("acc", y_start="object", **TINY)
     with pytest.raises(ValueError, match="needs y_update='evidence'"):
         LatentFilter("acc", y_start="population", y_update="direct", **TINY)
-
-
-def test_random_context_length_cuts_training_contexts_only():
-    """random_length: a training batch's y comes from the context's first L frames (L drawn
-    per batch), validation from the whole context; context_frames=L is exactly that cut."""
-    torch.manual_seed(0)
-    net = LatentFilter("acc", **TINY)
-    batch = pair_batch(Tc=12)
-    cut = {**batch, "context_obs": batch["context_obs"][:, :5], "context_actions": batch["context_actions"][:, :5]}
-    assert terms(net, batch, context_frames=5) == terms(net, cut)
-    assert terms(net, batch, context_frames=5) != terms(net, batch)
-    with pytest.raises(ValueError, match="context_frames must be in 1..12"):
-        net.context_terms(batch, context_frames=13)
-    module = EarlyFusionLatentFilter(net, context={"source": "trial", "random_length": True})
-    seen = []
-    original = net.context_terms
-    net.context_terms = lambda b, *a, context_frames=None, **k: seen.append(context_frames) or original(
-        b, *a, context_frames=context_frames, **k)
-    module.train()
-    for _ in range(8):
-        module._terms(batch)
-    module.eval()
-    module._terms(batch)
-    assert all(1 <= n <= 12 for n in seen[:8]) and len(set(seen[:8])) > 1 and seen[8] is None
 
 
 # ------------------------------------------------------------------ K touches
@@ -288,19 +263,22 @@ def test_swapping_y_between_objects_raises_the_target_error_of_a_trained_model()
 
 # ------------------------------------------------------------------ the config
 def test_recipe_context_sets_the_pairing_and_the_rungs(tmp_path):
-    """recipe=context: the DataModule's pairing follows model.context.source, the module gets
-    the rung's settings; without the recipe there is no context anywhere."""
+    """recipe=context (A5, the population scene's default): the DataModule's pairing follows
+    model.context.source, the module gets the rung's settings, y starts at the population
+    marginal; recipe=filter (A0) has no context anywhere; the paper's scene has none either."""
     from hydra.utils import instantiate
 
     from tests.test_configs import _compose
 
-    cfg = _compose(["experiment=population", "recipe=context"], tmp_path)
+    cfg = _compose(["experiment=population"], tmp_path)
     assert cfg.data.context == "trial" and cfg.model.net.obs_dropout == 0.0
-    assert instantiate(cfg.model).context == {"source": "trial", "initial_frames": 3, "refilter": False,
-                                              "random_length": False}
-    a1 = _compose(["experiment=population", "recipe=context", "model.context.source=window"], tmp_path)
+    module = instantiate(cfg.model)
+    assert module.context == {"source": "trial", "initial_frames": 3, "refilter": False}
+    assert module.model.y_start == "population"
+    a1 = _compose(["experiment=population", "model.net.y_start=fixed", "model.context.source=window"], tmp_path)
     assert a1.data.context == "window" and instantiate(a1.data).context == "window"
-    a3 = _compose(["experiment=population", "recipe=context", "model.context.refilter=true"], tmp_path)
+    assert instantiate(a1.model).model.y_start == "fixed"
+    a3 = _compose(["experiment=population", "model.context.refilter=true"], tmp_path)
     assert instantiate(a3.model).context["refilter"] is True
-    a0 = _compose(["experiment=population"], tmp_path)
-    assert a0.data.context is None and instantiate(a0.model).context is None
+    for a0 in (_compose(["experiment=population", "recipe=filter"], tmp_path), _compose([], tmp_path)):
+        assert a0.data.context is None and instantiate(a0.model).context is None

@@ -86,9 +86,9 @@ def test_recipe_names_the_settings_that_tell_recipes_apart():
     cfg.model.net.prior.learn_embedding = True  # the paper's recipe: the object codes learn
     assert recipe(cfg) == "labels, learned codes, y_weight 1, y evidence"
     ctx = OmegaConf.create({"model": {"net": {"prior": {"labels": False}, "y_update": "evidence", "y_start": "population"},
-                                      "context": {"source": "trial", "refilter": False, "random_length": True}},
+                                      "context": {"source": "trial", "refilter": False}},
                             "annealing": {"schedule": {"y_weight": 1.0}}})
-    assert recipe(ctx) == "context objective (trial, random length), no labels, y_weight 1, y evidence, y from the population"
+    assert recipe(ctx) == "context objective (trial), no labels, y_weight 1, y evidence, y from the population"
 
 
 def test_parts_merge_through_the_scores_file_and_a_later_root_replaces_a_score(tmp_path):

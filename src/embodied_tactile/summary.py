@@ -55,8 +55,7 @@ def recipe(cfg) -> str:
     context = OmegaConf.select(cfg, "model.context", default=None)
     if context:
         parts.insert(0, f"context objective ({context.get('source', 'trial')}"
-                     + (", refilter" if context.get("refilter") else "")
-                     + (", random length" if context.get("random_length") else "") + ")")
+                     + (", refilter" if context.get("refilter") else "") + ")")
     return ", ".join(parts)
 
 

@@ -424,14 +424,13 @@ class LatentFilter(nn.Module):
 
     def context_terms(self, batch: Mapping[str, Tensor], initial_frames: int = ContextOptions.initial_frames,
                       refilter: bool = ContextOptions.refilter,
-                      sample: bool = True, context_frames: Optional[int] = None) -> dict[str, Tensor]:
+                      sample: bool = True) -> dict[str, Tensor]:
         """The context objective (docs/model.md, "The context objective"): per-sequence
         terms of the negative ELBO of a model in which one y is shared by every trial of an
         object, averaged over the batch (float32 scalars, the keys of :meth:`elbo_terms`).
 
         y ~ q(y | context) (:meth:`context_posterior` over ``context_obs`` /
-        ``context_actions``, their first ``context_frames`` frames when given; a
-        reparameterised draw when ``sample``), then the target
+        ``context_actions``; a reparameterised draw when ``sample``), then the target
         ``obs`` / ``actions`` by :meth:`rollout`:
 
         nll  = sum_t sum_{c,pixels} -log N(o_t; dec(z_t), sigma_c^2) over every target frame
@@ -439,12 +438,7 @@ class LatentFilter(nn.Module):
                (0 at the rolled-forward frames, where q = p; every frame with ``refilter``)
         kl_y = KL(q(y | context) || p(y)), p(y) the population marginal (no label)
         The object id is never read: the pairing of context and target is the data's."""
-        c_obs, c_act = batch["context_obs"], batch["context_actions"]
-        if context_frames is not None:
-            if not 1 <= int(context_frames) <= c_obs.shape[1]:
-                raise ValueError(f"context_frames must be in 1..{c_obs.shape[1]}, got {context_frames}")
-            c_obs, c_act = c_obs[:, :int(context_frames)], c_act[:, :int(context_frames)]
-        y_m, y_v = self.context_posterior(c_obs, c_act, sample=sample)
+        y_m, y_v = self.context_posterior(batch["context_obs"], batch["context_actions"], sample=sample)
         y = self._draw(y_m, y_v, sample)
         obs = batch["obs"]
         out = self.rollout(obs, batch["actions"], y, initial_frames, sample=sample, refilter=refilter)

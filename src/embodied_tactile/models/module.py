@@ -122,13 +122,11 @@ class LatentFilterModule(L.LightningModule):
             group of their own at this multiple of the optimizer's lr (1 = one group, the
             default; docs/model.md, "Fixed object codes").
         context: None (default: the filtering ELBO, :meth:`LatentFilter.elbo_terms`) or
-            ``{source, initial_frames, refilter, random_length}``: the context objective
+            ``{source, initial_frames, refilter}``: the context objective
             (:meth:`LatentFilter.context_terms`, ``recipe=context``, docs/model.md "The
             context objective"). ``source`` (``trial`` | ``window``) names the DataModule's
             pairing (configs/data reads it from here); ``initial_frames`` target frames are
-            filtered before the open-loop rollout; ``refilter`` filters every target frame;
-            ``random_length`` cuts each training batch's context to its first L frames, L
-            drawn uniformly (validation uses the whole context).
+            filtered before the open-loop rollout; ``refilter`` filters every target frame.
 
     Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
     train/elbo, anneal/*; val/loss, val/elbo (per sequence, higher is better),
@@ -192,11 +190,8 @@ class LatentFilterModule(L.LightningModule):
             raise ValueError("the context objective needs batches with context_obs / context_actions: "
                              "a TactileDataModule with context=trial|window (configs/recipe/context.yaml)")
         else:
-            length = None
-            if self.training and self.context["random_length"]:
-                length = int(torch.randint(1, batch["context_obs"].shape[1] + 1, ()))
             terms = self.model.context_terms(batch, self.context["initial_frames"], self.context["refilter"],
-                                             sample=True, context_frames=length)
+                                             sample=True)
         terms.pop("out")
         return terms
 

@@ -70,15 +70,11 @@ class ContextOptions:
     """The context objective (docs/model.md, "The context objective"): where y's context
     comes from (``trial``: another trial of the same object; ``window``: a disjoint window
     of the same trial), how many target frames are filtered before the open-loop rollout,
-    whether every target frame is filtered (``refilter``, a leak control), and whether each
-    training batch's context is cut to its first L frames, L uniform in 1..its length
-    (``random_length``: the random context sizes of neural processes, so that q(y) from few
-    frames, as the filter reads it early in a trial, is trained too)."""
+    and whether every target frame is filtered (``refilter``, a leak control)."""
 
     source: str = "trial"
     initial_frames: int = 3
     refilter: bool = False
-    random_length: bool = False
 
 
 @dataclass
