@@ -201,6 +201,17 @@ def test_y_filter_can_start_at_the_population_marginal():
         LatentFilter("acc", y_start="population", y_update="direct", **TINY)
 
 
+def test_a_checkpoint_with_the_removed_random_length_loads_at_its_off_value():
+    """random_length was measured and removed: a saved context config holding it at False
+    loads; True is refused with a message that names it."""
+    from embodied_tactile.models.module import check_context
+
+    assert check_context({"source": "trial", "random_length": False}) == {"source": "trial", "initial_frames": 3,
+                                                                          "refilter": False}
+    with pytest.raises(ValueError, match="random_length=True.*measured, rejected and removed"):
+        check_context({"source": "trial", "random_length": True})
+
+
 # ------------------------------------------------------------------ K touches
 def test_more_touches_give_a_tighter_posterior():
     torch.manual_seed(0)

@@ -18,6 +18,9 @@ REMOVED_OPTIONS = {"obs_dropout_span": 1, "elbo_samples": 1, "overshoot": 1, "ov
 UNSAVED_OPTIONS = {"input_standardize": False, "y_update": "direct", "y_evidence_max": None,
                    "y_evidence_range": None, "obs_dropout": 0.0}
 UNSAVED_PRIOR_OPTIONS = {"labels": True}
+#: context-objective options that were measured, rejected and removed
+#: (docs/experiments/context_objective.md), with their off value
+REMOVED_CONTEXT_OPTIONS = {"random_length": False}
 
 
 def upgrade_net_config(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -27,12 +30,23 @@ def upgrade_net_config(config: Mapping[str, Any]) -> dict[str, Any]:
     networks were trained with before it was saved (:data:`UNSAVED_OPTIONS`), not today's
     default."""
     config = {**UNSAVED_OPTIONS, **config, "prior": {**UNSAVED_PRIOR_OPTIONS, **(config.get("prior") or {})}}
-    for name, off in REMOVED_OPTIONS.items():
+    return _drop_removed(config, REMOVED_OPTIONS, "docs/model.md, 'Removed options'")
+
+
+def upgrade_context_config(context: Mapping[str, Any]) -> dict[str, Any]:
+    """A saved context-objective config (a checkpoint's ``context``) as today's options: a
+    removed option (:data:`REMOVED_CONTEXT_OPTIONS`) at its off value is dropped, any other
+    value of it is a ValueError that names it."""
+    return _drop_removed(dict(context), REMOVED_CONTEXT_OPTIONS, "docs/experiments/context_objective.md")
+
+
+def _drop_removed(config: dict[str, Any], removed: Mapping[str, Any], where: str) -> dict[str, Any]:
+    for name, off in removed.items():
         if name in config:
             value = config.pop(name)
             if off is not None and value != off:
                 raise ValueError(f"this network was trained with {name}={value!r}, an option that was measured, "
-                                 f"rejected and removed (docs/model.md, 'Removed options'); only {off!r} loads")
+                                 f"rejected and removed ({where}); only {off!r} loads")
     return config
 
 

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor, nn
 
 from .annealing import AnnealingSchedule, build_schedule, check_finite
-from .compat import upgrade_state_dict
+from .compat import upgrade_context_config, upgrade_state_dict
 from .fusion import EarlyFusion, LateFusion
 from .latent_filter import LatentFilter, to_plain
 from .options import ContextOptions, ModuleOptions, OptimizerOptions, build, defaults
@@ -89,7 +89,7 @@ def check_context(context: Optional[Mapping[str, Any]]) -> Optional[dict[str, An
     :data:`CONTEXT_SOURCES`, ``initial_frames`` >= 1."""
     if context is None:
         return None
-    out = asdict(build(ContextOptions, to_plain(context), "context"))
+    out = asdict(build(ContextOptions, upgrade_context_config(to_plain(context)), "context"))
     if out["source"] not in CONTEXT_SOURCES:
         raise ValueError(f"context.source must be one of {CONTEXT_SOURCES}, got {out['source']!r}")
     if int(out["initial_frames"]) < 1:
