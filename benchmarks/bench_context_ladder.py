@@ -83,7 +83,6 @@ def held_out_pairs(run, held_out: str = "val"):
     from omegaconf import OmegaConf
     from torch.utils.data import DataLoader
 
-    from embodied_tactile.data.datamodule import TactileSequenceDataset
     from embodied_tactile.eval.runs import data_config
 
     opts = OmegaConf.create({"data": {"batch_size": 64, "num_workers": 0}})
@@ -94,8 +93,7 @@ def held_out_pairs(run, held_out: str = "val"):
     dm.setup("fit")
     if held_out == "val":
         return dm.val_pairs.trials, list(dm.val_dataloader())
-    pairs = TactileSequenceDataset(dm.cache_files, dm.test_set.trials, dm.channels, dm.seq_len,
-                                   window=dm.train_window, context="trial", draw_seed=dm.split_seed)
+    pairs = dm.held_out_pairs(dm.test_set.trials)
     return pairs.trials, list(DataLoader(pairs, batch_size=64, shuffle=False))
 
 

@@ -61,8 +61,14 @@ def test_window_context_is_a_disjoint_window_of_the_same_trial(paired):
 
 
 def test_trial_context_is_another_trial_of_the_same_object(paired):
+    """Training crops, the validation pairs and the test objects' pairs (held_out_pairs, the
+    benchmark's) pair a trial with another trial of its object; held-out pairs repeat."""
     dm = paired["trial"]
-    for ds in (dm.train_crops, dm.val_pairs):
+    test_pairs = dm.held_out_pairs(dm.test_set.trials)
+    again = dm.held_out_pairs(dm.test_set.trials)
+    assert [test_pairs[i]["context_trial"] for i in range(len(test_pairs))] == \
+        [again[i]["context_trial"] for i in range(len(again))]
+    for ds in (dm.train_crops, dm.val_pairs, test_pairs):
         by_name = {t.name: t for t in ds.trials}
         for i in range(len(ds)):
             item = ds[i]

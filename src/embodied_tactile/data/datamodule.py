@@ -539,13 +539,19 @@ class TactileDataModule(L.LightningDataModule):
             self.train_crops = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len,
                                                       window=self.train_window,
                                                       windows_per_trial=self.windows_per_trial, context=self.context)
-        self.val_pairs = self.val_set
-        if self.context is not None and val:
-            self.val_pairs = TactileSequenceDataset(self.cache_files, val, self.channels, self.seq_len,
-                                                    window=self.train_window, context=self.context,
-                                                    draw_seed=self.split_seed)
+        self.val_pairs = self.held_out_pairs(val) if self.context is not None and val else self.val_set
         log.info("data: %d train / %d validation / %d test sequences (split=%s), channels %s, skipped %d bad trial(s)",
                  len(train), len(val), len(test), self.split, self.channels, len(self.skipped))
+
+    def held_out_pairs(self, trials: Sequence[TrialRef]) -> TactileSequenceDataset:
+        """Fixed context / target pairs of held-out trials (this DataModule's ``context``
+        pairing, ``train_window``-frame crops drawn once, seeded by ``split_seed``): what
+        ``val_dataloader`` serves with a context; the context objective's benchmark builds the
+        test objects' pairs with it."""
+        if self.context is None:
+            raise ValueError("held_out_pairs needs a DataModule with context=trial|window")
+        return TactileSequenceDataset(self.cache_files, trials, self.channels, self.seq_len,
+                                      window=self.train_window, context=self.context, draw_seed=self.split_seed)
 
     def _load_split(self, refs: Sequence[TrialRef]) -> tuple[list[TrialRef], list[TrialRef], list[TrialRef]]:
         """Reuse a saved split (resumed runs, evaluation): the split belongs to the run.
