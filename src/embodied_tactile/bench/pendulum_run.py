@@ -101,7 +101,9 @@ class PendulumSequences(Dataset):
         self.data = data
         self.context = bool(context)
         self._rng = np.random.default_rng(seed)
-        self._same = {int(o): np.flatnonzero(data.object_id == o) for o in np.unique(data.object_id)}
+        #: system id -> its sequences (only the context pairing reads it)
+        self._same = ({int(o): np.flatnonzero(data.object_id == o) for o in np.unique(data.object_id)}
+                      if self.context else {})
         if self.context and min(len(v) for v in self._same.values()) < 2:
             raise ValueError("pendulum context pairing needs at least 2 sequences per system")
 
