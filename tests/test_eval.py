@@ -79,7 +79,7 @@ def test_nmse_zero_variance_is_nan_with_warning():
 # ------------------------------------------------------------------ KRR
 def test_krr_recovers_smooth_nonlinear_mapping_and_not_shuffled():
     tr, te = synthetic_split(240, seed=1), synthetic_split(80, seed=2, offset=10_000)
-    align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"])
+    align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"], readout="final_segment")
     assert align.params["kernel"] == "rbf" and align.params["method"] == "exact_krr"
     pred = align.predict(te["y"], ids=te["seq_id"])
     assert pred.shape == (80, 40, 4)
@@ -90,7 +90,7 @@ def test_krr_recovers_smooth_nonlinear_mapping_and_not_shuffled():
     assert curve[0].mean() > curve[-1].mean()
     # shuffled targets: nothing to learn -> about the mean predictor
     rng = np.random.default_rng(0)
-    bad = fit_alignment(tr["y"], tr["factors"][rng.permutation(240)])
+    bad = fit_alignment(tr["y"], tr["factors"][rng.permutation(240)], readout="final_segment")
     assert np.all(nmse(te["factors"], bad.predict(te["y"])[:, -1]) > 0.8)
 
 
@@ -118,7 +118,7 @@ def test_cv_uses_training_rows_only(monkeypatch):
         return orig(xs, ys, folds, *a, **k)
 
     monkeypatch.setattr(krr, "_grid_cv", spy)
-    res, align = evaluate_latents(tr, te, alignment={"cv": 3, "frames_per_sequence": 2})
+    res, align = evaluate_latents(tr, te, alignment={"cv": 3, "frames_per_sequence": 2, "readout": "final_segment"})
     (xs, folds), = seen
     assert xs.shape[0] == 50 * 2  # 2 final-segment frames per training sequence
     raw = xs * align.x_scale + align.x_mean
@@ -168,14 +168,15 @@ def test_object_split_alignment_chooses_its_hyperparameters_on_unseen_objects():
     train, test = split(np.arange(24)), split(np.arange(24, 32))
     scores = {}
     for groups in ("sequence", "auto"):
-        res, align = evaluate_latents(train, test, alignment={"groups": groups, "cv": 4}, split="object")
+        res, align = evaluate_latents(train, test, alignment={"groups": groups, "cv": 4, "readout": "final_segment"},
+                                           split="object")
         scores[groups] = (res.summary()["nmse_trajectory_overall"], align.params["alpha"])
     mean_pred = np.broadcast_to(train["factors"].mean(0), (len(test["factors"]), t, 4))
     mean_nmse = overall(nmse_trajectory(test["factors"], mean_pred))  # the train-mean predictor
     assert scores["sequence"][1] <= 1e-2 and scores["sequence"][0] > mean_nmse + 0.03
     assert scores["auto"][1] >= 10.0 and abs(scores["auto"][0] - mean_nmse) < 0.02
     assert resolve_cv_grouping("auto", "trial") == "sequence" and resolve_cv_grouping("auto", "object") == "object"
-    with pytest.raises(ValueError, match="alignment groups must be one of"):
+    with pytest.raises(ValueError, match="groups must be one of"):
         evaluate_latents(train, test, alignment={"groups": "objects"})
 
 
@@ -189,7 +190,7 @@ def test_final_segment_rows():
 
 def test_nystroem_path_for_large_n():
     tr, te = synthetic_split(600, t=12, seed=7), synthetic_split(100, t=12, seed=8, offset=10_000)
-    align = fit_alignment(tr["y"], tr["factors"], final_segment=0.25, frames_per_sequence=2, nystroem_threshold=500,
+    align = fit_alignment(tr["y"], tr["factors"], readout="final_segment", final_segment=0.25, frames_per_sequence=2, nystroem_threshold=500,
                           n_components=200,
                           cv=3, alphas=(1e-3, 1e-2), gammas=(0.3, 1.0))
     assert align.params["method"] == "nystroem_ridge" and align.params["n_train_rows"] == 1200
@@ -198,7 +199,7 @@ def test_nystroem_path_for_large_n():
 
 def test_latent_both_concatenates():
     tr, te = synthetic_split(40, seed=9), synthetic_split(20, seed=10, offset=1000)
-    res, align = evaluate_latents(tr, te, latent="both", alignment={"cv": 2})
+    res, align = evaluate_latents(tr, te, latent="both", alignment={"cv": 2, "readout": "final_segment"})
     assert align.x_mean.shape == (32,) and res.latents_last.shape == (20, 32)
 
 

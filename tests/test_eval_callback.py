@@ -77,8 +77,8 @@ def test_callback_writes_history_and_logs(tmp_path):
     torch.set_num_threads(1)
     from lightning.pytorch.loggers import CSVLogger
 
-    cb = KRRAlignmentCallback(every_n_epochs=1, latent="y", max_train_sequences=40, cv=2, val_frame_stride=3,
-                              n_threads=1)
+    cb = KRRAlignmentCallback(every_n_epochs=1, latent="y", max_train_sequences=40, alignment={"cv": 2}, checks={"cv": 2},
+                              val_frame_stride=3)
     logger = CSVLogger(tmp_path, name="run")
     trainer = L.Trainer(max_epochs=2, default_root_dir=tmp_path, logger=logger, callbacks=[cb], enable_progress_bar=False,
                         enable_model_summary=False, enable_checkpointing=False, accelerator="cpu", devices=1,
@@ -92,7 +92,7 @@ def test_callback_writes_history_and_logs(tmp_path):
     assert [(r["epoch"], r["final"]) for r in rows] == [(-1, False), (0, False), (1, False), (1, True)]
     assert rows[0]["initial"] and rows[0]["train_wall_time_s"] == 0 and rows[0]["step"] == 0
     assert rows[-1]["val_frame_stride"] == 1 and rows[-1]["alignment"]["frames_per_sequence"] == 4
-    assert rows[-1]["alignment"]["cv_folds"] == 5 and cb.final == rows[-1]
+    assert rows[-1]["alignment"]["cv_folds"] == 2 and cb.final == rows[-1]
     for r in rows:
         assert r["n_train"] == (48 if r["final"] else 40) and r["n_test"] == 16
         assert all(np.isfinite(r["nmse"][f]) for f in FACTOR_NAMES)
@@ -116,7 +116,7 @@ def test_collect_latents_feeds_evaluate_latents():
     te = collect_latents(model, dm.val_dataloader(), latent="both")
     assert model.training  # mode restored
     assert tr["z"].shape == (20, T, D) and tr["y"].shape == (20, T, D) and te["factors"].shape == (16, 4)
-    res, align = evaluate_latents(tr, te, latent="both", alignment={"cv": 2})
+    res, align = evaluate_latents(tr, te, latent="both", alignment={"cv": 2, "readout": "final_segment"})
     assert align.x_mean.shape == (2 * D,) and res.pred.shape == (16, T, 4)
     assert np.isfinite(res.subset_nmse()).all()
 
@@ -134,7 +134,8 @@ class _Probe(L.Callback):
 
 def test_krr_value_shows_only_in_its_epoch_and_final_is_the_result(tmp_path):
     torch.set_num_threads(1)
-    cb = KRRAlignmentCallback(every_n_epochs=2, latent="y", cv=2, val_frame_stride=3, n_threads=1)
+    cb = KRRAlignmentCallback(every_n_epochs=2, latent="y", alignment={"cv": 2}, checks={"cv": 2},
+                              val_frame_stride=3)
     probe = _Probe()
     trainer = L.Trainer(max_epochs=3, default_root_dir=tmp_path, logger=False, callbacks=[cb, probe],
                         enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
@@ -154,7 +155,8 @@ def test_wall_time_continues_across_a_resume(tmp_path):
     torch.set_num_threads(1)
 
     def fit(max_epochs, ckpt_path=None):
-        cb = KRRAlignmentCallback(every_n_epochs=1, latent="y", cv=2, val_frame_stride=3, n_threads=1,
+        cb = KRRAlignmentCallback(every_n_epochs=1, latent="y", alignment={"cv": 2}, checks={"cv": 2},
+                                  val_frame_stride=3,
                                   run_on_train_end=False)
         trainer = L.Trainer(max_epochs=max_epochs, default_root_dir=tmp_path, logger=False, callbacks=[cb],
                             enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
@@ -231,7 +233,8 @@ def test_points_give_a_t0_row_and_8_points_reading_inputs_once(tmp_path):
     `points` = 8 checks over an 8-epoch run (the final alignment the last), inputs read from
     the loaders once and inferred in batches of infer_batch_size sequences, both splits together."""
     torch.set_num_threads(1)
-    cb = KRRAlignmentCallback(latent="y", cv=2, val_frame_stride=3, n_threads=1, points=8, infer_batch_size=32)
+    cb = KRRAlignmentCallback(latent="y", alignment={"cv": 2}, checks={"cv": 2}, val_frame_stride=3,
+                              points=8, infer_batch_size=32)
     assert cb.every_n_epochs is None  # the default spreads `points` over the run
     dm, model = _CountingDataModule(), _BatchSizeModel()
     trainer = L.Trainer(max_epochs=8, default_root_dir=tmp_path, logger=False, callbacks=[cb],

@@ -13,6 +13,8 @@ module first:
   options (:class:`~embodied_tactile.models.options.ContextOptions`, null unless a recipe
   sets them). configs/model/latent_filter.yaml composes it and names only what depends on
   the scene.
+* ``alignment: schema`` (:class:`~embodied_tactile.options.alignment.AlignmentOptions`): the
+  latent -> factor read-out, shared by the training's final alignment and evaluate.py.
 * ``${prior_rows:objects,n_test,n_val,n_train}``: rows of the prior's object-code table.
 """
 
@@ -22,6 +24,7 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
+from embodied_tactile.options.alignment import AlignmentOptions
 from embodied_tactile.models.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
 from embodied_tactile.paths import config_dir
 
@@ -68,6 +71,7 @@ def register() -> None:
     """Store the structured configs and the resolver (a second call changes nothing)."""
     cs = ConfigStore.instance()
     cs.store(group="model", name="schema", node=ModelNode)
+    cs.store(group="alignment", name="schema", node=AlignmentOptions)
     if not OmegaConf.has_resolver("prior_rows"):
         OmegaConf.register_new_resolver("prior_rows", prior_rows)
 

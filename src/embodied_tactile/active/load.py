@@ -60,8 +60,9 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
     targets = run_targets(r.cfg, opts)
     tr = encode_split(tr, targets)
     split = str(data.get("split", "trial"))
+    # the state after whole touches is what a palpation reads: the final-segment alignment
     align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"],
-                          **alignment_kwargs(opts.alignment, split, tr["object_id"]))
+                          **{**alignment_kwargs(opts.alignment, split, tr["object_id"]), "readout": "final_segment"})
     nominal = {int(a): tr["actions"][tr["action_index"] == a].mean(axis=0) for a in np.unique(tr["action_index"])}
     from embodied_tactile import constants as C
     from embodied_tactile.data.prepare import Scene

@@ -49,8 +49,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..constants import FACTOR_NAMES
-from .krr import (DEFAULT_ALPHAS, DEFAULT_GAMMAS, alignment_kwargs, assert_disjoint, fit_alignment,
-                  resolve_cv_grouping)
+from .krr import alignment_kwargs, assert_disjoint, fit_alignment, resolve_cv_grouping
+from ..options.alignment import alignment_options
 from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
 from .metrics import nmse_over_time, nmse_trajectory, overall
 from .results import select_latents
@@ -182,20 +182,20 @@ class KRRAlignmentCallback(Callback):
     ``nystroem_threshold`` rows, held-out frames subsampled by ``val_frame_stride``; inputs
     read once and inferred ``infer_batch_size`` sequences at a time."""
 
+    #: what a periodic check changes in the run's alignment (cheaper: they trace the curve)
+    CHECK_DEFAULTS = {"frames_per_sequence": 2, "cv": 3, "nystroem_threshold": 1024, "n_components": 256,
+                      "alphas": [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0], "gammas": [0.3, 1.0, 3.0]}
+
     def __init__(self, every_n_epochs: int | None = None, latent: str = "y", max_train_sequences: int | None = 512,
-                 max_val_sequences: int | None = None, val_frame_stride: int = 2, final_segment: float | int = 0.1,
-                 frames_per_sequence: int = 2, cv: int = 3, nystroem_threshold: int = 1024, n_components: int = 256,
-                 alphas=(1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0), gammas=(0.3, 1.0, 3.0), run_on_train_end: bool = True,
-                 history_name: str = "krr_history.jsonl", seed: int = 0, n_threads: int | None = None,
-                 final_alignment: Mapping[str, Any] | None = None, targets: str = DEFAULT_TARGETS,
-                 points: int = 8, initial: bool = True, infer_batch_size: int = 128, groups: str = "auto"):
+                 max_val_sequences: int | None = None, val_frame_stride: int = 2,
+                 alignment: Mapping[str, Any] | None = None, checks: Mapping[str, Any] | None = None,
+                 run_on_train_end: bool = True, history_name: str = "krr_history.jsonl",
+                 targets: str = DEFAULT_TARGETS, points: int = 8, initial: bool = True, infer_batch_size: int = 128):
         if latent not in LATENT_KEYS:
             raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
         if targets not in TARGET_ENCODINGS:
             raise ValueError(f"targets must be one of {TARGET_ENCODINGS}, got {targets!r}")
         self.targets = targets  # the factors' encoding (eval.targets), as evaluate.py's `targets`
-        resolve_cv_grouping(groups, "trial")  # refuses an unknown grouping now, not at the first check
-        self.groups = groups  # CV grouping ('auto': by object on an object split), as evaluate.py's alignment.groups
         self.every_n_epochs = None if every_n_epochs is None else int(every_n_epochs)
         if int(points) < 1 or int(infer_batch_size) < 1:
             raise ValueError(f"KRRAlignmentCallback points and infer_batch_size must be >= 1, "
@@ -208,12 +208,11 @@ class KRRAlignmentCallback(Callback):
         self.max_train_sequences = max_train_sequences
         self.max_val_sequences = max_val_sequences
         self.val_frame_stride = max(1, int(val_frame_stride))
-        self.align_kw = dict(final_segment=final_segment, frames_per_sequence=frames_per_sequence, cv=cv,
-                             nystroem_threshold=nystroem_threshold, n_components=n_components,
-                             alphas=tuple(alphas), gammas=tuple(gammas), seed=seed, n_threads=n_threads)
-        # the final alignment: evaluate.py's recipe (fit_alignment defaults unless given)
-        self.final_kw = dict(final_alignment or {})
-        self.final_kw.setdefault("n_threads", n_threads)
+        # the final alignment is the run's `alignment` (evaluate.py reads the same from the run's config);
+        # the periodic checks change only what CHECK_DEFAULTS / `checks` name
+        self.final_kw = alignment_options(alignment)
+        self.align_kw = alignment_options(self.final_kw, self.CHECK_DEFAULTS, checks)
+        self.groups = self.final_kw["groups"]
         self.run_on_train_end = run_on_train_end
         self.history_name = history_name
         self.final: dict | None = None
@@ -316,7 +315,7 @@ class KRRAlignmentCallback(Callback):
             self._t_start = t0
         train_wall = 0.0 if initial else self._elapsed_before + (t0 - self._t_start) - self._cb_before - self._cb_time
         stride = 1 if final else self.val_frame_stride
-        base_kw = {**(self.final_kw if final else self.align_kw), "groups": self.groups}
+        base_kw = self.final_kw if final else self.align_kw
         tr, te = self._latents(trainer, pl_module, final)
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
         tr, te = encode_split(tr, self.targets), encode_split(te, self.targets)
@@ -324,8 +323,9 @@ class KRRAlignmentCallback(Callback):
         split = str(getattr(trainer.datamodule, "split", "trial"))
         align_kw = alignment_kwargs(base_kw, split, tr.get("object_id"))
         align = fit_alignment(select_latents(tr, self.latent), tr["factors"], ids=tr.get("seq_id"), **align_kw)
-        x_te = select_latents(te, self.latent)[:, ::-1][:, ::stride][:, ::-1]  # keep the last frame
-        pred = align.predict(x_te, ids=te.get("seq_id"))
+        # every frame is read (a per-time read-out reads a frame by its place in the trial); the
+        # periodic checks score every stride-th frame, the last one kept
+        pred = align.predict(select_latents(te, self.latent), ids=te.get("seq_id"))[:, ::-1][:, ::stride][:, ::-1]
         curve = nmse_over_time(te["factors"], pred)  # (T', 4)
         per_factor = nmse_trajectory(te["factors"], pred)  # == mean of the curve over frames
         # the mean predictor: the training targets' mean at every frame (the same at every frame,
@@ -360,13 +360,13 @@ class KRRAlignmentCallback(Callback):
             "nmse_mean_predictor_overall": _fin(overall(per_factor_mean)),
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])), "latent": self.latent,
             "val_frame_stride": stride, "final": bool(final), "initial": bool(initial), "targets": self.targets,
-            "alignment": {k: align.params[k] for k in ("method", "alpha", "gamma", "n_train_rows", "fit_time_s",
-                                                       "final_segment", "frames_per_sequence", "cv_folds", "seed")},
+            "alignment": {k: align.params.get(k) for k in ("readout", "time_bins", "method", "alpha", "gamma",
+                                                           "n_train_rows", "fit_time_s", "final_segment",
+                                                           "frames_per_sequence", "cv_folds", "seed")},
+            "alignment_settings": {**{k: v for k, v in base_kw.items() if k != "n_threads"},
+                                   "groups": resolve_cv_grouping(self.groups, split)},
         }
         if final:
-            row["alignment_settings"] = {"alphas": list(DEFAULT_ALPHAS), "gammas": list(DEFAULT_GAMMAS),
-                                         **{k: v for k, v in base_kw.items() if k != "n_threads"},
-                                         "groups": resolve_cv_grouping(self.groups, split)}
             self.final = row
         self.history.append(row)
         if trainer.is_global_zero:

@@ -18,6 +18,11 @@ protocol"):
   not help" when they do not.
 * With more than ``nystroem_threshold`` rows, exact KRR (O(n^3)) is replaced by
   ``Nystroem`` RBF features + ``Ridge`` with the same grid search.
+* ``readout="per_time"`` fits one such alignment per span of the trial (``time_bins``
+  equal spans, each span's rows drawn from that span as above with ``final_segment=1.0``)
+  and reads each frame with its span's probe (:class:`TimeResolvedAlignment`);
+  ``readout="final_segment"`` (the paper's protocol) fits one on the final segment and reads
+  every frame with it. The options and their defaults: :mod:`embodied_tactile.options.alignment`.
 * The fitted :class:`Alignment` predicts at every frame of (held-out) sequences, in the
   factors' original units. When sequence ids are given at fit and predict time, predicting
   on a training id raises :class:`LeakageError`.
@@ -38,9 +43,7 @@ from sklearn.linear_model import Ridge
 from sklearn.model_selection import GroupKFold
 from sklearn.pipeline import Pipeline
 
-DEFAULT_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
-DEFAULT_GAMMAS = (0.1, 0.3, 1.0, 3.0)  # multiples of 1/d on standardised inputs
-CV_GROUPINGS = ("auto", "sequence", "object")
+from ..options.alignment import CV_GROUPINGS, DEFAULT_ALPHAS, DEFAULT_GAMMAS, READOUTS, AlignmentOptions, alignment_options
 
 
 def resolve_cv_grouping(grouping: str | None, split: str) -> str:
@@ -60,12 +63,13 @@ def resolve_cv_grouping(grouping: str | None, split: str) -> str:
 
 
 def alignment_kwargs(alignment, split: str, object_ids) -> dict:
-    """A copy of an ``alignment`` option mapping (evaluate.py's ``alignment``) with its
-    ``groups`` name ('auto' when absent) resolved to :func:`fit_alignment`'s ``groups``: the
-    object id per training sequence when :func:`resolve_cv_grouping` says 'object', None
-    (each sequence its own group) otherwise."""
-    kw = dict(alignment or {})
-    if resolve_cv_grouping(kw.get("groups", "auto"), split) == "sequence":
+    """:func:`fit_alignment`'s keywords from an ``alignment`` option mapping (the run's
+    ``alignment`` with evaluate.py's overrides; absent keys take
+    :class:`~embodied_tactile.options.alignment.AlignmentOptions`' defaults), with its ``groups``
+    name resolved to the object id per training sequence when :func:`resolve_cv_grouping`
+    says 'object', None (each sequence its own group) otherwise."""
+    kw = alignment_options(alignment)
+    if resolve_cv_grouping(kw["groups"], split) == "sequence":
         kw["groups"] = None
     elif object_ids is None:
         raise ValueError("alignment groups='object' needs the training sequences' object ids (object_id)")
@@ -100,6 +104,8 @@ def final_segment_rows(
     if lat.ndim == 2:
         lat = lat[:, None, :]
     n, t, _ = lat.shape
+    if isinstance(final_segment, (float, np.floating)) and float(final_segment) > 1.0 and float(final_segment).is_integer():
+        final_segment = int(final_segment)  # a frame count that passed through a float-typed option
     if isinstance(final_segment, (float, np.floating)):
         if not 0.0 < float(final_segment) <= 1.0:
             raise ValueError(f"final_segment as a fraction (float) must be in (0, 1], got {final_segment}")
@@ -189,38 +195,47 @@ def fit_alignment(
     *,
     ids: Sequence | None = None,
     groups: Sequence | None = None,
-    final_segment: float | int = 0.1,
+    readout: str = AlignmentOptions.readout,
+    time_bins: int = AlignmentOptions.time_bins,
+    final_segment: float | int = AlignmentOptions.final_segment,
     reduce: str = "frames",
-    frames_per_sequence: int = 4,
-    cv: int = 5,
+    frames_per_sequence: int = AlignmentOptions.frames_per_sequence,
+    cv: int = AlignmentOptions.cv,
     alphas: Sequence[float] = DEFAULT_ALPHAS,
     gammas: Sequence[float] = DEFAULT_GAMMAS,
-    nystroem_threshold: int = 2000,
-    n_components: int = 500,
-    seed: int = 0,
+    nystroem_threshold: int = AlignmentOptions.nystroem_threshold,
+    n_components: int = AlignmentOptions.n_components,
+    seed: int = AlignmentOptions.seed,
     n_threads: int | None = None,
-) -> Alignment:
+) -> "Alignment | FactorwiseAlignment | TimeResolvedAlignment":
     """Fit the RBF-KRR alignment on TRAINING sequences only.
 
     latents (n, T, d) (or (n, d): one latent per sequence, e.g. hand-crafted features),
     factors (n, K) in original units (NaN = unknown: such rows are dropped). ``ids``: sequence
     ids (stored; :meth:`Alignment.predict` refuses them). ``groups``: CV group per sequence
-    (default: the sequence itself; pass object ids for object-disjoint folds). ``n_threads``:
-    BLAS threads during the fit (None: leave as is; 1 is much faster on a loaded small machine).
+    (default: the sequence itself; pass object ids for object-disjoint folds). ``readout``:
+    'per_time' (a probe per span of ``time_bins``) or 'final_segment' (module docstring).
+    ``n_threads``: BLAS threads during the fit (None: leave as is; 1 is much faster on a
+    loaded small machine).
     """
+    kw = dict(final_segment=final_segment, reduce=reduce, frames_per_sequence=frames_per_sequence, cv=cv,
+              alphas=alphas, gammas=gammas, nystroem_threshold=nystroem_threshold, n_components=n_components,
+              seed=seed, n_threads=None)
     if n_threads is not None:
         from threadpoolctl import threadpool_limits
 
         with threadpool_limits(int(n_threads)):
-            return fit_alignment(latents, factors, ids=ids, groups=groups, final_segment=final_segment,
-                                 reduce=reduce, frames_per_sequence=frames_per_sequence, cv=cv, alphas=alphas,
-                                 gammas=gammas, nystroem_threshold=nystroem_threshold, n_components=n_components,
-                                 seed=seed, n_threads=None)
+            return fit_alignment(latents, factors, ids=ids, groups=groups, readout=readout, time_bins=time_bins,
+                                 **kw)
+    if readout not in READOUTS:
+        raise ValueError(f"readout must be one of {READOUTS}, got {readout!r}")
+    lat = np.asarray(latents, dtype=np.float64)
+    if readout == "per_time" and lat.ndim == 3 and lat.shape[1] > 1:  # one frame per row: nothing to resolve
+        return TimeResolvedAlignment.fit(lat, factors, ids=ids, groups=groups, time_bins=time_bins, **kw)
     t0 = time.perf_counter()
     factors = np.asarray(factors, dtype=np.float64)
     if factors.ndim == 1:
         factors = factors[:, None]
-    lat = np.asarray(latents, dtype=np.float64)
     n = lat.shape[0]
     if factors.shape[0] != n:
         raise ValueError(f"{n} latent sequences but {factors.shape[0]} factor rows")
@@ -229,9 +244,6 @@ def fit_alignment(
     for k in range(factors.shape[1]):
         by_mask.setdefault(known[:, k].tobytes(), []).append(k)
     if len(by_mask) > 1:  # factors unknown (NaN) on different sequences: one alignment per pattern
-        kw = dict(final_segment=final_segment, reduce=reduce, frames_per_sequence=frames_per_sequence, cv=cv,
-                  alphas=alphas, gammas=gammas, nystroem_threshold=nystroem_threshold, n_components=n_components,
-                  seed=seed, n_threads=None)
         parts: list[tuple[list[int], Alignment | None]] = []
         for cols in by_mask.values():
             mask = known[:, cols[0]]
@@ -242,7 +254,7 @@ def fit_alignment(
                 continue
             parts.append((cols, fit_alignment(
                 lat[mask], factors[mask][:, cols], ids=None if ids is None else np.asarray(ids)[mask],
-                groups=None if groups is None else np.asarray(groups)[mask], **kw)))
+                groups=None if groups is None else np.asarray(groups)[mask], readout="final_segment", **kw)))
         return FactorwiseAlignment(parts, factors.shape[1],
                                    frozenset(np.asarray(ids).tolist()) if ids is not None else None)
     if ids is not None and len(set(np.asarray(ids).tolist())) != n:
@@ -291,6 +303,7 @@ def fit_alignment(
         model = KernelRidge(kernel="rbf", gamma=gamma, alpha=alpha).fit(xs, ys)
     params = {
         "method": "nystroem_ridge" if nystroem else "exact_krr",
+        "readout": "final_segment",
         "kernel": "rbf",
         "alpha": float(alpha),
         "gamma": float(gamma),
@@ -310,6 +323,53 @@ def fit_alignment(
     }
     return Alignment(model, x_mean, x_scale, y_mean, y_scale, params,
                      frozenset(np.asarray(ids).tolist()) if ids is not None else None)
+
+
+def time_spans(n_frames: int, time_bins: int) -> list[tuple[int, int]]:
+    """``time_bins`` contiguous spans [start, stop) covering frames 0 .. n_frames - 1, as
+    equal as integer edges allow (fewer when the trial has fewer frames than bins)."""
+    edges = np.unique(np.round(np.linspace(0, int(n_frames), int(time_bins) + 1)).astype(int))
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+class TimeResolvedAlignment:
+    """A probe per span of the trial (``readout='per_time'``): span ``k`` of ``time_bins``
+    equal spans has its own :class:`Alignment`, fitted on the training latents of that span
+    (with its own cross-validated ``alpha`` and ``gamma``); :meth:`predict` reads each frame
+    with its span's probe. Spans are fractions of the trial, so a held-out trial of another
+    length is cut the same way. ``params``: the last span's (the final segment's), with every
+    span's under ``spans``."""
+
+    def __init__(self, probes: list, time_bins: int, n_frames: int, train_ids: frozenset | None = None) -> None:
+        self.probes, self.time_bins, self.n_frames, self.train_ids = probes, int(time_bins), int(n_frames), train_ids
+        spans = time_spans(n_frames, time_bins)
+        last = probes[-1].params
+        self.params = {**last, "readout": "per_time", "time_bins": int(time_bins),
+                       "fit_time_s": float(sum(p.params["fit_time_s"] for p in probes)),
+                       "spans": [{"frames": [a, b], **{k: p.params.get(k) for k in ("alpha", "gamma", "method",
+                                                                                        "cv_mse_standardised")}}
+                                 for (a, b), p in zip(spans, probes)]}
+
+    @classmethod
+    def fit(cls, latents: np.ndarray, factors, *, ids=None, groups=None, time_bins: int, **kw) -> "TimeResolvedAlignment":
+        n_frames = latents.shape[1]
+        probes = []
+        for a, b in time_spans(n_frames, time_bins):
+            probes.append(fit_alignment(latents[:, a:b], factors, ids=ids, groups=groups, readout="final_segment",
+                                        **{**kw, "final_segment": 1.0}))
+        return cls(probes, time_bins, n_frames, frozenset(np.asarray(ids).tolist()) if ids is not None else None)
+
+    def predict(self, latents, ids=None, *, chunk_rows: int = 16384) -> np.ndarray:
+        if ids is not None and self.train_ids is not None:
+            assert_disjoint(list(self.train_ids), ids)
+        lat = np.asarray(latents, dtype=np.float64)
+        if lat.ndim != 3:
+            raise ValueError(f"a per-time read-out reads (n, T, d) latents, got shape {lat.shape}")
+        spans = time_spans(lat.shape[1], self.time_bins)
+        if len(spans) != len(self.probes):
+            raise ValueError(f"{lat.shape[1]} frames give {len(spans)} spans; the read-out has {len(self.probes)}")
+        parts = [p.predict(lat[:, a:b], chunk_rows=chunk_rows) for (a, b), p in zip(spans, self.probes)]
+        return np.concatenate(parts, axis=1)
 
 
 def _grid_cv(xs, ys, folds, gammas, alphas, *, nystroem: bool, m: int, seed: int) -> np.ndarray:

@@ -45,7 +45,8 @@ def defaults_file() -> Path:
 # ----------------------------------------------------------------------------- options
 def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
     """``configs/evaluate.yaml`` + ``key=value`` overrides (unknown top-level keys rejected;
-    ``alignment.*`` and ``gru.*`` accept any keyword of fit_alignment / GRURegressor)."""
+    ``alignment.*`` takes the keys of :class:`~embodied_tactile.options.alignment.AlignmentOptions`,
+    ``gru.*`` any keyword of GRURegressor)."""
     base = OmegaConf.load(defaults_file())
     OmegaConf.set_struct(base, True)
     for open_key in ("alignment", "gru"):
@@ -72,6 +73,12 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
         unknown = [b for b in opts.baselines if b not in BASELINES]
         if unknown:
             raise EvaluationError(f"unknown baseline(s) {unknown}; choose from {list(BASELINES)}")
+    from embodied_tactile.options.alignment import alignment_options
+
+    try:  # the overrides alone: the run's own alignment is layered under them per run
+        alignment_options(OmegaConf.to_container(opts.alignment, resolve=True))
+    except ValueError as err:
+        raise EvaluationError(str(err)) from None
     return opts
 
 
@@ -144,6 +151,18 @@ def run_targets(cfg: DictConfig, opts: DictConfig) -> str:
     return str(opts.targets if opts.targets is not None else cfg.get("targets", DEFAULT_TARGETS))
 
 
+def run_alignment(cfg: DictConfig, opts: DictConfig) -> dict:
+    """The alignment to score with: the run's own ``alignment`` (the one its final check used;
+    the current defaults for a run that predates it) with ``opts.alignment``'s overrides."""
+    from embodied_tactile.options.alignment import alignment_options
+
+    own = OmegaConf.to_container(cfg.alignment, resolve=True) if cfg.get("alignment") is not None else None
+    try:
+        return alignment_options(own, OmegaConf.to_container(opts.alignment, resolve=True))
+    except ValueError as err:
+        raise EvaluationError(str(err)) from None
+
+
 def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequence[str]) -> tuple[list, list[dict], dict]:
     """-> (Results of every method, krr history rows, info dict)."""
     from embodied_tactile.eval.results import evaluate_latents
@@ -199,7 +218,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     train_s = history[-1].get("train_wall_time_s") if history else metrics.get("train_wall_s")
     final_row = metrics.get("krr_final") or next((h for h in reversed(history) if h.get("final")), None)
     meta = dict(modality=modality, skin=skin, primitive=primitive, source=source)
-    align = OmegaConf.to_container(opts.alignment, resolve=True)
+    align = run_alignment(cfg, opts)
     params = {"train_time_s": float("nan") if train_s is None else float(train_s),
               "inference_s_per_sequence": infer_s / max(1, len(te["factors"])),
               "inference_s_total_val": infer_s,
@@ -248,10 +267,10 @@ def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, 
                           targets: str = "design_rank", split_kind: str = "trial", held_out: str = "test") -> dict:
     """evaluate.py's NMSE against the training's final KRR alignment (krr_final of metrics.json /
     the ``final`` row of krr_history.jsonl): both numbers, the difference and, when they are
-    not the same measurement, why (other weights, other alignment settings, other sequences)."""
-    import inspect
-
-    from embodied_tactile.eval.krr import fit_alignment, resolve_cv_grouping
+    not the same measurement, why (other weights, other alignment settings, other sequences).
+    Both read the run's ``alignment``, so on the final weights the two agree unless an
+    ``alignment.*`` override or another ``latent`` / ``targets`` was asked for."""
+    from embodied_tactile.eval.krr import resolve_cv_grouping
 
     ours = float(res.summary()["nmse_trajectory_overall"])
     if not final_row or final_row.get("nmse_overall") is None:
@@ -260,10 +279,6 @@ def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, 
     if held_out != "test":
         return {"evaluate_nmse_overall": ours, "training_nmse_overall": None,
                 "reasons": [f"scored on the {held_out} side; the training's final alignment scores the test side"]}
-    defaults = {k: p.default for k, p in inspect.signature(fit_alignment).parameters.items()
-                if p.default is not inspect.Parameter.empty and k not in ("ids", "groups", "n_threads")}
-    theirs_kw = {**defaults, **{k: v for k, v in (final_row.get("alignment_settings") or {}).items() if k in defaults}}
-    ours_kw = {**defaults, **{k: v for k, v in align.items() if k in defaults}}
     norm = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731
     reasons = []
     try:
@@ -275,16 +290,19 @@ def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, 
     if step != int(final_row.get("step", -2)):
         reasons.append(f"other weights: {ckpt.name} (step {step}) against the final weights (step "
                        f"{final_row.get('step')}); checkpoint=last evaluates the final weights")
-    diff = {k: (theirs_kw[k], ours_kw[k]) for k in defaults if norm(theirs_kw[k]) != norm(ours_kw[k])}
-    if "alignment_settings" not in final_row:
-        reasons.append("the training's last check used the callback's periodic settings")
-    elif diff:
-        reasons.append("alignment settings (training, evaluate.py): "
-                       + ", ".join(f"{k}=({a}, {b})" for k, (a, b) in diff.items()))
-    theirs_groups = (final_row.get("alignment_settings") or {}).get("groups", "sequence")
-    ours_groups = resolve_cv_grouping(align.get("groups", "auto"), split_kind)
-    if "alignment_settings" in final_row and theirs_groups != ours_groups:
-        reasons.append(f"CV folds grouped by {theirs_groups} in training, by {ours_groups} here")
+    theirs = final_row.get("alignment_settings")
+    if theirs is None:
+        reasons.append("the training's final check recorded no alignment settings")
+    else:  # rows written before the per-time read-out existed used the final segment
+        theirs = {"readout": "final_segment", **theirs}
+        diff = {k: (v, align.get(k)) for k, v in theirs.items()
+                if k != "groups" and k in align and norm(v) != norm(align.get(k))}
+        if diff:
+            reasons.append("alignment settings (training, evaluate.py): "
+                           + ", ".join(f"{k}=({a}, {b})" for k, (a, b) in diff.items()))
+        ours_groups = resolve_cv_grouping(align.get("groups", "auto"), split_kind)
+        if theirs.get("groups", "sequence") != ours_groups:
+            reasons.append(f"CV folds grouped by {theirs.get('groups', 'sequence')} in training, by {ours_groups} here")
     if final_row.get("val_frame_stride", 1) != 1:
         reasons.append(f"training scored every {final_row['val_frame_stride']}th frame")
     if final_row.get("latent", latent) != latent:
@@ -294,14 +312,9 @@ def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, 
     if (final_row.get("n_train"), final_row.get("n_test")) != (res.n_train, res.n_test):
         reasons.append(f"sequences: training {final_row.get('n_train')} fit / {final_row.get('n_test')} scored, "
                        f"evaluate.py {res.n_train} / {res.n_test}")
-    theirs = float(final_row["nmse_overall"])
-    if "alignment_settings" in final_row and "alphas" not in final_row["alignment_settings"] and abs(ours - theirs) > 1e-9:
-        reasons.append("the training's alpha grid is not recorded (runs written before the grid reached 100 used "
-                       "1e-4 .. 1; evaluate.py now searches 1e-4 .. 100)")
-    return {"evaluate_nmse_overall": ours, "training_nmse_overall": theirs, "difference": ours - theirs,
+    theirs_nmse = float(final_row["nmse_overall"])
+    return {"evaluate_nmse_overall": ours, "training_nmse_overall": theirs_nmse, "difference": ours - theirs_nmse,
             "training_epoch": final_row.get("epoch"), "reasons": reasons}
-
-
 
 
 # ----------------------------------------------------------------------------- all runs

@@ -19,6 +19,7 @@ Split dict (``train`` / ``test`` arguments of :func:`evaluate_latents`)::
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
@@ -141,7 +142,11 @@ class Results:
     def summary(self) -> dict:
         """The headline numbers (JSON-ready)."""
         traj = self.subset_nmse()
-        last = self.curve()[-1]
+        curve = self.curve()
+        last = curve[-1]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a frame whose factors are all NaN
+            curve_overall = np.nanmean(curve, axis=1)
         return {
             "label": self.label,
             "method": self.method,
@@ -160,6 +165,10 @@ class Results:
             "nmse_trajectory_overall": overall(traj),
             "nmse_last_step": dict(zip(FACTOR_NAMES, _f(last))),
             "nmse_last_step_overall": overall(last),
+            # the read-out over interaction time: mean over factors at every frame, and the
+            # first frame at or below 0.5 (None: never)
+            "nmse_curve_overall": _f(curve_overall),
+            "first_frame_below_half": first_below(curve_overall, 0.5),
             "heterogeneity_classification": self.heterogeneity_scores(),
             # Table 2's convention: each object group's sequences, the run's total variance
             "nmse_trajectory_by_group": self.group_summary(),
@@ -321,6 +330,12 @@ def evaluate_latents(
         params=p,
     )
     return res, align
+
+
+def first_below(curve, level: float) -> int | None:
+    """The first index of ``curve`` at or below ``level`` (None when it never gets there)."""
+    hit = np.flatnonzero(np.asarray(curve, dtype=np.float64) <= level)
+    return int(hit[0]) if hit.size else None
 
 
 def _f(v) -> list:

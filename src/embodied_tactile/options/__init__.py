@@ -1,0 +1,6 @@
+"""Typed options with their one default each (dataclasses, no heavy imports): the
+alignment's here; the Latent Filter's in :mod:`embodied_tactile.models.options`."""
+
+from .alignment import AlignmentOptions, alignment_options
+
+__all__ = ["AlignmentOptions", "alignment_options"]

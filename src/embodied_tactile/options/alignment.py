@@ -1,0 +1,76 @@
+"""The alignment's options: one default per option (no heavy imports, so the typed configs
+can register it).
+
+The training's final alignment (``configs/train.yaml`` ``alignment``, handed to
+:class:`~embodied_tactile.eval.callback.KRRAlignmentCallback`) and ``python evaluate.py <run>``
+(which reads the run's own ``alignment`` from its config_resolved.yaml, then applies
+``alignment.*`` overrides) use these options, so the two numbers are one measurement.
+
+Read-outs (``readout``; docs/evaluation.md, "The read-out over time"):
+
+* ``per_time`` -- a probe per interaction time: the trial is cut into ``time_bins`` equal
+  spans and each span gets its own alignment, fitted on the training latents of that span
+  (``frames_per_sequence`` frames of every training sequence, the span's last frame
+  included) with its own cross-validated ``alpha`` and ``gamma``. A frame is read by the
+  probe of its span, so every latent is read by a regressor fitted on latents of the same
+  time; where the latents carry no evidence yet, the cross-validation picks the most
+  regularised fit, which reads the training targets' mean. With ``time_bins: 10`` the last
+  span is the paper's final tenth: the last-frame number is the paper protocol's.
+* ``final_segment`` -- the paper's protocol: one alignment fitted on the final segment
+  (``final_segment``, a fraction of T or a frame count) of every training sequence, applied
+  to every frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+#: ``alpha`` grid: reaches 100, where the fit on standardised targets is close to their mean
+DEFAULT_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
+#: ``gamma`` grid, multiples of 1/d on standardised inputs
+DEFAULT_GAMMAS = (0.1, 0.3, 1.0, 3.0)
+READOUTS = ("per_time", "final_segment")
+CV_GROUPINGS = ("auto", "sequence", "object")
+
+
+@dataclass
+class AlignmentOptions:
+    """``alignment``: the latent -> factor read-out (RBF kernel ridge regression)."""
+
+    readout: str = "per_time"         # per_time | final_segment (the paper's protocol)
+    time_bins: int = 10               # per_time: spans of the trial, one probe each
+    final_segment: float = 0.1        # final_segment: the fitted tail (fraction of T, or frames if > 1)
+    frames_per_sequence: int = 4      # rows per training sequence (per span for per_time)
+    cv: int = 5                       # grouped folds of the grid search
+    groups: str = "auto"              # CV folds: auto (by object on an object split) | sequence | object
+    alphas: List[float] = field(default_factory=lambda: list(DEFAULT_ALPHAS))
+    gammas: List[float] = field(default_factory=lambda: list(DEFAULT_GAMMAS))
+    nystroem_threshold: int = 2000    # above this many rows: Nystroem features + ridge
+    n_components: int = 500
+    seed: int = 0
+    n_threads: Optional[int] = 1      # BLAS threads of the fit (1: much faster on a loaded small machine)
+
+
+def alignment_options(*layers) -> dict:
+    """The defaults of :class:`AlignmentOptions` updated by each mapping in ``layers`` (None
+    skipped), checked: an unknown key or readout raises ``ValueError`` naming it."""
+    from dataclasses import asdict, fields
+
+    known = {f.name for f in fields(AlignmentOptions)}
+    out = asdict(AlignmentOptions())
+    for layer in layers:
+        if layer is None:
+            continue
+        unknown = sorted(set(layer) - known)
+        if unknown:
+            raise ValueError(f"unknown alignment option(s) {unknown}; known: {sorted(known)}")
+        out.update(dict(layer))
+    if out["readout"] not in READOUTS:
+        raise ValueError(f"alignment.readout must be one of {READOUTS}, got {out['readout']!r}")
+    if out["groups"] not in CV_GROUPINGS:
+        raise ValueError(f"alignment.groups must be one of {CV_GROUPINGS}, got {out['groups']!r}")
+    if int(out["time_bins"]) < 1:
+        raise ValueError(f"alignment.time_bins must be >= 1, got {out['time_bins']}")
+    out["alphas"], out["gammas"] = [float(a) for a in out["alphas"]], [float(g) for g in out["gammas"]]
+    return out
