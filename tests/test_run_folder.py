@@ -383,9 +383,9 @@ def test_changed_raw_data_is_refused_or_named_at_evaluation(fast_data_dir, tmp_p
     assert evaluate_cli([str(run), *EVAL_FAST, "allow_changed_data=true"]) == 0
     out = capsys.readouterr()
     ev = json.loads((run / "evaluation" / "evaluation.json").read_text())
-    reasons = ev["runs"][0]["training_final_alignment"]["reasons"]
-    assert reasons and reasons[0].startswith("the data changed since training") and str(raw) in reasons[0]
-    assert "same weights, settings and sequences" not in out.out + out.err
+    other = ev["runs"][0]["training_final_alignment"]["other"]
+    assert other and other[0].startswith("the data changed since training") and str(raw) in other[0]
+    assert "another measurement: the data changed since training" in out.out + out.err
 
 
 def test_stop_signal_outside_the_training_steps_raises_and_inside_sets_should_stop():

@@ -25,13 +25,13 @@ from omegaconf.errors import ConfigKeyError
 
 from embodied_tactile.constants import FACTOR_NAMES
 from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect_split, data_config, discover,
-                                        load_module, run_split, trial_names, trial_objects)
+                                        load_module, run_split, trial_names, trial_objects, untrained_module)
 from embodied_tactile.eval.results import SPLIT_KINDS
 from embodied_tactile.jsonio import read_json
 from embodied_tactile.paths import config_dir
 
-BASELINES = ("handcrafted", "gru", "mean")
-MULTIRUN_BASELINES = ("handcrafted", "mean")
+BASELINES = ("untrained", "handcrafted", "gru", "mean")
+MULTIRUN_BASELINES = ("untrained", "handcrafted", "mean")
 SELECT_ALIASES = {"modality": "modality.name", "skin": "skin.name", "primitive": "primitive.name"}
 
 log = logging.getLogger("evaluate")
@@ -133,13 +133,12 @@ def select_runs(runs: list[Run], selection: dict[str, list[str]]) -> list[Run]:
 
 
 def agreement_line(c: dict) -> str:
-    """One line: evaluate.py's NMSE beside the training's final alignment, and why they differ."""
+    """One line: evaluate.py's NMSE beside the number the training printed."""
     if c.get("training_nmse_overall") is None:
-        return f"NMSE {c['evaluate_nmse_overall']:.4g} (no training-time final alignment to compare: {c['reasons'][0]})"
-    head = (f"NMSE {c['evaluate_nmse_overall']:.4g} here, {c['training_nmse_overall']:.4g} in the training's final "
-            f"alignment (metrics.json krr_final, epoch {c.get('training_epoch')}), difference {c['difference']:+.2g}")
-    return head + ("; same weights, settings and sequences" if not c["reasons"] else "; differs because: "
-                   + "; ".join(c["reasons"]))
+        return f"NMSE {c['evaluate_nmse_overall']:.4g} ({c['other'][0]})"
+    head = f"NMSE {c['evaluate_nmse_overall']:.4g} here, {c['training_nmse_overall']:.4g} printed by the training"
+    return head + (f" (difference {c['difference']:+.1e})" if not c["other"] else
+                   " (another measurement: " + "; ".join(c["other"]) + ")")
 
 
 # ----------------------------------------------------------------------------- one run
@@ -230,7 +229,16 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     timings = {"data_s": t_data - t_run, "load_and_infer_s": t_inf - t_data}
     for b in baselines:
         t0 = time.perf_counter()
-        if b == "handcrafted":
+        if b == "untrained":  # the same network and read-out at step 0: the floor
+            floor = untrained_module(run, model)
+            tr0, _ = collect_split(floor, cache.batches(key, dm, "train"), trial_names(dm, "train"), opts.latent)
+            te0, _ = collect_split(floor, cache.batches(key, dm, opts.held_out),
+                                   trial_names(dm, opts.held_out), opts.latent)
+            del floor
+            tr0, te0 = encode_split(tr0, targets), encode_split(te0, targets)
+            results.append(evaluate_latents(tr0, te0, latent=opts.latent, method="untrained", alignment=align,
+                                            split=split["kind"], **meta)[0])
+        elif b == "handcrafted":
             results.append(evaluate_handcrafted(tr, te, channels, alignment=align, split=split["kind"], **meta))
         elif b == "gru":
             gru = OmegaConf.to_container(opts.gru, resolve=True)
@@ -254,72 +262,46 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
             "baselines": list(baselines), "data_prepare_s": metrics.get("data_prepare_s"), "targets": targets,
             "split": split, "held_out": opts.held_out,
             "data_changed": data_changed,
-            "training_final_alignment": compare_with_training(res, final_row, run.ckpt, align, opts.latent,
-                                                              targets, split["kind"], opts.held_out)}
-    if data_changed:  # never "same sequences"
-        info["training_final_alignment"]["reasons"].insert(0, "the data changed since training: " + "; ".join(data_changed))
+            "training_final_alignment": compare_with_training(
+                res, final_row, run.ckpt, OmegaConf.to_container(opts.alignment, resolve=True), opts.latent,
+                targets, opts.held_out)}
+    if data_changed:
+        info["training_final_alignment"]["other"].insert(0, "the data changed since training: " + "; ".join(data_changed))
     del model
     return results, history, info
 
 
 
-def compare_with_training(res, final_row: dict | None, ckpt: Path, align: dict, latent: str,
-                          targets: str = "design_rank", split_kind: str = "trial", held_out: str = "test") -> dict:
-    """evaluate.py's NMSE against the training's final KRR alignment (krr_final of metrics.json /
-    the ``final`` row of krr_history.jsonl): both numbers, the difference and, when they are
-    not the same measurement, why (other weights, other alignment settings, other sequences).
-    Both read the run's ``alignment``, so on the final weights the two agree unless an
-    ``alignment.*`` override or another ``latent`` / ``targets`` was asked for."""
-    from embodied_tactile.eval.krr import resolve_cv_grouping
-
+def compare_with_training(res, final_row: dict | None, ckpt: Path, overrides: dict, latent: str,
+                          targets: str, held_out: str = "test") -> dict:
+    """evaluate.py's NMSE beside the number the training printed (its final read-out,
+    metrics.json ``krr_final``). Both read the run's own ``alignment`` on every training and
+    held-out sequence, so they are one measurement unless evaluate.py was asked for other
+    weights (``checkpoint=best`` when the best is not the last), another read-out
+    (``alignment.*``), ``latent``, ``targets`` or held-out side: ``other`` names which."""
     ours = float(res.summary()["nmse_trajectory_overall"])
     if not final_row or final_row.get("nmse_overall") is None:
-        return {"evaluate_nmse_overall": ours, "training_nmse_overall": None,
-                "reasons": ["the run has no final KRR alignment (callback off, or trained before it existed)"]}
-    if held_out != "test":
-        return {"evaluate_nmse_overall": ours, "training_nmse_overall": None,
-                "reasons": [f"scored on the {held_out} side; the training's final alignment scores the test side"]}
-    norm = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731
-    reasons = []
+        return {"evaluate_nmse_overall": ours, "training_nmse_overall": None, "other": ["no final read-out in training"]}
     try:
         import torch
 
         step = int(torch.load(str(ckpt), map_location="cpu", mmap=True, weights_only=False).get("global_step", -1))
-    except Exception:  # noqa: BLE001 -- a checkpoint without a step: say so below
+    except Exception:  # noqa: BLE001 -- a checkpoint without a step is not the final weights
         step = -1
-    if step != int(final_row.get("step", -2)):
-        reasons.append(f"other weights: {ckpt.name} (step {step}) against the final weights (step "
-                       f"{final_row.get('step')}); checkpoint=last evaluates the final weights")
-    theirs = final_row.get("alignment_settings")
-    if theirs is None:
-        reasons.append("the training's final check recorded no alignment settings")
-    else:  # rows written before the per-time read-out existed used the final segment
-        theirs = {"readout": "final_segment", **theirs}
-        diff = {k: (v, align.get(k)) for k, v in theirs.items()
-                if k != "groups" and k in align and norm(v) != norm(align.get(k))}
-        if diff:
-            reasons.append("alignment settings (training, evaluate.py): "
-                           + ", ".join(f"{k}=({a}, {b})" for k, (a, b) in diff.items()))
-        ours_groups = resolve_cv_grouping(align.get("groups", "auto"), split_kind)
-        if theirs.get("groups", "sequence") != ours_groups:
-            reasons.append(f"CV folds grouped by {theirs.get('groups', 'sequence')} in training, by {ours_groups} here")
-    if final_row.get("val_frame_stride", 1) != 1:
-        reasons.append(f"training scored every {final_row['val_frame_stride']}th frame")
-    if final_row.get("latent", latent) != latent:
-        reasons.append(f"latent {final_row.get('latent')} against {latent}")
-    if final_row.get("targets", "physical") != targets:  # rows written before targets existed: physical units
-        reasons.append(f"targets {final_row.get('targets', 'physical')} (training) against {targets}")
-    if (final_row.get("n_train"), final_row.get("n_test")) != (res.n_train, res.n_test):
-        reasons.append(f"sequences: training {final_row.get('n_train')} fit / {final_row.get('n_test')} scored, "
-                       f"evaluate.py {res.n_train} / {res.n_test}")
-    theirs_nmse = float(final_row["nmse_overall"])
-    return {"evaluate_nmse_overall": ours, "training_nmse_overall": theirs_nmse, "difference": ours - theirs_nmse,
-            "training_epoch": final_row.get("epoch"), "reasons": reasons}
+    other = [what for what, differs in (
+        (f"weights of step {step} ({ckpt.name}; the training read step {final_row.get('step')})",
+         step != int(final_row.get("step", -2))),
+        (f"read-out {overrides}", bool(overrides)), (f"latent {latent}", final_row.get("latent", latent) != latent),
+        (f"targets {targets}", final_row.get("targets", targets) != targets),
+        (f"the {held_out} side", held_out != "test")) if differs]
+    theirs = float(final_row["nmse_overall"])
+    return {"evaluate_nmse_overall": ours, "training_nmse_overall": theirs, "difference": ours - theirs,
+            "other": other}
 
 
 # ----------------------------------------------------------------------------- all runs
 def output_folder(target: Path, runs: list[Run], kind: str, opts: DictConfig, selection: dict) -> Path:
-    """``out=`` if given; else ``<run>/evaluation`` (``evaluation-last`` for checkpoint=last,
+    """``out=`` if given; else ``<run>/evaluation`` (``evaluation-best`` for checkpoint=best,
     ``evaluation-<ckpt>`` for one checkpoint file), ``<multirun>/evaluation`` for a sweep;
     a selection gets its own folder so it never overwrites the whole sweep's report."""
     if opts.out:
@@ -328,7 +310,7 @@ def output_folder(target: Path, runs: list[Run], kind: str, opts: DictConfig, se
     if target.is_file():
         out = root / f"evaluation-{runs[0].ckpt.stem}"
     else:
-        out = root / ("evaluation" if opts.checkpoint == "best" else f"evaluation-{opts.checkpoint}")
+        out = root / ("evaluation" if opts.checkpoint == "last" else f"evaluation-{opts.checkpoint}")
     if opts.held_out == "val":  # never where the test report lives
         out = out.with_name(out.name + "-val")
     if selection:
@@ -422,8 +404,8 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
 
 
 # ----------------------------------------------------------------------------- terminal
-METHOD_NAMES = {"latent_filter": "Latent Filter", "handcrafted_krr": "hand-crafted KRR", "gru": "GRU",
-                "mean": "mean"}
+METHOD_NAMES = {"latent_filter": "Latent Filter", "untrained": "the same, untrained", "handcrafted_krr": "hand-crafted KRR",
+                "gru": "GRU", "mean": "mean"}
 
 
 def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence[tuple], out: Path,
@@ -440,20 +422,23 @@ def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence
     by_run: dict[str, dict] = {}
     for r in results:
         by_run.setdefault(str(r.params.get("run_dir")), {})[r.method] = r.summary()
-    lines = ["Held-out whole-trajectory NMSE (0 = perfect, 1 = the mean predictor's level):"]
+    lines = ["Held-out NMSE (0 = perfect, 1 = the mean predictor's level), per factor over the whole trajectory; "
+             "the read-out: the run's alignment (docs/evaluation.md, \"The read-out over time\"):"]
     if len(infos) == 1:
         i = infos[0]
         s = by_run[i["run_dir"]]
         lines.append(f"{i['label']} ({i['n_train']} train / {i['n_test']} held-out trials, "
                      f"{Path(i['checkpoint']).name}, split {i['split']['kind']}: "
                      f"{SPLIT_KINDS.get(i['split']['kind'], 'not recorded')})")
-        lines.append("| method | " + " | ".join(FACTOR_NAMES) + " | overall |")
-        lines.append("|---" * (len(FACTOR_NAMES) + 2) + "|")
+        lines.append("| method | " + " | ".join(FACTOR_NAMES) + " | overall | last frame | first frame <= 0.5 |")
+        lines.append("|---" * (len(FACTOR_NAMES) + 4) + "|")
         for m in methods:
             row = s[m]
+            first = row.get("first_frame_below_half")
             lines.append(f"| {METHOD_NAMES.get(m, m)} | "
                          + " | ".join(fmt_cell(row["nmse_trajectory"][f]) for f in FACTOR_NAMES)
-                         + f" | {fmt_cell(row['nmse_trajectory_overall'])} |")
+                         + f" | {fmt_cell(row['nmse_trajectory_overall'])} | {fmt_cell(row['nmse_last_step_overall'])}"
+                         + f" | {'never' if first is None else first} |")
         lines.append(agreement_line(i["training_final_alignment"]))
     else:
         others = [m for m in methods if m != "latent_filter"]
@@ -464,8 +449,7 @@ def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence
             s = by_run[i["run_dir"]]
             lf = s.get("latent_filter", {})
             c = i["training_final_alignment"]
-            agree = "–" if c.get("training_nmse_overall") is None else ("yes" if not c["reasons"] else
-                                                                        f"{c['difference']:+.2g}")
+            agree = "–" if c.get("training_nmse_overall") is None or c["other"] else f"{c['difference']:+.1e}"
             lines.append(f"| {i['label']} | " + " | ".join(fmt_cell(lf.get("nmse_trajectory", {}).get(f))
                                                         for f in FACTOR_NAMES)
                          + f" | {fmt_cell(lf.get('nmse_trajectory_overall'))} | "

@@ -85,7 +85,7 @@ def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
         return cand
     have = sorted(p.name for p in ck_dir.glob("*.ckpt")) if ck_dir.is_dir() else []
     raise EvaluationError(
-        f"no {'checkpoint' if which == 'best' else 'last.ckpt'} in run folder {run_dir} that can be read "
+        f"no checkpoint ({'best or last' if which == 'best' else 'last.ckpt'}) in run folder {run_dir} that can be read "
         f"(looked in {ck_dir}; found {have or 'nothing'}{'; ' + '; '.join(bad) if bad else ''}). "
         "Did training finish or get killed before its first epoch?")
 
@@ -111,6 +111,23 @@ def load_module(run: Run):
             f"{run.ckpt}: its weights do not fit this code's {cls.__name__} (first mismatching key "
             f"{keys[0] if keys else '?'}): it was written by commit {commit[:12]}, whose network layout differs; "
             "evaluate it with that commit's code or retrain") from None
+    model.eval()
+    return model
+
+
+def untrained_module(run: Run, trained):
+    """The run's network as its training started: built from the run's config under the run's
+    seed (as train.py builds it), with the trained module's input statistics (data, not
+    learning) copied in, in eval mode: the floor every read-out of the run is compared with."""
+    import lightning as L
+    from hydra.utils import instantiate
+
+    L.seed_everything(int(run.cfg.seed), workers=True, verbose=False)
+    model = instantiate(run.cfg.model)
+    stats = {n: b for n, b in trained.named_buffers() if n.rsplit(".", 1)[-1].startswith("input_")}
+    for name, buf in model.named_buffers():
+        if name in stats:
+            buf.copy_(stats[name])
     model.eval()
     return model
 
