@@ -20,7 +20,9 @@ Candidates (``CANDIDATES``):
 * ``paper_bounded``: the same, each prediction clipped to the training targets' range;
 * ``whole_trial``: one alignment with its rows drawn from every frame of the training
   trials (``final_segment=1.0``);
-* ``per_time_<k>``: a probe per span of ``k`` equal spans (``readout=per_time``).
+* ``per_time_<k>``: a probe per span of ``k`` equal spans (``readout=per_time``);
+* ``per_time_10_bounded``: 10 spans, each prediction clipped to the training targets' range;
+* ``per_time_10_dense``: 10 spans, 12 rows per training sequence and span instead of 4.
 """
 
 from __future__ import annotations
@@ -49,13 +51,27 @@ CANDIDATES = {
     "per_time_5": {"readout": "per_time", "time_bins": 5},
     "per_time_10": {"readout": "per_time", "time_bins": 10},
     "per_time_20": {"readout": "per_time", "time_bins": 20},
+    "per_time_10_bounded": {"readout": "per_time", "time_bins": 10, "bounded": True},
+    "per_time_10_dense": {"readout": "per_time", "time_bins": 10, "frames_per_sequence": 12},
 }
 READERS = ("latent_filter", "untrained", "handcrafted")
 
 
 def reader_inputs(run_dir: Path, held_out: str) -> tuple[dict, dict, dict, str]:
     """Per reader (n, T, d) inputs of the training side and the held-out side, the factors
-    (encoded as the run's targets), the run's alignment and its split kind."""
+    (encoded as the run's targets), the run's alignment and its split kind; kept in
+    ``RUN/readout_inputs-<held_out>.npz`` (the final weights' latents) for the next call."""
+    stash = run_dir / f"readout_inputs-{held_out}.npz"
+    if stash.exists():
+        z = np.load(stash, allow_pickle=True)
+        return z["train"].item(), z["held"].item(), z["alignment"].item(), str(z["split"])
+    tr, te, alignment, split = _reader_inputs(run_dir, held_out)
+    np.savez(stash, train=np.array(tr, dtype=object), held=np.array(te, dtype=object),
+             alignment=np.array(alignment, dtype=object), split=split)
+    return tr, te, alignment, split
+
+
+def _reader_inputs(run_dir: Path, held_out: str) -> tuple[dict, dict, dict, str]:
     opts = parse_options([f"held_out={held_out}", "torch_threads=1"])
     _, (run,), _ = discover(run_dir, "last")
     cache = DataCache()
@@ -93,11 +109,12 @@ def scores(curve_per_factor: np.ndarray) -> dict:
             "max": float(curve.max()), "first_below_half": first_below(curve, 0.5)}
 
 
-def screen(run_dir: Path, held_out: str) -> list[dict]:
+def screen(run_dir: Path, held_out: str, candidates=tuple(CANDIDATES), readers=READERS) -> list[dict]:
     tr, te, alignment, split = reader_inputs(run_dir, held_out)
     rows = []
-    for reader in READERS:
-        for name, cand in CANDIDATES.items():
+    for reader in readers:
+        for name in candidates:
+            cand = CANDIDATES[name]
             pred = read(cand, tr[reader], tr["factors"], te[reader], alignment, split, tr["object_id"])
             rows.append({"run": str(run_dir), "held_out": held_out, "reader": reader, "readout": name,
                          **scores(nmse_over_time(te["factors"], pred))})
@@ -116,13 +133,15 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--held-out", default="val", choices=("val", "test"))
     ap.add_argument("--out", type=Path, default=None, help="JSON file for every row")
+    ap.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=list(CANDIDATES))
+    ap.add_argument("--readers", nargs="+", default=list(READERS), choices=list(READERS))
     args = ap.parse_args(argv)
     import torch
 
     torch.set_num_threads(1)
     print("| run | reader | read-out | whole | last | frame 1 | max | first <= 0.5 |")
     print("|---|---|---|---|---|---|---|---|")
-    rows = [r for run in args.runs for r in screen(run, args.held_out)]
+    rows = [r for run in args.runs for r in screen(run, args.held_out, args.candidates, args.readers)]
     if args.out:
         args.out.write_text(json.dumps(rows, indent=1) + "\n")
     return 0

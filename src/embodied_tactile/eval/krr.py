@@ -207,6 +207,7 @@ def fit_alignment(
     n_components: int = AlignmentOptions.n_components,
     seed: int = AlignmentOptions.seed,
     n_threads: int | None = None,
+    cv_every_frame: bool = False,
 ) -> "Alignment | FactorwiseAlignment | TimeResolvedAlignment":
     """Fit the RBF-KRR alignment on TRAINING sequences only.
 
@@ -216,11 +217,13 @@ def fit_alignment(
     (default: the sequence itself; pass object ids for object-disjoint folds). ``readout``:
     'per_time' (a probe per span of ``time_bins``) or 'final_segment' (module docstring).
     ``n_threads``: BLAS threads during the fit (None: leave as is; 1 is much faster on a
-    loaded small machine).
+    loaded small machine). ``cv_every_frame``: the grid search scores a held-out fold on every
+    frame of its sequences' segment, not only on the rows it fits (the per-time read-out's
+    probes: the quantity reported is every frame).
     """
     kw = dict(final_segment=final_segment, reduce=reduce, frames_per_sequence=frames_per_sequence, cv=cv,
               alphas=alphas, gammas=gammas, nystroem_threshold=nystroem_threshold, n_components=n_components,
-              seed=seed, n_threads=None)
+              seed=seed, n_threads=None, cv_every_frame=cv_every_frame)
     if n_threads is not None:
         from threadpoolctl import threadpool_limits
 
@@ -287,7 +290,16 @@ def fit_alignment(
     n_splits = min(int(cv), n_groups)
     if n_splits >= 2 and len(gamma_grid) * len(alphas) > 1:
         folds = list(GroupKFold(n_splits=n_splits, shuffle=True, random_state=seed).split(xs, ys, groups=grp))
-        cv_scores = _grid_cv(xs, ys, folds, gamma_grid, list(alphas), nystroem=nystroem, m=m, seed=seed)
+        scored = None
+        if cv_every_frame:  # every frame of the segment of each sequence with finite factors and latents
+            every, every_seq = final_segment_rows(lat, final_segment=final_segment, reduce=reduce,
+                                                  frames_per_sequence=lat.shape[1])
+            fine = np.all(np.isfinite(factors[every_seq]), axis=1) & np.all(np.isfinite(every), axis=1)
+            every, every_seq = every[fine], every_seq[fine]
+            scored = ((every - x_mean) / x_scale, (factors[every_seq] - y_mean) / y_scale,
+                      [np.isin(every_seq, np.unique(seq[te])) for _, te in folds])
+        cv_scores = _grid_cv(xs, ys, folds, gamma_grid, list(alphas), nystroem=nystroem, m=m, seed=seed,
+                             scored=scored)
         gi, ai = np.unravel_index(np.nanargmin(cv_scores), cv_scores.shape)
         gamma, alpha = gamma_grid[gi], float(alphas[ai])
         cv_mse = float(cv_scores[gi, ai])
@@ -312,6 +324,7 @@ def fit_alignment(
         "cv_grid_mse": cv_scores.tolist() if n_splits >= 2 and len(gamma_grid) * len(alphas) > 1 else None,
         "cv_grouping": "sequence" if groups is None else "given groups",
         "cv_mse_standardised": cv_mse,
+        "cv_every_frame": bool(cv_every_frame),
         "n_train_sequences": int(n),
         "n_train_rows": int(len(xs)),
         "final_segment": final_segment,
@@ -356,7 +369,7 @@ class TimeResolvedAlignment:
         probes = []
         for a, b in time_spans(n_frames, time_bins):
             probes.append(fit_alignment(latents[:, a:b], factors, ids=ids, groups=groups, readout="final_segment",
-                                        **{**kw, "final_segment": 1.0}))
+                                        **{**kw, "final_segment": 1.0, "cv_every_frame": True}))
         return cls(probes, time_bins, n_frames, frozenset(np.asarray(ids).tolist()) if ids is not None else None)
 
     def predict(self, latents, ids=None, *, chunk_rows: int = 16384) -> np.ndarray:
@@ -372,32 +385,34 @@ class TimeResolvedAlignment:
         return np.concatenate(parts, axis=1)
 
 
-def _grid_cv(xs, ys, folds, gammas, alphas, *, nystroem: bool, m: int, seed: int) -> np.ndarray:
+def _grid_cv(xs, ys, folds, gammas, alphas, *, nystroem: bool, m: int, seed: int, scored=None) -> np.ndarray:
     """Grouped K-fold CV error (mean squared error on standardised targets) per (gamma, alpha).
 
     Same numbers as ``GridSearchCV(KernelRidge(kernel="rbf") | Nystroem+Ridge, cv=folds,
     scoring="neg_mean_squared_error")``, but one kernel matrix (exact; a Cholesky solve per alpha) or one SVD
-    (Nystroem) per (fold, gamma) serves every alpha. Only the rows in ``xs`` -- the training
-    rows -- are ever touched.
+    (Nystroem) per (fold, gamma) serves every alpha. Only training sequences are ever touched.
+    ``scored``: (x, y, one mask per fold) -- the rows a fold is scored on, when they are not
+    the fold's fitted rows (every frame of its sequences).
     """
     scores = np.zeros((len(gammas), len(alphas)))
     counts = 0
-    for tr, te in folds:
+    for k, (tr, te) in enumerate(folds):
         counts += 1  # unweighted mean over folds, like GridSearchCV
+        x_te, y_te = (xs[te], ys[te]) if scored is None else (scored[0][scored[2][k]], scored[1][scored[2][k]])
         for gi, g in enumerate(gammas):
             if nystroem:
                 feat = Nystroem(kernel="rbf", gamma=g, n_components=min(m, len(tr)), random_state=seed).fit(xs[tr])
-                ftr, fte = feat.transform(xs[tr]), feat.transform(xs[te])
+                ftr, fte = feat.transform(xs[tr]), feat.transform(x_te)
                 mu_f, mu_y = ftr.mean(0), ys[tr].mean(0)  # Ridge fits an intercept
                 u, sv, vt = np.linalg.svd(ftr - mu_f, full_matrices=False)
                 uy = u.T @ (ys[tr] - mu_y)
                 for ai, a in enumerate(alphas):
                     coef = vt.T @ ((sv / (sv**2 + a))[:, None] * uy)
                     pred = (fte - mu_f) @ coef + mu_y
-                    scores[gi, ai] += ((pred - ys[te]) ** 2).mean()
+                    scores[gi, ai] += ((pred - y_te) ** 2).mean()
             else:
                 k_tr = _rbf(xs[tr], xs[tr], g)
-                k_te = _rbf(xs[te], xs[tr], g)
+                k_te = _rbf(x_te, xs[tr], g)
                 eye = np.eye(len(tr))
                 for ai, a in enumerate(alphas):
                     try:  # Cholesky per alpha: cheaper than one eigendecomposition for a few alphas
@@ -405,7 +420,7 @@ def _grid_cv(xs, ys, folds, gammas, alphas, *, nystroem: bool, m: int, seed: int
                     except np.linalg.LinAlgError:
                         coef = np.linalg.lstsq(k_tr + a * eye, ys[tr], rcond=None)[0]
                     pred = k_te @ coef  # KernelRidge: no intercept
-                    scores[gi, ai] += ((pred - ys[te]) ** 2).mean()
+                    scores[gi, ai] += ((pred - y_te) ** 2).mean()
     return scores / counts
 
 
