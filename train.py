@@ -21,6 +21,7 @@ import logging
 import sys
 import time
 
+import embodied_tactile.threadenv  # noqa: F401  OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP
 import hydra
 import lightning as L
 import torch
@@ -56,7 +57,9 @@ def main(cfg: DictConfig) -> float | None:
     if not resuming:
         runtime.save_provenance(cfg, run_dir)
     L.seed_everything(cfg.seed, workers=True)
-    log.info("torch threads: %d (threads=%s)", runtime.configure_threads(cfg), cfg.get("threads", "auto"))
+    threads = runtime.configure_threads(cfg)  # this training's share of the cores, again at every epoch
+    log.info("torch threads: %d (threads=%s, %d training(s) on this machine)", threads.threads,
+             cfg.get("threads", "auto"), threads.jobs)
     torch.set_float32_matmul_precision("high")
 
     datamodule: L.LightningDataModule = instantiate(cfg.data)
@@ -64,7 +67,7 @@ def main(cfg: DictConfig) -> float | None:
     if runtime.configure_compile(cfg, model):
         log.info("compile_convs: the conv encoders / decoders of training steps run through torch.compile")
 
-    callbacks = [runtime.HandOverStatistics()]  # the training split's statistics, from the data to the model
+    callbacks = [runtime.HandOverStatistics(), threads]  # the training split's statistics, from the data to the model
     callbacks += [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
     if not loggers:  # logger=none: Lightning refuses a LearningRateMonitor without a logger

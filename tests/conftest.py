@@ -13,6 +13,9 @@ import embodied_tactile.config  # noqa: E402,F401  registers the typed configs a
 os.environ.setdefault("WANDB_MODE", "disabled")
 os.environ.setdefault("WANDB_OFFLINE", "true")
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("TMPDIR", "/tmp")) / "embodied_tactile_numba"))
+# The tests' trainings count each other, not the machine's (runtime.TrainingRegistry).
+os.environ.setdefault("EMBODIED_TACTILE_TRAININGS_DIR",
+                      str(Path(os.environ.get("TMPDIR", "/tmp")) / f"embodied_tactile_test_trainings_{os.getpid()}"))
 
 REPO = Path(__file__).resolve().parents[1]
 
