@@ -38,7 +38,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ..constants import FACTOR_NAMES, N_OBJECTS, OBJECT_GROUPS, OBJECTS, PRIMITIVES
+from ..constants import FACTOR_NAMES, OBJECT_GROUPS, PRIMITIVES
 from .metrics import SCALED_MSE_DEFINITION, reference_variance, scaled_mse_from_nmse
 from .results import scored_on_validation
 from .tables import FACTOR_LABELS, MISSING, Table, fmt_cell, seed_stats
@@ -100,14 +100,10 @@ def held_out_variance(targets: str = DEFAULT_TARGETS, *, actions: Sequence[int] 
     targets in ``targets`` encoding). The split holds out ``round(test_fraction * n)`` of each
     object's n trials, so which objects are held out, and the variance, do not depend on the
     seed or on the trials' names (the seed picks which of an object's trials)."""
-    from ..constants import N_ACTIONS
     from ..data.datamodule import split_trials
-    from ..data.prepare import TrialRef
+    from ..data.prepare import catalogue_trials
 
-    acts = list(range(N_ACTIONS)) if actions is None else [int(a) for a in actions]
-    refs = [TrialRef(f"obj{o.object_id:02d}_a{a:02d}_r{r:02d}", o.object_id, a, "soft", "pressing",
-                     tuple(o.factors())) for o in OBJECTS for a in acts for r in range(int(repetitions))]
-    _, _, test = split_trials(refs, by="trial", test_fraction=test_fraction, seed=seed)
+    _, _, test = split_trials(catalogue_trials(actions, repetitions), by="trial", test_fraction=test_fraction, seed=seed)
     return reference_variance(encode_factors([t.factors for t in test], targets)), len(test)
 
 
