@@ -55,3 +55,26 @@ def test_cpu_dry_run_prints_every_figure(bench_gpu, capsys):
     assert len(rows) == 2 and all("bf16-mixed" in r and "2 x 4" in r and "7 + 2" in r for r in rows)
     assert "the paper's study: 9 of its 24 models" in out  # acc soft, multi_l soft and hard: 3 cells x 3 primitives
     assert "population scene (experiment=population" in out and "256 epochs x (30 steps" in out
+
+
+def test_trainer_gpu_precision_trains_the_paper_model_through_lightning(bench_gpu, tmp_path):
+    """trainer=gpu's precision (bf16-mixed) on the CPU accelerator: Lightning's autocast around
+    the paper's model (configs composed, a tiny network), finite loss, float32 parameters."""
+    import lightning as L
+    from hydra.utils import instantiate
+    from torch.utils.data import DataLoader
+
+    cfg = bench_gpu.compose(["experiment=paper", "trainer=gpu", "modality=multi_l", "model.net.encoder.widths=[4,8]",
+                             "model.net.encoder.hidden=16", "model.net.transition_hidden=16", "model.net.lstm_hidden=16",
+                             "model.net.input_standardize=false"])
+    assert cfg.trainer.precision == "bf16-mixed" and cfg.trainer.accelerator == "gpu"
+    torch.manual_seed(0)
+    module = instantiate(cfg.model)
+    batch = bench_gpu.synthetic_batch(module.model.n_channels, 4, 6, False, "cpu")
+    items = [{k: (v[i] if torch.is_tensor(v) else v[i]) for k, v in batch.items()} for i in range(4)]
+    trainer = L.Trainer(accelerator="cpu", devices=1, precision=cfg.trainer.precision, max_steps=2, logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                        limit_val_batches=0, default_root_dir=tmp_path)
+    trainer.fit(module, DataLoader(items, batch_size=2))
+    assert trainer.global_step == 2 and torch.isfinite(trainer.callback_metrics["train/loss"])
+    assert all(p.dtype == torch.float32 for p in module.parameters())
