@@ -196,19 +196,17 @@ def table2_with_intervals(runs: Sequence[Mapping], modality: str = "multi_l", sc
         cols = ["Factor", "group"] + [c for p in prims for c in (f"{p} mean", f"{p} 95% CI", f"{p} n", f"{p} paper")]
         name = modality.upper().replace('_', '-')
         if scenes is None:
-            cap = (f"Table 2 analogue, {name} on the {skin} e-Skin: held-out "
-                   "whole-trajectory NMSE per factor and object group, the group's sequences normalised by the "
-                   "run's total variance (the paper's convention); mean over seeds, 95 % Student t interval "
-                   f"(n >= {MIN_SEEDS}, {MISSING} otherwise), n = seeds; paper = the paper's Table 2 (real e-Skin, "
-                   "real objects, its own budget: a reference, not a target).")
-            tables.append(Table(f"table2_{modality}_{skin}", cap, cols, rows))
+            what = ("NMSE per factor and object group, the group's sequences normalised by the run's total variance "
+                    "(the paper's convention)")
+            paper = "the paper's Table 2 (real e-Skin, real objects, its own budget: a reference, not a target)"
         else:
-            cap = (f"Table 2 analogue, {name} on the {skin} e-Skin, in the convention of the authors' public "
-                   "code: held-out whole-trajectory squared error on targets min-max scaled to [0, 1] per factor "
-                   "over the design range (no division by the variance), from the same predictions as the NMSE "
-                   f"table; mean over seeds, 95 % Student t interval (n >= {MIN_SEEDS}), n = seeds; paper = the "
-                   "paper's Table 2 as printed (its \"NMSE\", not defined further).")
-            tables.append(Table(f"table2_{modality}_{skin}_code_convention", cap, cols, rows))
+            what = ("squared error on targets min-max scaled to [0, 1] per factor over the design range (no division "
+                    "by the variance), per factor and object group, from the same predictions as the NMSE table")
+            paper = "the paper's Table 2 as printed (its \"NMSE\", not defined further)"
+        where = "" if scenes is None else ", in the convention of the authors' public code"
+        cap = (f"Table 2 analogue, {name} on the {skin} e-Skin{where}: held-out whole-trajectory {what}; mean over "
+               f"seeds, 95 % Student t interval (n >= {MIN_SEEDS}, {MISSING} otherwise), n = seeds; paper = {paper}.")
+        tables.append(Table(f"table2_{modality}_{skin}" + ("" if scenes is None else "_code_convention"), cap, cols, rows))
     return tables
 
 
