@@ -67,7 +67,7 @@ def main(cfg: DictConfig) -> float | None:
     if runtime.configure_compile(cfg, model):
         log.info("compile_convs: the conv encoders / decoders of training steps run through torch.compile")
 
-    callbacks = [runtime.HandOverStatistics(), threads]  # the training split's statistics, from the data to the model
+    callbacks = [runtime.HandOverStatistics()]  # the training split's statistics, from the data to the model
     callbacks += [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
     if not loggers:  # logger=none: Lightning refuses a LearningRateMonitor without a logger
@@ -82,6 +82,7 @@ def main(cfg: DictConfig) -> float | None:
         from lightning.pytorch.callbacks import RichProgressBar
 
         callbacks.append(RichProgressBar())
+    callbacks.append(threads)  # re-counts the trainings on the machine at every epoch
     trainer: L.Trainer = instantiate(
         cfg.trainer, callbacks=callbacks, logger=loggers or False,
         plugins=[runfolder.AtomicCheckpointIO()],  # temporary file, fsync, rename: a *.ckpt is always whole
