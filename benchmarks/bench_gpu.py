@@ -162,6 +162,10 @@ def measure(overrides: list[str], args) -> dict:
             "val_s": val_s, "epoch_s": epoch_s, "peak_gib": peak, "steps_timed": len(times)}
 
 
+def gib(x: float) -> str:
+    return "-" if x != x else f"{x:.2f}"  # NaN: no GPU memory on a CPU dry run
+
+
 def hours(s: float) -> str:
     return f"{s / 3600:.2f} h" if s >= 360 else f"{s:.1f} s"
 
@@ -198,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         r = measure(["experiment=paper", "trainer=gpu", f"modality={m}"], args)
         per_model[m] = r["epoch_s"] * r["epochs"]
         print(f"| {m} | {r['precision']} | {r['batch']} x {r['t_train']} | {r['steps']} + {r['val_batches']} | "
-              f"{r['warmup_s']:.2f} | {r['step_s']:.3f} | {r['val_s']:.3f} | {r['epoch_s']:.2f} | {r['peak_gib']:.2f} | "
+              f"{r['warmup_s']:.2f} | {r['step_s']:.3f} | {r['val_s']:.3f} | {r['epoch_s']:.2f} | {gib(r['peak_gib'])} | "
               f"{hours(per_model[m])} ({r['epochs']} epochs) |", flush=True)
     from embodied_tactile.eval.study_report import PAPER_COMBOS
     from embodied_tactile.constants import PRIMITIVES
@@ -213,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
         epochs = r["epochs"] * POPULATION_FACTOR
         print(f"population scene (experiment=population, multi_l, context objective) at {POPULATION_FACTOR}x its "
               f"budget: {epochs} epochs x ({r['steps']} steps of {r['batch']} x {r['t_train']} + {r['val_batches']} "
-              f"val batches) = {hours(epochs * r['epoch_s'])}; step {r['step_s']:.3f} s, peak {r['peak_gib']:.2f} GiB")
+              f"val batches) = {hours(epochs * r['epoch_s'])}; step {r['step_s']:.3f} s, peak {gib(r['peak_gib'])} GiB")
     return 0
 
 
