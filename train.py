@@ -21,6 +21,7 @@ import logging
 import sys
 import time
 
+import embodied_tactile.threadenv  # noqa: F401  OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP
 import hydra
 import lightning as L
 import torch
@@ -56,7 +57,9 @@ def main(cfg: DictConfig) -> float | None:
     if not resuming:
         runtime.save_provenance(cfg, run_dir)
     L.seed_everything(cfg.seed, workers=True)
-    log.info("torch threads: %d (threads=%s)", runtime.configure_threads(cfg), cfg.get("threads", "auto"))
+    threads = runtime.configure_threads(cfg)  # this training's share of the cores, again at every epoch
+    log.info("torch threads: %d (threads=%s, %d training(s) on this machine)", threads.threads,
+             cfg.get("threads", "auto"), threads.jobs)
     torch.set_float32_matmul_precision("high")
 
     datamodule: L.LightningDataModule = instantiate(cfg.data)
@@ -79,6 +82,7 @@ def main(cfg: DictConfig) -> float | None:
         from lightning.pytorch.callbacks import RichProgressBar
 
         callbacks.append(RichProgressBar())
+    callbacks.append(threads)  # re-counts the trainings on the machine at every epoch
     trainer: L.Trainer = instantiate(
         cfg.trainer, callbacks=callbacks, logger=loggers or False,
         plugins=[runfolder.AtomicCheckpointIO()],  # temporary file, fsync, rename: a *.ckpt is always whole

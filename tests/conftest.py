@@ -13,8 +13,21 @@ import embodied_tactile.config  # noqa: E402,F401  registers the typed configs a
 os.environ.setdefault("WANDB_MODE", "disabled")
 os.environ.setdefault("WANDB_OFFLINE", "true")
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("TMPDIR", "/tmp")) / "embodied_tactile_numba"))
+# The tests' trainings count each other, not the machine's (threadenv.TrainingRegistry).
+TEST_TRAININGS_DIR = Path(os.environ.get("TMPDIR", "/tmp")) / f"embodied_tactile_test_trainings_{os.getpid()}"
+os.environ.setdefault("EMBODIED_TACTILE_TRAININGS_DIR", str(TEST_TRAININGS_DIR))
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _test_trainings_registry():
+    """The tests' training registry folder goes when the session ends."""
+    yield
+    import shutil
+
+    shutil.rmtree(TEST_TRAININGS_DIR, ignore_errors=True)
+
 
 #: The tiny scene: 4 objects (soft, hard, PLA-high-frequency, heterogeneous) x 2 actions x 2 reps.
 TINY_OBJECTS = [0, 8, 17, 27]

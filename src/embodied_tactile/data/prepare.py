@@ -105,6 +105,20 @@ class TrialRef:
     factors: tuple[float, float, float, float]
 
 
+def catalogue_trials(actions: Sequence[int] | None = None, repetitions: int = 1, skin: str = "soft",
+                     primitive: str = "pressing") -> list[TrialRef]:
+    """The trials a simulated scene of the 32 wave objects lists (objects x ``actions``, None:
+    all 16, x ``repetitions``), named as the raw file names them, without simulating: for
+    split arithmetic (which trials are held out, how many batches an epoch has)."""
+    from ..constants import N_ACTIONS, OBJECTS
+    from ..io.rawformat import trial_name
+
+    acts = range(N_ACTIONS) if actions is None else [int(a) for a in actions]
+    return [TrialRef(trial_name({"object_id": o.object_id, "skin": skin, "primitive": primitive, "action_index": a,
+                                 "repetition": r}), o.object_id, a, skin, primitive, tuple(float(x) for x in o.factors()))
+            for o in OBJECTS for a in acts for r in range(int(repetitions))]
+
+
 @dataclass(frozen=True)
 class Scene:
     """What to prepare: the data keys of ``configs/data/*.yaml`` that decide which trials

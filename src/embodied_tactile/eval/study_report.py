@@ -13,6 +13,10 @@ present, ``evaluation.json`` and each evaluated run's ``config_resolved.yaml`` /
   wall time (training and data preparation apart), the code commit;
 * the Table 2 analogue for MULTI-L: per e-Skin, object group and primitive, the mean over
   seeds with its 95 % t interval beside the paper's value (:data:`~.verdicts.PAPER_TABLE2`);
+  then the same tables in the convention of the authors' public code (squared error on
+  targets min-max scaled to [0, 1] over the design range, :data:`~.metrics.SCALED_MSE_DEFINITION`),
+  converted run by run with the held-out targets' variance of the trial split
+  (:func:`held_out_variance`), and one sentence comparing both with the paper;
 * the per-cell statistics over seeds for every modality (the ``aggregate`` table);
 * the paper's findings with their verdicts and every comparison behind them;
 * with ``--objects <evaluation folder>``: the held-out-object runs' statistics over seeds;
@@ -25,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shlex
 import sys
 from collections import defaultdict
@@ -34,8 +39,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..constants import FACTOR_NAMES, OBJECT_GROUPS, PRIMITIVES
+from .metrics import SCALED_MSE_DEFINITION, reference_variance, scaled_mse_from_nmse
 from .results import scored_on_validation
 from .tables import FACTOR_LABELS, MISSING, Table, fmt_cell, seed_stats
+from .targets import DEFAULT_TARGETS, design_range, encode_factors
 from .verdicts import MIN_SEEDS, PAPER_TABLE2, SCORES, SOFT_SKIN_MODALITIES
 
 #: the paper's 8 modality x e-Skin combinations (configs/combo/); x 3 primitives = its 24 cells
@@ -84,36 +91,275 @@ def _latent_runs(runs: Sequence[Mapping], modality: str | None = None) -> list[M
     return [r for r in runs if r.get("method") == METHOD and (modality is None or r.get("modality") == modality)]
 
 
-def table2_with_intervals(runs: Sequence[Mapping], modality: str = "multi_l") -> list[Table]:
+def held_out_variance(targets: str = DEFAULT_TARGETS, *, actions: Sequence[int] | None = None,
+                      repetitions: int = 1, test_fraction: float = 0.25, seed: int = 0) -> tuple[np.ndarray, int]:
+    """(per-factor variance, number) of the held-out test targets of the catalogue's trial
+    split, rebuilt with the data module's own :func:`~embodied_tactile.data.datamodule.split_trials`
+    over the 32 wave objects x ``actions`` (None: all 16) x ``repetitions``: the reference
+    variance each run's NMSE divides by (:func:`~.metrics.reference_variance` of the held-out
+    targets in ``targets`` encoding). The split holds out ``round(test_fraction * n)`` of each
+    object's n trials, so which objects are held out, and the variance, do not depend on the
+    seed or on the trials' names (the seed picks which of an object's trials)."""
+    from ..data.datamodule import split_trials
+    from ..data.prepare import catalogue_trials
+
+    _, _, test = split_trials(catalogue_trials(actions, repetitions), by="trial", test_fraction=test_fraction, seed=seed)
+    return reference_variance(encode_factors([t.factors for t in test], targets)), len(test)
+
+
+def _scene(data: Mapping) -> dict:
+    return {"actions": data.get("actions"), "repetitions": data.get("repetitions", 1),
+            "test_fraction": data.get("test_fraction", 0.25)}
+
+
+def _default_scene() -> dict:
+    """The scene of ``python train.py`` with no overrides (configs/train.yaml composed)."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from ..config import config_dir
+
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        cfg = compose(config_name="train")
+    return _scene({k: OmegaConf.to_container(cfg.data, resolve=False).get(k)
+                   for k in ("actions", "repetitions", "test_fraction")})
+
+
+def _scene_candidates(files: Sequence[Mapping]) -> list[dict]:
+    """The (actions, repetitions, test_fraction) of the evaluated runs' configs, then the
+    embedded default's: where a run's trial split can be rebuilt from."""
+    out: list[dict] = []
+    for cand in [_scene((f.get("config") or {}).get("data", {})) for f in files] + [_default_scene()]:
+        if cand not in out:
+            out.append(cand)
+    return out
+
+
+def run_variance(run: Mapping, scenes: Sequence[Mapping]) -> np.ndarray | None:
+    """The per-factor variance a run's NMSE divided by, rebuilt (:func:`held_out_variance`)
+    from the first of ``scenes`` whose trial split holds out as many trials as the run scored;
+    None where it cannot be rebuilt (not the simulated catalogue's trial split, or no scene
+    matches the run's held-out count)."""
+    if run.get("split") != "trial" or run.get("source", "simulated") != "simulated":
+        return None
+    for scene in scenes:
+        var, n = held_out_variance(run.get("targets") or DEFAULT_TARGETS, seed=int(run.get("seed") or 0), **scene)
+        if n == run.get("n_test"):
+            return var
+    return None
+
+
+def run_paper_units(run: Mapping, scenes: Sequence[Mapping]) -> dict | None:
+    """A run's ``nmse_trajectory_by_group`` in the code's convention (:data:`~.metrics.SCALED_MSE_DEFINITION`):
+    per group, each factor's NMSE x var_k / r_k^2 and their mean as ``overall``, with the
+    run's own held-out variance (:func:`run_variance`); None where that cannot be rebuilt."""
+    var = run_variance(run, scenes)
+    if var is None:
+        return None
+    rng = design_range(run.get("targets") or DEFAULT_TARGETS)
+    out = {}
+    for g, row in (run.get("nmse_trajectory_by_group") or {}).items():
+        nm = np.array([np.nan if row.get(k) is None else row[k] for k in FACTOR_NAMES], dtype=np.float64)
+        sc = scaled_mse_from_nmse(nm, var, rng)
+        fin = sc[np.isfinite(sc)]
+        out[g] = {**dict(zip(FACTOR_NAMES, sc.tolist())), "overall": float(fin.mean()) if fin.size else np.nan}
+    return out
+
+
+def table2_with_intervals(runs: Sequence[Mapping], modality: str = "multi_l", scenes: Sequence[Mapping] | None = None
+                          ) -> list[Table]:
     """One table per e-Skin: rows factor (and Overall) x object group, columns the primitives;
     a cell is 'mean [95 % CI] (paper p)' over the seeds of that (skin, primitive) cell, the
-    group's held-out sequences normalised by the run's total variance (Table 2's convention)."""
+    group's held-out sequences normalised by the run's total variance (Table 2's convention).
+    With ``scenes`` (:func:`_scene_candidates`): the same tables in the convention of the
+    authors' public code (:func:`run_paper_units`); a run whose variance cannot be rebuilt
+    counts as not measured there."""
     rs = _latent_runs(runs, modality)
     tables = []
     for skin in ("soft", "hard"):
         mine = [r for r in rs if r.get("skin") == skin and not r.get("axes")]
         if not mine:
             continue
+        scores = {id(r): (r.get("nmse_trajectory_by_group") if scenes is None else run_paper_units(r, scenes)) or {}
+                  for r in mine}
         prims = [p for p in PRIMITIVES if any(r.get("primitive") == p for r in mine)]
         rows = []
         for score in SCORES:
             for g in OBJECT_GROUPS:
                 row: list[Any] = [FACTOR_LABELS.get(score, "Overall"), g]
                 for p in prims:
-                    vals = [r.get("nmse_trajectory_by_group", {}).get(g, {}).get(score) for r in mine
-                            if r.get("primitive") == p]
+                    vals = [scores[id(r)].get(g, {}).get(score) for r in mine if r.get("primitive") == p]
                     st = seed_stats([np.nan if v is None else v for v in vals])
                     paper = PAPER_TABLE2[(skin, g)][p][SCORES.index(score)]
                     row += [st["mean"], _ci(st), st["n"], paper]
                 rows.append(row)
         cols = ["Factor", "group"] + [c for p in prims for c in (f"{p} mean", f"{p} 95% CI", f"{p} n", f"{p} paper")]
-        cap = (f"Table 2 analogue, {modality.upper().replace('_', '-')} on the {skin} e-Skin: held-out "
-               "whole-trajectory NMSE per factor and object group, the group's sequences normalised by the "
-               "run's total variance (the paper's convention); mean over seeds, 95 % Student t interval "
-               f"(n >= {MIN_SEEDS}, {MISSING} otherwise), n = seeds; paper = the paper's Table 2 (real e-Skin, "
-               "real objects, its own budget: a reference, not a target).")
-        tables.append(Table(f"table2_{modality}_{skin}", cap, cols, rows))
+        name = modality.upper().replace('_', '-')
+        if scenes is None:
+            what = ("NMSE per factor and object group, the group's sequences normalised by the run's total variance "
+                    "(the paper's convention)")
+            paper = "the paper's Table 2 (real e-Skin, real objects, its own budget: a reference, not a target)"
+        else:
+            what = ("squared error on targets min-max scaled to [0, 1] per factor over the design range (no division "
+                    "by the variance), per factor and object group, from the same predictions as the NMSE table")
+            paper = "the paper's Table 2 as printed (its \"NMSE\", not defined further)"
+        where = "" if scenes is None else ", in the convention of the authors' public code"
+        cap = (f"Table 2 analogue, {name} on the {skin} e-Skin{where}: held-out whole-trajectory {what}; mean over "
+               f"seeds, 95 % Student t interval (n >= {MIN_SEEDS}, {MISSING} otherwise), n = seeds; paper = {paper}.")
+        tables.append(Table(f"table2_{modality}_{skin}" + ("" if scenes is None else "_code_convention"), cap, cols, rows))
     return tables
+
+
+def _factor_pairs(tables: Sequence[Table]) -> list[tuple[float, float]]:
+    """(ours, paper) of every measured factor cell (not Overall) of Table 2 analogue tables."""
+    out = []
+    for t in tables:
+        for row in t.rows:
+            if row[0] == "Overall":
+                continue
+            for i in range(2, len(row), 4):
+                ours, paper = row[i], row[i + 3]
+                if isinstance(ours, (int, float)) and np.isfinite(ours) and paper:
+                    out.append((float(ours), float(paper)))
+    return out
+
+
+def like_for_like(nmse_tables: Sequence[Table], code_tables: Sequence[Table]) -> str:
+    """One sentence: how far the study's factor cells are from the paper's, in both units
+    (the paper's Overall is read at the last frame, ours over the trajectory: left out)."""
+    a, b = _factor_pairs(nmse_tables), _factor_pairs(code_tables)
+    if not a or not b:
+        return "Like for like: no factor cell measured in both units."
+
+    def spread(pairs: list[tuple[float, float]]) -> str:
+        r = np.array([o / p for o, p in pairs])
+        return (f"a median {np.median(r):.2g}x the paper's (range {r.min():.2g}x to {r.max():.2g}x; "
+                f"below the paper's in {int(np.sum(r < 1))} of {len(r)})")
+
+    return (f"Like for like: over the {len(a)} factor x object group x e-Skin x primitive cells of MULTI-L measured "
+            f"here (the paper's Overall, read at the last frame, left out), the simulated study's whole-trajectory "
+            f"error is {spread(a)} if the paper's Table 2 is an NMSE as defined here, and {spread(b)} if it is the "
+            "authors' code's squared error on [0, 1]-scaled targets.")
+
+
+def paper_units_section(nmse_tables: Sequence[Table], code_tables: Sequence[Table], var: np.ndarray,
+                        targets: str, source: str) -> list[str]:
+    """The section of the code-convention tables: the definition, the variance used, the
+    tables and the like-for-like sentence."""
+    rng = design_range(targets)
+    factors = ", ".join(f"{FACTOR_LABELS.get(k, k)} {v:.4g} / {r:.4g}^2 = {v / r ** 2:.4g}"
+                        for k, v, r in zip(FACTOR_NAMES, var, rng))
+    out = ["## Table 2 in the convention of the authors' public code", "",
+           f"{SCALED_MSE_DEFINITION} The paper's own definition is not stated beyond \"NMSE\": its Table 2 may be "
+           "either; the authors' public code for the same model family reports this one.", "",
+           f"Converted {source}. The held-out targets' variance per factor is that of the trial split's test "
+           f"trials ({targets} targets; the split holds out the same share of every object's trials, so the same "
+           f"objects at every seed), and var_k / r_k^2: {factors}.", "",
+           like_for_like(nmse_tables, code_tables), ""]
+    for t in code_tables:
+        out += ["### " + t.name.replace("_", " "), "", t.to_markdown()]
+    return out
+
+
+PAPER_UNITS_HEADING = "## Table 2 in the convention of the authors' public code"
+
+
+def _parse_cell(v: str) -> Any:
+    v = v.strip()
+    if v == MISSING:
+        return np.nan
+    try:
+        return int(v) if v.isdigit() else float(v)
+    except ValueError:
+        return v
+
+
+def page_table2(text: str) -> list[Table]:
+    """The NMSE Table 2 analogue tables (``**table2_<modality>_<skin>.**``) of a results page."""
+    tables = []
+    for block in re.split(r"\n(?=\*\*table2_)", text)[1:]:
+        lines = block.splitlines()
+        m = re.match(r"\*\*(table2_[a-z_]+?)\.\*\* (.*)", lines[0])
+        if not m or m.group(1).endswith("_code_convention"):
+            continue
+        start = next(i for i, ln in enumerate(lines) if ln.startswith("|"))
+        end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+        rows = lines[start:end]
+        cols = [c.strip() for c in rows[0].strip("|").split("|")]
+        body = [[_parse_cell(c) for c in r.strip("|").split("|")] for r in rows[2:]]
+        tables.append(Table(m.group(1), m.group(2), cols, body))
+    return tables
+
+
+def page_scene(text: str) -> tuple[dict, int, str]:
+    """(scene, held-out trials per run, targets) that a results page states: its budget line's
+    action indices, its split line's test count and its captions' target encoding."""
+    acts = re.search(r"action indices \[([0-9, ]+)\]", text)
+    split = re.search(r"held-out test trials per run\): (\d+) / (\d+) in every run", text)
+    targets = re.search(r"Targets: (\w+) \(", text)
+    if not (acts and split and targets):
+        raise StudyReportError("the page names no single budget (action indices), held-out count or targets")
+    return ({"actions": [int(a) for a in acts.group(1).split(",")], "repetitions": 1, "test_fraction": 0.25},
+            int(split.group(2)), targets.group(1))
+
+
+def convert_page_table(t: Table, var: np.ndarray, rng: np.ndarray) -> Table:
+    """A page's NMSE Table 2 analogue in the code's convention: each factor row's means and
+    interval bounds x var_k / r_k^2 (linear: exact for the mean and the t interval over
+    seeds); Overall = the mean of the group's converted factor means (its interval needs
+    the per-seed values, which a page does not carry: not given)."""
+    c = dict(zip((FACTOR_LABELS.get(k, k) for k in FACTOR_NAMES), var / rng ** 2))
+    rows = []
+    for row in t.rows:
+        new = list(row)
+        if row[0] in c:
+            for i in range(2, len(row), 4):
+                new[i] = row[i] * c[row[0]]
+                ci = re.match(r"\[(\S+), (\S+)\]", str(row[i + 1]))
+                new[i + 1] = (f"[{fmt_cell(float(ci.group(1)) * c[row[0]], 3)}, {fmt_cell(float(ci.group(2)) * c[row[0]], 3)}]"
+                              if ci else MISSING)
+        else:  # Overall
+            factor_rows = [r for r in rows if r[1] == row[1] and r[0] in c]
+            for i in range(2, len(row), 4):
+                new[i] = float(np.nanmean([r[i] for r in factor_rows]))
+                new[i + 1] = MISSING
+                new[i + 2] = min(r[i + 2] for r in factor_rows)
+        rows.append(new)
+    skin = t.name.rsplit("_", 1)[1]
+    cap = (f"Table 2 analogue, MULTI-L on the {skin} e-Skin, in the convention of the authors' public code: the "
+           "NMSE table above x var_k / r_k^2 per factor (mean and 95 % interval over seeds scale exactly); Overall = "
+           "mean of the converted factors (its interval is not given: the page holds no per-seed values); "
+           "paper = the paper's Table 2 as printed (its \"NMSE\", not defined further).")
+    return Table(t.name + "_code_convention", cap, t.columns, rows)
+
+
+def add_paper_units(text: str, page: str = "docs/results.md") -> str:
+    """A results page with its Table 2 analogues also in the code's convention (a section
+    after them, replacing an earlier one), converted from the page's own NMSE tables with the
+    held-out variance of the trial split it states (:func:`page_scene`): for a page whose
+    evaluation folder (results.json) is gone; :func:`render` converts run by run."""
+    nmse_tables = page_table2(text)
+    if not nmse_tables:
+        raise StudyReportError(f"{page}: no Table 2 analogue table to convert")
+    scene, n_test, targets = page_scene(text)
+    var, n = held_out_variance(targets, **scene)
+    if n != n_test:
+        raise StudyReportError(f"{page}: its trial split holds out {n_test} trials, the rebuilt one {n}")
+    code_tables = [convert_page_table(t, var, design_range(targets)) for t in nmse_tables]
+    section = paper_units_section(
+        nmse_tables, code_tables, var, targets,
+        f"from this page's NMSE tables by `python -m embodied_tactile.eval.study_report --paper-units {page}` "
+        "(the evaluation folder's results.json was not at hand)")
+    head, sep, rest = text.partition(PAPER_UNITS_HEADING)
+    if sep:  # replace the earlier section: up to the next '## ' heading
+        nxt = re.search(r"^## ", rest, flags=re.M)
+        rest = rest[nxt.start():] if nxt else ""
+    else:  # after the last Table 2 analogue section
+        last = [m.start() for m in re.finditer(r"^## table2 ", text, flags=re.M)][-1]
+        nxt = re.search(r"^## ", text[last + 3:], flags=re.M)
+        cut = last + 3 + nxt.start() if nxt else len(text)
+        head, rest = text[:cut], text[cut:]
+    return head.rstrip("\n") + "\n\n" + "\n".join(section).rstrip() + "\n\n" + rest.lstrip("\n")
 
 
 def coverage(runs: Sequence[Mapping]) -> tuple[list[list], list[list]]:
@@ -290,8 +536,15 @@ def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: 
     out += _budget_lines(files, blob)
     out += [f"- Note: {n}" for n in notes]
     out += [f"- {blob.get('nmse_definition', '')}", ""]
-    for t in table2_with_intervals(runs):
+    nmse_tables = table2_with_intervals(runs)
+    for t in nmse_tables:
         out += ["## " + t.name.replace("_", " "), "", t.to_markdown()]
+    scenes = _scene_candidates(files)
+    code_tables = table2_with_intervals(runs, scenes=scenes)
+    if nmse_tables and _factor_pairs(code_tables):
+        r0 = next(r for r in _latent_runs(runs) if run_variance(r, scenes) is not None)
+        out += paper_units_section(nmse_tables, code_tables, run_variance(r0, scenes), r0.get("targets") or DEFAULT_TARGETS,
+                                   "run by run from each run's NMSE, then averaged over seeds")
     agg = _json_table(blob, "aggregate")
     if agg is not None:
         out += ["## Every cell (all methods), statistics over seeds", "", agg.to_markdown()]
@@ -318,7 +571,10 @@ def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: 
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="Write the study's results page (Markdown) from evaluate.py's output.")
-    ap.add_argument("evaluation", help="the evaluation folder evaluate.py wrote for the study (holds results.json)")
+    ap.add_argument("evaluation", nargs="?", help="the evaluation folder evaluate.py wrote for the study (holds results.json)")
+    ap.add_argument("--paper-units", default=None, metavar="PAGE",
+                    help="rewrite PAGE (a results page whose evaluation folder is gone) with its Table 2 analogues "
+                         "also in the convention of the authors' public code")
     ap.add_argument("--out", default=None, help="write here (e.g. docs/results.md); default: print")
     ap.add_argument("--objects", default=None,
                     help="an evaluation folder of held-out-object runs (data.split=object): adds their section")
@@ -327,6 +583,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--note", action="append", default=[],
                     help="a line for 'What was run' (e.g. how the parts were run); repeatable")
     args = ap.parse_args(argv)
+    if args.paper_units:
+        try:
+            page = Path(args.paper_units)
+            page.write_text(add_paper_units(page.read_text(), args.paper_units))
+        except (OSError, StudyReportError) as err:
+            print(f"study_report: error: {err}", file=sys.stderr)
+            return 2
+        print(f"wrote {page}")
+        return 0
+    if not args.evaluation:
+        ap.error("the evaluation folder is required (or --paper-units PAGE)")
     try:
         extras = []
         for item in args.extra:

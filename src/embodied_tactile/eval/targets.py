@@ -44,6 +44,16 @@ _RANK_UNITS = {"spatial_frequency": "rank of 10/30/50 1/m", "amplitude": "rank o
                "stiffness": "rank of Ecoflex 00-10/00-50/PLA", "heterogeneity": "0/1"}
 
 
+def design_range(encoding: str = DEFAULT_TARGETS) -> np.ndarray:
+    """Per factor (FACTOR_NAMES order), the span of the paper's design in ``encoding``'s units:
+    highest minus lowest design level (heterogeneity 0/1: 1). The range a min-max scaling to
+    [0, 1] over the design divides by."""
+    lo = [DESIGN_LEVELS[f][0] if f in DESIGN_LEVELS else 0.0 for f in FACTOR_NAMES]
+    hi = [DESIGN_LEVELS[f][-1] if f in DESIGN_LEVELS else 1.0 for f in FACTOR_NAMES]
+    enc = encode_factors(np.array([lo, hi]), encoding)
+    return enc[1] - enc[0]
+
+
 def target_units(encoding: str) -> tuple[str, ...]:
     """The unit of each factor's target under ``encoding`` (FACTOR_NAMES order)."""
     _check(encoding)
