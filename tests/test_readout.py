@@ -28,11 +28,14 @@ def _curve(train_lat, train_f, test_lat, test_f, **kw):
 
 
 def test_time_spans_cover_every_frame_once():
-    for n, b in ((50, 10), (7, 10), (123, 4), (1, 10)):
+    for n, b in ((300, 10), (50, 10), (7, 10), (123, 4), (1, 10)):
         spans = time_spans(n, b)
         covered = np.concatenate([np.arange(a, c) for a, c in spans])
-        assert covered.tolist() == list(range(n)) and len(spans) == min(n, b)
-    assert time_spans(50, 10)[-1] == (45, 50)  # the last span is the final tenth
+        assert covered.tolist() == list(range(n))
+        assert spans[0] == (0, 1) and max(c - a for a, c in spans) <= np.ceil(n / b)
+    assert time_spans(300, 10)[-1] == (270, 300)  # the last span is the final tenth
+    lengths = [c - a for a, c in time_spans(300, 10)]
+    assert lengths[:5] == [1, 1, 2, 4, 8]  # short where a filter's posterior moves fastest
 
 
 def test_constant_latent_reads_the_mean_at_every_frame():

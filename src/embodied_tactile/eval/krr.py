@@ -18,9 +18,10 @@ protocol"):
   not help" when they do not.
 * With more than ``nystroem_threshold`` rows, exact KRR (O(n^3)) is replaced by
   ``Nystroem`` RBF features + ``Ridge`` with the same grid search.
-* ``readout="per_time"`` fits one such alignment per span of the trial (``time_bins``
-  equal spans, each span's rows drawn from that span as above with ``final_segment=1.0``)
-  and reads each frame with its span's probe (:class:`TimeResolvedAlignment`);
+* ``readout="per_time"`` fits one such alignment per span of the trial (:func:`time_spans`:
+  frame 0 alone, geometric edges, the final tenth last; each span's rows drawn from that
+  span as above with ``final_segment=1.0``, its grid search scored on every frame of the
+  span) and reads each frame with its span's probe (:class:`TimeResolvedAlignment`);
   ``readout="final_segment"`` (the paper's protocol) fits one on the final segment and reads
   every frame with it. The options and their defaults: :mod:`embodied_tactile.options.alignment`.
 * The fitted :class:`Alignment` predicts at every frame of (held-out) sequences, in the
@@ -215,7 +216,7 @@ def fit_alignment(
     factors (n, K) in original units (NaN = unknown: such rows are dropped). ``ids``: sequence
     ids (stored; :meth:`Alignment.predict` refuses them). ``groups``: CV group per sequence
     (default: the sequence itself; pass object ids for object-disjoint folds). ``readout``:
-    'per_time' (a probe per span of ``time_bins``) or 'final_segment' (module docstring).
+    'per_time' (a probe per span of :func:`time_spans`) or 'final_segment' (module docstring).
     ``n_threads``: BLAS threads during the fit (None: leave as is; 1 is much faster on a
     loaded small machine). ``cv_every_frame``: the grid search scores a held-out fold on every
     frame of its sequences' segment, not only on the rows it fits (the per-time read-out's
@@ -339,15 +340,24 @@ def fit_alignment(
 
 
 def time_spans(n_frames: int, time_bins: int) -> list[tuple[int, int]]:
-    """``time_bins`` contiguous spans [start, stop) covering frames 0 .. n_frames - 1, as
-    equal as integer edges allow (fewer when the trial has fewer frames than bins)."""
-    edges = np.unique(np.round(np.linspace(0, int(n_frames), int(time_bins) + 1)).astype(int))
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+    """The per-time read-out's spans: contiguous [start, stop) covering frames 0 .. n_frames - 1.
+    Frame 0 is a span of its own, the last span is the final tenth (the paper's segment), the
+    edges in between grow geometrically (``time_bins`` of them), so spans are short where a
+    filter's posterior moves fastest, and no span is longer than ``n_frames / time_bins``
+    (the edges of ``time_bins`` equal spans are added). For 300 frames and 10 bins: 18 spans,
+    (0, 1), (1, 2), (2, 4), (4, 8), (8, 16), (16, 30), ..., (240, 270), (270, 300).
+    Screened on the validation objects against equal spans and geometric spans alone
+    (docs/experiments/readout_over_time.md)."""
+    n, b = int(n_frames), max(1, int(time_bins))
+    head = n - max(1, int(round(0.1 * n)))
+    geometric = np.geomspace(1, head, b - 1) if head >= 1 and b > 1 else []
+    edges = np.unique(np.round(np.concatenate([[0.0, n], geometric, np.linspace(0, n, b + 1)])).astype(int))
+    return [(int(a), int(c)) for a, c in zip(edges[:-1], edges[1:])]
 
 
 class TimeResolvedAlignment:
-    """A probe per span of the trial (``readout='per_time'``): span ``k`` of ``time_bins``
-    equal spans has its own :class:`Alignment`, fitted on the training latents of that span
+    """A probe per span of the trial (``readout='per_time'``): each span of
+    :func:`time_spans` has its own :class:`Alignment`, fitted on the training latents of that span
     (with its own cross-validated ``alpha`` and ``gamma``); :meth:`predict` reads each frame
     with its span's probe. Spans are fractions of the trial, so a held-out trial of another
     length is cut the same way. ``params``: the last span's (the final segment's), with every

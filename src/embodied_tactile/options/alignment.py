@@ -8,14 +8,17 @@ The training's final alignment (``configs/train.yaml`` ``alignment``, handed to
 
 Read-outs (``readout``; docs/evaluation.md, "The read-out over time"):
 
-* ``per_time`` -- a probe per interaction time: the trial is cut into ``time_bins`` equal
-  spans and each span gets its own alignment, fitted on the training latents of that span
-  (``frames_per_sequence`` frames of every training sequence, the span's last frame
-  included) with its own cross-validated ``alpha`` and ``gamma``. A frame is read by the
-  probe of its span, so every latent is read by a regressor fitted on latents of the same
-  time; where the latents carry no evidence yet, the cross-validation picks the most
-  regularised fit, which reads the training targets' mean. With ``time_bins: 10`` the last
-  span is the paper's final tenth: the last-frame number is the paper protocol's.
+* ``per_time`` -- a probe per interaction time: the trial is cut into spans
+  (:func:`~embodied_tactile.eval.krr.time_spans`: frame 0 alone, edges growing geometrically
+  so that spans are short where the posterior moves fastest, none longer than a
+  ``time_bins``-th of the trial, the final tenth last) and each span gets its own alignment,
+  fitted on the training latents of that span (``frames_per_sequence`` frames of every
+  training sequence, the span's last frame included), its ``alpha`` and ``gamma``
+  cross-validated on every frame of the span of the held-out folds' sequences. A frame is
+  read by the probe of its span, so every latent is read by a regressor fitted on latents of
+  the same time; where the latents carry no evidence yet, the cross-validation picks the
+  most regularised fit, which reads the training targets' mean. The last span is the
+  paper's final tenth: the last-frame number is the paper protocol's.
 * ``final_segment`` -- the paper's protocol: one alignment fitted on the final segment
   (``final_segment``, a fraction of T or a frame count) of every training sequence, applied
   to every frame.
@@ -39,7 +42,7 @@ class AlignmentOptions:
     """``alignment``: the latent -> factor read-out (RBF kernel ridge regression)."""
 
     readout: str = "per_time"         # per_time | final_segment (the paper's protocol)
-    time_bins: int = 10               # per_time: spans of the trial, one probe each
+    time_bins: int = 10               # per_time: no span longer than 1/time_bins of the trial (eval.krr.time_spans)
     final_segment: float = 0.1        # final_segment: the fitted tail (fraction of T, or frames if > 1)
     frames_per_sequence: int = 4      # rows per training sequence (per span for per_time)
     cv: int = 5                       # grouped folds of the grid search
