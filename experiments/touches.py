@@ -1,0 +1,110 @@
+"""K touches of an object never touched: the NMSE of y after K separate touches
+(docs/experiments/population_budget.md, "More touches").
+
+    python experiments/touches.py RUN [RUN ...] [--held-out val|test] [--k 1 2 4]
+
+For a population-scene RUN whose objects are touched several times (``data.actions``), every
+object's trials get one fixed random order (``--seed``); for each K the last-frame posteriors
+q(y | touch k) of its first K trials are combined by
+:func:`~embodied_tactile.models.latent_filter.combine_touches` (the prior counted once:
+``LatentFilter.touch_prior``). The read-out is fitted at the same K on the training objects
+(one row per object; alpha and gamma cross-validated by object, the run's own alignment
+grids) and scores the held-out objects at that K: NMSE mean over factors, normalised by the
+held-out targets' variance. K larger than an object's number of trials is skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def posteriors(net, loader, names) -> dict:
+    """Last-frame y means / variances, factors and object ids of every trial a loader serves."""
+    m, v, fac, obj = [], [], [], []
+    with torch.no_grad():
+        for b in loader:
+            out = net.infer_latents(b)
+            m.append(out["y_mean"][:, -1])
+            v.append(out["y_var"][:, -1])
+            fac.append(b["factors"].numpy())
+            obj.append(b["object_id"].numpy())
+    return {"y": torch.cat(m), "y_var": torch.cat(v), "factors": np.concatenate(fac), "object_id": np.concatenate(obj),
+            "seq_id": np.asarray(names)}
+
+
+def combined(split: dict, k: int, prior, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per object with at least ``k`` trials: q(y | its first k trials in a random order)."""
+    from embodied_tactile.models.latent_filter import combine_touches
+
+    objects = np.asarray(split["object_id"])
+    means, facs, ids = [], [], []
+    for o in sorted(set(objects.tolist())):
+        idx = np.flatnonzero(objects == o)
+        if len(idx) < k:
+            continue
+        pick = torch.as_tensor(rng.permutation(idx)[:k])
+        cm, _ = combine_touches(split["y"][pick][:, None], split["y_var"][pick][:, None], *prior)
+        means.append(cm[0].numpy())
+        facs.append(split["factors"][int(idx[0])])
+        ids.append(o)
+    return np.stack(means), np.stack(facs), np.asarray(ids)
+
+
+def score(run_dir: Path, held_out: str, ks, seed: int) -> dict:
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from embodied_tactile.eval.krr import fit_alignment
+    from embodied_tactile.eval.metrics import nmse, overall, reference_variance
+    from embodied_tactile.eval.pipeline import parse_options, run_alignment
+    from embodied_tactile.eval.runs import data_config, load_module, load_run, trial_names
+    from embodied_tactile.eval.targets import encode_split
+
+    opts = parse_options([])
+    run = load_run(run_dir, "last")
+    dm = instantiate(OmegaConf.create(data_config(run, opts)), _convert_="all")
+    dm.prepare_data()
+    dm.setup("fit")
+    net = load_module(run).model
+    targets = str(run.cfg.get("targets") or "design_rank")
+    tr = encode_split(posteriors(net, dm.train_eval_dataloader(), trial_names(dm, "train")), targets)
+    loader = dm.val_eval_dataloader() if held_out == "val" else dm.test_dataloader()
+    te = encode_split(posteriors(net, loader, trial_names(dm, held_out)), targets)
+    align = {k: v for k, v in run_alignment(run.cfg, opts).items()
+             if k in ("cv", "alphas", "gammas", "nystroem_threshold", "n_components", "seed", "n_threads")}
+    prior = net.touch_prior()
+    out = {"run": run_dir.name, "seed": int(run.cfg.seed), "held_out": held_out}
+    for k in ks:
+        x_tr, f_tr, o_tr = combined(tr, k, prior, np.random.default_rng(seed))
+        x_te, f_te, _ = combined(te, k, prior, np.random.default_rng(seed + 1))
+        if len(x_te) == 0:
+            continue
+        fit = fit_alignment(x_tr, f_tr, groups=o_tr, **align)
+        out[f"K={k}"] = overall(nmse(f_te, fit.predict(x_te)[:, 0], var_ref=reference_variance(f_te)))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--held-out", default="val", choices=("val", "test"))
+    ap.add_argument("--k", nargs="+", type=int, default=[1, 2, 4])
+    ap.add_argument("--seed", type=int, default=0, help="the order in which each object's trials are taken")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    print("| run | seed | side | " + " | ".join(f"K={k}" for k in args.k) + " |")
+    print("|---" * (3 + len(args.k)) + "|")
+    for run in args.runs:
+        r = score(run, args.held_out, args.k, args.seed)
+        print(f"| {r['run']} | {r['seed']} | {r['held_out']} | "
+              + " | ".join(f"{r[f'K={k}']:.3f}" if f"K={k}" in r else "–" for k in args.k) + " |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
