@@ -44,11 +44,14 @@ def main(cfg: DictConfig) -> float | None:
         runfolder.claim(cfg, run_dir)
     except runfolder.RunFolderError as err:
         cli.fail(err)
+    except runfolder.RunFinished as done:  # a multirun job (a single run stops at entry): nothing to train
+        log.info("%s", done)
+        return None
     try:  # cli.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
     except settings.SettingsError as err:
         if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
-            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
+            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}"})
         cli.fail(err)
     stop = runfolder.StopSignals().install()  # SIGTERM / SIGINT: last.ckpt, "interrupted", exit 143 / 130
     resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
@@ -65,6 +68,7 @@ def main(cfg: DictConfig) -> float | None:
         log.info("compile_convs: the conv encoders / decoders of training steps run through torch.compile")
 
     callbacks = [runtime.HandOverStatistics()]  # the training split's statistics, from the data to the model
+    callbacks.append(runfolder.FolderCheckpoints())  # each checkpoint stores its own val/elbo; a moved folder resumes as it was
     callbacks += [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
     if not loggers:  # logger=none: Lightning refuses a LearningRateMonitor without a logger
@@ -90,7 +94,8 @@ def main(cfg: DictConfig) -> float | None:
         log.info("resuming from %s", ckpt_path)
     runtime.continue_logs(loggers, ckpt_path)  # csv/metrics.csv continues from that step
 
-    metrics: dict = {"status": "running", "run_dir": run_dir, "resumed_from": str(ckpt_path) if ckpt_path else None}
+    # paths relative to the run folder: a moved or copied folder names its own files
+    metrics: dict = {"status": "running", "resumed_from": runfolder.in_folder(run_dir, ckpt_path)}
     t0 = time.perf_counter()
     try:
         # data preparation is timed apart from training: prepare_data is the preparation stage
@@ -103,8 +108,11 @@ def main(cfg: DictConfig) -> float | None:
                 raise runfolder.RunFolderError(
                     f"run folder {run_dir} was trained on other data: {'; '.join(changed)}; refusing to resume it "
                     "on these (give another hydra.run.dir for a new run)")
-            runtime.save_provenance(cfg, run_dir)
         datamodule.setup("fit")
+        if trainer.global_rank == 0:  # the split is the run's: a resume on another is refused, naming the trials
+            runfolder.keep_split(run_dir, datamodule, resuming)
+        if resuming and trainer.global_rank == 0:
+            runtime.save_provenance(cfg, run_dir)
         metrics["data_prepare_s"] = time.perf_counter() - t0
         if trainer.global_rank == 0 and getattr(datamodule, "cache_files", None):  # evaluate.py compares with it
             runtime.record_data_identity(run_dir, datamodule.cache_files)
@@ -133,7 +141,8 @@ def main(cfg: DictConfig) -> float | None:
     if stop.received is not None:  # stopped between steps: the state of this step is the run's last.ckpt
         last = f"{run_dir}/checkpoints/last.ckpt"
         trainer.save_checkpoint(last)
-        metrics.update(status="interrupted", stopped_by=stop.name, last_checkpoint=last, step=trainer.global_step)
+        metrics.update(status="interrupted", stopped_by=stop.name, last_checkpoint=runfolder.in_folder(run_dir, last),
+                       step=trainer.global_step)
         write_json(f"{run_dir}/metrics.json", metrics)
         log.error("%s: stopped at step %d, %s saved; start the same command again to resume; exit %d",
                   stop.name, trainer.global_step, last, stop.exit_code())
@@ -154,7 +163,12 @@ def main(cfg: DictConfig) -> float | None:
         log.info("validation ELBO per sequence (final weights): %.4g", metrics["final_val"].get("val/elbo", float("nan")))
     for cb in trainer.checkpoint_callbacks:  # the monitored one keeps the best, the unmonitored one last.ckpt
         key = "best_checkpoint" if getattr(cb, "monitor", None) else "last_checkpoint"
-        metrics[key] = (cb.best_model_path if key == "best_checkpoint" else cb.last_model_path or cb.best_model_path) or None
+        path = (cb.best_model_path if key == "best_checkpoint" else cb.last_model_path or cb.best_model_path) or None
+        metrics[key] = runfolder.in_folder(run_dir, path)
+    best = runfolder.best_checkpoint(run_dir)  # over every checkpoint in the folder, by the value each one stores
+    if best is not None:
+        metrics["best_checkpoint"] = runfolder.in_folder(run_dir, best[0])
+        metrics["best_value"] = {best[1]["key"]: best[1]["value"]}
     metrics["data"] = datamodule.describe() if hasattr(datamodule, "describe") else {}
     metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
     metrics["status"] = "interrupted" if trainer.interrupted or stop.received is not None else "finished"

@@ -281,7 +281,7 @@ def test_corrupt_last_checkpoint_falls_back_or_starts_fresh(one_run, data_dir, t
     assert f"cannot resume from {last}" in out
     assert len((run / "checkpoints" / "last.ckpt.unreadable").read_bytes()) == 1000  # kept aside
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["status"] == "finished" and metrics["resumed_from"] == str(best)
+    assert metrics["status"] == "finished" and metrics["resumed_from"] == "checkpoints/epoch001.ckpt"
     assert _ckpt_epoch(last) == _ckpt_epoch(best) + 1  # one more epoch after the good one, into last.ckpt
     step_best = int(torch.load(best, map_location="cpu", weights_only=False)["global_step"])
 

@@ -125,12 +125,15 @@ class EntryCallback(Callback):
         self._check(config, "hydra.run.dir")
         # runfolder loads lightning (seconds): only train.py's callback needs it, so that record /
         # palpate start at once (a recorder on a busy port must be refused while the other runs)
-        from embodied_tactile.runfolder import claim_at_entry
+        from embodied_tactile.runfolder import RunFinished, claim_at_entry
 
         try:
             claim_at_entry(config)
         except SettingsError as err:
             fail(err)
+        except RunFinished as done:  # before Hydra writes .hydra/ or the log: no byte of the run changes
+            print(f"train.py: {done}", flush=True)
+            raise SystemExit(0) from None
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, "hydra.sweep.dir")

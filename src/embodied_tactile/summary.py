@@ -216,8 +216,8 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     lines.append(t)
     ckpt = m.get("best_checkpoint") or m.get("last_checkpoint")
     ck_dir = run / "checkpoints"
-    if ckpt:
-        lines.append(f"checkpoint:    {show_path(ckpt, cwd)}")
+    if ckpt:  # relative to the run folder (metrics.json of before: absolute)
+        lines.append(f"checkpoint:    {show_path(run / ckpt, cwd)}")
     elif ck_dir.is_dir() and any(ck_dir.glob("*.ckpt")):
         lines.append(f"checkpoints:   {show_path(ck_dir, cwd)}/")
     else:

@@ -56,15 +56,22 @@ def _readable(path: Path) -> str | None:
 def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
     """A checkpoint of this run folder, always looked up inside ``<run_dir>/checkpoints``
     (metrics.json's ``best_checkpoint`` gives only the file name: a copied or moved folder
-    never reads the original's files). best: that file, else the newest
+    never reads the original's files). best: the checkpoint whose own stored monitored
+    value is best, over every checkpoint in the folder (:func:`runfolder.best_checkpoint`);
+    for checkpoints without that record, the file metrics.json names, else the newest
     ``checkpoints/best*.ckpt``, else ``last.ckpt``; last: ``checkpoints/last.ckpt``. A file
     that does not open as a checkpoint (truncated, another format) is skipped with a
     warning naming it; EvaluationError naming the folder (and the skipped files) when no
     candidate is readable."""
+    from embodied_tactile.runfolder import best_checkpoint
+
     ck_dir = run_dir / "checkpoints"
     last = ck_dir / "last.ckpt"
     cands: list[Path] = []
+    scored = best_checkpoint(run_dir) if which == "best" else None
     if which == "best":
+        if scored is not None:
+            cands.append(scored[0])
         best = read_json(run_dir / "metrics.json").get("best_checkpoint")
         if best:
             cands.append(ck_dir / Path(str(best)).name)
@@ -80,7 +87,7 @@ def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
             bad.append(f"{cand}: {why}")
             log.warning("%s: %s; trying the next checkpoint", cand, why)
             continue
-        if which == "best" and cand == last and not cand.name.startswith("best"):
+        if which == "best" and cand == last and (scored is None or scored[0] != last):
             log.warning("%s: no readable best checkpoint, using %s", run_dir, last)
         return cand
     have = sorted(p.name for p in ck_dir.glob("*.ckpt")) if ck_dir.is_dir() else []
