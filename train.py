@@ -116,6 +116,8 @@ def main(cfg: DictConfig) -> float | None:
         metrics["data_prepare_s"] = time.perf_counter() - t0
         if trainer.global_rank == 0 and getattr(datamodule, "cache_files", None):  # evaluate.py compares with it
             runtime.record_data_identity(run_dir, datamodule.cache_files)
+        if trainer.global_rank == 0:  # from here the folder's run changes: a kill -9 leaves "running" (evaluate.py: killed)
+            write_json(f"{run_dir}/metrics.json", metrics)
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     except runfolder.RunFolderError as err:  # refused before anything of the run was rewritten

@@ -621,3 +621,82 @@ def test_moved_run_folder_resumes_and_evaluates_as_the_original(finished_run, fa
     assert evaluate_cli([str(moved), *EVAL_FAST]) == 0
     ev = json.loads((moved / "evaluation" / "evaluation.json").read_text())
     assert ev["runs"][0]["checkpoint"] == str(best_checkpoint(moved)[0])
+
+
+# ----------------------------------------------------------------------------- an evaluation owns its output
+def test_evaluation_output_is_owned_and_published_whole(tmp_path):
+    """Faults: two evaluations into one folder; an evaluation that fails half way; a killed
+    one's leftovers. Before: both wrote into <run>/evaluation (tables of one, results.json
+    of the other), a failure left half a folder mixed with the previous one. Now: the second
+    is refused naming the holder; a failure leaves the previous folder bit for bit; a
+    published folder holds only what its evaluation wrote; a stale temporary folder goes."""
+    from embodied_tactile.eval.pipeline import OwnedOutput
+    from embodied_tactile.eval.runs import EvaluationError
+
+    out = tmp_path / "run" / "evaluation"
+    out.mkdir(parents=True)
+    (out / "results.json").write_text("previous")
+    (out / "table_old.md").write_text("previous")
+    stale = tmp_path / "run" / ".evaluation.tmp-999999"
+    stale.mkdir()
+    first = OwnedOutput(out)
+    with first as tmp:
+        assert not stale.exists() and tmp.parent == out.parent and tmp != out
+        with pytest.raises(EvaluationError, match=rf"{out} is being written by another evaluation \(pid {os.getpid()}"):
+            with OwnedOutput(out):
+                pass
+        (tmp / "results.json").write_text("half")
+        assert (out / "results.json").read_text() == "previous"  # a reader sees the previous evaluation until the end
+    assert sorted(p.name for p in out.iterdir()) == ["results.json", "table_old.md"]  # not published: kept
+    assert (out / "results.json").read_text() == "previous"
+    with pytest.raises(RuntimeError):
+        with OwnedOutput(out) as tmp:
+            (tmp / "results.json").write_text("half")
+            raise RuntimeError("failed half way")
+    assert (out / "results.json").read_text() == "previous"
+    second = OwnedOutput(out)
+    with second as tmp:
+        (tmp / "results.json").write_text("new")
+        second.publish()
+    assert sorted(p.name for p in out.iterdir()) == ["results.json"] and (out / "results.json").read_text() == "new"
+    assert sorted(p.name for p in out.parent.iterdir()) == [".evaluation.lock", "evaluation"]
+
+
+@pytest.mark.slow  # finished_run: a train.py subprocess, then evaluations
+def test_evaluation_knows_the_runs_state(finished_run, tmp_path, evaluate_cli, capsys):
+    """Faults: evaluating a run while its training holds the folder; evaluating an
+    interrupted run. Before: both exit 0 and read like a finished run's numbers. Now: the
+    first is refused (exit 2, one line naming the training's pid) unless allow_running=true,
+    whose first printed line names the checkpoint used; an interrupted run is evaluated with
+    its status in the first printed line and in results.json."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    holder = _hold_lock(run)
+    try:
+        assert evaluate_cli([str(run), *EVAL_FAST]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"evaluate.py: error: run folder {run} is being trained (pid {holder.pid}")
+        assert not (run / "evaluation").exists()
+        assert evaluate_cli([str(run), *EVAL_FAST, "allow_running=true"]) == 0
+        first = capsys.readouterr().out.splitlines()[0]
+        assert first.startswith(f"evaluate.py: run {run} is being trained (pid {holder.pid}")
+        assert "evaluating checkpoint checkpoints/best-epoch000.ckpt (epoch(s) 1, step " in first
+        states = json.loads((run / "evaluation" / "results.json").read_text())["run_states"]
+        assert states[str(run)]["status"] == "training"
+    finally:
+        holder.kill()
+        holder.wait()
+    metrics = json.loads((run / "metrics.json").read_text())
+    (run / "metrics.json").write_text(json.dumps({**metrics, "status": "interrupted", "stopped_by": "SIGTERM"}))
+    assert evaluate_cli([str(run), *EVAL_FAST]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith(f"evaluate.py: run {run} is interrupted (stopped by SIGTERM); evaluating checkpoint ")
+    for name in ("results.json", "evaluation.json"):
+        blob = json.loads((run / "evaluation" / name).read_text())
+        state = blob["run_states"][str(run)] if name == "results.json" else blob["runs"][0]["run_state"]
+        assert state["status"] == "interrupted" and state["checkpoint"].startswith("checkpoints/")
+    (run / "metrics.json").write_text(json.dumps({**metrics, "status": "running"}))  # killed -9 during training
+    assert evaluate_cli([str(run), *EVAL_FAST]) == 0
+    assert capsys.readouterr().out.splitlines()[0].startswith(f"evaluate.py: run {run} is killed (metrics.json says running")

@@ -120,6 +120,33 @@ def record_holder(run_dir: str | os.PathLike) -> None:
                               "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode(), 0)
 
 
+def training_holder(run_dir: str | os.PathLike) -> dict | None:
+    """The training that holds ``<run_dir>/.lock`` now (``{"pid", "host", "started"}``, as
+    it recorded itself), or None when no process holds it. A probe: a shared lock taken and
+    dropped at once (a killed training's lock is gone with its process)."""
+    run_dir = Path(run_dir)
+    path = run_dir / LOCK_FILE
+    if str(run_dir.resolve()) in _held:
+        return {"pid": os.getpid(), "host": socket.gethostname(), "started": "?"}
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as err:
+        if err.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+            raise
+        try:
+            holder = json.loads(path.read_text() or "{}")
+        except (OSError, ValueError):
+            holder = {}
+        return {k: holder.get(k, "?") for k in ("pid", "host", "started")}
+    finally:
+        os.close(fd)  # drops the probe's shared lock too
+    return None
+
+
 def release(run_dir: str | os.PathLike) -> None:
     """Drop this process's lock on ``run_dir`` (the file stays; the kernel lock goes)."""
     fd = _held.pop(str(Path(run_dir).resolve()), None)

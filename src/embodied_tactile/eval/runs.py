@@ -97,6 +97,51 @@ def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
         "Did training finish or get killed before its first epoch?")
 
 
+def run_state(run: Run, allow_running: bool = False) -> dict:
+    """The state of the training behind a run folder, as an evaluation reports it:
+    ``status`` -- ``training`` while a process holds the folder's lock, else metrics.json's
+    ``finished`` / ``interrupted`` / ``failed``, or ``killed`` when it says ``running`` (or
+    is absent) and no process holds the folder; ``reason`` (the error, the stop signal,
+    whether the final read-out was done), ``checkpoint`` (the file evaluated, relative to the
+    folder), its ``epoch`` and ``step``, and ``line``: what evaluate.py prints first when the
+    run is not finished. EvaluationError for a run being trained unless ``allow_running``."""
+    from embodied_tactile.runfolder import checkpoint_progress, in_folder, training_holder
+
+    try:
+        import torch
+
+        epochs, step = checkpoint_progress(torch.load(str(run.ckpt), map_location="cpu", mmap=True, weights_only=False))
+    except Exception:  # noqa: BLE001 -- find_checkpoint opened it already; say '?' rather than fail here
+        epochs, step = None, None
+    ckpt = in_folder(run.run_dir, run.ckpt)
+    used = f"checkpoint {ckpt} (epoch(s) {epochs if epochs is not None else '?'}, step {step if step is not None else '?'})"
+    holder = training_holder(run.run_dir)
+    metrics = read_json(run.run_dir / "metrics.json")
+    state: dict[str, Any] = {"checkpoint": ckpt, "epochs": epochs, "step": step}
+    if holder is not None:
+        who = f"pid {holder['pid']} on host {holder['host']}, started {holder['started']}"
+        if not allow_running:
+            raise EvaluationError(f"run folder {run.run_dir} is being trained ({who}): its checkpoints are still "
+                                  "changing; wait for it to end, or allow_running=true evaluates one as it is now")
+        state.update(status="training", reason=who,
+                     line=f"evaluate.py: run {run.run_dir} is being trained ({who}); allow_running=true: evaluating "
+                          f"{used} as it is now")
+        return state
+    status = metrics.get("status")
+    if status in ("finished", "interrupted", "failed"):
+        reason = {"interrupted": f"stopped by {metrics.get('stopped_by') or 'a signal'}",
+                  "failed": str(metrics.get("error") or "error not recorded")}.get(status, "")
+        if status == "interrupted" and "final_readout" in metrics:
+            reason += f", final read-out {'done' if metrics['final_readout'] else 'not done'}"
+    else:
+        status, reason = "killed", ("metrics.json says running but no process holds the folder" if status == "running"
+                                    else "no metrics.json and no process holds the folder")
+    state.update(status=status, reason=reason)
+    if status != "finished":
+        state["line"] = f"evaluate.py: run {run.run_dir} is {status} ({reason}); evaluating {used}"
+    return state
+
+
 def load_module(run: Run):
     """The run's LightningModule (class from ``cfg.model._target_``) from its checkpoint, on
     the CPU, in eval mode. A checkpoint whose weights do not fit this code's network (written
@@ -211,6 +256,12 @@ def data_config(run: Run, opts: DictConfig) -> dict:
             raise ValueError("no list of test trials")
     except (OSError, ValueError) as err:
         raise EvaluationError(f"{split}: not a split file written by train.py ({type(err).__name__}: {err})") from None
+    from embodied_tactile.runfolder import split_overlap
+
+    both = split_overlap(side)
+    if both:
+        raise EvaluationError(f"{split} puts {len(both)} trial(s) on two sides ({'; '.join(both[:5])}): its scores "
+                              "would include trials the run was trained on; refusing to evaluate")
     train_cwd = training_cwd(run.run_dir)
     data["data_dir"] = _resolve_path(str(data.get("data_dir", "data")), train_cwd)
     if not Path(data["data_dir"]).exists():
