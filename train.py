@@ -53,7 +53,8 @@ def main(cfg: DictConfig) -> float | None:
         if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
             write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}"})
         cli.fail(err)
-    stop = runfolder.StopSignals().install()  # SIGTERM / SIGINT: last.ckpt, "interrupted", exit 143 / 130
+    # SIGTERM / SIGINT: last.ckpt after the step under way (no validation nor KRR check after it), "interrupted", exit 143 / 130
+    stop = runfolder.StopSignals(last_path=f"{run_dir}/checkpoints/last.ckpt").install()
     resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
     trained_on = read_json(f"{run_dir}/provenance.json").get("raw_data") if resuming else None
     if not resuming:
@@ -75,7 +76,7 @@ def main(cfg: DictConfig) -> float | None:
         from lightning.pytorch.callbacks import LearningRateMonitor
 
         callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
-    callbacks.append(stop)
+    callbacks.insert(0, stop)  # its hooks first: a stop is saved before any other callback's work
     plain = runtime.use_plain_progress(cfg.plain_progress)
     if plain:
         callbacks.append(runtime.PlainProgress())
@@ -127,10 +128,17 @@ def main(cfg: DictConfig) -> float | None:
         metrics.update(status=status, error=str(err) or type(err).__name__, error_type=type(err).__name__,
                        train_wall_s=time.perf_counter() - t0)
         if stop.received is not None:
-            metrics["stopped_by"] = stop.name
+            metrics.update(stopped_by=stop.name, final_readout=False)
+        if stop.saved is not None:
+            metrics.update(last_checkpoint=runfolder.in_folder(run_dir, stop.saved), step=stop.step)
         write_json(f"{run_dir}/metrics.json", metrics)
         if isinstance(err, FloatingPointError):  # the model's non-finite-loss guard: name step and term
             log.error("training stopped: %s (last good checkpoint kept in %s/checkpoints)", err, run_dir)
+        if stop.saved is not None:
+            log.error("%s: stopped after the optimiser step of step %d, %s saved (no validation or KRR check after "
+                      "the signal); start the same command again to resume; exit %d", stop.name, stop.step, stop.saved,
+                      stop.exit_code())
+            raise SystemExit(stop.exit_code()) from None
         if stop.received is not None:
             log.error("%s before training began: nothing new to save; exit %d", stop.name, stop.exit_code())
             raise SystemExit(stop.exit_code()) from None
@@ -144,7 +152,7 @@ def main(cfg: DictConfig) -> float | None:
         last = f"{run_dir}/checkpoints/last.ckpt"
         trainer.save_checkpoint(last)
         metrics.update(status="interrupted", stopped_by=stop.name, last_checkpoint=runfolder.in_folder(run_dir, last),
-                       step=trainer.global_step)
+                       step=trainer.global_step, final_readout=any(getattr(c, "final", None) for c in callbacks))
         write_json(f"{run_dir}/metrics.json", metrics)
         log.error("%s: stopped at step %d, %s saved; start the same command again to resume; exit %d",
                   stop.name, trainer.global_step, last, stop.exit_code())
@@ -174,6 +182,7 @@ def main(cfg: DictConfig) -> float | None:
     metrics["data"] = datamodule.describe() if hasattr(datamodule, "describe") else {}
     metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
     metrics["status"] = "interrupted" if trainer.interrupted or stop.received is not None else "finished"
+    metrics["final_readout"] = metrics["krr_final"] is not None  # the run's final KRR alignment (callbacks.krr_alignment)
     if trainer.global_rank == 0:
         write_json(f"{run_dir}/metrics.json", metrics)
         log.info("run folder: %s", run_dir)

@@ -197,6 +197,7 @@ def test_stop_signal_saves_last_checkpoint_and_exits_nonzero(fast_data_dir, tmp_
     assert proc.returncode == code, out[-3000:]
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["status"] == "interrupted" and metrics["stopped_by"] == signal.Signals(sig).name
+    assert metrics["final_readout"] is False and metrics["last_checkpoint"] == "checkpoints/last.ckpt"
     ck = torch.load(last, map_location="cpu", weights_only=False)
     assert ck["global_step"] == metrics["step"] > 0
     assert not list((run / "checkpoints").glob("*.tmp*"))
@@ -700,3 +701,63 @@ def test_evaluation_knows_the_runs_state(finished_run, tmp_path, evaluate_cli, c
     (run / "metrics.json").write_text(json.dumps({**metrics, "status": "running"}))  # killed -9 during training
     assert evaluate_cli([str(run), *EVAL_FAST]) == 0
     assert capsys.readouterr().out.splitlines()[0].startswith(f"evaluate.py: run {run} is killed (metrics.json says running")
+
+
+def test_stop_saves_after_the_step_under_way_before_any_validation_or_check(tmp_path):
+    """Fault: SIGTERM in the middle of a training step, with a validation and an epoch-end
+    check (as the KRR callback's) due after that step. Before: Lightning finished the step,
+    then ran the validation, the epoch-end check and the final read-out (minutes of KRR on a
+    real run) before last.ckpt was saved. Now: the step under way finishes, last.ckpt holds
+    its weights, and the fit ends with StopRequested: no validation, check or read-out."""
+    import lightning as L
+
+    from embodied_tactile.runfolder import StopRequested, StopSignals
+
+    class Tiny(L.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.lin = torch.nn.Linear(2, 1)
+
+        def training_step(self, batch, batch_idx):
+            if self.current_epoch == 0 and batch_idx == 2:
+                os.kill(os.getpid(), signal.SIGTERM)  # arrives during the step
+            return self.lin(batch[0]).pow(2).mean()
+
+        def validation_step(self, batch, batch_idx):
+            self.log("val/elbo", -self.lin(batch[0]).pow(2).mean())
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    class Watch(L.Callback):  # what the KRR callback does at these hooks
+        def __init__(self) -> None:
+            self.calls: list[str] = []
+
+        def on_validation_start(self, trainer, pl_module):
+            self.calls.append("validation")
+
+        def on_train_epoch_end(self, trainer, pl_module):
+            self.calls.append("epoch check")
+
+        def on_train_end(self, trainer, pl_module):
+            self.calls.append("final read-out")
+
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(20, 2)), batch_size=2)
+    old = {s: signal.getsignal(s) for s in StopSignals.SIGNALS}
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    stop, watch = StopSignals(last_path=last).install(), Watch()
+    model = Tiny()
+    trainer = L.Trainer(max_epochs=3, limit_train_batches=5, limit_val_batches=1, num_sanity_val_steps=0,
+                        callbacks=[stop, watch], logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, accelerator="cpu")
+    try:
+        with pytest.raises(StopRequested, match="stopped by SIGTERM"):
+            trainer.fit(model, data, data)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    assert watch.calls == []
+    assert stop.saved == str(last) and stop.step == 3 and stop.exit_code() == 143
+    ck = torch.load(last, map_location="cpu", weights_only=False)
+    assert ck["global_step"] == 3  # the step under way (the third) finished and is in last.ckpt
+    assert torch.equal(ck["state_dict"]["lin.weight"], model.lin.weight.detach())

@@ -461,18 +461,27 @@ class StopRequested(BaseException):
 
 
 class StopSignals(_Callback):
-    """SIGTERM / SIGINT stop a training cleanly. :meth:`install` at the start of train.py;
-    as a Lightning callback it takes the signals over from Lightning's own SIGTERM handler
-    (which raises out of the loop without a checkpoint) between ``on_train_start`` and
-    ``on_train_end``: there a signal sets ``trainer.should_stop`` and the step under way
-    finishes; outside it (data preparation, set-up) the signal raises
-    :class:`StopRequested`. A second signal ends the process at once with the default
-    action. :meth:`exit_code` is 128 + the signal number (130 SIGINT, 143 SIGTERM)."""
+    """SIGTERM / SIGINT stop a training fast and cleanly. :meth:`install` at the start of
+    train.py; as a Lightning callback (first in the trainer's list, so that its hooks run
+    before any other callback's) it takes the signals over from Lightning's own SIGTERM
+    handler (which raises out of the loop without a checkpoint) between ``on_train_start``
+    and ``on_train_end``. There a signal is recorded and the optimiser step under way
+    finishes; at the next hook (the end of that step, or the start of a validation, of an
+    epoch's end or of the next step) ``last_path`` (``last.ckpt``) is saved and
+    :class:`StopRequested` ends the fit: no validation, KRR check or final read-out runs
+    after a signal (a KRR check already under way ends first). Outside the training
+    (data preparation, set-up) the signal raises :class:`StopRequested` at once. A second
+    signal ends the process at once with the default action. :meth:`exit_code` is 128 +
+    the signal number (130 SIGINT, 143 SIGTERM); :attr:`saved` / :attr:`step` say what was
+    saved."""
 
     SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
-    def __init__(self) -> None:
+    def __init__(self, last_path: str | os.PathLike | None = None) -> None:
         self.received: int | None = None
+        self.last_path = last_path
+        self.saved: str | None = None  # the checkpoint written on the stop
+        self.step: int | None = None
         self._trainer = None
         self._deferred = False
 
@@ -493,6 +502,36 @@ class StopSignals(_Callback):
 
     def on_train_end(self, trainer, pl_module) -> None:
         self._trainer = None
+
+    def _stop_now(self, trainer) -> None:
+        """After a signal: save ``last_path`` as the weights are now, and end the fit."""
+        if self.received is None or self._deferred:
+            return
+        if self.last_path is not None and self.saved is None:
+            trainer.save_checkpoint(str(self.last_path))
+            self.saved, self.step = str(self.last_path), int(trainer.global_step)
+        raise StopRequested(self.received)
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self._stop_now(trainer)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:  # after the optimiser step
+        self._stop_now(trainer)
+
+    def on_validation_start(self, trainer, pl_module) -> None:
+        if not trainer.sanity_checking and self._trainer is not None:
+            self._stop_now(trainer)
+
+    def on_validation_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0) -> None:
+        if not trainer.sanity_checking and self._trainer is not None:
+            self._stop_now(trainer)
+
+    def on_validation_end(self, trainer, pl_module) -> None:
+        if not trainer.sanity_checking and self._trainer is not None:
+            self._stop_now(trainer)
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        self._stop_now(trainer)
 
     def defer(self) -> None:
         """From now on a signal is only recorded (after fit: the run's own checkpoints are
