@@ -40,12 +40,41 @@ log = logging.getLogger("train")
 def main(cfg: DictConfig) -> float | None:
     quiet.silence_third_party()
     run_dir = HydraConfig.get().runtime.output_dir
+    if HydraConfig.get().mode != RunMode.MULTIRUN:
+        return train(cfg, run_dir)
+    # a multirun job: a failure is recorded (<job>/.hydra/outcome.json) and the sweep goes on; it ends
+    # with a table of every job's status and reason, exit 1 when one did not finish (cli.EntryCallback)
+    try:
+        result = train(cfg, run_dir)
+    except SystemExit as done:
+        if done.code in (0, None):
+            return None
+        if done.code in (130, 143):  # a stop signal stops the sweep (exit 128 + signal: a scheduler requeues it)
+            summary.record_outcome(run_dir, "interrupted", f"stopped by {'SIGINT' if done.code == 130 else 'SIGTERM'}")
+            raise
+        summary.record_outcome(run_dir, "refused" if done.code == 2 else "failed",
+                               getattr(done, "message", "") or f"exit {done.code}")
+        return None
+    except Exception as err:  # noqa: BLE001 -- its traceback in the job's log, its reason in the table
+        log.exception("job failed: %s", run_dir)
+        summary.record_outcome(run_dir, "failed", f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}")
+        return None
+    finally:
+        runfolder.release(run_dir)  # the next job goes on in this process
+    status = read_json(f"{run_dir}/metrics.json").get("status", "unknown")
+    summary.record_outcome(run_dir, status, "" if status == "finished" else read_json(f"{run_dir}/metrics.json").get("error", ""))
+    return result
+
+
+def train(cfg: DictConfig, run_dir: str) -> float | None:
+    """One training in ``run_dir`` (train.py's recipe, top to bottom)."""
     try:  # one training per folder; a restart continues the same model and data (done at entry for single runs)
         runfolder.claim(cfg, run_dir)
     except runfolder.RunFolderError as err:
         cli.fail(err)
     except runfolder.RunFinished as done:  # a multirun job (a single run stops at entry): nothing to train
         log.info("%s", done)
+        print(f"train.py: {done}", flush=True)
         return None
     try:  # cli.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
@@ -144,7 +173,7 @@ def main(cfg: DictConfig) -> float | None:
             raise SystemExit(stop.exit_code()) from None
         if isinstance(err, runfolder.CheckpointWriteError):  # disk full: one line, the previous file kept
             print(f"train.py: error: {err}", file=sys.stderr)
-            raise SystemExit(runfolder.EXIT_CHECKPOINT_WRITE) from None
+            raise cli.Exit(runfolder.EXIT_CHECKPOINT_WRITE, str(err)) from None
         raise
     metrics["train_wall_s"] = time.perf_counter() - t0
     stop.defer()
