@@ -31,6 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import embodied_tactile.config  # noqa: F401  registers the typed configs before Hydra composes
 from embodied_tactile import cli, quiet, runfolder, runtime, settings, summary
+from embodied_tactile.data.datamodule import ConstantChannelError
 from embodied_tactile.jsonio import read_json, write_json
 
 log = logging.getLogger("train")
@@ -151,6 +152,10 @@ def train(cfg: DictConfig, run_dir: str) -> float | None:
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     except runfolder.RunFolderError as err:  # refused before anything of the run was rewritten
+        cli.fail(err)
+    except ConstantChannelError as err:  # bad data, found before training: one line naming channel, layer, files
+        if not resuming:
+            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": str(err)})
         cli.fail(err)
     except BaseException as err:  # any failure: the folder must not look like a finished run
         status = "interrupted" if stop.received is not None else "failed"

@@ -95,6 +95,39 @@ def data_dir_lock(data_dir: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+_IMPORTED = __import__("time").time()
+
+
+def process_start_time() -> float:
+    """When this process started, in seconds since the epoch (Linux: ``/proc/self/stat``'s
+    start time after boot + ``/proc/stat``'s boot time); elsewhere when this module was
+    imported."""
+    try:
+        stat = Path("/proc/self/stat").read_text()
+        ticks = int(stat.rsplit(")", 1)[1].split()[19])  # field 22: starttime, in clock ticks after boot
+        boot = next(int(ln.split()[1]) for ln in Path("/proc/stat").read_text().splitlines() if ln.startswith("btime "))
+        return boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return _IMPORTED
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Remove the ``*.tmp-*`` files in ``folder`` last written before this process started:
+    what a killed cache build left (a build under way holds :func:`data_dir_lock`, which the
+    caller holds, and writes after its own start). Each one is named in a warning."""
+    started = process_start_time()
+    removed = []
+    for tmp in sorted(folder.glob("*.tmp-*")) if folder.is_dir() else []:
+        try:
+            if tmp.is_file() and tmp.stat().st_mtime < started:
+                tmp.unlink()
+                removed.append(tmp)
+                log.warning("removed %s: a temporary file of a preparation that did not finish", tmp)
+        except FileNotFoundError:
+            continue
+    return removed
+
+
 @dataclass(frozen=True)
 class TrialRef:
     name: str
@@ -304,13 +337,15 @@ def _n_raw_trials(path: Path) -> int:
 
 def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
     """Simulate the missing trials (simulator source, ``simulate=True``), build or find the
-    caches and list the usable trials, all under :func:`data_dir_lock`.
+    caches and list the usable trials, all under :func:`data_dir_lock` (which first removes
+    the temporary files a killed build left: :func:`remove_stale_temporaries`).
 
     ``simulate=False`` (a DDP rank whose rank 0 prepared the scene) only finds the caches:
     their keys are deterministic, so nothing is recomputed when they exist."""
     from embodied_tactile.data.cache import build_cache, verify_cache
 
     with data_dir_lock(Path(scene.data_dir)):
+        remove_stale_temporaries(scene.cache_dir)
         simulated = 0
         if scene.source == "simulated" and simulate:
             from embodied_tactile.sim import generate_dataset
