@@ -134,7 +134,8 @@ def train(cfg: DictConfig, run_dir: str) -> float | None:
         # loads; the DataModule does each once, so fit() below does not repeat it
         datamodule.prepare_data()
         if resuming and trainer.global_rank == 0:  # a resume continues on the data the run was trained on
-            changed = runtime.data_changes(trained_on, runtime.data_identity(getattr(datamodule, "cache_files", {})))
+            changed = runtime.data_changes(trained_on, runtime.data_identity(
+                getattr(datamodule, "cache_files", {}), runtime.trial_digests(datamodule)))
             if changed:
                 raise runfolder.RunFolderError(
                     f"run folder {run_dir} was trained on other data: {'; '.join(changed)}; refusing to resume it "
@@ -146,7 +147,9 @@ def train(cfg: DictConfig, run_dir: str) -> float | None:
             runtime.save_provenance(cfg, run_dir)
         metrics["data_prepare_s"] = time.perf_counter() - t0
         if trainer.global_rank == 0 and getattr(datamodule, "cache_files", None):  # evaluate.py compares with it
-            runtime.record_data_identity(run_dir, datamodule.cache_files)
+            split = runfolder.served_split(datamodule)  # per trial of the run's split: others may change freely
+            runtime.record_data_identity(run_dir, datamodule.cache_files, runtime.trial_digests(datamodule),
+                                         [n for side in (split or {}).values() for n in side] if split else None)
         if trainer.global_rank == 0:  # from here the folder's run changes: a kill -9 leaves "running" (evaluate.py: killed)
             write_json(f"{run_dir}/metrics.json", metrics)
         t0 = time.perf_counter()

@@ -379,7 +379,9 @@ def test_changed_raw_data_is_refused_or_named_at_evaluation(fast_data_dir, tmp_p
     res = run_train(f"paths.data_dir={data}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
                     "trainer.max_epochs=2", check=False, timeout=240)
     assert res.returncode == 2, res.stderr[-2000:]
-    assert res.stderr.strip().splitlines()[-1].startswith(f"train.py: error: run folder {run} was trained on other data: {raw}")
+    last = res.stderr.strip().splitlines()[-1]  # named per trial of the run, with its raw file
+    assert last.startswith(f"train.py: error: run folder {run} was trained on other data: trial obj") and str(raw) in last
+    assert "its acc data or attributes changed since training" in last
     assert _digests(run, ("metrics.json", "config_resolved.yaml", "provenance.json")) == before
     assert evaluate_cli([str(run), *EVAL_FAST, "allow_changed_data=true"]) == 0
     out = capsys.readouterr()

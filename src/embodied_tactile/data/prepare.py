@@ -307,6 +307,9 @@ class PreparedData:
     excluded_incomplete: list[str] = field(default_factory=list)
     simulated: int = 0
     cache_built: list[str] = field(default_factory=list)
+    #: ``{field: {trial: digest}}`` of every valid raw trial (its name, attributes and the
+    #: bytes that field reads): a run's data identity per trial (runtime.data_identity)
+    trial_digests: dict[str, dict[str, str]] = field(default_factory=dict)
 
     def summary(self) -> str:
         """Multi-line report (printed by the CLI)."""
@@ -366,8 +369,9 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
             simulated = _n_raw_trials(raw) - before
         raw_paths = [str(p) for p in scene.raw_paths]  # recorded: raises for a missing file or an empty pattern
         existing = set(scene.cache_dir.glob("*.h5")) if scene.cache_dir.exists() else set()
+        digests: dict[str, dict[str, str]] = {}
         files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=tuple(scene.fields),
-                            workers=scene.preprocess_workers, strict=scene.strict)
+                            workers=scene.preprocess_workers, strict=scene.strict, trial_digests=digests)
         # a cache found (not built now) is checked once per preparation: each array against its crc32
         damaged = {fld: bad for fld, path in files.items() if Path(path) in existing and (bad := verify_cache(path))}
         if damaged:  # set the damaged files aside (kept) and rebuild those fields from the raw files
@@ -381,7 +385,7 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
     trials, skipped, incomplete = list_trials(scene, cache_files, raw_paths)
     return PreparedData(scene=scene, raw_files=raw_paths, cache_files=cache_files, trials=trials, skipped=skipped,
                         excluded_incomplete=incomplete, simulated=simulated,
-                        cache_built=[k for k, v in files.items() if Path(v) not in existing])
+                        cache_built=[k for k, v in files.items() if Path(v) not in existing], trial_digests=digests)
 
 
 def _set_aside(path: Path) -> Path:

@@ -170,7 +170,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     from embodied_tactile.modality import Modality
     from embodied_tactile.eval.figures import read_history
     from embodied_tactile.eval.targets import encode_split
-    from embodied_tactile.runtime import data_changes, data_identity
+    from embodied_tactile.runtime import data_changes, data_identity, trial_digests
 
     t_run = time.perf_counter()
     cfg = run.cfg
@@ -185,7 +185,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
 
     def same_data(dm) -> None:  # the raw data's digests now against those recorded at training
         data_changed[:] = data_changes(read_json(run.run_dir / "provenance.json").get("raw_data"),
-                                       data_identity(dm.cache_files))
+                                       data_identity(dm.cache_files, trial_digests(dm)))
         if data_changed and not opts.allow_changed_data:
             raise EvaluationError(f"{run.run_dir}: the data differ from those it was trained on: "
                                   f"{'; '.join(data_changed)}; the run's numbers would not be reproduced "
