@@ -79,6 +79,38 @@ def _is_rank_zero() -> bool:
     return all(os.environ.get(v, "0") in ("", "0") for v in ("LOCAL_RANK", "RANK", "NODE_RANK"))
 
 
+def try_lock(path: str | os.PathLike, shared: bool = False) -> tuple[int | None, dict]:
+    """A non-blocking ``flock`` on the file ``path`` (created when absent, unless ``shared``:
+    a probe that never creates it). -> ``(fd, {})`` when taken (closing the fd releases
+    it; -1 for a probe of a file that does not exist), ``(None, holder)`` when another process holds it (``holder``: what that process
+    recorded in the file, :func:`write_holder`; ``{}`` when unreadable or absent)."""
+    try:
+        fd = os.open(path, os.O_RDONLY if shared else os.O_RDWR | os.O_CREAT, 0o644)
+    except FileNotFoundError:
+        if not shared:
+            raise
+        return -1, {}  # no lock file: nobody holds it
+    try:
+        fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
+    except OSError as err:
+        os.close(fd)
+        if err.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+            raise
+        try:
+            holder = json.loads(Path(path).read_text() or "{}")
+        except (OSError, ValueError):
+            holder = {}
+        return None, holder if isinstance(holder, dict) else {}
+    return fd, {}
+
+
+def write_holder(fd: int) -> None:
+    """Record this process (pid, host, start time) in a lock file it holds."""
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode(), 0)
+
+
 def lock(run_dir: str | os.PathLike, record: bool = True) -> None:
     """Hold ``<run_dir>/.lock`` for the rest of this process (idempotent). RunFolderError
     naming the holder when another process holds it. ``record=False`` leaves the file's
@@ -88,18 +120,8 @@ def lock(run_dir: str | os.PathLike, record: bool = True) -> None:
     if str(run_dir) in _held or not _is_rank_zero():
         return
     run_dir.mkdir(parents=True, exist_ok=True)
-    path = run_dir / LOCK_FILE
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as err:
-        os.close(fd)
-        if err.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-            raise
-        try:
-            holder = json.loads(path.read_text() or "{}")
-        except (OSError, ValueError):
-            holder = {}
+    fd, holder = try_lock(run_dir / LOCK_FILE)
+    if fd is None:
         raise RunFolderError(
             f"run folder {run_dir} is in use by another training (pid {holder.get('pid', '?')} on host "
             f"{holder.get('host', '?')}, started {holder.get('started', '?')}); wait for it to end or give "
@@ -113,11 +135,8 @@ def record_holder(run_dir: str | os.PathLike) -> None:
     """Write this process (pid, host, start time) into the lock file it holds (what a
     refused second start names)."""
     fd = _held.get(str(Path(run_dir).resolve()))
-    if fd is None:
-        return
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
-                              "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode(), 0)
+    if fd is not None:
+        write_holder(fd)
 
 
 def training_holder(run_dir: str | os.PathLike) -> dict | None:
@@ -125,25 +144,13 @@ def training_holder(run_dir: str | os.PathLike) -> dict | None:
     it recorded itself), or None when no process holds it. A probe: a shared lock taken and
     dropped at once (a killed training's lock is gone with its process)."""
     run_dir = Path(run_dir)
-    path = run_dir / LOCK_FILE
     if str(run_dir.resolve()) in _held:
         return {"pid": os.getpid(), "host": socket.gethostname(), "started": "?"}
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError as err:
-        if err.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-            raise
-        try:
-            holder = json.loads(path.read_text() or "{}")
-        except (OSError, ValueError):
-            holder = {}
+    fd, holder = try_lock(run_dir / LOCK_FILE, shared=True)
+    if fd is None:
         return {k: holder.get(k, "?") for k in ("pid", "host", "started")}
-    finally:
-        os.close(fd)  # drops the probe's shared lock too
+    if fd >= 0:
+        os.close(fd)  # drops the probe's shared lock
     return None
 
 

@@ -351,25 +351,16 @@ class OwnedOutput:
         self._fd: int | None = None
 
     def __enter__(self) -> Path:
-        import errno
-        import fcntl
         import shutil
-        import socket
+
+        from embodied_tactile.runfolder import try_lock, write_holder
 
         self.out.parent.mkdir(parents=True, exist_ok=True)
-        lock = self.out.with_name(f".{self.out.name}.lock")
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as err:
-            os.close(fd)
-            if err.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                raise
-            holder = read_json(lock)
+        fd, holder = try_lock(self.out.with_name(f".{self.out.name}.lock"))
+        if fd is None:
             raise EvaluationError(f"{self.out} is being written by another evaluation (pid {holder.get('pid', '?')} "
-                                  f"on host {holder.get('host', '?')}); wait for it, or give another out=") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname()}).encode(), 0)
+                                  f"on host {holder.get('host', '?')}); wait for it, or give another out=")
+        write_holder(fd)
         self._fd = fd
         for stale in self.out.parent.glob(f".{self.out.name}.tmp-*"):  # the lock says no writer is alive
             log.warning("removing %s: an evaluation that did not finish", stale)
