@@ -9,10 +9,13 @@ Each run folder (logs/train/runs/<time> or the multirun sub-folder named after i
 overrides) holds the resolved config, checkpoints/last.ckpt and the best checkpoint,
 metrics.json, split.json and provenance.json (git commit, package versions, raw data digests).
 Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt; the folder
-is locked while a training runs, and a restart with settings that shape the model or the
-data differently is refused (embodied_tactile.runfolder). Exit codes: 0 finished, 2 bad
-setting or refused start, 130 / 143 SIGINT / SIGTERM (last.ckpt saved, "interrupted"),
-74 a checkpoint could not be written, 1 any other failure.
+is locked while a training runs, and a restart with settings, split or data (per trial) that
+differ, or with fewer epochs than its checkpoint's, is refused; the same command on a
+finished run changes nothing (embodied_tactile.runfolder). Exit codes: 0 finished (or
+already finished), 2 bad setting or refused start, 130 / 143 SIGINT / SIGTERM (last.ckpt
+saved after the step under way, "interrupted"), 74 a checkpoint could not be written, 1 any
+other failure; a multirun runs every job and exits 1 when one did not finish (its table
+says why).
 """
 
 from __future__ import annotations
