@@ -663,6 +663,13 @@ def test_evaluation_output_is_owned_and_published_whole(tmp_path):
         second.publish()
     assert sorted(p.name for p in out.iterdir()) == ["results.json"] and (out / "results.json").read_text() == "new"
     assert sorted(p.name for p in out.parent.iterdir()) == [".evaluation.lock", "evaluation"]
+    mine = tmp_path / "mine"  # out= naming a folder of other files: never replaced
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    with pytest.raises(EvaluationError, match=rf"{mine} holds files of something other than an evaluation"):
+        with OwnedOutput(mine):
+            pass
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
 
 
 @pytest.mark.slow  # finished_run: a train.py subprocess, then evaluations

@@ -343,7 +343,8 @@ class OwnedOutput:
     ``__enter__`` returns); :meth:`publish` renames it into place once complete (a previous
     folder is renamed aside first, then removed): the folder is never half written nor a mix
     of two evaluations. A failure leaves the previous folder as it was; a killed evaluation's
-    temporary folder is removed by the next one."""
+    temporary folder is removed by the next one. A folder that is not an evaluation's (no
+    ``evaluation.json`` / ``results.json``) is never replaced: refused."""
 
     def __init__(self, out: Path) -> None:
         self.out = Path(out)
@@ -362,6 +363,12 @@ class OwnedOutput:
                                   f"on host {holder.get('host', '?')}); wait for it, or give another out=")
         write_holder(fd)
         self._fd = fd
+        if self.out.is_dir() and any(self.out.iterdir()) and not (
+                (self.out / "evaluation.json").is_file() or (self.out / "results.json").is_file()):
+            self.__exit__()
+            raise EvaluationError(f"{self.out} holds files of something other than an evaluation (no evaluation.json "
+                                  "or results.json): an evaluation replaces its whole output folder; give a new or "
+                                  "empty out=")
         for stale in self.out.parent.glob(f".{self.out.name}.tmp-*"):  # the lock says no writer is alive
             log.warning("removing %s: an evaluation that did not finish", stale)
             shutil.rmtree(stale, ignore_errors=True)
