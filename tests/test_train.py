@@ -338,10 +338,12 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(data_dir, tmp_path):
     before = last.read_bytes()
     from embodied_tactile.data.cache import _crc
 
-    for cache in (d / "cache").glob("acc-*.h5"):  # overflowing inputs with valid checksums (not a damaged cache)
+    # overflowing inputs with valid checksums (not a damaged cache), not constant (a constant
+    # channel is refused before training: ConstantChannelError)
+    for cache in (d / "cache").glob("acc-*.h5"):
         with h5py.File(cache, "a") as f:
             for g in f["trials"].values():
-                g["acc"][...] = 1e30
+                g["acc"][...] = g["acc"][()] * 1e30 + 1e30
                 g["acc"].attrs["crc32"] = _crc(g["acc"][()])
     res = run_train(*base, "trainer.max_epochs=3", check=False)
     assert res.returncode != 0
