@@ -770,3 +770,19 @@ def test_stop_saves_after_the_step_under_way_before_any_validation_or_check(tmp_
     ck = torch.load(last, map_location="cpu", weights_only=False)
     assert ck["global_step"] == 3  # the step under way (the third) finished and is in last.ckpt
     assert torch.equal(ck["state_dict"]["lin.weight"], model.lin.weight.detach())
+
+
+def test_evaluation_refuses_a_split_with_a_trial_on_two_sides(tmp_path):
+    """Fault: a run's split.json edited so that a test trial is also a training trial.
+    Before: evaluated, its scores including a trial the alignment was fitted on. Now:
+    EvaluationError (exit 2) naming the file and the trial."""
+    from embodied_tactile.eval.pipeline import parse_options
+    from embodied_tactile.eval.runs import EvaluationError, Run, data_config
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "split.json").write_text(json.dumps({"train": ["a", "b"], "val": [], "test": ["b", "c"]}))
+    r = Run(run_dir=run, ckpt=run / "checkpoints" / "last.ckpt",
+            cfg=OmegaConf.create({"data": {"data_dir": str(tmp_path), "source": "simulated"}}))
+    with pytest.raises(EvaluationError, match=rf"{run / 'split.json'} puts 1 trial\(s\) on two sides \(b \(train and test\)\)"):
+        data_config(r, parse_options([]))
