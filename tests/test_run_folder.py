@@ -666,7 +666,7 @@ def test_evaluation_output_is_owned_and_published_whole(tmp_path):
     mine = tmp_path / "mine"  # out= naming a folder of other files: never replaced
     mine.mkdir()
     (mine / "notes.txt").write_text("keep")
-    with pytest.raises(EvaluationError, match=rf"{mine} holds files of something other than an evaluation"):
+    with pytest.raises(EvaluationError, match=rf"{mine} holds files an evaluation does not write \(notes.txt\)"):
         with OwnedOutput(mine):
             pass
     assert [p.name for p in mine.iterdir()] == ["notes.txt"]
@@ -702,7 +702,8 @@ def test_evaluation_knows_the_runs_state(finished_run, tmp_path, evaluate_cli, c
     (run / "metrics.json").write_text(json.dumps({**metrics, "status": "interrupted", "stopped_by": "SIGTERM"}))
     assert evaluate_cli([str(run), *EVAL_FAST]) == 0
     first = capsys.readouterr().out.splitlines()[0]
-    assert first.startswith(f"evaluate.py: run {run} is interrupted (stopped by SIGTERM); evaluating checkpoint ")
+    assert first.startswith(f"evaluate.py: run {run} is interrupted (stopped by SIGTERM, final read-out not done); "
+                            "evaluating checkpoint ")
     for name in ("results.json", "evaluation.json"):
         blob = json.loads((run / "evaluation" / name).read_text())
         state = blob["run_states"][str(run)] if name == "results.json" else blob["runs"][0]["run_state"]

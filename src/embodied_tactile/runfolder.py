@@ -696,7 +696,10 @@ def best_checkpoint(run_dir: str | os.PathLike) -> tuple[Path, dict] | None:
     scored = []
     for path in sorted(p for p in (Path(run_dir) / "checkpoints").glob("*.ckpt") if p.is_file()):
         ck = _checkpoint_header(path)
-        rec = monitored(ck) if ck is not None else None
+        if ck is None:
+            log.warning("%s: not a readable Lightning checkpoint; left out of the choice of the best", path)
+            continue
+        rec = monitored(ck)
         if rec is not None:
             scored.append((path, rec))
     if not scored:

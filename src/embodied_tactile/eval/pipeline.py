@@ -336,6 +336,12 @@ def output_folder(target: Path, runs: list[Run], kind: str, opts: DictConfig, se
     return out
 
 
+def _written_by_evaluation(path: Path) -> bool:
+    """What an evaluation writes in its output folder (:func:`write_report`, evaluation.json)."""
+    return (path.name in ("results.json", "evaluation.json") or (path.name == "figures" and path.is_dir())
+            or (path.name.startswith("table_") and path.suffix in (".md", ".csv", ".tex")))
+
+
 class OwnedOutput:
     """An evaluation owns its output folder. A lock beside it (``.<name>.lock``, held while
     the evaluation runs): a second evaluation into the same folder is refused, naming the
@@ -343,8 +349,8 @@ class OwnedOutput:
     ``__enter__`` returns); :meth:`publish` renames it into place once complete (a previous
     folder is renamed aside first, then removed): the folder is never half written nor a mix
     of two evaluations. A failure leaves the previous folder as it was; a killed evaluation's
-    temporary folder is removed by the next one. A folder that is not an evaluation's (no
-    ``evaluation.json`` / ``results.json``) is never replaced: refused."""
+    temporary folder is removed by the next one. A folder holding anything an evaluation does
+    not write (out= naming a folder of other files) is never replaced: refused."""
 
     def __init__(self, out: Path) -> None:
         self.out = Path(out)
@@ -363,12 +369,12 @@ class OwnedOutput:
                                   f"on host {holder.get('host', '?')}); wait for it, or give another out=")
         write_holder(fd)
         self._fd = fd
-        if self.out.is_dir() and any(self.out.iterdir()) and not (
-                (self.out / "evaluation.json").is_file() or (self.out / "results.json").is_file()):
+        foreign = sorted(p.name for p in self.out.iterdir() if not _written_by_evaluation(p)) if self.out.is_dir() else []
+        if foreign:
             self.__exit__()
-            raise EvaluationError(f"{self.out} holds files of something other than an evaluation (no evaluation.json "
-                                  "or results.json): an evaluation replaces its whole output folder; give a new or "
-                                  "empty out=")
+            raise EvaluationError(f"{self.out} holds files an evaluation does not write ({', '.join(foreign[:3])}"
+                                  f"{' ...' if len(foreign) > 3 else ''}): an evaluation replaces its whole output "
+                                  "folder; give a new or empty out=")
         for stale in self.out.parent.glob(f".{self.out.name}.tmp-*"):  # the lock says no writer is alive
             log.warning("removing %s: an evaluation that did not finish", stale)
             shutil.rmtree(stale, ignore_errors=True)
