@@ -101,11 +101,11 @@ CORRUPTIONS = {
     "rate_declared_higher": (lambda g: g.attrs.__setitem__("fs_tactile", 1400.0), "tactile/t", "declares 1400 Hz"),
     "rate_declared_lower": (lambda g: g.attrs.__setitem__("fs_tactile", 350.0), "tactile/t", "declares 350 Hz"),
     "pose_rate_declared_lower": (lambda g: g.attrs.__setitem__("fs_pose", 50.0), "pose/t", "attrs/fs_pose declares 50 Hz"),
-    # continuity: a clock jumping forward with no lost packet recorded; a pose log that starts late
+    # continuity: a clock jumping forward with no lost packet recorded; a pose log with a hole
     "gap_without_lost_packet": (lambda g: g["tactile/t"].__setitem__(slice(400, None), g["tactile/t"][400:] + 1.0),
                                 "tactile/t", "1 gap(s) longer than 0.5 s; the first 1 s before sample 400"),
-    "pose_log_starts_late": (lambda g: g["pose/t"].__setitem__(slice(None), g["pose/t"][()] + 0.9),
-                             "pose/t", "covers 0.9 .. 1.89 s, the tactile clock 0 .. 0.9986 s"),
+    "pose_log_gap": (lambda g: g["pose/t"].__setitem__(slice(50, None), g["pose/t"][50:] + 0.6),
+                     "pose/t", "1 gap(s) longer than 0.5 s; the first 0.61 s before sample 50"),
     # physical attributes outside their documented ranges (NaN, "unknown", is allowed)
     "amplitude_huge": (lambda g: g.attrs.__setitem__("amplitude", 1e9), "attrs/amplitude", "outside the documented range [0, 100]"),
     "spatial_frequency_inf": (lambda g: g.attrs.__setitem__("spatial_frequency", np.inf), "attrs/spatial_frequency", "outside the documented range"),

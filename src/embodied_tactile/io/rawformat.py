@@ -22,8 +22,8 @@ the files of one dataset (``check_unique_names``).
 Every problem is reported as a :class:`TrialFormatError` naming file, trial and field.
 A declared rate (``fs_tactile``, ``fs_pose``) must match its timestamps (``tactile/t``,
 ``baseline/t``, ``pose/t``) within ``RATE_TOLERANCE`` (:func:`_check_rate`); a clock may not
-jump forward by more than :func:`gap_limit` where no lost packet is recorded, and the pose
-log must cover the tactile clock within the same tolerance (:func:`_check_continuity`).
+jump forward by more than :func:`gap_limit` where no lost packet is recorded, the pose log's
+clock included (:func:`_check_continuity`).
 A bad trial is skipped with a warning (``strict=True`` makes it fatal); it never takes the
 other trials of the file down.
 """
@@ -116,8 +116,8 @@ RATE_ATTRS: Mapping[str, str] = {"t": "fs_tactile", "baseline_t": "fs_tactile", 
 RATE_TOLERANCE = 0.2
 #: Continuity of a clock: a step longer than ``max(MAX_GAP_S, GAP_STEPS / fs)`` is a gap,
 #: accepted only where the trial's lost-packet positions (``tactile/lost_at``,
-#: ``baseline/lost_at``) record a lost packet at the sample after it; the pose log must
-#: cover the tactile clock to within the same tolerance (``fs`` = ``fs_pose``) at both ends.
+#: ``baseline/lost_at``) record a lost packet at the sample after it (the pose log, which
+#: has none, may have no gap).
 MAX_GAP_S = 0.5
 GAP_STEPS = 10
 
@@ -489,9 +489,10 @@ def gap_limit(declared: float | None) -> float:
 
 
 def _check_continuity(file: str, name: str, data: Mapping[str, np.ndarray], attrs: Mapping[str, Any] | None) -> None:
-    """Gaps in each clock beyond :func:`gap_limit` that no lost packet explains, and a pose
-    log that does not cover the tactile clock: TrialFormatError naming the clock, the sample
-    and the sizes."""
+    """Gaps in each clock (the pose log's included) beyond :func:`gap_limit` that no lost
+    packet explains: TrialFormatError naming the clock, the sample and the sizes. (Whether
+    the pose log covers the part of the tactile clock a scene uses is the preprocessing's
+    check, which knows the window.)"""
     attrs = attrs or {}
     for clock, lost in (("t", "lost_at"), ("baseline_t", "baseline_lost_at"), ("pose_t", None)):
         t = data.get(clock)
@@ -510,16 +511,6 @@ def _check_continuity(file: str, name: str, data: Mapping[str, np.ndarray], attr
                 f"{after.size} gap(s) longer than {limit:.3g} s; the first {steps[i - 1]:.3g} s before sample {i} "
                 f"({float(t[i - 1]):.6g} s -> {float(t[i]):.6g} s), with no lost packet recorded there"
                 + (f" ({FIELDS[lost]})" if lost is not None else "") + " (rawformat.MAX_GAP_S / GAP_STEPS)")
-    t, pose_t = data.get("t"), data.get("pose_t")
-    if t is not None and pose_t is not None and len(t) and len(pose_t):
-        rate = attrs.get("fs_pose")
-        tol = gap_limit(float(rate) if rate else None)
-        if pose_t[0] > t[0] + tol or pose_t[-1] < t[-1] - tol:
-            raise TrialFormatError(
-                file, name, FIELDS["pose_t"],
-                f"covers {float(pose_t[0]):.4g} .. {float(pose_t[-1]):.4g} s, the tactile clock "
-                f"{float(t[0]):.4g} .. {float(t[-1]):.4g} s: more than {tol:.3g} s of touch without a pose "
-                "(rawformat.MAX_GAP_S / GAP_STEPS)")
 
 
 def _check_lost(file: str, name: str, fld: str, data: np.ndarray, n: int | None) -> None:
