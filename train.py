@@ -9,10 +9,13 @@ Each run folder (logs/train/runs/<time> or the multirun sub-folder named after i
 overrides) holds the resolved config, checkpoints/last.ckpt and the best checkpoint,
 metrics.json, split.json and provenance.json (git commit, package versions, raw data digests).
 Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt; the folder
-is locked while a training runs, and a restart with settings that shape the model or the
-data differently is refused (embodied_tactile.runfolder). Exit codes: 0 finished, 2 bad
-setting or refused start, 130 / 143 SIGINT / SIGTERM (last.ckpt saved, "interrupted"),
-74 a checkpoint could not be written, 1 any other failure.
+is locked while a training runs, and a restart with settings, split or data (per trial) that
+differ, or with fewer epochs than its checkpoint's, is refused; the same command on a
+finished run changes nothing (embodied_tactile.runfolder). Exit codes: 0 finished (or
+already finished), 2 bad setting or refused start, 130 / 143 SIGINT / SIGTERM (last.ckpt
+saved after the step under way, "interrupted"), 74 a checkpoint could not be written, 1 any
+other failure; a multirun runs every job and exits 1 when one did not finish (its table
+says why).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import embodied_tactile.config  # noqa: F401  registers the typed configs before Hydra composes
 from embodied_tactile import cli, quiet, runfolder, runtime, settings, summary
+from embodied_tactile.data.datamodule import ConstantChannelError
 from embodied_tactile.jsonio import read_json, write_json
 
 log = logging.getLogger("train")
@@ -41,17 +45,50 @@ log = logging.getLogger("train")
 def main(cfg: DictConfig) -> float | None:
     quiet.silence_third_party()
     run_dir = HydraConfig.get().runtime.output_dir
+    if HydraConfig.get().mode != RunMode.MULTIRUN:
+        return train(cfg, run_dir)
+    # a multirun job: a failure is recorded (<job>/.hydra/outcome.json) and the sweep goes on; it ends
+    # with a table of every job's status and reason, exit 1 when one did not finish (cli.EntryCallback)
+    try:
+        result = train(cfg, run_dir)
+    except SystemExit as done:
+        if done.code in (0, None):
+            return None
+        if done.code in (130, 143):  # a stop signal stops the sweep (exit 128 + signal: a scheduler requeues it)
+            summary.record_outcome(run_dir, "interrupted", f"stopped by {'SIGINT' if done.code == 130 else 'SIGTERM'}")
+            raise
+        summary.record_outcome(run_dir, "refused" if done.code == 2 else "failed",
+                               getattr(done, "message", "") or f"exit {done.code}")
+        return None
+    except Exception as err:  # noqa: BLE001 -- its traceback in the job's log, its reason in the table
+        log.exception("job failed: %s", run_dir)
+        summary.record_outcome(run_dir, "failed", f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}")
+        return None
+    finally:
+        runfolder.release(run_dir)  # the next job goes on in this process
+    status = read_json(f"{run_dir}/metrics.json").get("status", "unknown")
+    summary.record_outcome(run_dir, status, "" if status == "finished" else read_json(f"{run_dir}/metrics.json").get("error", ""))
+    return result
+
+
+def train(cfg: DictConfig, run_dir: str) -> float | None:
+    """One training in ``run_dir`` (train.py's recipe, top to bottom)."""
     try:  # one training per folder; a restart continues the same model and data (done at entry for single runs)
         runfolder.claim(cfg, run_dir)
     except runfolder.RunFolderError as err:
         cli.fail(err)
+    except runfolder.RunFinished as done:  # a multirun job (a single run stops at entry): nothing to train
+        log.info("%s", done)
+        print(f"train.py: {done}", flush=True)
+        return None
     try:  # cli.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
     except settings.SettingsError as err:
         if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
-            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}", "run_dir": run_dir})
+            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}"})
         cli.fail(err)
-    stop = runfolder.StopSignals().install()  # SIGTERM / SIGINT: last.ckpt, "interrupted", exit 143 / 130
+    # SIGTERM / SIGINT: last.ckpt after the step under way (no validation nor KRR check after it), "interrupted", exit 143 / 130
+    stop = runfolder.StopSignals(last_path=f"{run_dir}/checkpoints/last.ckpt").install()
     resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
     trained_on = read_json(f"{run_dir}/provenance.json").get("raw_data") if resuming else None
     if not resuming:
@@ -68,13 +105,14 @@ def main(cfg: DictConfig) -> float | None:
         log.info("compile_convs: the conv encoders / decoders of training steps run through torch.compile")
 
     callbacks = [runtime.HandOverStatistics()]  # the training split's statistics, from the data to the model
+    callbacks.append(runfolder.FolderCheckpoints())  # each checkpoint stores its own val/elbo; a moved folder resumes as it was
     callbacks += [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c is not None]
     if not loggers:  # logger=none: Lightning refuses a LearningRateMonitor without a logger
         from lightning.pytorch.callbacks import LearningRateMonitor
 
         callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
-    callbacks.append(stop)
+    callbacks.insert(0, stop)  # its hooks first: a stop is saved before any other callback's work
     plain = runtime.use_plain_progress(cfg.plain_progress)
     if plain:
         callbacks.append(runtime.PlainProgress())
@@ -94,7 +132,8 @@ def main(cfg: DictConfig) -> float | None:
         log.info("resuming from %s", ckpt_path)
     runtime.continue_logs(loggers, ckpt_path)  # csv/metrics.csv continues from that step
 
-    metrics: dict = {"status": "running", "run_dir": run_dir, "resumed_from": str(ckpt_path) if ckpt_path else None}
+    # paths relative to the run folder: a moved or copied folder names its own files
+    metrics: dict = {"status": "running", "resumed_from": runfolder.in_folder(run_dir, ckpt_path)}
     t0 = time.perf_counter()
     try:
         # data preparation is timed apart from training: prepare_data is the preparation stage
@@ -102,42 +141,62 @@ def main(cfg: DictConfig) -> float | None:
         # loads; the DataModule does each once, so fit() below does not repeat it
         datamodule.prepare_data()
         if resuming and trainer.global_rank == 0:  # a resume continues on the data the run was trained on
-            changed = runtime.data_changes(trained_on, runtime.data_identity(getattr(datamodule, "cache_files", {})))
+            changed = runtime.data_changes(trained_on, runtime.data_identity(
+                getattr(datamodule, "cache_files", {}), runtime.trial_digests(datamodule)))
             if changed:
                 raise runfolder.RunFolderError(
                     f"run folder {run_dir} was trained on other data: {'; '.join(changed)}; refusing to resume it "
                     "on these (give another hydra.run.dir for a new run)")
-            runtime.save_provenance(cfg, run_dir)
         datamodule.setup("fit")
+        if trainer.global_rank == 0:  # the split is the run's: a resume on another is refused, naming the trials
+            runfolder.keep_split(run_dir, datamodule, resuming)
+        if resuming and trainer.global_rank == 0:
+            runtime.save_provenance(cfg, run_dir)
         metrics["data_prepare_s"] = time.perf_counter() - t0
         if trainer.global_rank == 0 and getattr(datamodule, "cache_files", None):  # evaluate.py compares with it
-            runtime.record_data_identity(run_dir, datamodule.cache_files)
+            split = runfolder.served_split(datamodule)  # per trial of the run's split: others may change freely
+            runtime.record_data_identity(run_dir, datamodule.cache_files, runtime.trial_digests(datamodule),
+                                         [n for side in (split or {}).values() for n in side] if split else None)
+        if trainer.global_rank == 0:  # from here the folder's run changes: a kill -9 leaves "running" (evaluate.py: killed)
+            write_json(f"{run_dir}/metrics.json", metrics)
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     except runfolder.RunFolderError as err:  # refused before anything of the run was rewritten
+        cli.fail(err)
+    except ConstantChannelError as err:  # bad data, found before training: one line naming channel, layer, files
+        if not resuming:
+            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": str(err)})
         cli.fail(err)
     except BaseException as err:  # any failure: the folder must not look like a finished run
         status = "interrupted" if stop.received is not None else "failed"
         metrics.update(status=status, error=str(err) or type(err).__name__, error_type=type(err).__name__,
                        train_wall_s=time.perf_counter() - t0)
         if stop.received is not None:
-            metrics["stopped_by"] = stop.name
+            metrics.update(stopped_by=stop.name, final_readout=False)
+        if stop.saved is not None:
+            metrics.update(last_checkpoint=runfolder.in_folder(run_dir, stop.saved), step=stop.step)
         write_json(f"{run_dir}/metrics.json", metrics)
         if isinstance(err, FloatingPointError):  # the model's non-finite-loss guard: name step and term
             log.error("training stopped: %s (last good checkpoint kept in %s/checkpoints)", err, run_dir)
+        if stop.saved is not None:
+            log.error("%s: stopped after the optimiser step of step %d, %s saved (no validation or KRR check after "
+                      "the signal); start the same command again to resume; exit %d", stop.name, stop.step, stop.saved,
+                      stop.exit_code())
+            raise SystemExit(stop.exit_code()) from None
         if stop.received is not None:
             log.error("%s before training began: nothing new to save; exit %d", stop.name, stop.exit_code())
             raise SystemExit(stop.exit_code()) from None
         if isinstance(err, runfolder.CheckpointWriteError):  # disk full: one line, the previous file kept
             print(f"train.py: error: {err}", file=sys.stderr)
-            raise SystemExit(runfolder.EXIT_CHECKPOINT_WRITE) from None
+            raise cli.Exit(runfolder.EXIT_CHECKPOINT_WRITE, str(err)) from None
         raise
     metrics["train_wall_s"] = time.perf_counter() - t0
     stop.defer()
     if stop.received is not None:  # stopped between steps: the state of this step is the run's last.ckpt
         last = f"{run_dir}/checkpoints/last.ckpt"
         trainer.save_checkpoint(last)
-        metrics.update(status="interrupted", stopped_by=stop.name, last_checkpoint=last, step=trainer.global_step)
+        metrics.update(status="interrupted", stopped_by=stop.name, last_checkpoint=runfolder.in_folder(run_dir, last),
+                       step=trainer.global_step, final_readout=any(getattr(c, "final", None) for c in callbacks))
         write_json(f"{run_dir}/metrics.json", metrics)
         log.error("%s: stopped at step %d, %s saved; start the same command again to resume; exit %d",
                   stop.name, trainer.global_step, last, stop.exit_code())
@@ -158,10 +217,16 @@ def main(cfg: DictConfig) -> float | None:
         log.info("validation ELBO per sequence (final weights): %.4g", metrics["final_val"].get("val/elbo", float("nan")))
     for cb in trainer.checkpoint_callbacks:  # the monitored one keeps the best, the unmonitored one last.ckpt
         key = "best_checkpoint" if getattr(cb, "monitor", None) else "last_checkpoint"
-        metrics[key] = (cb.best_model_path if key == "best_checkpoint" else cb.last_model_path or cb.best_model_path) or None
+        path = (cb.best_model_path if key == "best_checkpoint" else cb.last_model_path or cb.best_model_path) or None
+        metrics[key] = runfolder.in_folder(run_dir, path)
+    best = runfolder.best_checkpoint(run_dir)  # over every checkpoint in the folder, by the value each one stores
+    if best is not None:
+        metrics["best_checkpoint"] = runfolder.in_folder(run_dir, best[0])
+        metrics["best_value"] = {best[1]["key"]: best[1]["value"]}
     metrics["data"] = datamodule.describe() if hasattr(datamodule, "describe") else {}
     metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
     metrics["status"] = "interrupted" if trainer.interrupted or stop.received is not None else "finished"
+    metrics["final_readout"] = metrics["krr_final"] is not None  # the run's final KRR alignment (callbacks.krr_alignment)
     if trainer.global_rank == 0:
         write_json(f"{run_dir}/metrics.json", metrics)
         log.info("run folder: %s", run_dir)

@@ -96,16 +96,21 @@ def test_unwritable_data_dir(tmp_path):
 
 
 @pytest.mark.slow  # train.py subprocess
-def test_swept_bad_value_fails_its_job_with_exit_2(tmp_path):
+def test_swept_bad_value_fails_its_job_and_the_sweep_says_so(tmp_path):
     """A value swept with -m reaches only the job: train.py checks again there and marks the
-    job folder failed."""
+    job folder failed; the other jobs still run, the sweep's table names each refused job
+    with its reason, exit 1."""
     sweep = tmp_path / "multi"
     res = train(tmp_path, "-m", f"paths.data_dir={tmp_path / 'data'}", "trainer.max_epochs=abc",
                 f"hydra.sweep.dir={sweep}")
     _one_line_exit_2(res, "trainer.max_epochs='abc'")  # caught before the sweep starts
     res = train(tmp_path, "-m", f"paths.data_dir={tmp_path / 'data'}", "seed=x,y", f"hydra.sweep.dir={sweep}")
-    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert res.returncode == 1 and "Traceback" not in res.stderr
     assert "train.py: error: seed='x' (str): expected an integer" in res.stderr
+    assert "train.py: error: seed='y' (str): expected an integer" in res.stderr  # the second job ran too
+    rows = [ln.split(None, 2) for ln in res.stdout.splitlines() if ln.strip().startswith("seed=")]
+    assert [(r[0], r[1]) for r in rows] == [("seed=x", "refused"), ("seed=y", "refused")]
+    assert all("expected an integer" in r[2] for r in rows)
     job = json.loads((sweep / "seed=x" / "metrics.json").read_text())
     assert job["status"] == "failed" and "seed='x'" in job["error"]
     assert not (sweep / "seed=x" / "config_resolved.yaml").exists()

@@ -173,3 +173,82 @@ def test_large_population_needs_the_flag_and_shows_its_estimate(tmp_path):
         check_train_config(cfg)
     cfg.data.allow_large_population = True
     check_train_config(cfg)
+
+
+def test_constant_statistics_name_the_channel_and_files(tiny_data_dir):
+    """The check itself, on the tiny scene's acc data with its training statistics replaced
+    by a constant and by a non-finite channel."""
+    import numpy as np
+
+    from conftest import tiny_datamodule
+    from embodied_tactile.data.datamodule import ConstantChannelError
+    from embodied_tactile.data.statistics import DataStatistics
+
+    dm = tiny_datamodule(tiny_data_dir, ["acc"])
+    dm.prepare_data()
+    dm.setup("test")
+    for mean, std, what in ((3.0, 0.0, "constant"), (float("nan"), float("nan"), "not finite")):
+        with pytest.raises(ConstantChannelError, match=rf"^channel acc \(cached field acc, raw dataset tactile/acc\) of "
+                                                        rf"the modality's channels \['acc'\] is {what} over the \d+ "
+                                                        rf"training trials .* in raw file\(s\) {dm.raw_paths[0]}"):
+            dm._check_statistics(DataStatistics(np.array([mean]), np.array([std]), 6))
+    dm._check_statistics(DataStatistics(np.array([0.0]), np.array([1.0]), 6))
+
+
+@pytest.mark.slow  # builds the fsr cache of the tiny scene (~45 s)
+def test_a_constant_channel_is_named_with_its_layer_modality_and_file(tiny_data_dir, tmp_path):
+    """Fault: the bottom FSR layer reads one value in every trial (a dead layer). Before:
+    ValueError "input stats must be finite with std > 0, got mean [..], std [.., 0.0]" from
+    inside Lightning's fit, a traceback naming no channel, layer or file. Now: the data
+    module's set-up raises ConstantChannelError naming the channel, its layer, cached field,
+    raw dataset, the modality's channels and the raw file."""
+    import shutil
+
+    import h5py
+
+    from conftest import tiny_datamodule
+    from embodied_tactile.data.datamodule import ConstantChannelError
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_data_dir / "raw", data / "raw")
+    raw = data / "raw" / "soft_pressing.h5"
+    with h5py.File(raw, "a") as f:
+        for g in f["trials"].values():
+            g["tactile/fsr"][:, 1] = 512
+    dm = tiny_datamodule(data, ["fsr_t", "fsr_b"])
+    dm.prepare_data()
+    with pytest.raises(ConstantChannelError) as err:
+        dm.setup("fit")
+    msg = str(err.value)
+    assert msg.startswith("channel fsr_b (layer 1 of cached field fsr, raw dataset tactile/fsr) of the modality's "
+                          "channels ['fsr_t', 'fsr_b'] is constant over the ")
+    assert str(raw) in msg and dm.statistics is None
+
+
+def test_stale_temporary_files_of_a_killed_preparation_are_removed(tiny_data_dir, tmp_path, caplog):
+    """Fault: a cache build killed (kill -9) before its rename, leaving <field>-<key>.h5.tmp-<pid>-<id>
+    in the cache folder. Before: the file stayed for good (hundreds of MB per field on the
+    recorded data). Now: the next preparation removes each one last written before its own
+    process started, naming it; a newer one (another build's, under the lock) stays."""
+    import os
+    import shutil
+    import time
+
+    from conftest import tiny_scene
+    from embodied_tactile.data.prepare import prepare_scene, process_start_time
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_data_dir / "raw", data / "raw")
+    (data / "cache").mkdir()
+    stale = data / "cache" / "acc-0123456789abcdef.h5.tmp-4242-deadbeef"
+    stale.write_bytes(b"half a cache")
+    then = process_start_time() - 60
+    os.utime(stale, (then, then))
+    fresh = data / "cache" / "fsr-0123456789abcdef.h5.tmp-4243-cafef00d"
+    fresh.write_bytes(b"being written")
+    assert fresh.stat().st_mtime > process_start_time() and time.time() > process_start_time()
+    with caplog.at_level("WARNING"):
+        prepared = prepare_scene(tiny_scene(data, sim_workers=1))
+    assert not stale.exists() and fresh.exists()
+    assert f"removed {stale}" in caplog.text
+    assert prepared.trials

@@ -101,6 +101,11 @@ CORRUPTIONS = {
     "rate_declared_higher": (lambda g: g.attrs.__setitem__("fs_tactile", 1400.0), "tactile/t", "declares 1400 Hz"),
     "rate_declared_lower": (lambda g: g.attrs.__setitem__("fs_tactile", 350.0), "tactile/t", "declares 350 Hz"),
     "pose_rate_declared_lower": (lambda g: g.attrs.__setitem__("fs_pose", 50.0), "pose/t", "attrs/fs_pose declares 50 Hz"),
+    # continuity: a clock jumping forward with no lost packet recorded; a pose log with a hole
+    "gap_without_lost_packet": (lambda g: g["tactile/t"].__setitem__(slice(400, None), g["tactile/t"][400:] + 1.0),
+                                "tactile/t", "1 gap(s) longer than 0.5 s; the first 1 s before sample 400"),
+    "pose_log_gap": (lambda g: g["pose/t"].__setitem__(slice(50, None), g["pose/t"][50:] + 0.6),
+                     "pose/t", "1 gap(s) longer than 0.5 s; the first 0.61 s before sample 50"),
     # physical attributes outside their documented ranges (NaN, "unknown", is allowed)
     "amplitude_huge": (lambda g: g.attrs.__setitem__("amplitude", 1e9), "attrs/amplitude", "outside the documented range [0, 100]"),
     "spatial_frequency_inf": (lambda g: g.attrs.__setitem__("spatial_frequency", np.inf), "attrs/spatial_frequency", "outside the documented range"),
@@ -289,3 +294,22 @@ def test_unknown_factor_nan_passes_the_validator(three_trials):
     _corrupt(path, trials[1].name, lambda g: g.attrs.__setitem__("stiffness", np.nan))
     good, errors = rf.scan_raw(path, strict=True)
     assert len(good) == 3 and not errors
+
+
+def test_a_gap_is_accepted_where_a_lost_packet_is_recorded(tmp_path):
+    """A 0.6 s step in the tactile clock: a TrialFormatError naming the sample unless
+    tactile/lost_at records a lost packet at the sample after it (the recorder's timeouts);
+    a step within max(MAX_GAP_S, GAP_STEPS / fs) needs nothing."""
+    tr = make_trial(m=170)  # the pose log covers the longer clock
+    t = tr.t.copy()
+    t[400:] += 0.6
+    path = tmp_path / "raw.h5"
+    with pytest.raises(rf.TrialFormatError, match=r"tactile/t.*0\.601 s before sample 400 \(0\.57 s -> 1\.17143 s\), with no lost packet recorded "
+                                                  r"there \(tactile/lost_at\)"):
+        rf.write_trial(path, rf.RawTrial(**{**tr.__dict__, "t": t}))
+    rf.write_trial(path, rf.RawTrial(**{**tr.__dict__, "t": t, "lost_at": np.array([400])}))
+    assert rf.scan_raw(path, strict=True)[0][0].name == tr.name
+    t = tr.t.copy()
+    t[400:] += rf.gap_limit(C.FS_TACTILE) * 0.9
+    rf.write_trial(tmp_path / "small.h5", rf.RawTrial(**{**tr.__dict__, "t": t}))
+    assert rf.gap_limit(10.0) == 1.0 and rf.gap_limit(1000.0) == rf.MAX_GAP_S

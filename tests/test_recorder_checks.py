@@ -91,3 +91,46 @@ def test_second_recorder_on_a_running_port_is_refused(tmp_path, trial3s):
     rec = _read_cli(first_dir)
     assert rec.attrs["complete"] is True and emu.stats.requests > requests
     _check_genuine(trial3s, rec)
+
+
+def test_output_folder_vanishing_during_a_trial_exits_3_with_one_line(tmp_path, trial3s, monkeypatch, capsys,
+                                                                       restore_logging):
+    """Fault: the output folder is deleted (or its disk unmounted) while a trial records.
+    Before: a FileNotFoundError traceback from the room check (shutil.disk_usage), exit 2
+    as if the configuration were wrong. Now: the next flush finds the file gone, the trial stops (stop_reason output_vanished),
+    exit 3 and one line on stderr naming the file and what was lost."""
+    import shutil
+    import sys
+    import threading
+
+    from embodied_tactile import record
+
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    out = folder / "cli.obj40_soft_pressing_a00_r00.h5"
+
+    def remove_when_recording() -> None:
+        t_end = time.monotonic() + 20
+        while not out.exists() and time.monotonic() < t_end:
+            time.sleep(0.02)
+        time.sleep(0.6)
+        shutil.rmtree(folder)
+
+    emu = Emulator(trial3s)
+    port = emu.start()
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [
+        "record", f"port={port}", f"out={folder / 'cli.h5'}", "settle_s=0.1", "baseline_s=0", "duration_s=3",
+        f"hydra.run.dir={tmp_path / 'hydra'}", "record/device@device=ideal", "trial.object_id=40", "reserve_mb=0.25"])
+    remover = threading.Thread(target=remove_when_recording)
+    remover.start()
+    try:
+        with pytest.raises(SystemExit) as exc:
+            record.main()
+    finally:
+        remover.join()
+        emu.stop()
+    err = capsys.readouterr().err
+    assert exc.value.code == 3, err
+    assert err.count("\n") == 1 and err.startswith(f"record: error: {out}: the output file vanished during the trial")
+    assert not folder.exists()

@@ -197,6 +197,7 @@ def test_stop_signal_saves_last_checkpoint_and_exits_nonzero(fast_data_dir, tmp_
     assert proc.returncode == code, out[-3000:]
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["status"] == "interrupted" and metrics["stopped_by"] == signal.Signals(sig).name
+    assert metrics["final_readout"] is False and metrics["last_checkpoint"] == "checkpoints/last.ckpt"
     ck = torch.load(last, map_location="cpu", weights_only=False)
     assert ck["global_step"] == metrics["step"] > 0
     assert not list((run / "checkpoints").glob("*.tmp*"))
@@ -312,7 +313,7 @@ def test_copied_run_folder_never_reads_the_original_checkpoints(finished_run, tm
 
     copy = tmp_path / "copy"
     shutil.copytree(finished_run, copy)
-    assert json.loads((copy / "metrics.json").read_text())["best_checkpoint"].startswith(str(finished_run))
+    assert json.loads((copy / "metrics.json").read_text())["best_checkpoint"].startswith("checkpoints/")
     assert find_checkpoint(copy, "best").parent == copy / "checkpoints"
     shutil.rmtree(copy / "checkpoints")
     assert evaluate_cli([str(copy), *EVAL_FAST]) == 2
@@ -378,7 +379,9 @@ def test_changed_raw_data_is_refused_or_named_at_evaluation(fast_data_dir, tmp_p
     res = run_train(f"paths.data_dir={data}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
                     "trainer.max_epochs=2", check=False, timeout=240)
     assert res.returncode == 2, res.stderr[-2000:]
-    assert res.stderr.strip().splitlines()[-1].startswith(f"train.py: error: run folder {run} was trained on other data: {raw}")
+    last = res.stderr.strip().splitlines()[-1]  # named per trial of the run, with its raw file
+    assert last.startswith(f"train.py: error: run folder {run} was trained on other data: trial obj") and str(raw) in last
+    assert "its acc data or attributes changed since training" in last
     assert _digests(run, ("metrics.json", "config_resolved.yaml", "provenance.json")) == before
     assert evaluate_cli([str(run), *EVAL_FAST, "allow_changed_data=true"]) == 0
     out = capsys.readouterr()
@@ -411,3 +414,376 @@ def test_stop_signal_outside_the_training_steps_raises_and_inside_sets_should_st
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+# ----------------------------------------------------------------------------- a finished run is never rewritten
+def _fake_run(run: Path, *, epochs: int, steps: int, status: str = "finished", split: dict | None = None,
+              monitored: dict[str, float | None] | None = None) -> OmegaConf:
+    """A run folder as train.py leaves it (config, metrics.json, split.json, last.ckpt of
+    ``epochs`` epochs, a lock file naming an earlier holder), without training: its config."""
+    cfg = OmegaConf.create({"seed": 0, "resume": True, "modality": {"name": "acc"},
+                            "trainer": {"max_epochs": epochs, "max_steps": -1},
+                            "data": {"split_file": str(run / "split.json")}})
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg))
+    (run / "metrics.json").write_text(json.dumps({"status": status, "best_checkpoint": "checkpoints/best-epoch000.ckpt"}))
+    (run / "split.json").write_text(json.dumps(split or {"train": ["a", "b"], "val": ["c"], "test": ["d"]}))
+    (run / ".lock").write_text('{"pid": 1, "host": "earlier", "started": "then"}')
+    for name, value in (monitored or {"last.ckpt": None}).items():
+        torch.save({"state_dict": {}, "global_step": steps, "epoch": epochs - 1,
+                    "loops": {"fit_loop": {"epoch_progress": {"current": {"processed": epochs}}}},
+                    "monitored": {"key": "val/elbo", "mode": "max", "value": value, "step": steps}},
+                   run / "checkpoints" / name)
+    return cfg
+
+
+def _every_file(run: Path) -> dict[str, bytes]:
+    return {p.relative_to(run).as_posix(): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+def test_claim_of_a_finished_run_says_finished_refuses_fewer_epochs_and_continues_more(tmp_path):
+    """Faults: the same command again on a finished run; then fewer epochs than its
+    checkpoint's. Before: both trained (Lightning found nothing to do) and rewrote
+    metrics.json, provenance.json and train.log, exit 0. Now: RunFinished (train.py: exit 0)
+    and RunFolderError (exit 2), every byte of the folder as it was, the lock file included;
+    more epochs are claimed and continue."""
+    from embodied_tactile import runfolder
+
+    run = tmp_path / "run"
+    cfg = _fake_run(run, epochs=2, steps=8)
+    before = _every_file(run)
+    with pytest.raises(runfolder.RunFinished, match=rf"run folder {run} is finished \(2 epoch\(s\), step 8\)"):
+        runfolder.claim(cfg, run)
+    assert _every_file(run) == before
+    with pytest.raises(runfolder.RunFolderError, match=r"trained for 2 epoch\(s\).*trainer.max_epochs=1 asks for fewer"):
+        runfolder.claim(OmegaConf.merge(cfg, {"trainer": {"max_epochs": 1}}), run)
+    assert _every_file(run) == before
+    runfolder.claim(OmegaConf.merge(cfg, {"trainer": {"max_epochs": 3}}), run)  # more: claimed, the lock names us
+    try:
+        assert json.loads((run / ".lock").read_text())["pid"] == os.getpid()
+    finally:
+        runfolder.release(run)
+    interrupted = tmp_path / "interrupted"  # stopped inside its last epoch: the same command resumes it
+    runfolder.claim(_fake_run(interrupted, epochs=2, steps=7, status="interrupted"), interrupted)
+    runfolder.release(interrupted)
+
+
+@pytest.mark.slow  # finished_run: train.py subprocesses
+def test_same_command_on_a_finished_run_rewrites_nothing(finished_run, fast_data_dir, tmp_path):
+    """The same command on a finished run: one line saying so, exit 0, every file of the
+    folder bit for bit (.hydra/, train.log and .lock included). Fewer epochs: exit 2, one
+    line, nothing written. More epochs: the run continues from its last.ckpt."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    args = (f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
+            "callbacks.krr_alignment=null")
+    before = _every_file(run)
+    res = run_train(*args, timeout=120)
+    assert res.stdout.strip().splitlines()[-1].startswith(f"train.py: run folder {run} is finished (1 epoch(s)")
+    assert _every_file(run) == before
+    res = run_train(*args, "trainer.max_epochs=0", check=False, timeout=120)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr[-2000:]
+    assert res.stderr.startswith(f"train.py: error: run folder {run} holds a run trained for 1 epoch(s)")
+    assert _every_file(run) == before
+    run_train(*args, "trainer.max_epochs=2", timeout=240)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "finished" and metrics["resumed_from"] == "checkpoints/last.ckpt"
+    assert int(torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["epoch"]) == 1
+
+
+# ----------------------------------------------------------------------------- the split is part of the run
+def test_split_file_with_a_test_trial_in_training_is_refused_at_start(tmp_path):
+    """Fault: data.split_file names a trial both in train and in test. Before: the run
+    trained on a trial it was scored on. Now: RunFolderError (exit 2) before anything is
+    written, naming the trial and its sides."""
+    from embodied_tactile import runfolder
+
+    split = tmp_path / "split.json"
+    split.write_text(json.dumps({"train": ["a", "b"], "val": ["c"], "test": ["d", "b"]}))
+    run = tmp_path / "new"
+    cfg = OmegaConf.create({"seed": 0, "trainer": {"max_epochs": 1}, "data": {"split_file": str(split)}})
+    with pytest.raises(runfolder.RunFolderError, match=rf"split file {split} puts 1 trial\(s\) on two sides: b \(train and test\)"):
+        runfolder.claim(cfg, run)
+    assert [p.name for p in run.iterdir()] == [".lock"]  # the lock it took, released; nothing else
+
+
+def test_resume_on_another_split_is_refused_naming_the_trials_that_move(tmp_path):
+    """Fault: a resume given another split file (data.split_file may name any file). Before:
+    the run continued training on its former test trials. Now: RunFolderError naming each
+    trial that moves and its sides, the run's files as they were; a DataModule whose split
+    differs from split.json after setup is refused the same way."""
+    from types import SimpleNamespace
+
+    from embodied_tactile import runfolder
+
+    run = tmp_path / "run"
+    cfg = _fake_run(run, epochs=1, steps=2, status="interrupted")
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"train": ["a", "d"], "val": ["c"], "test": ["b"]}))
+    before = _every_file(run)
+    with pytest.raises(runfolder.RunFolderError, match=r"moves 2 trial\(s\): b: train -> test; d: test -> train"):
+        runfolder.claim(OmegaConf.merge(cfg, {"trainer": {"max_epochs": 2}, "data": {"split_file": str(other)}}), run)
+    assert _every_file(run) == before
+
+    def dm(**sides):
+        return SimpleNamespace(split_file=None, **{f"{k}_set": SimpleNamespace(trials=[SimpleNamespace(name=n) for n in v])
+                                                   for k, v in sides.items()})
+
+    runfolder.keep_split(run, dm(train=["a", "b"], val=["c"], test=["d"]), resuming=True)  # the same: fine
+    with pytest.raises(runfolder.RunFolderError, match=r"moves 1 trial\(s\): e: absent -> test"):
+        runfolder.keep_split(run, dm(train=["a", "b"], val=["c"], test=["d", "e"]), resuming=True)
+    with pytest.raises(runfolder.RunFolderError, match=r"a \(train and val\)"):
+        runfolder.keep_split(tmp_path / "fresh", dm(train=["a"], val=["a"], test=["d"]), resuming=False)
+
+
+def test_new_run_with_an_outside_split_file_keeps_a_copy(tmp_path):
+    from types import SimpleNamespace
+
+    from embodied_tactile import runfolder
+
+    outside = tmp_path / "mine.json"
+    outside.write_text(json.dumps({"train": ["a"], "val": [], "test": ["d"]}))
+    run = tmp_path / "run"
+    run.mkdir()
+    dm = SimpleNamespace(split_file=str(outside), train_set=SimpleNamespace(trials=[SimpleNamespace(name="a")]),
+                         val_set=SimpleNamespace(trials=[]), test_set=SimpleNamespace(trials=[SimpleNamespace(name="d")]))
+    runfolder.keep_split(run, dm, resuming=False)
+    assert json.loads((run / "split.json").read_text()) == json.loads(outside.read_text())
+
+
+# ----------------------------------------------------------------------------- a run folder knows where it is
+def test_best_is_chosen_over_every_checkpoint_by_its_stored_value(tmp_path, caplog):
+    """Fault: metrics.json names a best checkpoint (and a best-*.ckpt is the newest) whose
+    val/elbo is worse than another file's in the folder, e.g. after a resume in a moved
+    folder wrote a new "best". Before: the named / newest file was evaluated. Now: the file
+    whose own stored value is best, whatever its name; without stored values, the names."""
+    from embodied_tactile import runfolder
+    from embodied_tactile.eval.runs import find_checkpoint
+
+    run = tmp_path / "run"
+    _fake_run(run, epochs=3, steps=6, monitored={"best-epoch000.ckpt": -5.0, "epoch001.ckpt": -1.0,
+                                                 "best-epoch002.ckpt": -3.0, "last.ckpt": None})
+    os.utime(run / "checkpoints" / "best-epoch002.ckpt", (time.time() + 10, time.time() + 10))
+    (run / "checkpoints" / "broken.ckpt").write_bytes(b"\0" * 50)
+    path, rec = runfolder.best_checkpoint(run)
+    assert path.name == "epoch001.ckpt" and rec["value"] == -1.0 and rec["key"] == "val/elbo"
+    assert find_checkpoint(run, "best").name == "epoch001.ckpt"
+    assert find_checkpoint(run, "last").name == "last.ckpt"
+    old = tmp_path / "old"  # checkpoints written before the stored value: metrics.json's name, then the newest best*
+    _fake_run(old, epochs=1, steps=2, monitored={"best-epoch000.ckpt": None, "last.ckpt": None})
+    assert runfolder.best_checkpoint(old) is None and find_checkpoint(old, "best").name == "best-epoch000.ckpt"
+
+
+def test_checkpoint_states_of_a_moved_folder_point_into_it():
+    """Fault: a run folder moved before its resume. Before: Lightning dropped the monitored
+    callback's best score (its saved dirpath differs) and wrote a worse "best" beside the
+    real one. Now: the states are moved onto the folder's checkpoints/ before they load."""
+    from types import SimpleNamespace
+
+    from embodied_tactile.runfolder import FolderCheckpoints
+
+    cb = SimpleNamespace(state_key="MC{val}", dirpath="/new/run/checkpoints")
+    saved = {"dirpath": "/old/run/checkpoints", "best_model_path": "/old/run/checkpoints/best-epoch001.ckpt",
+             "best_k_models": {"/old/run/checkpoints/best-epoch001.ckpt": -1.0}, "kth_value": -1.0,
+             "last_model_path": "", "other": "/old/run/checkpoints-not/x"}
+    ck = {"callbacks": {"MC{val}": saved}}
+    FolderCheckpoints().on_load_checkpoint(SimpleNamespace(checkpoint_callbacks=[cb]), None, ck)
+    assert ck["callbacks"]["MC{val}"] == {
+        "dirpath": "/new/run/checkpoints", "best_model_path": "/new/run/checkpoints/best-epoch001.ckpt",
+        "best_k_models": {"/new/run/checkpoints/best-epoch001.ckpt": -1.0}, "kth_value": -1.0,
+        "last_model_path": "", "other": "/old/run/checkpoints-not/x"}
+
+
+@pytest.mark.slow  # finished_run: train.py subprocesses and an evaluation
+def test_moved_run_folder_resumes_and_evaluates_as_the_original(finished_run, fast_data_dir, tmp_path, evaluate_cli,
+                                                                 capsys):
+    """Fault: a run folder moved, then resumed and evaluated. Before: metrics.json named the
+    old folder's files, the resume wrote a second "best" (Lightning's best score dropped).
+    Now: metrics.json's paths are relative to the folder, one best file, and evaluation
+    reads the moved folder's own files."""
+    import shutil
+
+    first = tmp_path / "first"
+    shutil.copytree(finished_run, first)
+    metrics = json.loads((first / "metrics.json").read_text())
+    assert metrics["best_checkpoint"].startswith("checkpoints/best-") and metrics["last_checkpoint"] == "checkpoints/last.ckpt"
+    moved = tmp_path / "elsewhere" / "moved"
+    moved.parent.mkdir()
+    shutil.move(first, moved)
+    res = run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={moved}", "modality=acc", "threads=1",
+                    "callbacks.krr_alignment=null", "trainer.max_epochs=2", timeout=240)
+    assert "dirpath has changed" not in res.stdout + res.stderr
+    metrics = json.loads((moved / "metrics.json").read_text())
+    assert metrics["status"] == "finished" and metrics["resumed_from"] == "checkpoints/last.ckpt"
+    assert len(list((moved / "checkpoints").glob("best-*.ckpt"))) == 1
+    from embodied_tactile.runfolder import best_checkpoint
+
+    assert (moved / metrics["best_checkpoint"]) == best_checkpoint(moved)[0]
+    assert evaluate_cli([str(moved), *EVAL_FAST]) == 0
+    ev = json.loads((moved / "evaluation" / "evaluation.json").read_text())
+    assert ev["runs"][0]["checkpoint"] == str(best_checkpoint(moved)[0])
+
+
+# ----------------------------------------------------------------------------- an evaluation owns its output
+def test_evaluation_output_is_owned_and_published_whole(tmp_path):
+    """Faults: two evaluations into one folder; an evaluation that fails half way; a killed
+    one's leftovers. Before: both wrote into <run>/evaluation (tables of one, results.json
+    of the other), a failure left half a folder mixed with the previous one. Now: the second
+    is refused naming the holder; a failure leaves the previous folder bit for bit; a
+    published folder holds only what its evaluation wrote; a stale temporary folder goes."""
+    from embodied_tactile.eval.pipeline import OwnedOutput
+    from embodied_tactile.eval.runs import EvaluationError
+
+    out = tmp_path / "run" / "evaluation"
+    out.mkdir(parents=True)
+    (out / "results.json").write_text("previous")
+    (out / "table_old.md").write_text("previous")
+    stale = tmp_path / "run" / ".evaluation.tmp-999999"
+    stale.mkdir()
+    first = OwnedOutput(out)
+    with first as tmp:
+        assert not stale.exists() and tmp.parent == out.parent and tmp != out
+        with pytest.raises(EvaluationError, match=rf"{out} is being written by another evaluation \(pid {os.getpid()}"):
+            with OwnedOutput(out):
+                pass
+        (tmp / "results.json").write_text("half")
+        assert (out / "results.json").read_text() == "previous"  # a reader sees the previous evaluation until the end
+    assert sorted(p.name for p in out.iterdir()) == ["results.json", "table_old.md"]  # not published: kept
+    assert (out / "results.json").read_text() == "previous"
+    with pytest.raises(RuntimeError):
+        with OwnedOutput(out) as tmp:
+            (tmp / "results.json").write_text("half")
+            raise RuntimeError("failed half way")
+    assert (out / "results.json").read_text() == "previous"
+    second = OwnedOutput(out)
+    with second as tmp:
+        (tmp / "results.json").write_text("new")
+        second.publish()
+    assert sorted(p.name for p in out.iterdir()) == ["results.json"] and (out / "results.json").read_text() == "new"
+    assert sorted(p.name for p in out.parent.iterdir()) == [".evaluation.lock", "evaluation"]
+    mine = tmp_path / "mine"  # out= naming a folder of other files: never replaced
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    with pytest.raises(EvaluationError, match=rf"{mine} holds files an evaluation does not write \(notes.txt\)"):
+        with OwnedOutput(mine):
+            pass
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+
+
+@pytest.mark.slow  # finished_run: a train.py subprocess, then evaluations
+def test_evaluation_knows_the_runs_state(finished_run, tmp_path, evaluate_cli, capsys):
+    """Faults: evaluating a run while its training holds the folder; evaluating an
+    interrupted run. Before: both exit 0 and read like a finished run's numbers. Now: the
+    first is refused (exit 2, one line naming the training's pid) unless allow_running=true,
+    whose first printed line names the checkpoint used; an interrupted run is evaluated with
+    its status in the first printed line and in results.json."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    holder = _hold_lock(run)
+    try:
+        assert evaluate_cli([str(run), *EVAL_FAST]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith(f"evaluate.py: error: run folder {run} is being trained (pid {holder.pid}")
+        assert not (run / "evaluation").exists()
+        assert evaluate_cli([str(run), *EVAL_FAST, "allow_running=true"]) == 0
+        first = capsys.readouterr().out.splitlines()[0]
+        assert first.startswith(f"evaluate.py: run {run} is being trained (pid {holder.pid}")
+        assert "evaluating checkpoint checkpoints/best-epoch000.ckpt (epoch(s) 1, step " in first
+        states = json.loads((run / "evaluation" / "results.json").read_text())["run_states"]
+        assert states[str(run)]["status"] == "training"
+    finally:
+        holder.kill()
+        holder.wait()
+    metrics = json.loads((run / "metrics.json").read_text())
+    (run / "metrics.json").write_text(json.dumps({**metrics, "status": "interrupted", "stopped_by": "SIGTERM"}))
+    assert evaluate_cli([str(run), *EVAL_FAST]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith(f"evaluate.py: run {run} is interrupted (stopped by SIGTERM, final read-out not done); "
+                            "evaluating checkpoint ")
+    for name in ("results.json", "evaluation.json"):
+        blob = json.loads((run / "evaluation" / name).read_text())
+        state = blob["run_states"][str(run)] if name == "results.json" else blob["runs"][0]["run_state"]
+        assert state["status"] == "interrupted" and state["checkpoint"].startswith("checkpoints/")
+    (run / "metrics.json").write_text(json.dumps({**metrics, "status": "running"}))  # killed -9 during training
+    assert evaluate_cli([str(run), *EVAL_FAST]) == 0
+    assert capsys.readouterr().out.splitlines()[0].startswith(f"evaluate.py: run {run} is killed (metrics.json says running")
+
+
+def test_stop_saves_after_the_step_under_way_before_any_validation_or_check(tmp_path):
+    """Fault: SIGTERM in the middle of a training step, with a validation and an epoch-end
+    check (as the KRR callback's) due after that step. Before: Lightning finished the step,
+    then ran the validation, the epoch-end check and the final read-out (minutes of KRR on a
+    real run) before last.ckpt was saved. Now: the step under way finishes, last.ckpt holds
+    its weights, and the fit ends with StopRequested: no validation, check or read-out."""
+    import lightning as L
+
+    from embodied_tactile.runfolder import StopRequested, StopSignals
+
+    class Tiny(L.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.lin = torch.nn.Linear(2, 1)
+
+        def training_step(self, batch, batch_idx):
+            if self.current_epoch == 0 and batch_idx == 2:
+                os.kill(os.getpid(), signal.SIGTERM)  # arrives during the step
+            return self.lin(batch[0]).pow(2).mean()
+
+        def validation_step(self, batch, batch_idx):
+            self.log("val/elbo", -self.lin(batch[0]).pow(2).mean())
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    class Watch(L.Callback):  # what the KRR callback does at these hooks
+        def __init__(self) -> None:
+            self.calls: list[str] = []
+
+        def on_validation_start(self, trainer, pl_module):
+            self.calls.append("validation")
+
+        def on_train_epoch_end(self, trainer, pl_module):
+            self.calls.append("epoch check")
+
+        def on_train_end(self, trainer, pl_module):
+            self.calls.append("final read-out")
+
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(20, 2)), batch_size=2)
+    old = {s: signal.getsignal(s) for s in StopSignals.SIGNALS}
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    stop, watch = StopSignals(last_path=last).install(), Watch()
+    model = Tiny()
+    trainer = L.Trainer(max_epochs=3, limit_train_batches=5, limit_val_batches=1, num_sanity_val_steps=0,
+                        callbacks=[stop, watch], logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, accelerator="cpu")
+    try:
+        with pytest.raises(StopRequested, match="stopped by SIGTERM"):
+            trainer.fit(model, data, data)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    assert watch.calls == []
+    assert stop.saved == str(last) and stop.step == 3 and stop.exit_code() == 143
+    ck = torch.load(last, map_location="cpu", weights_only=False)
+    assert ck["global_step"] == 3  # the step under way (the third) finished and is in last.ckpt
+    assert torch.equal(ck["state_dict"]["lin.weight"], model.lin.weight.detach())
+
+
+def test_evaluation_refuses_a_split_with_a_trial_on_two_sides(tmp_path):
+    """Fault: a run's split.json edited so that a test trial is also a training trial.
+    Before: evaluated, its scores including a trial the alignment was fitted on. Now:
+    EvaluationError (exit 2) naming the file and the trial."""
+    from embodied_tactile.eval.pipeline import parse_options
+    from embodied_tactile.eval.runs import EvaluationError, Run, data_config
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "split.json").write_text(json.dumps({"train": ["a", "b"], "val": [], "test": ["b", "c"]}))
+    r = Run(run_dir=run, ckpt=run / "checkpoints" / "last.ckpt",
+            cfg=OmegaConf.create({"data": {"data_dir": str(tmp_path), "source": "simulated"}}))
+    with pytest.raises(EvaluationError, match=rf"{run / 'split.json'} puts 1 trial\(s\) on two sides \(b \(train and test\)\)"):
+        data_config(r, parse_options([]))

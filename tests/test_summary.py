@@ -125,6 +125,67 @@ def test_multirun_summary_lines(tmp_path):
     assert lines[-2] == "next: python evaluate.py multi"
 
 
+def test_multirun_table_names_each_failed_job_its_overrides_and_reason(tmp_path):
+    """A sweep's table: one row per job Hydra started, finished or not (a job refused before
+    its config was saved included), the overrides that tell it apart, its status and why."""
+    from embodied_tactile.summary import multirun_rows, record_outcome
+
+    sweep = tmp_path / "multi"
+    for name, batch in (("data.batch_size=4", 4), ("data.batch_size=0", 0)):
+        (sweep / name / ".hydra").mkdir(parents=True)
+        (sweep / name / ".hydra" / "overrides.yaml").write_text(f"- modality=acc\n- data.batch_size={batch}\n")
+    (sweep / "data.batch_size=4" / "metrics.json").write_text(json.dumps({"status": "finished", "train_wall_s": 3.0}))
+    record_outcome(sweep / "data.batch_size=4", "finished")
+    record_outcome(sweep / "data.batch_size=0", "refused", "data.batch_size=0 (int): expected an integer >= 1")
+    rows = multirun_rows(sweep)
+    assert [(r["job"], r["overrides"], r["status"], r["reason"]) for r in rows] == [
+        ("data.batch_size=0", ["data.batch_size=0"], "refused", "data.batch_size=0 (int): expected an integer >= 1"),
+        ("data.batch_size=4", ["data.batch_size=4"], "finished", "")]
+    lines = multirun_summary_lines(sweep, cwd=tmp_path)
+    assert lines[1] == "multirun: 2 job(s), 1 finished, 1 not: multi"
+    assert lines[2].split() == ["job", "status", "NMSE", "(last", "KRR)", "training", "time", "overrides", "reason"]
+    assert lines[3].split()[:2] == ["data.batch_size=0", "refused"]
+    assert lines[3].endswith("data.batch_size=0  data.batch_size=0 (int): expected an integer >= 1")
+
+
+def test_folder_names_from_overrides_hold_no_path_separator():
+    """Fault: an override value holding "/" or "..". Before: its multirun job folder was
+    nested (tags=[x/y,../z] made <sweep>/...tags=[x/y,../z] a path two levels deep, ".."
+    climbing out of it). Now: one folder per job, "/" written %2F, unique and short."""
+    from embodied_tactile.config import MAX_DIRNAME, folder_name
+    from hydra import compose, initialize_config_dir
+
+    assert folder_name("modality=acc,tags=[x/y,../z]") == "modality=acc,tags=[x%2Fy,..%2Fz]"
+    assert folder_name("a=50%/x") == "a=50%25%2Fx" and folder_name("a=50%2Fx") != folder_name("a=50%/x")
+    assert folder_name("..") == "%2E%2E" and folder_name("") == "_"
+    long_a, long_b = folder_name("x=" + "a" * 400), folder_name("x=" + "a" * 399 + "b")
+    assert len(long_a.encode()) <= MAX_DIRNAME and long_a != long_b and "/" not in long_a
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose(config_name="train", return_hydra_config=True)
+    from omegaconf import OmegaConf
+
+    assert OmegaConf.to_container(cfg.hydra.sweep)["subdir"] == "${folder_name:${hydra:job.override_dirname}}"
+
+
+@pytest.mark.slow  # train.py -m: two jobs
+def test_a_failed_job_does_not_stop_the_sweep_and_the_table_says_why(tmp_path, fast_data_dir):
+    """Fault: one job of a sweep with a bad swept value. Before: its SystemExit ended the
+    sweep (the next jobs never ran), exit 2, no table. Now: every job runs, the table names
+    the failed job, its overrides, status and reason, exit 1."""
+    sweep = tmp_path / "sweep"
+    res = subprocess.run([sys.executable, str(REPO / "train.py"), "-m", "debug=fast", f"paths.data_dir={fast_data_dir}",
+                          f"hydra.sweep.dir={sweep}", "modality=acc", "threads=1", "callbacks.krr_alignment=null",
+                          "data.batch_size=0,4"], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 1, res.stderr[-3000:]
+    out = res.stdout.splitlines()
+    bad = next(ln for ln in out if ln.strip().startswith("callbacks.krr_alignment=null,data.batch_size=0"))
+    assert bad.split()[1] == "refused" and bad.endswith("data.batch_size=0  data.batch_size=0 (int): expected an integer >= 1")
+    good = next(ln for ln in out if ln.strip().startswith("callbacks.krr_alignment=null,data.batch_size=4"))
+    assert good.split()[1] == "finished"
+    assert json.loads((sweep / "callbacks.krr_alignment=null,data.batch_size=4,modality=acc,threads=1" / "metrics.json")
+                      .read_text())["status"] == "finished"
+
+
 @pytest.mark.slow  # train.py subprocess
 def test_train_ends_with_the_summary(tmp_path, fast_data_dir):
     run = tmp_path / "run"

@@ -281,7 +281,7 @@ def test_corrupt_last_checkpoint_falls_back_or_starts_fresh(one_run, data_dir, t
     assert f"cannot resume from {last}" in out
     assert len((run / "checkpoints" / "last.ckpt.unreadable").read_bytes()) == 1000  # kept aside
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["status"] == "finished" and metrics["resumed_from"] == str(best)
+    assert metrics["status"] == "finished" and metrics["resumed_from"] == "checkpoints/epoch001.ckpt"
     assert _ckpt_epoch(last) == _ckpt_epoch(best) + 1  # one more epoch after the good one, into last.ckpt
     step_best = int(torch.load(best, map_location="cpu", weights_only=False)["global_step"])
 
@@ -338,10 +338,12 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(data_dir, tmp_path):
     before = last.read_bytes()
     from embodied_tactile.data.cache import _crc
 
-    for cache in (d / "cache").glob("acc-*.h5"):  # overflowing inputs with valid checksums (not a damaged cache)
+    # overflowing inputs with valid checksums (not a damaged cache), not constant (a constant
+    # channel is refused before training: ConstantChannelError)
+    for cache in (d / "cache").glob("acc-*.h5"):
         with h5py.File(cache, "a") as f:
             for g in f["trials"].values():
-                g["acc"][...] = 1e30
+                g["acc"][...] = g["acc"][()] * 1e30 + 1e30
                 g["acc"].attrs["crc32"] = _crc(g["acc"][()])
     res = run_train(*base, "trainer.max_epochs=3", check=False)
     assert res.returncode != 0

@@ -213,3 +213,38 @@ def test_evaluation_takes_each_trials_object_from_its_attributes_not_its_name(ti
     lf = next(r for r in res["runs"] if r["method"] == "latent_filter")
     assert set(lf["nmse_trajectory_by_group"]) <= {"soft", "hard", "heterogeneous"}
     assert lf["n_test"] == len(split["test"])
+
+
+def test_data_identity_is_per_trial_of_the_run(tiny_data_dir, names, tmp_path):
+    """Faults: a trial the run never used is added to its raw file; then one of the run's
+    trials changes. Before: the identity was one digest per raw file, so the added trial
+    refused the run's resume and evaluation ("its trials or their acc data changed") and a
+    change named only the file. Now: the identity is one digest per trial of the run: the
+    added trial changes nothing, the changed trial is named, a removed one too."""
+    from embodied_tactile.data.cache import build_cache
+    from embodied_tactile.runtime import data_changes, data_identity
+
+    raw = _copy_trials(tiny_data_dir / "raw" / "soft_pressing.h5", tmp_path / "raw.h5", names[:3])
+    run_trials = names[:3]
+
+    def identity(trials=None):
+        digests: dict = {}
+        files = build_cache([raw], tmp_path / "cache", fields=("acc",), workers=1, trial_digests=digests)
+        return data_identity(files, digests, trials)
+
+    trained = identity(run_trials)
+    assert sorted(trained["acc"]["trials"]) == sorted(run_trials)
+    _copy_trials(tiny_data_dir / "raw" / "soft_pressing.h5", raw, [names[3]])  # a trial the run never used
+    now = identity()
+    assert now["acc"]["digests"] != trained["acc"]["digests"]  # the file's digest moved ...
+    assert data_changes(trained, now) == []  # ... the run's trials did not
+    with h5py.File(raw, "a") as f:  # one accelerometer sample of one of the run's trials
+        f["trials"][names[1]]["tactile/acc"][0, 0, 0, 0] *= 0.5
+    changed = data_changes(trained, identity())
+    assert len(changed) == 1 and changed[0].startswith(f"trial {names[1]}: its acc data or attributes changed since training")
+    assert str(raw) in changed[0]
+    with h5py.File(raw, "a") as f:
+        del f["trials"][names[2]]
+    assert any(c.startswith(f"trial {names[2]}: not in the data now") for c in data_changes(trained, identity()))
+    old = {"acc": {k: v for k, v in trained["acc"].items() if k != "trials"}}  # a run recorded per file
+    assert data_changes(old, identity())[0].startswith(f"{raw}: its trials or their acc data changed")

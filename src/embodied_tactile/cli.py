@@ -58,10 +58,18 @@ def _info_only() -> bool:
                for a in sys.argv[1:])
 
 
+class Exit(SystemExit):
+    """SystemExit carrying its one-line message (a multirun job records it as its reason)."""
+
+    def __init__(self, code: int, message: str = "") -> None:
+        super().__init__(code)
+        self.message = message
+
+
 def fail(err: SettingsError, prog: str = "train.py") -> None:
     """The one line and exit status 2."""
     print(f"{prog}: error: {err}", file=sys.stderr)
-    raise SystemExit(EXIT_BAD_SETTINGS)
+    raise Exit(EXIT_BAD_SETTINGS, str(err))
 
 
 #: a dataclass field's Python type -> the kind :class:`~embodied_tactile.settings.Spec` describes
@@ -125,12 +133,15 @@ class EntryCallback(Callback):
         self._check(config, "hydra.run.dir")
         # runfolder loads lightning (seconds): only train.py's callback needs it, so that record /
         # palpate start at once (a recorder on a busy port must be refused while the other runs)
-        from embodied_tactile.runfolder import claim_at_entry
+        from embodied_tactile.runfolder import RunFinished, claim_at_entry
 
         try:
             claim_at_entry(config)
         except SettingsError as err:
             fail(err)
+        except RunFinished as done:  # before Hydra writes .hydra/ or the log: no byte of the run changes
+            print(f"train.py: {done}", flush=True)
+            raise SystemExit(0) from None
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, "hydra.sweep.dir")
@@ -138,10 +149,13 @@ class EntryCallback(Callback):
         self._sweep_dir = str(v) if present else None
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from embodied_tactile.summary import print_multirun_summary  # loads torch: only at the end of a multirun
+        """The sweep's table (job, status, overrides, reason); exit 1 when a job did not finish."""
+        from embodied_tactile.summary import multirun_rows, print_multirun_summary  # loads torch: only here
 
         if self._sweep_dir and Path(self._sweep_dir).is_dir():
             print_multirun_summary(self._sweep_dir)
+            if any(r["status"] != "finished" for r in multirun_rows(self._sweep_dir)):
+                raise SystemExit(1)
 
     @staticmethod
     def _check(config: DictConfig, run_dir_key: str) -> None:
@@ -152,4 +166,4 @@ class EntryCallback(Callback):
             fail(err)
 
 
-__all__ = ["EntryCallback", "check_typed_overrides", "fail", "hydra_command"]
+__all__ = ["EntryCallback", "Exit", "check_typed_overrides", "fail", "hydra_command"]

@@ -67,15 +67,40 @@ def prior_rows(objects: Any, n_test: int, n_val: int, n_train: int) -> int:
     return N_OBJECTS
 
 
+#: longest folder name made from overrides (file systems allow 255 bytes)
+MAX_DIRNAME = 200
+
+
+def folder_name(text: Any) -> str:
+    """One folder name from a text such as Hydra's ``override_dirname``
+    (``${folder_name:...}`` in configs/train.yaml): never a path separator (``%`` -> ``%25``,
+    ``/`` -> ``%2F``, the OS's own separators likewise), never ``.`` / ``..``, and at most
+    :data:`MAX_DIRNAME` bytes (longer: cut, with a digest of the whole so names stay unique)."""
+    import hashlib
+    import os
+
+    name = str(text).replace("%", "%25").replace("/", "%2F")
+    for sep in {os.sep, os.altsep} - {None, "/"}:
+        name = name.replace(sep, "%" + format(ord(sep), "02X"))
+    if name in ("", ".", ".."):
+        name = name.replace(".", "%2E") or "_"
+    if len(name.encode()) > MAX_DIRNAME:
+        digest = hashlib.sha1(name.encode()).hexdigest()[:12]
+        name = name.encode()[: MAX_DIRNAME - 13].decode(errors="ignore") + "-" + digest
+    return name
+
+
 def register() -> None:
-    """Store the structured configs and the resolver (a second call changes nothing)."""
+    """Store the structured configs and the resolvers (a second call changes nothing)."""
     cs = ConfigStore.instance()
     cs.store(group="model", name="schema", node=ModelNode)
     cs.store(group="alignment", name="schema", node=AlignmentOptions)
     if not OmegaConf.has_resolver("prior_rows"):
         OmegaConf.register_new_resolver("prior_rows", prior_rows)
+    if not OmegaConf.has_resolver("folder_name"):
+        OmegaConf.register_new_resolver("folder_name", folder_name)
 
 
 register()
 
-__all__ = ["LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "prior_rows", "register"]
+__all__ = ["LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]

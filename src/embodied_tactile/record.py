@@ -13,7 +13,8 @@ disk or a file-size limit during one trial never touches the others.
 
 Exit codes: 0 the full trial was recorded (``complete=True``); 3 incomplete (Ctrl-C /
 SIGTERM, device unplugged, no data, disk full or a failed write: everything written so
-far is stored, readable, ``complete=False``); 2 configuration or port error (trial
+far is stored, readable, ``complete=False``; or the output file vanished with its folder:
+one line naming it, what was recorded went with it); 2 configuration or port error (trial
 attributes the raw format's validator rejects, a port held by another recorder, too
 little room for the baseline and the first second: nothing recorded), or a packet rate
 in the first second that does not match ``fs_tactile`` (stopped, ``complete=False``,
@@ -212,7 +213,9 @@ def run(cfg: DictConfig) -> int:
     if res.garbage_reasons:
         msg += f"; garbage reasons {res.garbage_reasons}"
     print(f"record: {msg}", flush=True)
-    if res.message:  # stopped for a setting (rate_mismatch): the one line that says what to fix
+    if res.status == "output_vanished":  # the one line: which file, what went with it
+        print(f"record: error: {res.message}", file=sys.stderr, flush=True)
+    elif res.message:  # stopped for a setting (rate_mismatch): the one line that says what to fix
         print(f"record: error: {out}: trial '{writer.name}': {res.message} (the file is kept, complete=False)",
               file=sys.stderr, flush=True)
     log.debug(msg)

@@ -86,10 +86,15 @@ def save_provenance(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
     )
 
 
-def data_identity(cache_files: Mapping[str, str | os.PathLike]) -> dict[str, Any]:
+def data_identity(cache_files: Mapping[str, str | os.PathLike],
+                  trial_digests: Mapping[str, Mapping[str, str]] | None = None,
+                  trials: Sequence[str] | None = None) -> dict[str, Any]:
     """What the run's data were: per field, the raw files and the digests of their stored
     bytes and trial attributes that the preparation stage computed when it built or found
-    the cache (its root attrs ``sources`` / ``source_digests``; nothing is hashed again)."""
+    the cache (its root attrs ``sources`` / ``source_digests``; nothing is hashed again),
+    and, given the preparation's ``trial_digests``, ``trials``: ``{trial: digest}`` of each
+    of ``trials`` (all when None), so that a change is named per trial and trials the run
+    never used do not count."""
     from embodied_tactile.data.cache import cache_info
 
     out: dict[str, Any] = {}
@@ -97,12 +102,23 @@ def data_identity(cache_files: Mapping[str, str | os.PathLike]) -> dict[str, Any
         info = cache_info(path)
         out[field] = {"raw_files": [str(p) for p in info.get("sources", [])],
                       "digests": list(info.get("source_digests", []))}
+        if trial_digests and field in trial_digests:
+            per = trial_digests[field]
+            out[field]["trials"] = {n: per[n] for n in sorted(per if trials is None else trials) if n in per}
     return out
+
+
+def trial_digests(datamodule: Any) -> dict[str, dict[str, str]] | None:
+    """The preparation stage's per-trial digests of a DataModule (None when it has none)."""
+    prepared = getattr(datamodule, "prepared", None)
+    return getattr(prepared, "trial_digests", None) or None
 
 
 def data_changes(saved: Mapping[str, Any] | None, now: Mapping[str, Any]) -> list[str]:
     """How the data differ from those a run was trained on (``provenance.json``
-    ``raw_data`` against :func:`data_identity` now): one line per raw file and field whose
+    ``raw_data`` against :func:`data_identity` now): with per-trial digests on both sides,
+    one line per trial of the run that is gone or whose data or attributes changed (other
+    trials of the raw files do not count); else one line per raw file and field whose
     digest differs, a field missing, or a different number of raw files. [] when the same."""
     if not saved:
         return []
@@ -111,6 +127,15 @@ def data_changes(saved: Mapping[str, Any] | None, now: Mapping[str, Any]) -> lis
         a, b = saved.get(field), now.get(field)
         if a is None or b is None:
             out.append(f"field {field}: {'not prepared now' if b is None else 'not in the training data'}")
+            continue
+        if "trials" in a and "trials" in b:
+            for name, da in sorted(a["trials"].items()):
+                db = b["trials"].get(name)
+                if db is None:
+                    out.append(f"trial {name}: not in the data now ({', '.join(b['raw_files'])})")
+                elif db != da:
+                    out.append(f"trial {name}: its {field} data or attributes changed since training "
+                               f"(digest {da[:12]} -> {db[:12]}; {', '.join(b['raw_files'])})")
             continue
         if len(a["digests"]) != len(b["digests"]):
             out.append(f"field {field}: {len(a['digests'])} raw file(s) at training, {len(b['digests'])} now "
@@ -123,11 +148,14 @@ def data_changes(saved: Mapping[str, Any] | None, now: Mapping[str, Any]) -> lis
     return out
 
 
-def record_data_identity(run_dir: str | os.PathLike, cache_files: Mapping[str, str | os.PathLike]) -> None:
-    """Add :func:`data_identity` to ``provenance.json`` as ``raw_data``."""
+def record_data_identity(run_dir: str | os.PathLike, cache_files: Mapping[str, str | os.PathLike],
+                         trial_digests: Mapping[str, Mapping[str, str]] | None = None,
+                         trials: Sequence[str] | None = None) -> None:
+    """Add :func:`data_identity` (per trial of ``trials``, the run's split, when the
+    preparation's ``trial_digests`` are given) to ``provenance.json`` as ``raw_data``."""
     path = Path(run_dir) / "provenance.json"
     prov = json.loads(path.read_text()) if path.is_file() else {}
-    prov["raw_data"] = data_identity(cache_files)
+    prov["raw_data"] = data_identity(cache_files, trial_digests, trials)
     write_json(path, prov)
 
 

@@ -216,8 +216,8 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     lines.append(t)
     ckpt = m.get("best_checkpoint") or m.get("last_checkpoint")
     ck_dir = run / "checkpoints"
-    if ckpt:
-        lines.append(f"checkpoint:    {show_path(ckpt, cwd)}")
+    if ckpt:  # relative to the run folder (metrics.json of before: absolute)
+        lines.append(f"checkpoint:    {show_path(run / ckpt, cwd)}")
     elif ck_dir.is_dir() and any(ck_dir.glob("*.ckpt")):
         lines.append(f"checkpoints:   {show_path(ck_dir, cwd)}/")
     else:
@@ -238,27 +238,71 @@ def print_run_summary(run_dir, metrics: Mapping | None = None) -> None:
     print("\n".join(run_summary_lines(run_dir, metrics)), flush=True)
 
 
+#: a multirun job's outcome (status, reason), written by train.py beside Hydra's record of the job
+OUTCOME = ".hydra/outcome.json"
+
+
+def record_outcome(job_dir: str | os.PathLike, status: str, reason: str = "") -> None:
+    """Write a multirun job's outcome to ``<job>/.hydra/outcome.json`` (nothing when Hydra
+    keeps no ``.hydra/`` there): what the sweep's table says of it."""
+    from .jsonio import write_json
+
+    d = Path(job_dir) / Path(OUTCOME).parent
+    if d.is_dir():
+        write_json(d / Path(OUTCOME).name, {"status": status, "reason": reason})
+
+
 def _jobs(sweep_dir: Path) -> list[Path]:
-    return sorted((d for d in sweep_dir.iterdir() if d.is_dir() and (d / "config_resolved.yaml").exists()),
+    """The sweep's job folders: those Hydra started (``.hydra/overrides.yaml``) or that hold a run."""
+    return sorted((d for d in sweep_dir.iterdir() if d.is_dir() and ((d / "config_resolved.yaml").exists()
+                                                                   or (d / ".hydra" / "overrides.yaml").exists())),
                   key=lambda d: d.name)
 
 
-def multirun_summary_lines(sweep_dir: str | os.PathLike, *, cwd: str | os.PathLike | None = None) -> list[str]:
-    """One line per job (status, last KRR NMSE overall, training time), the folder and the
-    evaluate command."""
+def _overrides(job: Path) -> list[str]:
+    try:
+        from omegaconf import OmegaConf
+
+        return [str(o) for o in OmegaConf.load(job / ".hydra" / "overrides.yaml")]
+    except Exception:  # noqa: BLE001 -- no or damaged overrides.yaml: the folder name says them
+        return [job.name]
+
+
+def multirun_rows(sweep_dir: str | os.PathLike) -> list[dict]:
+    """One dict per job of a sweep: ``job`` (folder), ``overrides`` (those that differ
+    between the jobs; all of them for a single job), ``status`` and ``reason`` (the job's
+    outcome, else its metrics.json), ``nmse`` (last KRR) and ``train_s``."""
     sweep = Path(sweep_dir)
     jobs = _jobs(sweep) if sweep.is_dir() else []
+    overrides = {d: _overrides(d) for d in jobs}
+    common = set.intersection(*(set(o) for o in overrides.values())) if len(jobs) > 1 else set()
     rows = []
     for d in jobs:
-        m = read_json(d / "metrics.json")
-        row = last_alignment(d) or {}
-        rows.append((d.name, m.get("status", "unknown"), _fmt(row.get("nmse_overall")), duration(m.get("train_wall_s"))))
-    n_ok = sum(r[1] == "finished" for r in rows)
+        m, outcome = read_json(d / "metrics.json"), read_json(d / OUTCOME)
+        status = outcome.get("status") or m.get("status", "unknown")
+        reason = outcome.get("reason") if outcome else (m.get("error") or "")
+        rows.append({"job": d.name, "overrides": [o for o in overrides[d] if o not in common], "status": status,
+                     "reason": "" if status == "finished" else (reason or "no reason recorded"),
+                     "nmse": (last_alignment(d) or {}).get("nmse_overall"), "train_s": m.get("train_wall_s")})
+    return rows
+
+
+def multirun_summary_lines(sweep_dir: str | os.PathLike, *, cwd: str | os.PathLike | None = None) -> list[str]:
+    """One line per job (status, last KRR NMSE overall, training time, the overrides that tell
+    it apart and, when it did not finish, why), the folder and the evaluate command."""
+    sweep = Path(sweep_dir)
+    rows = multirun_rows(sweep)
+    n_ok = sum(r["status"] == "finished" for r in rows)
     lines = [RULE, f"multirun: {len(rows)} job(s), {n_ok} finished, {len(rows) - n_ok} not: {show_path(sweep, cwd)}"]
     if rows:
-        w = max(len(r[0]) for r in rows)
-        lines.append(f"  {'job'.ljust(w)}  {'status':8}  {'NMSE (last KRR)':>15}  training time")
-        lines += [f"  {a.ljust(w)}  {b:8}  {c:>15}  {t}" for a, b, c, t in rows]
+        w = max(len(r["job"]) for r in rows)
+        table = [(r["job"], r["status"], _fmt(r["nmse"]), duration(r["train_s"]), " ".join(r["overrides"]), r["reason"])
+                 for r in rows]
+        wt, wo = max(len(t[3]) for t in table), max([len("overrides")] + [len(t[4]) for t in table])
+        lines.append(f"  {'job'.ljust(w)}  {'status':11}  {'NMSE (last KRR)':>15}  {'training time'.ljust(wt)}  "
+                     f"{'overrides'.ljust(wo)}  reason")
+        lines += [f"  {a.ljust(w)}  {b:11}  {c:>15}  {t.ljust(wt)}  {o.ljust(wo)}  {why}".rstrip()
+                  for a, b, c, t, o, why in table]
     lines.append(f"tables and figures: {show_path(sweep / 'evaluation', cwd)}/, written by:")
     lines.append(f"next: {evaluate_command(sweep, cwd)}")
     lines.append(RULE)

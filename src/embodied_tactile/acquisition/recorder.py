@@ -86,6 +86,15 @@ def room_bytes(path: str | os.PathLike) -> int:
     return int(room)
 
 
+def _file_id(path: str | os.PathLike) -> tuple[int, int] | None:
+    """(device, inode) of the file at ``path``; None when nothing is there."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
 def trial_bytes(seconds: float, fs_tactile: float, fs_pose: float = 0.0, pose_columns: int = 6, chunk: int = 700) -> int:
     """Upper estimate of the bytes ``seconds`` of recording take in a trial file: every
     sample, pose included, one partly filled chunk per dataset, and the group's metadata."""
@@ -124,7 +133,7 @@ class RecorderSettings:
 
 @dataclass
 class RecordResult:
-    status: str  # complete | interrupted | unplugged | no_data | disk_full | write_error | rate_mismatch
+    status: str  # complete | interrupted | unplugged | no_data | disk_full | write_error | output_vanished | rate_mismatch
     n_trial: int = 0
     n_baseline: int = 0
     n_pose: int = 0
@@ -200,6 +209,7 @@ class Recorder:
         self.should_stop = should_stop
         self.on_phase = on_phase or (lambda phase: None)
         self.room = room or (lambda: room_bytes(writer.path))
+        self._file_id = _file_id(writer.path)  # the file being written, to notice it vanish
         self._write_failed = False
         self._unwritten = 0
         self.lost = 0
@@ -311,9 +321,21 @@ class Recorder:
         for lost_at in self._lost_at.values():
             lost_at.clear()
 
+    def _check_output(self) -> None:
+        """Raise _StorageStop("output_vanished") when the trial's file is no longer at its
+        path (its folder deleted or moved, its disk unmounted): what is written after that
+        would go to a file nobody can open."""
+        if self._file_id is not None and _file_id(self.writer.path) != self._file_id:
+            n = len(self._trial_t) + self._n_base + sum(len(ts) for _, ts in self._bufs.values())
+            raise _StorageStop(
+                "output_vanished",
+                f"{self.writer.path}: the output file vanished during the trial (its folder deleted, moved or "
+                f"unmounted); the {n} packet(s) recorded went with it")
+
     def _flush(self) -> None:
         if self._write_failed:
             return
+        self._check_output()
         self._check_room()
         try:
             self._write_batch()
@@ -440,16 +462,20 @@ class Recorder:
         except _StorageStop as exc:
             log.error("trial stopped: %s", exc)
             status = exc.reason
+            if exc.reason == "output_vanished":
+                message = str(exc)
         except _RateMismatch as exc:
             log.error("trial stopped: %s", exc)
             status, message = "rate_mismatch", str(exc)
         finally:
             try:
-                self._flush()
+                if status != "output_vanished":
+                    self._flush()
             except _StorageStop as exc:
                 if status in ("complete", "interrupted", "unplugged"):
                     log.error("trial stopped: %s", exc)
                     status = exc.reason
+                    message = str(exc) if exc.reason == "output_vanished" else message
             except Exception:  # noqa: BLE001 - never lose the close that follows
                 log.exception("final flush failed")
             self._drop_pending()

@@ -42,7 +42,7 @@ import os
 import uuid
 import zlib
 from pathlib import Path
-from typing import Any, BinaryIO, Iterable, Iterator, Sequence
+from typing import Any, BinaryIO, Iterable, Iterator, Mapping, Sequence
 
 import h5py
 import numpy as np
@@ -151,6 +151,16 @@ def _combine_fingerprint(
                 if dpath in digests[name]:
                     hs[fld].update(f"{dpath}={digests[name][dpath]}\0".encode())
     return {fld: h.hexdigest() for fld, h in hs.items()}
+
+
+def trial_fingerprint(name: str, attrs_json: str, digests: Mapping[str, str], field: str) -> str:
+    """One trial's digest for one field: its name, attributes (JSON) and the stored bytes of
+    the raw datasets that field reads (16 hex digits)."""
+    h = hashlib.blake2b(f"{name}\0{attrs_json}\0".encode(), digest_size=8)
+    for dpath in _raw_datasets(field):
+        if dpath in digests:
+            h.update(f"{dpath}={digests[dpath]}\0".encode())
+    return h.hexdigest()
 
 
 def _fields_datasets(fields: Iterable[str]) -> list[str]:
@@ -435,13 +445,17 @@ def build_cache(
     strict: bool = False,
     chunk_size: int = 8,
     compression: str | None = None,
+    trial_digests: dict[str, dict[str, str]] | None = None,
 ) -> dict[str, Path]:
     """Preprocess every valid trial of ``raw_paths`` into one cache file per field and
     return ``{field: path}``. Existing complete caches with the same key are reused;
     missing fields are computed in one pass (each trial read once, only the raw datasets
     those fields need). Bad trials are logged, skipped and listed in the root attr
     ``skipped``; ``strict=True`` raises the first TrialFormatError instead. A trial name
-    found in two raw files raises, strict or not (``rawformat.check_unique_names``)."""
+    found in two raw files raises, strict or not (``rawformat.check_unique_names``).
+    ``trial_digests``, when given, is filled with ``{field: {trial: digest}}``
+    (:func:`trial_fingerprint`, from the digests the cache key is computed from: nothing
+    is hashed twice)."""
     cfg = (cfg or PreprocessConfig()).validate()
     fields = tuple(dict.fromkeys(fields))
     unknown = set(fields) - set(FIELDS)
@@ -479,6 +493,10 @@ def build_cache(
                 fp = {f: "no-valid-trials" for f in fields}
             for f in fields:
                 digests[f].append(fp[f])
+            if trial_digests is not None:
+                for n in by_file[p]:
+                    for f in fields:
+                        trial_digests.setdefault(f, {})[n] = trial_fingerprint(n, ajson[n], per_file[p][n], f)
         targets = {f: cache_dir / f"{f}-{cache_key(f, cfg, digests[f])}.h5" for f in fields}
         todo = tuple(f for f in fields if not _is_complete(targets[f]))
         for f in fields:

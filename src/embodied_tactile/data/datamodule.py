@@ -29,7 +29,7 @@ from embodied_tactile.data.statistics import DataStatistics
 from embodied_tactile.jsonio import write_json
 from embodied_tactile.modality import CHANNELS, fields_for_channels
 
-__all__ = ["TactileDataModule", "TactileSequenceDataset", "split_trials", "TrialRef", "PreparedData", "Scene",
+__all__ = ["ConstantChannelError", "TactileDataModule", "TactileSequenceDataset", "split_trials", "TrialRef", "PreparedData", "Scene",
            "data_dir_lock", "fields_for_channels"]
 
 log = logging.getLogger(__name__)
@@ -94,6 +94,10 @@ def _stratified_objects(by_obj: Mapping[int, Sequence[TrialRef]], test_fraction:
         while len(taken) < n_test:
             take(min((o for o in objs if o not in taken), key=cost), +1)
     return set(taken)
+
+
+class ConstantChannelError(ValueError):
+    """A channel of the modality carries no signal over the training split."""
 
 
 def split_trials(trials: Sequence[TrialRef], *, by: str = "trial", test_fraction: float = 0.25,
@@ -514,7 +518,29 @@ class TactileDataModule(L.LightningDataModule):
         if self.train_set is None:
             self._build_sets()
         if stage == "fit" and self.statistics is None:
-            self.statistics = DataStatistics.of(self.train_eval_dataloader(), len(self.train_set))
+            statistics = DataStatistics.of(self.train_eval_dataloader(), len(self.train_set))
+            self._check_statistics(statistics)
+            self.statistics = statistics
+
+    def _check_statistics(self, statistics: DataStatistics) -> None:
+        """:class:`ConstantChannelError` naming the first channel whose training frames are
+        all one value (or not finite): its layer, cached field and raw dataset, the
+        modality's channels and the raw files (the encoders divide by its std)."""
+        from embodied_tactile.modality import CHANNELS
+
+        for i, c in enumerate(self.channels):
+            mean, std = float(statistics.channel_mean[i]), float(statistics.channel_std[i])
+            if np.isfinite(mean) and np.isfinite(std) and std > 0:
+                continue
+            field, layer, dataset = CHANNELS[c]
+            what = "constant" if np.isfinite(std) else "not finite"
+            files = [str(p) for p in self.raw_paths]
+            raise ConstantChannelError(
+                f"channel {c} ({'layer ' + str(layer) + ' of ' if layer is not None else ''}cached field {field}, raw "
+                f"dataset {dataset}) of the modality's channels {self.channels} is {what} over the "
+                f"{len(self.train_set)} training trials (mean {mean:.6g}, std {std:.3g}) in raw file(s) "
+                f"{', '.join(files[:3])}{' ...' if len(files) > 3 else ''}: a dead or unplugged sensor layer; the "
+                "encoders standardise by its std. Fix the recording or choose a modality without it")
 
     def _build_sets(self) -> None:
         if self.prepared is None:

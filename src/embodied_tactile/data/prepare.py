@@ -95,6 +95,39 @@ def data_dir_lock(data_dir: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+_IMPORTED = __import__("time").time()
+
+
+def process_start_time() -> float:
+    """When this process started, in seconds since the epoch (Linux: ``/proc/self/stat``'s
+    start time after boot + ``/proc/stat``'s boot time); elsewhere when this module was
+    imported."""
+    try:
+        stat = Path("/proc/self/stat").read_text()
+        ticks = int(stat.rsplit(")", 1)[1].split()[19])  # field 22: starttime, in clock ticks after boot
+        boot = next(int(ln.split()[1]) for ln in Path("/proc/stat").read_text().splitlines() if ln.startswith("btime "))
+        return boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return _IMPORTED
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Remove the ``*.tmp-*`` files in ``folder`` last written before this process started:
+    what a killed cache build left (a build under way holds :func:`data_dir_lock`, which the
+    caller holds, and writes after its own start). Each one is named in a warning."""
+    started = process_start_time()
+    removed = []
+    for tmp in sorted(folder.glob("*.tmp-*")) if folder.is_dir() else []:
+        try:
+            if tmp.is_file() and tmp.stat().st_mtime < started:
+                tmp.unlink()
+                removed.append(tmp)
+                log.warning("removed %s: a temporary file of a preparation that did not finish", tmp)
+        except FileNotFoundError:
+            continue
+    return removed
+
+
 @dataclass(frozen=True)
 class TrialRef:
     name: str
@@ -288,6 +321,9 @@ class PreparedData:
     excluded_incomplete: list[str] = field(default_factory=list)
     simulated: int = 0
     cache_built: list[str] = field(default_factory=list)
+    #: ``{field: {trial: digest}}`` of every valid raw trial (its name, attributes and the
+    #: bytes that field reads): a run's data identity per trial (runtime.data_identity)
+    trial_digests: dict[str, dict[str, str]] = field(default_factory=dict)
 
     def summary(self) -> str:
         """Multi-line report (printed by the CLI)."""
@@ -318,13 +354,15 @@ def _n_raw_trials(path: Path) -> int:
 
 def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
     """Simulate the missing trials (simulator source, ``simulate=True``), build or find the
-    caches and list the usable trials, all under :func:`data_dir_lock`.
+    caches and list the usable trials, all under :func:`data_dir_lock` (which first removes
+    the temporary files a killed build left: :func:`remove_stale_temporaries`).
 
     ``simulate=False`` (a DDP rank whose rank 0 prepared the scene) only finds the caches:
     their keys are deterministic, so nothing is recomputed when they exist."""
     from embodied_tactile.data.cache import build_cache, verify_cache
 
     with data_dir_lock(Path(scene.data_dir)):
+        remove_stale_temporaries(scene.cache_dir)
         simulated = 0
         if scene.source == "simulated" and simulate:
             from embodied_tactile.sim import generate_dataset
@@ -345,8 +383,9 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
             simulated = _n_raw_trials(raw) - before
         raw_paths = [str(p) for p in scene.raw_paths]  # recorded: raises for a missing file or an empty pattern
         existing = set(scene.cache_dir.glob("*.h5")) if scene.cache_dir.exists() else set()
+        digests: dict[str, dict[str, str]] = {}
         files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=tuple(scene.fields),
-                            workers=scene.preprocess_workers, strict=scene.strict)
+                            workers=scene.preprocess_workers, strict=scene.strict, trial_digests=digests)
         # a cache found (not built now) is checked once per preparation: each array against its crc32
         damaged = {fld: bad for fld, path in files.items() if Path(path) in existing and (bad := verify_cache(path))}
         if damaged:  # set the damaged files aside (kept) and rebuild those fields from the raw files
@@ -360,7 +399,7 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
     trials, skipped, incomplete = list_trials(scene, cache_files, raw_paths)
     return PreparedData(scene=scene, raw_files=raw_paths, cache_files=cache_files, trials=trials, skipped=skipped,
                         excluded_incomplete=incomplete, simulated=simulated,
-                        cache_built=[k for k, v in files.items() if Path(v) not in existing])
+                        cache_built=[k for k, v in files.items() if Path(v) not in existing], trial_digests=digests)
 
 
 def _set_aside(path: Path) -> Path:

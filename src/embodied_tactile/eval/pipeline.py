@@ -25,7 +25,8 @@ from omegaconf.errors import ConfigKeyError
 
 from embodied_tactile.constants import FACTOR_NAMES
 from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect_split, data_config, discover,
-                                        load_module, run_split, trial_names, trial_objects, untrained_module)
+                                        load_module, run_split, run_state, trial_names, trial_objects,
+                                        untrained_module)
 from embodied_tactile.eval.results import SPLIT_KINDS
 from embodied_tactile.jsonio import read_json
 from embodied_tactile.paths import config_dir
@@ -169,7 +170,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     from embodied_tactile.modality import Modality
     from embodied_tactile.eval.figures import read_history
     from embodied_tactile.eval.targets import encode_split
-    from embodied_tactile.runtime import data_changes, data_identity
+    from embodied_tactile.runtime import data_changes, data_identity, trial_digests
 
     t_run = time.perf_counter()
     cfg = run.cfg
@@ -184,7 +185,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
 
     def same_data(dm) -> None:  # the raw data's digests now against those recorded at training
         data_changed[:] = data_changes(read_json(run.run_dir / "provenance.json").get("raw_data"),
-                                       data_identity(dm.cache_files))
+                                       data_identity(dm.cache_files, trial_digests(dm)))
         if data_changed and not opts.allow_changed_data:
             raise EvaluationError(f"{run.run_dir}: the data differ from those it was trained on: "
                                   f"{'; '.join(data_changed)}; the run's numbers would not be reproduced "
@@ -318,6 +319,70 @@ def output_folder(target: Path, runs: list[Run], kind: str, opts: DictConfig, se
     return out
 
 
+def _written_by_evaluation(path: Path) -> bool:
+    """What an evaluation writes in its output folder (:func:`write_report`, evaluation.json)."""
+    return (path.name in ("results.json", "evaluation.json") or (path.name == "figures" and path.is_dir())
+            or (path.name.startswith("table_") and path.suffix in (".md", ".csv", ".tex")))
+
+
+class OwnedOutput:
+    """An evaluation owns its output folder. A lock beside it (``.<name>.lock``, held while
+    the evaluation runs): a second evaluation into the same folder is refused, naming the
+    holder. Everything is written into a fresh ``.<name>.tmp-<pid>`` (the folder
+    ``__enter__`` returns); :meth:`publish` renames it into place once complete (a previous
+    folder is renamed aside first, then removed): the folder is never half written nor a mix
+    of two evaluations. A failure leaves the previous folder as it was; a killed evaluation's
+    temporary folder is removed by the next one. A folder holding anything an evaluation does
+    not write (out= naming a folder of other files) is never replaced: refused."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = Path(out)
+        self.tmp = self.out.with_name(f".{self.out.name}.tmp-{os.getpid()}")
+        self._fd: int | None = None
+
+    def __enter__(self) -> Path:
+        import shutil
+
+        from embodied_tactile.runfolder import try_lock, write_holder
+
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        fd, holder = try_lock(self.out.with_name(f".{self.out.name}.lock"))
+        if fd is None:
+            raise EvaluationError(f"{self.out} is being written by another evaluation (pid {holder.get('pid', '?')} "
+                                  f"on host {holder.get('host', '?')}); wait for it, or give another out=")
+        write_holder(fd)
+        self._fd = fd
+        foreign = sorted(p.name for p in self.out.iterdir() if not _written_by_evaluation(p)) if self.out.is_dir() else []
+        if foreign:
+            self.__exit__()
+            raise EvaluationError(f"{self.out} holds files an evaluation does not write ({', '.join(foreign[:3])}"
+                                  f"{' ...' if len(foreign) > 3 else ''}): an evaluation replaces its whole output "
+                                  "folder; give a new or empty out=")
+        for stale in self.out.parent.glob(f".{self.out.name}.tmp-*"):  # the lock says no writer is alive
+            log.warning("removing %s: an evaluation that did not finish", stale)
+            shutil.rmtree(stale, ignore_errors=True)
+        self.tmp.mkdir()
+        return self.tmp
+
+    def publish(self) -> None:
+        import shutil
+
+        aside = self.out.with_name(f".{self.out.name}.old-{os.getpid()}")
+        if self.out.exists():
+            os.rename(self.out, aside)
+        os.rename(self.tmp, self.out)
+        shutil.rmtree(aside, ignore_errors=True)
+
+    def __exit__(self, *exc) -> None:
+        import shutil
+
+        if self.tmp.exists():  # not published: the previous folder stays as it was
+            shutil.rmtree(self.tmp, ignore_errors=True)
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
 def cell(run: Run) -> tuple:
     c = run.cfg
     return (str(c.modality.name), str(c.skin.name), str(c.primitive.name))
@@ -327,10 +392,6 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     """Evaluate a run / checkpoint / multirun / study folder; return {"out": folder, "runs":
     [info...], "skipped": [...], "written": write_report's dict}. Prints the measured summary
     (:func:`terminal_summary`). Raises EvaluationError."""
-    from embodied_tactile.eval.report import write_report
-    from embodied_tactile.eval.results import config_axes
-    from embodied_tactile.runtime import peak_rss_bytes
-
     overrides, selection = split_overrides(overrides)
     opts = parse_options(overrides)
     if opts.torch_threads:
@@ -343,7 +404,24 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     baselines = list(opts.baselines) if opts.baselines is not None else list(
         BASELINES if kind == "run" else MULTIRUN_BASELINES)
     out = output_folder(target, runs, kind, opts, selection)
+    states = {str(r.run_dir): run_state(r, bool(opts.allow_running)) for r in runs}  # a run in training: refused
+    for st in states.values():  # a run that is not finished says so first, with the checkpoint evaluated
+        if st.get("line"):
+            print(st["line"], flush=True)
+    owned = OwnedOutput(out)
+    with owned:
+        return _evaluate_runs(target, kind, runs, skipped, selection, opts, baselines, owned, states)
 
+
+def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, selection: dict, opts: DictConfig,
+                   baselines: list[str], owned: OwnedOutput, states: dict[str, dict]) -> dict:
+    """:func:`evaluate` once its output folder is owned: writes into ``owned.tmp``, then
+    publishes it as ``owned.out``."""
+    from embodied_tactile.eval.report import write_report
+    from embodied_tactile.eval.results import config_axes
+    from embodied_tactile.runtime import peak_rss_bytes
+
+    out, tmp = owned.out, owned.tmp
     t0 = time.perf_counter()
     cache = DataCache()
     # every configuration axis that differs between the runs (beyond modality / skin / primitive;
@@ -359,6 +437,7 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
         run = runs[i]
         log.info("[%d/%d] %s (%s)", n + 1, len(runs), run.run_dir, run.ckpt.name)
         results, history, info = evaluate_run(run, opts, cache, baselines)
+        info["run_state"] = states[str(run.run_dir)]
         seed = run.cfg.get("seed")
         for r in results:
             r.seed, r.axes = (None if seed is None else int(seed)), dict(axes[i])
@@ -384,9 +463,10 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     sources = sorted({i["source"] for i in infos})
     split_extra = {i["run_dir"]: {"n_train": i["n_train"], "n_test": i["n_test"],
                                   "split_file": str(Path(i["run_dir"]) / "split.json")} for i in infos}
-    written = write_report(all_results, out, source=sources[0] if len(sources) == 1 else None,
+    written = write_report(all_results, tmp, source=sources[0] if len(sources) == 1 else None,
                            split_sizes_=split_extra, histories=histories or None,
-                           figures=bool(opts.figures), umap=bool(opts.umap), distance_mode=str(opts.distance_mode))
+                           figures=bool(opts.figures), umap=bool(opts.umap), distance_mode=str(opts.distance_mode),
+                           run_states=states)
     t_rep = time.perf_counter()
     summary = {"kind": kind, "target": str(target), "out": str(out), "options": OmegaConf.to_container(opts),
                "baselines": baselines, "runs": infos,
@@ -394,11 +474,13 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
                "selection": selection, "datamodule_reuse": cache.hits,
                "timings": {"evaluate_s": t_eval - t0, "report_s": t_rep - t_eval},
                "peak_rss_bytes": peak_rss_bytes()}
-    (out / "evaluation.json").write_text(json.dumps(summary, indent=1, default=str))
+    (tmp / "evaluation.json").write_text(json.dumps(summary, indent=1, default=str))
     if opts.print_tables:
         for p in written["tables"]:
             if p.endswith(".md"):
                 print(Path(p).read_text())
+    owned.publish()
+    written = {k: [str(out / Path(p).relative_to(tmp)) for p in v] for k, v in written.items()}
     print("\n".join(terminal_summary(all_results, infos, skipped, out, t_rep - t0)))
     return {"out": str(out), "runs": infos, "skipped": summary["skipped"], "written": written}
 

@@ -41,12 +41,14 @@ def write_report(
     figures: bool = True,
     umap: bool = True,
     distance_mode: str = "pairwise",
+    run_states: Mapping[str, Mapping] | None = None,
 ) -> dict:
     """Write tables, figures and ``results.json`` under ``out_dir``; return {kind: [paths]}.
 
     ``source``: 'simulated' | 'recorded' (overrides every Results.source when given).
     ``split_sizes_``: extra split bookkeeping stored in the JSON (the per-run n_train / n_test
-    are always taken from the Results). ``histories``: label -> rows of krr_history.jsonl
+    are always taken from the Results). ``run_states``: run folder -> the state of its
+    training (:func:`~embodied_tactile.eval.runs.run_state`: status, checkpoint). ``histories``: label -> rows of krr_history.jsonl
     (error vs run time figure). ``method``: whose rows go into Tables 1 / 2 (None = all).
     """
     out = Path(out_dir)
@@ -123,6 +125,7 @@ def write_report(
         "histories": histories or {},
         "runtime_points": runtime_points(results),
         "runtime_definition": RUNTIME_DEFINITION,
+        "run_states": {k: {a: b for a, b in v.items() if a != "line"} for k, v in (run_states or {}).items()},
     }
     p = out / "results.json"
     p.write_text(json.dumps(to_jsonable(blob, nan_to_none=True), indent=1, allow_nan=False))

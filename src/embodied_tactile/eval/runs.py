@@ -56,15 +56,22 @@ def _readable(path: Path) -> str | None:
 def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
     """A checkpoint of this run folder, always looked up inside ``<run_dir>/checkpoints``
     (metrics.json's ``best_checkpoint`` gives only the file name: a copied or moved folder
-    never reads the original's files). best: that file, else the newest
+    never reads the original's files). best: the checkpoint whose own stored monitored
+    value is best, over every checkpoint in the folder (:func:`runfolder.best_checkpoint`);
+    for checkpoints without that record, the file metrics.json names, else the newest
     ``checkpoints/best*.ckpt``, else ``last.ckpt``; last: ``checkpoints/last.ckpt``. A file
     that does not open as a checkpoint (truncated, another format) is skipped with a
     warning naming it; EvaluationError naming the folder (and the skipped files) when no
     candidate is readable."""
+    from embodied_tactile.runfolder import best_checkpoint
+
     ck_dir = run_dir / "checkpoints"
     last = ck_dir / "last.ckpt"
     cands: list[Path] = []
+    scored = best_checkpoint(run_dir) if which == "best" else None
     if which == "best":
+        if scored is not None:
+            cands.append(scored[0])
         best = read_json(run_dir / "metrics.json").get("best_checkpoint")
         if best:
             cands.append(ck_dir / Path(str(best)).name)
@@ -80,7 +87,7 @@ def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
             bad.append(f"{cand}: {why}")
             log.warning("%s: %s; trying the next checkpoint", cand, why)
             continue
-        if which == "best" and cand == last and not cand.name.startswith("best"):
+        if which == "best" and cand == last and (scored is None or scored[0] != last):
             log.warning("%s: no readable best checkpoint, using %s", run_dir, last)
         return cand
     have = sorted(p.name for p in ck_dir.glob("*.ckpt")) if ck_dir.is_dir() else []
@@ -88,6 +95,51 @@ def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
         f"no checkpoint ({'best or last' if which == 'best' else 'last.ckpt'}) in run folder {run_dir} that can be read "
         f"(looked in {ck_dir}; found {have or 'nothing'}{'; ' + '; '.join(bad) if bad else ''}). "
         "Did training finish or get killed before its first epoch?")
+
+
+def run_state(run: Run, allow_running: bool = False) -> dict:
+    """The state of the training behind a run folder, as an evaluation reports it:
+    ``status`` -- ``training`` while a process holds the folder's lock, else metrics.json's
+    ``finished`` / ``interrupted`` / ``failed``, or ``killed`` when it says ``running`` (or
+    is absent) and no process holds the folder; ``reason`` (the error, the stop signal,
+    whether the final read-out was done), ``checkpoint`` (the file evaluated, relative to the
+    folder), its ``epoch`` and ``step``, and ``line``: what evaluate.py prints first when the
+    run is not finished. EvaluationError for a run being trained unless ``allow_running``."""
+    from embodied_tactile.runfolder import checkpoint_progress, in_folder, training_holder
+
+    try:
+        import torch
+
+        epochs, step = checkpoint_progress(torch.load(str(run.ckpt), map_location="cpu", mmap=True, weights_only=False))
+    except Exception:  # noqa: BLE001 -- find_checkpoint opened it already; say '?' rather than fail here
+        epochs, step = None, None
+    ckpt = in_folder(run.run_dir, run.ckpt)
+    used = f"checkpoint {ckpt} (epoch(s) {epochs if epochs is not None else '?'}, step {step if step is not None else '?'})"
+    holder = training_holder(run.run_dir)
+    metrics = read_json(run.run_dir / "metrics.json")
+    state: dict[str, Any] = {"checkpoint": ckpt, "epochs": epochs, "step": step}
+    if holder is not None:
+        who = f"pid {holder['pid']} on host {holder['host']}, started {holder['started']}"
+        if not allow_running:
+            raise EvaluationError(f"run folder {run.run_dir} is being trained ({who}): its checkpoints are still "
+                                  "changing; wait for it to end, or allow_running=true evaluates one as it is now")
+        state.update(status="training", reason=who,
+                     line=f"evaluate.py: run {run.run_dir} is being trained ({who}); allow_running=true: evaluating "
+                          f"{used} as it is now")
+        return state
+    status = metrics.get("status")
+    if status in ("finished", "interrupted", "failed"):
+        reason = {"interrupted": f"stopped by {metrics.get('stopped_by') or 'a signal'}",
+                  "failed": str(metrics.get("error") or "error not recorded")}.get(status, "")
+        if status == "interrupted" and "final_readout" in metrics:
+            reason += f", final read-out {'done' if metrics['final_readout'] else 'not done'}"
+    else:
+        status, reason = "killed", ("metrics.json says running but no process holds the folder" if status == "running"
+                                    else "no metrics.json and no process holds the folder")
+    state.update(status=status, reason=reason)
+    if status != "finished":
+        state["line"] = f"evaluate.py: run {run.run_dir} is {status} ({reason}); evaluating {used}"
+    return state
 
 
 def load_module(run: Run):
@@ -221,6 +273,12 @@ def data_config(run: Run, opts: DictConfig) -> dict:
             raise ValueError("no list of test trials")
     except (OSError, ValueError) as err:
         raise EvaluationError(f"{split}: not a split file written by train.py ({type(err).__name__}: {err})") from None
+    from embodied_tactile.runfolder import split_overlap
+
+    both = split_overlap(side)
+    if both:
+        raise EvaluationError(f"{split} puts {len(both)} trial(s) on two sides ({'; '.join(both[:5])}): its scores "
+                              "would include trials the run was trained on; refusing to evaluate")
     train_cwd = training_cwd(run.run_dir)
     data["data_dir"] = _resolve_path(str(data.get("data_dir", "data")), train_cwd)
     if not Path(data["data_dir"]).exists():

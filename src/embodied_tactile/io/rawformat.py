@@ -21,7 +21,9 @@ the files of one dataset (``check_unique_names``).
 
 Every problem is reported as a :class:`TrialFormatError` naming file, trial and field.
 A declared rate (``fs_tactile``, ``fs_pose``) must match its timestamps (``tactile/t``,
-``baseline/t``, ``pose/t``) within ``RATE_TOLERANCE`` (:func:`_check_rate`).
+``baseline/t``, ``pose/t``) within ``RATE_TOLERANCE`` (:func:`_check_rate`); a clock may not
+jump forward by more than :func:`gap_limit` where no lost packet is recorded, the pose log's
+clock included (:func:`_check_continuity`).
 A bad trial is skipped with a warning (``strict=True`` makes it fatal); it never takes the
 other trials of the file down.
 """
@@ -112,6 +114,12 @@ RATE_ATTRS: Mapping[str, str] = {"t": "fs_tactile", "baseline_t": "fs_tactile", 
 #: by this fraction: jitter, bursts, lost packets and a board a few percent off pass, a
 #: rate declared twice or half too high on regular timestamps does not.
 RATE_TOLERANCE = 0.2
+#: Continuity of a clock: a step longer than ``max(MAX_GAP_S, GAP_STEPS / fs)`` is a gap,
+#: accepted only where the trial's lost-packet positions (``tactile/lost_at``,
+#: ``baseline/lost_at``) record a lost packet at the sample after it (the pose log, which
+#: has none, may have no gap).
+MAX_GAP_S = 0.5
+GAP_STEPS = 10
 
 _DTYPES: Mapping[str, tuple[np.dtype, ...]] = {
     "t": (np.dtype("float64"),),
@@ -474,6 +482,37 @@ def _check_rate(file: str, name: str, fld: str, data: np.ndarray, attrs: Mapping
         raise TrialFormatError(file, name, FIELDS[fld], problem.format(key=f"attrs/{key}") + f": fix {key} or the timestamps")
 
 
+def gap_limit(declared: float | None) -> float:
+    """The longest step a clock of declared rate ``declared`` (Hz) may take without a lost
+    packet recorded there: ``max(MAX_GAP_S, GAP_STEPS / declared)``."""
+    return max(MAX_GAP_S, GAP_STEPS / float(declared)) if declared else MAX_GAP_S
+
+
+def _check_continuity(file: str, name: str, data: Mapping[str, np.ndarray], attrs: Mapping[str, Any] | None) -> None:
+    """Gaps in each clock (the pose log's included) beyond :func:`gap_limit` that no lost
+    packet explains: TrialFormatError naming the clock, the sample and the sizes. (Whether
+    the pose log covers the part of the tactile clock a scene uses is the preprocessing's
+    check, which knows the window.)"""
+    attrs = attrs or {}
+    for clock, lost in (("t", "lost_at"), ("baseline_t", "baseline_lost_at"), ("pose_t", None)):
+        t = data.get(clock)
+        if t is None or len(t) < 2:
+            continue
+        rate = attrs.get(RATE_ATTRS[clock])
+        limit = gap_limit(float(rate) if rate else None)
+        steps = np.diff(np.asarray(t, dtype=np.float64))
+        after = np.flatnonzero(steps > limit) + 1  # the sample after each gap
+        if lost is not None and lost in data and after.size:
+            after = after[~np.isin(after, np.asarray(data[lost]))]
+        if after.size:
+            i = int(after[0])
+            raise TrialFormatError(
+                file, name, FIELDS[clock],
+                f"{after.size} gap(s) longer than {limit:.3g} s; the first {steps[i - 1]:.3g} s before sample {i} "
+                f"({float(t[i - 1]):.6g} s -> {float(t[i]):.6g} s), with no lost packet recorded there"
+                + (f" ({FIELDS[lost]})" if lost is not None else "") + " (rawformat.MAX_GAP_S / GAP_STEPS)")
+
+
 def _check_lost(file: str, name: str, fld: str, data: np.ndarray, n: int | None) -> None:
     """Lost-packet positions: sample indices 0..n (n = after the last sample), non-decreasing."""
     path = FIELDS[fld]
@@ -527,6 +566,8 @@ def validate_arrays(file: str | os.PathLike, name: str, trial: RawTrial, fields:
         _check_rate(file, name, fld, arr, trial.attrs)
         if fld in LOST_FIELDS:
             _check_lost(file, name, fld, arr, counts[clock])
+    _check_continuity(file, name, {f: np.asarray(getattr(trial, f)) for f in fields_needed(fields)
+                                   if getattr(trial, f) is not None}, trial.attrs)
 
 
 def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], check: bool = True,
@@ -561,6 +602,8 @@ def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], chec
             if fld in LOST_FIELDS:
                 _check_lost(file, name, fld, data, counts[clock])
         out[fld] = data
+    if check:
+        _check_continuity(file, name, out, attrs)
     return out
 
 
