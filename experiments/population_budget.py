@@ -10,7 +10,9 @@ validation objects and on the test objects:
     python evaluate.py RUN baselines=[untrained,handcrafted,mean] umap=false figures=false
 
 The script prints one row per run and side (val, test) and reader: optimiser steps, the
-learning-rate schedule, training wall time, the NMSE curve's mean (whole trajectory), its
+learning-rate schedule, whether it is the population default (``experiment=population`` as
+configured now: ``population_default`` in the JSON, which the main job's closing lines quote),
+training wall time, the NMSE curve's mean (whole trajectory), its
 last frame, its first frame, its maximum and the first frame at or below 0.5 (mean over
 factors, the run's own read-out: ``alignment`` of its config).
 """
@@ -25,10 +27,31 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 SIDES = {"val": "evaluation-val", "test": "evaluation"}
+#: what makes a run the population default (``experiment=population``) apart from its seed
+DEFAULT_KEYS = ("recipe", "trainer.max_epochs", "model.lr_schedule", "model.optimizer.lr", "data.actions",
+                "data.n_objects", "data.windows_per_epoch", "modality.name", "alignment.readout")
 
 
-def rows(run_dir: Path) -> list[dict]:
+def _select(cfg, key):
+    if key == "recipe":  # the objective's own options
+        return OmegaConf.to_container(cfg.model.get("context"), resolve=True) if cfg.model.get("context") else None
+    v = OmegaConf.select(cfg, key)
+    return OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
+
+
+def population_default():
+    """``configs/train.yaml`` composed with ``experiment=population``."""
+    from hydra import compose, initialize_config_dir
+
+    from embodied_tactile.config import config_dir
+
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        return compose(config_name="train", overrides=["experiment=population"])
+
+
+def rows(run_dir: Path, default) -> list[dict]:
     cfg = OmegaConf.load(run_dir / "config_resolved.yaml")
+    is_default = all(_select(cfg, k) == _select(default, k) for k in DEFAULT_KEYS)
     metrics = json.loads((run_dir / "metrics.json").read_text())
     out = []
     for side, folder in SIDES.items():
@@ -39,6 +62,7 @@ def rows(run_dir: Path) -> list[dict]:
             curve = r.get("nmse_curve_overall") or []
             out.append({
                 "run": run_dir.name, "side": side, "reader": r["method"], "seed": int(cfg.seed),
+                "population_default": is_default,
                 "steps": (metrics.get("krr_final") or {}).get("step"), "epochs": int(cfg.trainer.max_epochs),
                 "lr_schedule": str(cfg.model.get("lr_schedule", "constant")),
                 "actions": list(cfg.data.actions), "train_wall_s": metrics.get("train_wall_s"),
@@ -70,7 +94,8 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--json", type=Path, default=None, help="every row as JSON")
     args = ap.parse_args(argv)
-    all_rows = [r for run in args.runs for r in rows(run)]
+    default = population_default()
+    all_rows = [r for run in args.runs for r in rows(run, default)]
     print(table(all_rows))
     if args.json:
         args.json.write_text(json.dumps(all_rows, indent=1) + "\n")

@@ -86,10 +86,12 @@ def test_the_last_lines_say_what_the_number_means(tmp_path, monkeypatch):
     (run / "krr_history.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (initial, final)))
     method = "Latent Filter multi_l (labels, learned codes, y_weight 1, y direct)"
     scores = tmp_path / "scores.json"
-    scores.write_text(json.dumps([{"method": method, "n_objects": 256, "seed": s, "trajectory": {"overall": w},
-                                   "last_step": {"overall": l}} for s, w, l in ((0, 1.0, 0.7), (1, 1.2, 0.8))]
-                                 + [{"method": method, "n_objects": 24, "seed": 0, "trajectory": {"overall": 9.0},
-                                     "last_step": {"overall": 9.0}}]))
+    row = {"side": "test", "population_default": True}
+    scores.write_text(json.dumps(
+        [{**row, "reader": "latent_filter", "seed": s, "whole": w, "last": l} for s, w, l in ((0, 1.0, 0.7), (1, 1.2, 0.8))]
+        + [{**row, "reader": "untrained", "seed": 0, "whole": 0.9, "last": 0.85}]
+        + [{**row, "reader": "latent_filter", "side": "val", "seed": 0, "whole": 9.0, "last": 9.0},
+           {**row, "reader": "latent_filter", "population_default": False, "seed": 0, "whole": 9.0, "last": 9.0}]))
     monkeypatch.setattr(S, "POPULATION_SCORES", scores)
     lines = S.protocol_lines(run)
     text = "\n".join(lines)
@@ -97,14 +99,16 @@ def test_the_last_lines_say_what_the_number_means(tmp_path, monkeypatch):
     assert [ln.split()[-2:] for ln in lines[2:5]] == [["0.1234", "0.0987"], ["0.998", "0.988"], ["1.003", "1.003"]]
     assert "untrained" in lines[3] and "mean predictor" in lines[4]
     assert "measures recognition" in text
-    assert ("Objects never touched: python train.py experiment=population; measured: " + method
-            + ": whole trajectory 1.100, last frame 0.750 (2 seeds") in text and "docs/generalisation.md" in text
+    assert ("Objects never touched: python train.py experiment=population; measured: the population default: "
+            "whole trajectory 1.100, last frame 0.750 (2 seed(s), 64 test objects; untrained 0.900 / 0.850)") in text
+    assert "docs/experiments/population_budget.md" in text
     # the block closes the run's summary; another split says what it measures; an unmeasured recipe says so
     assert run_summary_lines(run, cwd=tmp_path)[-len(lines) - 1:-1] == lines
     (run / "config_resolved.yaml").write_text(PAPER_CONFIG.replace("trial", "object").replace("true", "false"))
     text = "\n".join(S.protocol_lines(run))
     assert "generalisation to objects never touched" in text and "recognition" not in text
-    assert "not yet measured for Latent Filter multi_l (no labels, y_weight 1, y direct)" in text
+    monkeypatch.setattr(S, "POPULATION_SCORES", tmp_path / "absent.json")
+    assert "the population default: not yet measured" in "\n".join(S.protocol_lines(run))
 
 
 def test_run_summary_without_alignment(tmp_path):

@@ -135,28 +135,26 @@ SPLIT_MEANING = {
                "This split measures generalisation to objects never touched in training."),
 }
 POPULATION_COMMAND = "python train.py experiment=population"
-POPULATION_PAGE = "docs/generalisation.md"
-#: the learning curve's scores (written by eval.generalisation beside its page)
-POPULATION_SCORES = Path(__file__).resolve().parents[2] / "docs" / "generalisation_scores.json"
-POPULATION_SIZE = 256  # the population scene's number of training objects (configs/experiment/population.yaml)
+POPULATION_PAGE = "docs/experiments/population_budget.md"
+#: the population scene's measured rows (experiments/population_budget.py --json), each marked
+#: whether its run is the population default as configured
+POPULATION_SCORES = Path(__file__).resolve().parents[2] / "docs" / "experiments" / "population_budget.json"
 
 
-def population_scores(method: str, path: str | os.PathLike | None = None,
-                      n_objects: int = POPULATION_SIZE) -> tuple[float, float, int] | None:
-    """(whole trajectory, last frame, seeds): the mean over seeds of one method's overall NMSE
-    on the population's test objects at ``n_objects`` training objects, from the learning
-    curve's scores file (:data:`POPULATION_SCORES` unless ``path``); None when the file or the
-    method is missing."""
+def population_scores(path: str | os.PathLike | None = None) -> dict[str, tuple[float, float, int]]:
+    """Per reader (``latent_filter``, ``untrained``, ...): (whole trajectory, last frame, seeds),
+    the mean over seeds of the population default's runs on the test objects (empty when the
+    file holds none)."""
     try:
         rows = json.loads(Path(path or POPULATION_SCORES).read_text())
     except (OSError, ValueError):
-        return None
-    rows = [r for r in rows if r.get("method") == method and int(r.get("n_objects", -1)) == n_objects]
-    if not rows:
-        return None
-    whole = sum(float(r["trajectory"]["overall"]) for r in rows) / len(rows)
-    last = sum(float(r["last_step"]["overall"]) for r in rows) / len(rows)
-    return whole, last, len(rows)
+        return {}
+    out: dict[str, tuple[float, float, int]] = {}
+    for reader in dict.fromkeys(r["reader"] for r in rows):
+        sel = [r for r in rows if r["reader"] == reader and r.get("population_default") and r["side"] == "test"]
+        if sel:
+            out[reader] = (sum(r["whole"] for r in sel) / len(sel), sum(r["last"] for r in sel) / len(sel), len(sel))
+    return out
 
 
 def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
@@ -191,10 +189,15 @@ def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
     lines += [f"  {name:30}  {_fmt(w):>16}  {_fmt(l):>10}" for name, w, l in table]
     if meaning:
         lines.append(meaning)
-    pop = population_scores(label)
-    measured = (f"{label}: whole trajectory {pop[0]:.3f}, last frame {pop[1]:.3f} ({pop[2]} seeds, "
-                f"{POPULATION_SIZE} training objects, 64 test objects)" if pop else
-                f"not yet measured for {label}")
+    pop = population_scores()
+    if "latent_filter" in pop:
+        w, last, n = pop["latent_filter"]
+        measured = f"the population default: whole trajectory {w:.3f}, last frame {last:.3f} ({n} seed(s), 64 test objects"
+        if "untrained" in pop:
+            measured += f"; untrained {pop['untrained'][0]:.3f} / {pop['untrained'][1]:.3f}"
+        measured += ")"
+    else:
+        measured = "the population default: not yet measured"
     lines.append(f"Objects never touched: {POPULATION_COMMAND}; measured: {measured}; {POPULATION_PAGE}")
     return lines
 
