@@ -94,6 +94,8 @@ def check_context(context: Optional[Mapping[str, Any]]) -> Optional[dict[str, An
         raise ValueError(f"context.source must be one of {CONTEXT_SOURCES}, got {out['source']!r}")
     if int(out["initial_frames"]) < 1:
         raise ValueError(f"context.initial_frames must be >= 1, got {out['initial_frames']}")
+    if not float(out["filter_weight"]) >= 0.0:
+        raise ValueError(f"context.filter_weight must be >= 0, got {out['filter_weight']}")
     return out
 
 
@@ -192,6 +194,11 @@ class LatentFilterModule(L.LightningModule):
         else:
             terms = self.model.context_terms(batch, self.context["initial_frames"], self.context["refilter"],
                                              sample=True)
+            w = float(self.context["filter_weight"])
+            if w > 0.0:  # plus the target window's own filtering ELBO, weighted
+                filt = self.model.elbo_terms(batch, sample=True)
+                for k in ("nll", "kl_z", "kl_y", "pop", "entropy"):
+                    terms[k] = terms[k] + w * filt[k]
         terms.pop("out")
         return terms
 

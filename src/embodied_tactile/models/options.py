@@ -70,11 +70,14 @@ class ContextOptions:
     """The context objective (docs/model.md, "The context objective"): where y's context
     comes from (``trial``: another trial of the same object; ``window``: a disjoint window
     of the same trial), how many target frames are filtered before the open-loop rollout,
-    and whether every target frame is filtered (``refilter``, a leak control)."""
+    whether every target frame is filtered (``refilter``, a leak control), and the weight of
+    the target window's filtering ELBO added to the objective (``filter_weight``; 0: the
+    context objective alone)."""
 
     source: str = "trial"
     initial_frames: int = 3
     refilter: bool = False
+    filter_weight: float = 0.0
 
 
 @dataclass
