@@ -21,7 +21,7 @@ import logging
 import sys
 import time
 
-import embodied_tactile.threadenv  # noqa: F401  OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP
+import embodied_tactile.run.threadenv  # noqa: F401  OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP
 import hydra
 import lightning as L
 import torch
@@ -30,9 +30,9 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-import embodied_tactile.config  # noqa: F401  registers the typed configs before Hydra composes
+import embodied_tactile.run.config  # noqa: F401  registers the typed configs before Hydra composes
 from embodied_tactile import cli, quiet, runfolder, runtime, settings, summary
-from embodied_tactile.jsonio import read_json, write_json
+from embodied_tactile.run.jsonio import read_json, write_json
 
 log = logging.getLogger("train")
 

@@ -31,7 +31,7 @@ def _synthetic_model():
     from embodied_tactile.active.model import PalpationModel
     from embodied_tactile.data.preprocess import PreprocessConfig
     from embodied_tactile.eval.krr import fit_alignment
-    from embodied_tactile.models import LatentFilter
+    from embodied_tactile.model import LatentFilter
 
     torch.manual_seed(0)
     net = LatentFilter("multi_l").eval()

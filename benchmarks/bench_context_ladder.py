@@ -100,7 +100,7 @@ def held_out_pairs(run, held_out: str = "val"):
 @torch.no_grad()
 def prediction_scores(net, batches, objects: np.ndarray) -> dict:
     """KL_y and the target NMSE with own and swapped y over the validation pairs."""
-    from embodied_tactile.models.networks import kl_diag_gaussians
+    from embodied_tactile.model.networks import kl_diag_gaussians
 
     net.eval()
     ys, kls = [], []
@@ -152,7 +152,7 @@ def write_untrained(run_dir: Path, out: Path) -> Path:
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
-    import embodied_tactile.config  # noqa: F401  the typed configs and resolver
+    import embodied_tactile.run.config  # noqa: F401  the typed configs and resolver
     from embodied_tactile.eval.runs import data_config, load_run
 
     run = load_run(run_dir, "last")
@@ -193,7 +193,7 @@ def _posteriors(net, batches, names) -> dict:
 def _combined(split: dict, prior) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per object: ``combine_touches`` over its trials' last-frame posteriors -> means
     (n_objects, d), factors (n_objects, 4) and object ids."""
-    from embodied_tactile.models.latent_filter import combine_touches
+    from embodied_tactile.model.latent_filter import combine_touches
 
     objects = np.asarray(split["object_id"])
     means, facs, ids = [], [], []

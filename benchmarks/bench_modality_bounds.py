@@ -136,7 +136,7 @@ def raw_acc_features(acc: np.ndarray, fs: float, n_frames: int = 300, frame_rate
 def raw_probe(train, test, raw_paths, *, magnitude: bool, alignment: dict, meta: dict, targets: str):
     from embodied_tactile.eval.results import Results
     from embodied_tactile.eval.krr import fit_alignment
-    from embodied_tactile.io.rawformat import read_trial
+    from embodied_tactile.data.rawformat import read_trial
 
     def feats(split):
         out = []
@@ -207,7 +207,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(1)
     from embodied_tactile.eval.baselines import evaluate_code_regression, evaluate_gru, evaluate_handcrafted
     from embodied_tactile.constants import FACTOR_NAMES
-    from embodied_tactile.modality import load_modality
+    from embodied_tactile.data.modality import load_modality
 
     t0 = time.perf_counter()
     pre = dict(kv.split("=", 1) for kv in args.preprocess)

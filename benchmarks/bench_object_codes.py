@@ -49,7 +49,7 @@ def initial_codes(cfg) -> np.ndarray:
 def run_row(run, opts, cache) -> dict:
     from embodied_tactile.eval import runs as ev
     from embodied_tactile.eval.codes import affine_r2, code_spread, own_code_rank
-    from embodied_tactile.models.networks import softplus_var
+    from embodied_tactile.model.networks import softplus_var
 
     data = ev.data_config(run, opts)
     key, dm = cache.get(data)
@@ -78,7 +78,7 @@ def main(argv=None) -> None:
     import torch
 
     torch.set_num_threads(1)
-    from embodied_tactile import quiet
+    from embodied_tactile.run import quiet
     from embodied_tactile.eval import runs as ev
     from embodied_tactile.eval.pipeline import parse_options
 

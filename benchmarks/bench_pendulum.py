@@ -25,8 +25,8 @@ import torch
 
 from embodied_tactile.bench.pendulum_run import DIAGNOSTIC_READOUTS, READOUTS, run
 from embodied_tactile.bench.remedies import REMEDIES, parse_remedy, remedy_kwargs
-from embodied_tactile.models.options import ContextOptions
-from embodied_tactile.runtime import set_threads
+from embodied_tactile.model.options import ContextOptions
+from embodied_tactile.run.runtime import set_threads
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])

@@ -17,7 +17,7 @@ import argparse
 
 import numpy as np
 
-from embodied_tactile.bench.pendulum import DAMPINGS, angle_precision, generate, parameter_separation
+from embodied_tactile.data.pendulum import DAMPINGS, angle_precision, generate, parameter_separation
 
 
 def main(argv=None) -> None:

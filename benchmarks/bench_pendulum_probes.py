@@ -42,11 +42,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from embodied_tactile.bench.pendulum import N_OBJECTS, angle_precision, generate, least_squares_parameters
+from embodied_tactile.data.pendulum import N_OBJECTS, angle_precision, generate, least_squares_parameters
 from embodied_tactile.bench.pendulum_run import MODALITY, latents
 from embodied_tactile.eval.baselines import GRURegressor
-from embodied_tactile.models import LatentFilter
-from embodied_tactile.runtime import set_threads
+from embodied_tactile.model import LatentFilter
+from embodied_tactile.run.runtime import set_threads
 
 
 def _targets(data) -> np.ndarray:

@@ -57,7 +57,7 @@ def trial_features(fsr: np.ndarray, acc: np.ndarray) -> dict[str, np.ndarray]:
 
 def object_table(raw: str) -> tuple[list[int], dict[int, dict[str, np.ndarray]], dict[int, np.ndarray]]:
     """Features (both actions concatenated, in action order) and targets per object."""
-    from embodied_tactile.io.rawformat import iter_trials
+    from embodied_tactile.data.rawformat import iter_trials
 
     per: dict[int, dict[int, dict[str, np.ndarray]]] = {}
     targets: dict[int, np.ndarray] = {}

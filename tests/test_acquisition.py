@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 
 from embodied_tactile import constants as C
-from embodied_tactile.acquisition import protocol as P
-from embodied_tactile.acquisition.emulator import Emulator, Faults, synthetic_trial
-from embodied_tactile.acquisition.pose import ReplayPoseSource, StaticPoseSource, load_pose_log
-from embodied_tactile.acquisition.recorder import Recorder, RecorderSettings, finish, open_port
-from embodied_tactile.io import rawformat as R
+from embodied_tactile.hardware import protocol as P
+from embodied_tactile.hardware.emulator import Emulator, Faults, synthetic_trial
+from embodied_tactile.hardware.pose import ReplayPoseSource, StaticPoseSource, load_pose_log
+from embodied_tactile.hardware.recorder import Recorder, RecorderSettings, finish, open_port
+from embodied_tactile.data import rawformat as R
 
 LSB = 1.0 / C.ACC_COUNTS_PER_G
 V1 = {"name": "eskin_v1", "acc_repair": [{"sensor": 6, "axis": "z"}], "fsr_repair": [{"layer": 1, "cols": [6, 7]}]}
@@ -243,7 +243,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _cli(tmp_path, port, *over, preexec_fn=None):
-    cmd = [sys.executable, "-m", "embodied_tactile.record", f"port={port}", f"out={tmp_path / 'cli.h5'}", "settle_s=0.1",
+    cmd = [sys.executable, "-m", "embodied_tactile.hardware.record", f"port={port}", f"out={tmp_path / 'cli.h5'}", "settle_s=0.1",
            "baseline_s=0", f"hydra.run.dir={tmp_path.parent / (tmp_path.name + '_hydra')}", "record/device@device=ideal",
            "trial.object_id=40", "reserve_mb=0.25", *over]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, preexec_fn=preexec_fn)
@@ -328,7 +328,7 @@ def test_cli_sigkill_leaves_readable_file(tmp_path, trial3s):
 def test_emulate_cli_serves_packets(tmp_path):
     import serial
 
-    proc = subprocess.Popen([sys.executable, "-m", "embodied_tactile.emulate", "--synthetic", "1", "--max-seconds", "20", "--rate", "0"],
+    proc = subprocess.Popen([sys.executable, "-m", "embodied_tactile.hardware.emulate", "--synthetic", "1", "--max-seconds", "20", "--rate", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         port = proc.stdout.readline().strip()
@@ -468,7 +468,7 @@ def test_failed_write_stops_the_trial_and_keeps_what_was_flushed(tmp_path, trial
 # (the CLI tests above start them in subprocesses and are marked slow; these keep their logic in -m "not slow")
 def _record_main(tmp_path, monkeypatch, port, *over):
     """``record.main()`` here with :func:`_cli`'s settings; returns its exit status."""
-    from embodied_tactile import record
+    from embodied_tactile.hardware import record
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(sys, "argv", [
@@ -509,7 +509,7 @@ def test_emulate_main_in_process_serves_packets_until_stopped(tmp_path, monkeypa
 
     import serial
 
-    from embodied_tactile import emulate
+    from embodied_tactile.hardware import emulate
 
     handlers = {}
     monkeypatch.setattr(emulate.signal, "signal", lambda sig, handler: handlers.__setitem__(sig, handler))

@@ -19,7 +19,7 @@ from embodied_tactile.active.policy import ActivePolicy, RandomPolicy, expected_
 from embodied_tactile.active.source import SimulatedTouchSource, TouchSource
 from embodied_tactile.data.preprocess import PreprocessConfig
 from embodied_tactile.eval.krr import fit_alignment
-from embodied_tactile.models.latent_filter import LatentFilter
+from embodied_tactile.model.latent_filter import LatentFilter
 
 REPO = Path(__file__).resolve().parents[1]
 N_Y = 4
@@ -182,7 +182,7 @@ def test_touches_to_reach_and_the_target_summary():
 def test_palpate_main_in_process_errors_clearly_on_a_missing_run(tmp_path, monkeypatch, capsys, restore_logging):
     """What test_cli_errors_clearly_on_a_missing_run checks of the CLI, through palpate.main
     in this process (the subprocess test is slow)."""
-    from embodied_tactile import palpate
+    from embodied_tactile.active import palpate
 
     monkeypatch.chdir(tmp_path)
     threads = torch.get_num_threads()  # palpate.run sets torch's threads from its config
@@ -209,7 +209,7 @@ def test_palpate_main_in_process_errors_clearly_on_a_missing_run(tmp_path, monke
 
 def _palpate(args, cwd=REPO, timeout=240):
     env = dict(os.environ, WANDB_MODE="disabled", OMP_NUM_THREADS="1")
-    return subprocess.run([sys.executable, "-m", "embodied_tactile.palpate", *args], cwd=cwd, env=env,
+    return subprocess.run([sys.executable, "-m", "embodied_tactile.active.palpate", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout)
 
 

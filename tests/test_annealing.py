@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from embodied_tactile.models.annealing import (
+from embodied_tactile.model.annealing import (
     ConstrainedAnnealing,
     DVBFAnnealing,
     GeometricKLWeights,

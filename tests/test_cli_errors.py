@@ -124,7 +124,7 @@ def test_failed_run_is_marked_failed(tmp_path):
 def test_settings_spec_unit():
     from omegaconf import OmegaConf
 
-    from embodied_tactile.settings import SettingsError, Spec, check_train_config
+    from embodied_tactile.run.settings import SettingsError, Spec, check_train_config
 
     assert not Spec(("int",)).accepts(True)  # a bool is not an epoch count
     assert Spec(("float",), lo=0).accepts(3) and not Spec(("float",)).accepts(float("nan"))
@@ -146,7 +146,7 @@ def test_settings_spec_unit():
 
 # ----------------------------------------------------------------------------- quiet.py
 def test_known_third_party_warnings_are_silenced_project_warnings_kept():
-    from embodied_tactile.quiet import silence_third_party
+    from embodied_tactile.run.quiet import silence_third_party
 
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
@@ -167,7 +167,7 @@ def test_real_umap_and_pytree_warnings_are_silenced():
     """The filters match the libraries' real messages (not copies that could drift)."""
     import numpy as np
 
-    from embodied_tactile.quiet import silence_third_party
+    from embodied_tactile.run.quiet import silence_third_party
 
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
@@ -183,7 +183,7 @@ def test_real_umap_and_pytree_warnings_are_silenced():
 
 
 def test_litlogger_tip_dropped_other_lightning_info_kept(caplog):
-    from embodied_tactile.quiet import silence_third_party
+    from embodied_tactile.run.quiet import silence_third_party
     from lightning.pytorch.utilities.rank_zero import rank_zero_info
 
     silence_third_party()

@@ -130,8 +130,8 @@ def test_the_class_built_with_no_options_is_the_configured_filter_recipe(tmp_pat
     network, and an unknown option is refused by name, in Hydra and in the class."""
     from dataclasses import asdict
 
-    from embodied_tactile.models.latent_filter import LatentFilter
-    from embodied_tactile.models.options import LatentFilterOptions, OptimizerOptions
+    from embodied_tactile.model.latent_filter import LatentFilter
+    from embodied_tactile.model.options import LatentFilterOptions, OptimizerOptions
 
     cfg = _compose(["recipe=filter"], tmp_path)
     configured = instantiate(cfg.model.net)
@@ -158,7 +158,7 @@ def test_recipes_name_the_objective(tmp_path):
     filter starting at the population marginal (test_context.py); elbo drops the two switches, recognition
     adds the labels with fixed codes and weights kl_y 100; the paper's experiment is the paper's
     recipe under its DVBF annealing; a command-line y weight still wins."""
-    from embodied_tactile.models.latent_filter import LatentFilter
+    from embodied_tactile.model.latent_filter import LatentFilter
 
     filter_ = instantiate(_compose(["recipe=filter"], tmp_path).model.net)
     assert filter_.obs_dropout == 0.5 and filter_.config()["y_update"] == "evidence"

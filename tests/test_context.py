@@ -4,8 +4,8 @@ object id kept out of the model, the K-touch combination and the swap test."""
 import pytest
 import torch
 
-from embodied_tactile.models import EarlyFusionLatentFilter, LatentFilter
-from embodied_tactile.models.latent_filter import combine_touches
+from embodied_tactile.model import EarlyFusionLatentFilter, LatentFilter
+from embodied_tactile.model.latent_filter import combine_touches
 from tests.conftest import tiny_datamodule
 
 torch.set_num_threads(2)
@@ -210,7 +210,7 @@ def test_y_filter_can_start_at_the_population_marginal():
 def test_a_checkpoint_with_the_removed_random_length_loads_at_its_off_value():
     """random_length was measured and removed: a saved context config holding it at False
     loads; True is refused with a message that names it."""
-    from embodied_tactile.models.module import check_context
+    from embodied_tactile.model.module import check_context
 
     assert check_context({"source": "trial", "random_length": False}) == {"source": "trial", "initial_frames": 3,
                                                                           "refilter": False}

@@ -16,7 +16,7 @@ import pytest
 
 from conftest import tiny_scene
 from embodied_tactile import constants as C
-from embodied_tactile.io import rawformat as rf
+from embodied_tactile.data import rawformat as rf
 
 
 def _trial(object_id: int, seconds: float, pose_seconds: float | None = None, seed: int = 0) -> rf.RawTrial:
@@ -159,7 +159,7 @@ def test_large_population_needs_the_flag_and_shows_its_estimate(tmp_path):
     from omegaconf import OmegaConf
 
     from embodied_tactile.data.prepare import Scene
-    from embodied_tactile.settings import SettingsError, check_train_config
+    from embodied_tactile.run.settings import SettingsError, check_train_config
 
     kw = dict(data_dir=str(tmp_path), objects="population", n_objects=200000, actions=(6, 14), channels=("acc",))
     with pytest.raises(ValueError, match=r"400,192 trials .* more than the 10,000 allowed without "

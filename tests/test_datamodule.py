@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from embodied_tactile.data.datamodule import TrialRef, fields_for_channels, split_trials
-from embodied_tactile.io import rawformat as rf
+from embodied_tactile.data import rawformat as rf
 
 from conftest import TINY_ACTIONS, TINY_OBJECTS, tiny_datamodule
 

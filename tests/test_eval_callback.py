@@ -258,8 +258,8 @@ def test_both_splits_inferred_in_one_pass_give_each_splits_own_latents():
     """The callback infers the cached training and held-out sequences in one pass (merged
     batches); every sequence's latents equal those of inferring each split on its own."""
     from embodied_tactile.eval.callback import collect_latents, rebatch
-    from embodied_tactile.models.latent_filter import LatentFilter
-    from embodied_tactile.models.module import LateFusionLatentFilter
+    from embodied_tactile.model.latent_filter import LatentFilter
+    from embodied_tactile.model.module import LateFusionLatentFilter
 
     torch.manual_seed(0)
     model = LateFusionLatentFilter(LatentFilter("multi_l", n_z=4, n_y=3, encoder={"widths": [4, 8], "hidden": 16},

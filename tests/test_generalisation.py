@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from embodied_tactile.constants import FACTOR_NAMES
 from embodied_tactile.eval import generalisation as G
-from embodied_tactile.summary import recipe
+from embodied_tactile.run.summary import recipe
 
 
 def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None, held_out=None):

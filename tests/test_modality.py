@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from conftest import REPO, TINY_ACTIONS, TINY_OBJECTS
 from test_configs import _compose_job
-from embodied_tactile.modality import CHANNELS, Modality, fields_for_channels, load_modality, modality_names
+from embodied_tactile.data.modality import CHANNELS, Modality, fields_for_channels, load_modality, modality_names
 
 
 def test_every_shipped_modality_is_valid_and_complete():
@@ -54,7 +54,7 @@ def test_a_new_modality_is_one_yaml_file(tmp_path, tiny_data_dir):
     (extra / "modality" / "acc_bottom_l.yaml").write_text(
         "name: acc_bottom_l\nlabel: ACC+FSR_b late\nchannels: [fsr_b, acc]\nfusion: late\n"
         "pathways:\n  force: [fsr_b]\n  vibration: [acc]\n"
-        "module: embodied_tactile.models.module.LateFusionLatentFilter\n")
+        "module: embodied_tactile.model.module.LateFusionLatentFilter\n")
     cfg = _compose_job([
         f"hydra.searchpath=[file://{extra}]", "modality=acc_bottom_l",
         f"data.objects={TINY_OBJECTS}", f"data.actions={TINY_ACTIONS}",

@@ -9,7 +9,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
-from embodied_tactile.models import (
+from embodied_tactile.model import (
     ConstrainedAnnealing,
     EarlyFusion,
     EarlyFusionLatentFilter,
@@ -18,14 +18,14 @@ from embodied_tactile.models import (
     LatentFilter,
     LatentFilterModule,
 )
-from embodied_tactile.models.networks import (
+from embodied_tactile.model.networks import (
     ConvDecoder,
     ConvEncoder,
     TransitionNet,
     fuse_gaussians,
     kl_diag_gaussians,
 )
-from embodied_tactile.modality import modality_names
+from embodied_tactile.data.modality import modality_names
 
 torch.set_num_threads(2)
 
@@ -248,7 +248,7 @@ def test_filter_step_equals_batched_forward(name, y_update):
 def test_evidence_y_posterior_is_the_product_of_its_evidence():
     """y_update='evidence': q(y_t) = N(0, 1/p0) x prod_k N(m_k, 1/lambda_k): the precision
     only grows, the mean is the precision-weighted mean of the evidence, and the floor holds."""
-    from embodied_tactile.models.networks import YPosterior
+    from embodied_tactile.model.networks import YPosterior
 
     torch.manual_seed(0)
     yp = YPosterior(n_z=3, n_y=2, n_a=1, hidden=8, min_var=1e-3, update="evidence", prior_precision=2.0)
@@ -278,7 +278,7 @@ def test_bounded_evidence_caps_each_steps_precision():
     """y_evidence_max: lambda_k = max * sigmoid(raw_k), so P_t <= p0 + t * max even when the
     head asks for huge precision, and the latest frame's weight in the mean is at most
     max / P_t; the LatentFilter passes it through; the direct update ignores it."""
-    from embodied_tactile.models.networks import YPosterior
+    from embodied_tactile.model.networks import YPosterior
 
     torch.manual_seed(0)
     yp = YPosterior(n_z=3, n_y=2, n_a=1, hidden=8, update="evidence", prior_precision=1.0, max_evidence=0.5)
@@ -298,7 +298,7 @@ def test_bounded_evidence_caps_each_steps_precision():
 def test_evidence_range_bounds_how_far_one_step_moves_the_mean():
     """y_evidence_range r: evidence means r tanh(raw / r), so with the precision bound L one
     step moves the mean by at most L (r + |mean|) / P_t, however large the head's output."""
-    from embodied_tactile.models.networks import YPosterior
+    from embodied_tactile.model.networks import YPosterior
 
     torch.manual_seed(0)
     yp = YPosterior(n_z=3, n_y=2, n_a=1, hidden=8, update="evidence", max_evidence=1.0, evidence_range=2.0)
@@ -486,12 +486,12 @@ def test_hydra_instantiation_with_project_style_configs(tmp_path):
     from omegaconf import OmegaConf
 
     cfg = OmegaConf.create({
-        "_target_": "embodied_tactile.models.module.LateFusionLatentFilter",
-        "net": {"_target_": "embodied_tactile.models.latent_filter.LatentFilter",
+        "_target_": "embodied_tactile.model.module.LateFusionLatentFilter",
+        "net": {"_target_": "embodied_tactile.model.latent_filter.LatentFilter",
                 "modality": {"name": "multi_l", "label": "MULTI-L", "channels": ["acc", "fsr_t", "fsr_b"],
                              "fusion": "late", "pathways": {"vibration": ["acc"], "force": ["fsr_t", "fsr_b"]}},
                 "encoder": {"widths": [4, 8], "hidden": 32}, "transition_hidden": 32, "lstm_hidden": 32},
-        "annealing": {"_target_": "embodied_tactile.models.annealing.DVBFAnnealing", "c0": 0.01, "T_A": 100},
+        "annealing": {"_target_": "embodied_tactile.model.annealing.DVBFAnnealing", "c0": 0.01, "T_A": 100},
         "optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-5},
     })
     module = instantiate(cfg)
@@ -506,7 +506,7 @@ def test_hydra_instantiation_with_project_style_configs(tmp_path):
 
 # ------------------------------------------------------------------ hierarchical prior
 def test_hierarchical_prior_population_marginal_for_unseen_objects():
-    from embodied_tactile.models.networks import HierarchicalPrior
+    from embodied_tactile.model.networks import HierarchicalPrior
 
     torch.manual_seed(0)
     p = HierarchicalPrior(n_y=3, n_a=2, n_objects=5, sigma_init=0.5, pop_sigma_init=0.4, var_floor=1e-2, labels=True)
@@ -536,7 +536,7 @@ def test_hierarchical_prior_population_marginal_for_unseen_objects():
 
 
 def test_prior_without_labels_gives_every_sequence_the_population_marginal():
-    from embodied_tactile.models.networks import HierarchicalPrior
+    from embodied_tactile.model.networks import HierarchicalPrior
 
     torch.manual_seed(0)
     # learned codes, so that a gradient could reach them
@@ -624,7 +624,7 @@ def test_code_lr_scale_puts_the_object_codes_in_a_group_of_their_own():
 
 
 def test_population_term_enters_kl_y_and_old_checkpoints_load():
-    from embodied_tactile.models.networks import HierarchicalPrior
+    from embodied_tactile.model.networks import HierarchicalPrior
 
     torch.manual_seed(0)
     m = LatentFilter("fsr_t", prior={"labels": True}, **{**TINY, "obs_dropout": 0.0})  # the same frames in both calls
@@ -707,7 +707,7 @@ def test_fit_sets_the_input_stats_from_the_training_set_and_checkpoints_carry_th
     HandOverStatistics hands them to the module; without them a standardising network
     refuses to fit; checkpoints carry them."""
     from embodied_tactile.data.statistics import DataStatistics
-    from embodied_tactile.runtime import HandOverStatistics
+    from embodied_tactile.run.runtime import HandOverStatistics
 
     torch.manual_seed(0)
     batch = make_batch(1, B=4, T=6)
@@ -758,7 +758,7 @@ def test_saved_configs_with_removed_options_load_when_off_and_are_named_when_on(
     """A checkpoint's net config from before the removal of measured-and-rejected options
     (REMOVED_OPTIONS) rebuilds the same network when they were off; one that used an option
     is refused with the option named, never silently rebuilt as another model."""
-    from embodied_tactile.models.compat import REMOVED_OPTIONS
+    from embodied_tactile.model.compat import REMOVED_OPTIONS
 
     torch.manual_seed(0)
     net = LatentFilter("fsr_t", **TINY)
@@ -804,3 +804,18 @@ def test_benchmark_reference_loss_equals_the_vectorised_elbo_terms():
     for k in ("nll", "kl_z", "entropy"):
         torch.testing.assert_close(got[k], ref[k], rtol=1e-4, atol=1e-3, msg=k)
     torch.testing.assert_close(got["kl_y"], ref["kl_y"] - ref["pop"], rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("old, new", [
+    ("embodied_tactile.models.module.EarlyFusionLatentFilter", "embodied_tactile.model.module.EarlyFusionLatentFilter"),
+    ("embodied_tactile.models.module.LateFusionLatentFilter", "embodied_tactile.model.module.LateFusionLatentFilter"),
+    ("embodied_tactile.models.latent_filter.LatentFilter", "embodied_tactile.model.latent_filter.LatentFilter"),
+    ("embodied_tactile.models.annealing.LinearKLWarmup", "embodied_tactile.model.annealing.LinearKLWarmup"),
+    ("embodied_tactile.runtime.ResumableCSVLogger", "embodied_tactile.run.runtime.ResumableCSVLogger"),
+])
+def test_saved_configs_of_the_earlier_layout_name_todays_classes(old, new):
+    """The ``_target_`` strings of a ``config_resolved.yaml`` written before the package was
+    ordered by role resolve to today's classes (the same objects, so checkpoints load)."""
+    from hydra.utils import get_class
+
+    assert get_class(old) is get_class(new)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from embodied_tactile.bench.pendulum import (DAMPINGS, DT, N_OBJECTS, angle_precision, generate, integrate,
+from embodied_tactile.data.pendulum import (DAMPINGS, DT, N_OBJECTS, angle_precision, generate, integrate,
                                              least_squares_parameters, object_params, parameter_separation, render)
 
 
@@ -31,7 +31,7 @@ def test_generator_shapes_objects_and_determinism():
 
 
 def test_unseen_systems_lie_between_the_training_grid_and_have_no_object_id():
-    from embodied_tactile.bench.pendulum import DAMPINGS, FREQUENCIES, UNSEEN_SYSTEMS
+    from embodied_tactile.data.pendulum import DAMPINGS, FREQUENCIES, UNSEEN_SYSTEMS
 
     u = generate(3, seed=5, n_steps=12, systems=UNSEEN_SYSTEMS)
     assert len(u) == 3 * len(UNSEEN_SYSTEMS) and np.all(u.object_id == -1)

@@ -12,7 +12,7 @@ import pytest
 from embodied_tactile import constants as C
 from embodied_tactile.data.datamodule import TactileDataModule, split_trials
 from embodied_tactile.data.prepare import TrialRef
-from embodied_tactile.io.rawformat import read_trial, write_trial
+from embodied_tactile.data.rawformat import read_trial, write_trial
 from embodied_tactile.sim import population as POP
 from embodied_tactile.sim import simulate_trial
 from embodied_tactile.sim.validation import SimParameterError

@@ -1,4 +1,4 @@
-"""The data preparation stage (embodied_tactile.data.prepare, python -m embodied_tactile.prepare):
+"""The data preparation stage (embodied_tactile.data.prepare, python -m embodied_tactile.data.prepare_cli):
 simulate, lock, build caches, list trials; the DataModule only splits and serves what it
 prepared."""
 
@@ -18,7 +18,7 @@ N_TINY = len(TINY_OBJECTS) * len(TINY_ACTIONS) * 2
 
 
 def _prepare_cli(tmp_path, data_dir, *overrides):
-    cmd = [sys.executable, "-m", "embodied_tactile.prepare", f"paths.data_dir={data_dir}", "modality=acc",
+    cmd = [sys.executable, "-m", "embodied_tactile.data.prepare_cli", f"paths.data_dir={data_dir}", "modality=acc",
            f"data.objects=[{','.join(map(str, TINY_OBJECTS))}]", f"data.actions=[{','.join(map(str, TINY_ACTIONS))}]",
            "data.repetitions=2", "data.sim_workers=1", "data.preprocess_workers=1", *overrides]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -49,7 +49,7 @@ def test_cli_simulates_missing_trials_and_reports_skipped_ones(tiny_data_dir, tm
     """Trials absent from the raw file are simulated; a bad one is listed with its reason."""
     import h5py
 
-    from embodied_tactile.io import rawformat as rf
+    from embodied_tactile.data import rawformat as rf
 
     d = tmp_path / "data"
     shutil.copytree(tiny_data_dir / "raw", d / "raw")
@@ -157,7 +157,7 @@ def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp
     assert "simulated: 0 new trial(s)" in out
     hits = dict(re.findall(r"^  (\w+): (\S+) \(cache hit\)$", out, re.M))
     assert sorted(hits) == ["acc", "actions"] and all(p.startswith(str(d)) for p in hits.values()), out
-    assert prepare.main(["--help"]) == 0 and "python -m embodied_tactile.prepare" in capsys.readouterr().out
+    assert prepare.main(["--help"]) == 0 and "python -m embodied_tactile.data.prepare_cli" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])

@@ -15,8 +15,8 @@ from embodied_tactile.data import cache as cache_mod
 from embodied_tactile.data import preprocess as P
 from embodied_tactile.data.cache import build_cache, cache_info, list_cached, load_cached
 from embodied_tactile.data.preprocess import PreprocessConfig, preprocess_trial, preprocess_trials
-from embodied_tactile.io import rawformat
-from embodied_tactile.io.rawformat import RawTrial, TrialFormatError, make_attrs, write_trial
+from embodied_tactile.data import rawformat
+from embodied_tactile.data.rawformat import RawTrial, TrialFormatError, make_attrs, write_trial
 
 T = 300
 
@@ -426,7 +426,7 @@ def test_pool_workers_end_on_sigterm_whatever_handler_train_py_installed(monkeyp
     leave Ctrl-C to the parent."""
     import signal
 
-    from embodied_tactile.runfolder import StopSignals
+    from embodied_tactile.run.runfolder import StopSignals
     from embodied_tactile.sim import dataset as sim_dataset
 
     monkeypatch.setattr(cache_mod, "one_blas_thread", lambda: None)  # the worker's thread limit, not this process's

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from embodied_tactile import constants as C
-from embodied_tactile.io import rawformat as rf
+from embodied_tactile.data import rawformat as rf
 
 
 def make_trial(object_id=3, action_index=5, repetition=0, n=700, m=100, seed=0) -> rf.RawTrial:

@@ -90,7 +90,7 @@ def test_untrained_network_reads_about_one_at_every_frame():
     """An untrained Latent Filter's y drifts through its random recursion; on observations that
     carry no factor its curve stays near 1 at every frame."""
     torch = pytest.importorskip("torch")
-    from embodied_tactile.models.latent_filter import LatentFilter
+    from embodied_tactile.model.latent_filter import LatentFilter
 
     torch.manual_seed(0)
     torch.set_num_threads(1)

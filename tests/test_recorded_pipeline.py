@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from embodied_tactile.acquisition.emulator import Emulator
-from embodied_tactile.acquisition.pose import StaticPoseSource
-from embodied_tactile.acquisition.recorder import Recorder, RecorderSettings, finish, open_port
+from embodied_tactile.hardware.emulator import Emulator
+from embodied_tactile.hardware.pose import StaticPoseSource
+from embodied_tactile.hardware.recorder import Recorder, RecorderSettings, finish, open_port
 from embodied_tactile.data.datamodule import TactileDataModule
-from embodied_tactile.io import rawformat as rf
+from embodied_tactile.data import rawformat as rf
 from embodied_tactile.sim import simulate_trial
 
 DURATION = 1.0  # s per recorded trial; preprocessing configured for 30 frames at 30 Hz
@@ -65,13 +65,13 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     np.testing.assert_allclose(sorted(batch["object_id"].tolist()), [0, 27])
     assert dm.describe()["source"] == "recorded"
 
-    from embodied_tactile.models import LatentFilter
-    from embodied_tactile.models.module import LateFusionLatentFilter
+    from embodied_tactile.model import LatentFilter
+    from embodied_tactile.model.module import LateFusionLatentFilter
 
     torch.manual_seed(0)
     net = LatentFilter("multi_l", encoder={"widths": [4, 8], "hidden": 16}, transition_hidden=16, lstm_hidden=16)
     model = LateFusionLatentFilter(net, optimizer={"name": "Adam", "lr": 1e-3})
-    from embodied_tactile.runtime import HandOverStatistics
+    from embodied_tactile.run.runtime import HandOverStatistics
 
     trainer = L.Trainer(max_epochs=1, accelerator="cpu", logger=False, enable_checkpointing=False, callbacks=[HandOverStatistics()],
                         enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)

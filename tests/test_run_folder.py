@@ -36,7 +36,7 @@ def finished_run(fast_data_dir, tmp_path_factory) -> Path:
 
 # ----------------------------------------------------------------------------- resume check
 def test_config_changes_names_keys_that_shape_model_or_data():
-    from embodied_tactile.runfolder import config_changes
+    from embodied_tactile.run.runfolder import config_changes
 
     saved = {"seed": 0, "data": {"actions": [0, 5], "num_workers": 0, "split": "trial"}, "trainer": {"max_epochs": 2},
              "model": {"net": {"n_z": 16}}, "callbacks": {"krr": {"points": 8}}}
@@ -47,7 +47,7 @@ def test_config_changes_names_keys_that_shape_model_or_data():
 
 
 def test_check_resume_refuses_other_settings_before_writing(tmp_path):
-    from embodied_tactile.runfolder import RunFolderError, check_resume
+    from embodied_tactile.run.runfolder import RunFolderError, check_resume
 
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
@@ -103,7 +103,7 @@ def _hold_lock(run: Path) -> subprocess.Popen:
 
 
 def test_lock_refuses_a_second_holder_and_frees_on_exit(tmp_path):
-    from embodied_tactile import runfolder
+    from embodied_tactile.run import runfolder
 
     run = tmp_path / "run"
     holder = _hold_lock(run)
@@ -142,7 +142,7 @@ def test_resumed_csv_one_row_per_step_and_metric_when_lightning_saves_after_each
     learning rate and first loss at step 4. Lightning saves the CSV after every log call, so
     the resumed run's rows at step 4 arrive in separate saves; before, only the first save's
     metric was deduplicated and train/loss at step 4 appeared twice."""
-    from embodied_tactile.runtime import ResumableCSVLogger
+    from embodied_tactile.run.runtime import ResumableCSVLogger
 
     folder = tmp_path / "csv"
     folder.mkdir()
@@ -209,7 +209,7 @@ def test_stop_signal_saves_last_checkpoint_and_exits_nonzero(fast_data_dir, tmp_
 
 # ----------------------------------------------------------------------------- checkpoints
 def test_atomic_checkpoint_write_error_keeps_the_previous_file(tmp_path, monkeypatch):
-    from embodied_tactile import runfolder
+    from embodied_tactile.run import runfolder
 
     io = runfolder.AtomicCheckpointIO()
     path = tmp_path / "checkpoints" / "last.ckpt"
@@ -393,7 +393,7 @@ def test_stop_signal_outside_the_training_steps_raises_and_inside_sets_should_st
     train.py turns into exit 143); during the steps it only asks Lightning to stop."""
     from types import SimpleNamespace
 
-    from embodied_tactile.runfolder import StopRequested, StopSignals
+    from embodied_tactile.run.runfolder import StopRequested, StopSignals
 
     old = {s: signal.getsignal(s) for s in StopSignals.SIGNALS}
     try:

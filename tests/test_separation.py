@@ -14,20 +14,20 @@ import pytest
 CASES = {
     # module imported -> modules that must stay out of sys.modules
     "embodied_tactile.sim": ["torch", "lightning", "librosa"],
-    "embodied_tactile.simulate": ["torch", "lightning", "librosa"],
-    "embodied_tactile.io.rawformat": ["torch", "lightning", "librosa"],
-    "embodied_tactile.acquisition.recorder": ["torch", "lightning", "librosa"],
+    "embodied_tactile.sim.simulate": ["torch", "lightning", "librosa"],
+    "embodied_tactile.data.rawformat": ["torch", "lightning", "librosa"],
+    "embodied_tactile.hardware.recorder": ["torch", "lightning", "librosa"],
     "embodied_tactile.data.preprocess": ["torch", "lightning"],
     "embodied_tactile.data.prepare": ["torch", "lightning"],  # the preparation stage: files only
-    "embodied_tactile.prepare": ["torch", "lightning"],
+    "embodied_tactile.data.prepare_cli": ["torch", "lightning"],
     # the recorder's command starts in a fraction of a second (a second recorder on a busy port
     # is refused while the first one records); the typed configs need no torch
-    "embodied_tactile.record": ["torch", "lightning", "librosa"],
-    "embodied_tactile.config": ["torch", "lightning"],
+    "embodied_tactile.hardware.record": ["torch", "lightning", "librosa"],
+    "embodied_tactile.run.config": ["torch", "lightning"],
     # (librosa is not checked here: lightning -> torchmetrics.functional.audio imports it
     # whenever it is installed, which is outside this project's control.)
-    "embodied_tactile.models.latent_filter": ["h5py"],
-    "embodied_tactile.models.module": ["h5py"],
+    "embodied_tactile.model.latent_filter": ["h5py"],
+    "embodied_tactile.model.module": ["h5py"],
 }
 
 

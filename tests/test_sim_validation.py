@@ -19,7 +19,7 @@ from embodied_tactile import constants as C
 from embodied_tactile.sim import PhysicsOverrides, SimParameterError, force_indentation, generate_dataset, simulate_trial
 from embodied_tactile.sim import validation as V
 from embodied_tactile.sim.trial import quantise
-from embodied_tactile.simulate import main as simulate_main
+from embodied_tactile.sim.simulate import main as simulate_main
 
 NAN, INF = float("nan"), float("inf")
 
@@ -148,7 +148,7 @@ def test_cli_in_process_exit_2_for_every_bad_physics(tmp_path, capsys):
 ])
 def test_cli_subprocess_exits_2_with_one_line(tmp_path, arg, name):
     out = tmp_path / "cli.h5"
-    cmd = [sys.executable, "-m", "embodied_tactile.simulate", f"out={out}", "objects=[0]", "actions=[0]",
+    cmd = [sys.executable, "-m", "embodied_tactile.sim.simulate", f"out={out}", "objects=[0]", "actions=[0]",
            "duration=0.5", "workers=1", arg]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert res.returncode == 2, (res.returncode, res.stderr)

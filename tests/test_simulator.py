@@ -13,7 +13,7 @@ import pytest
 from scipy import signal
 
 from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import read_trial, scan_raw
+from embodied_tactile.data.rawformat import read_trial, scan_raw
 from embodied_tactile.sim import (
     PhysicsOverrides,
     contact_pressure,
@@ -351,7 +351,7 @@ def test_generate_dataset_resumes_and_passes_scan(tmp_path):
 @pytest.mark.slow  # simulate CLI subprocess
 def test_cli_writes_requested_trials(tmp_path):
     out = tmp_path / "cli.h5"
-    cmd = [sys.executable, "-m", "embodied_tactile.simulate", "skin=soft", "primitive=sliding", f"out={out}",
+    cmd = [sys.executable, "-m", "embodied_tactile.sim.simulate", "skin=soft", "primitive=sliding", f"out={out}",
            "objects=[0,1]", "actions=[0,5]", "repetitions=1", "seed=0", "workers=2", "duration=0.5"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=env)
@@ -375,7 +375,7 @@ def _write_trial_as(path, source: str, *, drop: str | None = None, object_id: in
     """Write a short trial marked ``source`` into ``path``, optionally without dataset ``drop``."""
     import dataclasses
 
-    from embodied_tactile.io.rawformat import write_trial
+    from embodied_tactile.data.rawformat import write_trial
 
     tr = simulate_trial(object_id, "hard", "pressing", action, duration=0.5)
     name = write_trial(path, dataclasses.replace(tr, attrs={**tr.attrs, "source": source}))
@@ -530,7 +530,7 @@ def test_file_that_is_not_a_raw_file_is_left_alone(tmp_path):
 
 
 def test_cli_refuses_a_recorded_file_with_exit_2(tmp_path, capsys):
-    from embodied_tactile.simulate import main
+    from embodied_tactile.sim.simulate import main
 
     path = tmp_path / "recorded.h5"
     _write_trial_as(path, "recorded")

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from embodied_tactile.models.networks import SMALL_BATCH_ONEDNN_OFF, small_batch_convs
+from embodied_tactile.model.networks import SMALL_BATCH_ONEDNN_OFF, small_batch_convs
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "embodied_tactile"
 
@@ -44,7 +44,7 @@ def test_a_user_setting_oneDNN_off_keeps_it_off():
 
 
 def test_filter_step_gives_the_same_posterior_with_and_without_the_switch():
-    from embodied_tactile.models import LatentFilter
+    from embodied_tactile.model import LatentFilter
 
     torch.manual_seed(0)
     m = LatentFilter("multi_l").eval()
@@ -65,7 +65,7 @@ def test_no_private_torch_api_in_the_package():
 
 
 def test_infer_latents_skips_the_decoders_with_the_same_latents():
-    from embodied_tactile.models import LatentFilter
+    from embodied_tactile.model import LatentFilter
 
     torch.manual_seed(0)
     m = LatentFilter("multi_l").eval()
@@ -87,8 +87,8 @@ def test_infer_latents_skips_the_decoders_with_the_same_latents():
 def test_compile_convs_switch_counts_nets_and_leaves_eval_eager():
     import copy
 
-    from embodied_tactile.models import LatentFilter
-    from embodied_tactile.models.networks import ConvDecoder, ConvEncoder, compile_convs
+    from embodied_tactile.model import LatentFilter
+    from embodied_tactile.model.networks import ConvDecoder, ConvEncoder, compile_convs
 
     m = LatentFilter("multi_l")
     assert compile_convs(m) == 4  # two pathways x (encoder, decoder)
@@ -106,8 +106,8 @@ def test_compile_convs_switch_counts_nets_and_leaves_eval_eager():
 def test_train_config_switch_compile_convs():
     from omegaconf import OmegaConf
 
-    from embodied_tactile import runtime
-    from embodied_tactile.models import LatentFilter
+    from embodied_tactile.run import runtime
+    from embodied_tactile.model import LatentFilter
 
     root = Path(__file__).resolve().parents[1]
     assert OmegaConf.load(root / "configs" / "train.yaml").compile_convs is False  # the measured default
@@ -118,7 +118,7 @@ def test_train_config_switch_compile_convs():
 
 
 def test_no_grad_passes_run_the_convs_in_chunks_with_the_same_result(monkeypatch):
-    from embodied_tactile.models import LatentFilter, networks
+    from embodied_tactile.model import LatentFilter, networks
 
     torch.manual_seed(0)
     m = LatentFilter("fsr_tb").eval()
@@ -138,7 +138,7 @@ def test_no_grad_passes_run_the_convs_in_chunks_with_the_same_result(monkeypatch
 def test_training_passes_run_the_convs_in_chunks_with_the_same_loss_and_gradients(monkeypatch):
     """Autograd passes over more than CONV_CHUNK_FRAMES frames are chunked too: the same
     ELBO terms and the same gradients (summed over chunks) as one call over every frame."""
-    from embodied_tactile.models import LatentFilter, networks
+    from embodied_tactile.model import LatentFilter, networks
 
     torch.manual_seed(0)
     m = LatentFilter("multi_l", obs_sigma=0.1, obs_dropout=0.0)  # the same frames observed in both passes

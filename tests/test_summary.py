@@ -17,7 +17,7 @@ from conftest import REPO
 sys.path.insert(0, str(REPO))
 import evaluate as ev  # noqa: E402  (the script's main(); its logic is in embodied_tactile.eval)
 
-from embodied_tactile.summary import (latest_run, multirun_summary_lines,  # noqa: E402
+from embodied_tactile.run.summary import (latest_run, multirun_summary_lines,  # noqa: E402
                                       run_summary_lines)
 
 ENV = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
@@ -75,7 +75,7 @@ def test_the_last_lines_say_what_the_number_means(tmp_path, monkeypatch):
     mean predictor, whole trajectory and last frame; what the split measures; the command for
     objects never touched with the number the learning curve's scores file holds for this
     recipe (mean over its seeds at 256 training objects)."""
-    import embodied_tactile.summary as S
+    import embodied_tactile.run.summary as S
 
     initial = {**_row(0, 0.998, (1.0,) * 4), "initial": True, "nmse_last_overall": 0.988}
     final = {**_row(480, 0.1234, (0.1,) * 4), "final": True, "n_test": 32, "nmse_last_overall": 0.0987,

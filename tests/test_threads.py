@@ -15,8 +15,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from embodied_tactile import runtime, threadenv
-from embodied_tactile.threadenv import TrainingRegistry
+from embodied_tactile.run import runtime, threadenv
+from embodied_tactile.run.threadenv import TrainingRegistry
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -61,7 +61,7 @@ def test_configure_threads_sets_torch_and_the_environment(monkeypatch, tmp_path)
 
 HOLDER = textwrap.dedent("""
     import sys, time
-    from embodied_tactile.threadenv import TrainingRegistry
+    from embodied_tactile.run.threadenv import TrainingRegistry
     TrainingRegistry(sys.argv[1]).register()
     print("registered", flush=True)
     time.sleep(60)
@@ -124,7 +124,7 @@ def test_thread_share_takes_its_share_and_gives_cores_up_at_the_next_epoch(tmp_p
 
 
 def test_passive_wait_policy_is_set_before_torch_loads(tmp_path):
-    code = "import os, sys, embodied_tactile.threadenv; print('torch' in sys.modules, os.environ['OMP_WAIT_POLICY'])"
+    code = "import os, sys, embodied_tactile.run.threadenv; print('torch' in sys.modules, os.environ['OMP_WAIT_POLICY'])"
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     env["PYTHONPATH"] = str(REPO / "src")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
@@ -136,4 +136,4 @@ def test_passive_wait_policy_is_set_before_torch_loads(tmp_path):
     imports = [n for n in ast.parse((REPO / "train.py").read_text()).body if isinstance(n, (ast.Import, ast.ImportFrom))]
     names = [a.name if isinstance(n, ast.Import) else n.module for n in imports for a in n.names]
     first = next(i for i, name in enumerate(names) if name not in ("__future__", "logging", "sys", "time"))
-    assert names[first] == "embodied_tactile.threadenv"
+    assert names[first] == "embodied_tactile.run.threadenv"

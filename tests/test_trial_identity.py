@@ -11,7 +11,7 @@ import pytest
 from embodied_tactile.data.cache import build_cache, cache_info, list_cached
 from embodied_tactile.data.datamodule import TactileDataModule
 from embodied_tactile.data.prepare import list_trials
-from embodied_tactile.io import rawformat as rf
+from embodied_tactile.data import rawformat as rf
 
 FAST = {"n_frames": 30}  # 1 s of each 10 s trial: the identity rules do not depend on T
 

@@ -18,8 +18,8 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from embodied_tactile.config import config_dir
-from embodied_tactile.settings import (EXIT_BAD_SETTINGS, SettingsError, Spec, check_paths, check_train_config,
+from embodied_tactile.run.config import config_dir
+from embodied_tactile.run.settings import (EXIT_BAD_SETTINGS, SettingsError, Spec, check_paths, check_train_config,
                                        config_value)
 
 
@@ -92,8 +92,8 @@ def check_typed_overrides(args: Sequence[str]) -> None:
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    from embodied_tactile.config import ModelNode
-    from embodied_tactile.models.options import ContextOptions
+    from embodied_tactile.run.config import ModelNode
+    from embodied_tactile.model.options import ContextOptions
 
     try:
         overrides = OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
@@ -125,7 +125,7 @@ class EntryCallback(Callback):
         self._check(config, "hydra.run.dir")
         # runfolder loads lightning (seconds): only train.py's callback needs it, so that record /
         # palpate start at once (a recorder on a busy port must be refused while the other runs)
-        from embodied_tactile.runfolder import claim_at_entry
+        from embodied_tactile.run.runfolder import claim_at_entry
 
         try:
             claim_at_entry(config)
@@ -138,7 +138,7 @@ class EntryCallback(Callback):
         self._sweep_dir = str(v) if present else None
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from embodied_tactile.summary import print_multirun_summary  # loads torch: only at the end of a multirun
+        from embodied_tactile.run.summary import print_multirun_summary  # loads torch: only at the end of a multirun
 
         if self._sweep_dir and Path(self._sweep_dir).is_dir():
             print_multirun_summary(self._sweep_dir)

@@ -56,10 +56,10 @@ from embodied_tactile.data.preprocess import (
     preprocess_trials,
     time_problems,
 )
-from embodied_tactile.io import rawformat
-from embodied_tactile.jsonio import to_jsonable
-from embodied_tactile.io.rawformat import FIELDS as RAW_PATHS
-from embodied_tactile.io.rawformat import TrialFormatError
+from embodied_tactile.data import rawformat
+from embodied_tactile.run.jsonio import to_jsonable
+from embodied_tactile.data.rawformat import FIELDS as RAW_PATHS
+from embodied_tactile.data.rawformat import TrialFormatError
 
 log = logging.getLogger(__name__)
 

@@ -32,7 +32,7 @@ import scipy.ndimage
 import scipy.signal
 
 from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import RawTrial
+from embodied_tactile.data.rawformat import RawTrial
 
 #: Bump when the numbers this module produces change for the same config and raw data;
 #: part of every cache key (``data.cache``). 2: the accelerometer path runs in float32

@@ -27,8 +27,8 @@ from embodied_tactile.constants import FACTOR_NAMES
 from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect_split, data_config, discover,
                                         load_module, run_split, trial_names, trial_objects, untrained_module)
 from embodied_tactile.eval.results import SPLIT_KINDS
-from embodied_tactile.jsonio import read_json
-from embodied_tactile.paths import config_dir
+from embodied_tactile.run.jsonio import read_json
+from embodied_tactile.run.paths import config_dir
 
 BASELINES = ("untrained", "handcrafted", "gru", "mean")
 MULTIRUN_BASELINES = ("untrained", "handcrafted", "mean")
@@ -166,10 +166,10 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     """-> (Results of every method, krr history rows, info dict)."""
     from embodied_tactile.eval.results import evaluate_latents
     from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
-    from embodied_tactile.modality import Modality
+    from embodied_tactile.data.modality import Modality
     from embodied_tactile.eval.figures import read_history
     from embodied_tactile.eval.targets import encode_split
-    from embodied_tactile.runtime import data_changes, data_identity
+    from embodied_tactile.run.runtime import data_changes, data_identity
 
     t_run = time.perf_counter()
     cfg = run.cfg
@@ -329,12 +329,12 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     (:func:`terminal_summary`). Raises EvaluationError."""
     from embodied_tactile.eval.report import write_report
     from embodied_tactile.eval.results import config_axes
-    from embodied_tactile.runtime import peak_rss_bytes
+    from embodied_tactile.run.runtime import peak_rss_bytes
 
     overrides, selection = split_overrides(overrides)
     opts = parse_options(overrides)
     if opts.torch_threads:
-        from embodied_tactile.runtime import set_threads
+        from embodied_tactile.run.runtime import set_threads
 
         set_threads(int(opts.torch_threads))
     target = Path(target)

@@ -21,8 +21,8 @@ from typing import Any, Mapping
 
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile import summary
-from embodied_tactile.jsonio import read_json
+from embodied_tactile.run import summary
+from embodied_tactile.run.jsonio import read_json
 
 log = logging.getLogger(__name__)
 
@@ -345,7 +345,7 @@ def train_log_dir() -> str:
     """``paths.log_dir`` as train.py composes it (configs/train.yaml + configs/local/)."""
     from hydra import compose, initialize_config_dir
 
-    from embodied_tactile.config import config_dir  # registers the typed configs
+    from embodied_tactile.run.config import config_dir  # registers the typed configs
 
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         return str(compose(config_name="train").paths.log_dir)

@@ -33,7 +33,7 @@ from typing import Any, Mapping
 
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile.settings import SettingsError
+from embodied_tactile.run.settings import SettingsError
 
 log = logging.getLogger(__name__)
 

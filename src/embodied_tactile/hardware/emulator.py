@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from embodied_tactile import constants as C
-from embodied_tactile.acquisition.protocol import COMMAND, PACKET_SIZE, DeviceMap, encode_packets
-from embodied_tactile.io import rawformat as R
+from embodied_tactile.hardware.protocol import COMMAND, PACKET_SIZE, DeviceMap, encode_packets
+from embodied_tactile.data import rawformat as R
 
 log = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@ one place each default is written.
 
 :class:`~.latent_filter.LatentFilter`, :class:`~.networks.HierarchicalPrior` and
 :class:`~.module.LatentFilterModule` read their defaults from here; Hydra composes the same
-dataclasses as structured configs (:mod:`embodied_tactile.config` registers them as
+dataclasses as structured configs (:mod:`embodied_tactile.run.config` registers them as
 ``model/net`` and ``model/optimizer``), so ``configs/`` names only what a scene or a recipe
 changes and the command line can change any field (``model.net.prior.labels=true``).
 Plain dataclasses: no torch, no Hydra.

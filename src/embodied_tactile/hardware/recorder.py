@@ -46,8 +46,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from embodied_tactile.acquisition.pose import PoseSource
-from embodied_tactile.acquisition.protocol import (
+from embodied_tactile.hardware.pose import PoseSource
+from embodied_tactile.hardware.protocol import (
     COMMAND_BYTE,
     PACKET_SIZE,
     DeviceMap,
@@ -55,7 +55,7 @@ from embodied_tactile.acquisition.protocol import (
     PlausibilityConfig,
     decode_packets,
 )
-from embodied_tactile.io.rawformat import IncrementalTrialWriter, rate_problem
+from embodied_tactile.data.rawformat import IncrementalTrialWriter, rate_problem
 
 log = logging.getLogger(__name__)
 

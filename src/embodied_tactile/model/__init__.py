@@ -1,6 +1,6 @@
 """Latent Filter networks, observation models (early / late fusion), annealing schedules and
 LightningModules (torch + lightning only), and their typed options (:mod:`.options`, plain
-dataclasses). The names below load on first use, so that ``models.options`` imports
+dataclasses). The names below load on first use, so that ``model.options`` imports
 without torch."""
 
 from importlib import import_module

@@ -1,16 +1,16 @@
 """The typed part of the Hydra configuration: the Latent Filter's options
-(:mod:`embodied_tactile.models.options`) as structured configs, and the one resolver.
+(:mod:`embodied_tactile.model.options`) as structured configs, and the one resolver.
 
 Registered on import (idempotent), so that every entry point that composes ``configs/``
-(train.py, evaluate.py, ``python -m embodied_tactile.prepare``, the tests) imports this
+(train.py, evaluate.py, ``python -m embodied_tactile.data.prepare_cli``, the tests) imports this
 module first:
 
 * ``model: schema`` (:class:`ModelNode`): the LightningModule's options
-  (:class:`~embodied_tactile.models.options.ModuleOptions`), the network ``net``
-  (:class:`~embodied_tactile.models.options.LatentFilterOptions` with ``_target_`` and
+  (:class:`~embodied_tactile.model.options.ModuleOptions`), the network ``net``
+  (:class:`~embodied_tactile.model.options.LatentFilterOptions` with ``_target_`` and
   ``modality``), the optimizer (Adam as a partial with the learning rate of
-  :class:`~embodied_tactile.models.options.OptimizerOptions`) and the context objective's
-  options (:class:`~embodied_tactile.models.options.ContextOptions`, null unless a recipe
+  :class:`~embodied_tactile.model.options.OptimizerOptions`) and the context objective's
+  options (:class:`~embodied_tactile.model.options.ContextOptions`, null unless a recipe
   sets them). configs/model/latent_filter.yaml composes it and names only what depends on
   the scene.
 * ``alignment: schema`` (:class:`~embodied_tactile.options.alignment.AlignmentOptions`): the
@@ -25,15 +25,15 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
 from embodied_tactile.options.alignment import AlignmentOptions
-from embodied_tactile.models.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
-from embodied_tactile.paths import config_dir
+from embodied_tactile.model.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
+from embodied_tactile.run.paths import config_dir
 
 
 @dataclass
 class LatentFilterNode(LatentFilterOptions):
-    """``model.net``: what Hydra instantiates into a :class:`~embodied_tactile.models.LatentFilter`."""
+    """``model.net``: what Hydra instantiates into a :class:`~embodied_tactile.model.LatentFilter`."""
 
-    _target_: str = "embodied_tactile.models.latent_filter.LatentFilter"
+    _target_: str = "embodied_tactile.model.latent_filter.LatentFilter"
     modality: Any = MISSING
 
 

@@ -1,9 +1,9 @@
 """Prepare a scene's data on its own: simulate missing trials, build the caches, list the trials.
 
-    python -m embodied_tactile.prepare                                  # train.py's default scene
-    python -m embodied_tactile.prepare skin=hard primitive=sliding modality=acc
-    python -m embodied_tactile.prepare data=recorded 'data.raw_files=[recordings/*.h5]'
-    python -m embodied_tactile.prepare debug=fast paths.data_dir=/scratch/data
+    python -m embodied_tactile.data.prepare_cli                                  # train.py's default scene
+    python -m embodied_tactile.data.prepare_cli skin=hard primitive=sliding modality=acc
+    python -m embodied_tactile.data.prepare_cli data=recorded 'data.raw_files=[recordings/*.h5]'
+    python -m embodied_tactile.data.prepare_cli debug=fast paths.data_dir=/scratch/data
 
 The overrides are train.py's: the config is ``configs/train.yaml`` composed with them (its
 data / modality / skin / primitive / experiment / debug groups and ``configs/local/``), so
@@ -24,7 +24,7 @@ import logging
 import sys
 import time
 
-from embodied_tactile.config import config_dir  # registers the typed configs
+from embodied_tactile.run.config import config_dir  # registers the typed configs
 
 
 def scene_from_train_config(overrides: list[str]):
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     from omegaconf.errors import OmegaConfBaseException
 
     from embodied_tactile.data.prepare import prepare_scene
-    from embodied_tactile.io.rawformat import TrialFormatError
+    from embodied_tactile.data.rawformat import TrialFormatError
 
     try:
         scene = scene_from_train_config(argv)

@@ -3,7 +3,7 @@
 Pure Python + NumPy + pyserial (no torch). See docs/acquisition.md.
 """
 
-from embodied_tactile.acquisition.protocol import (
+from embodied_tactile.hardware.protocol import (
     COMMAND,
     PACKET_SIZE,
     DeviceMap,

@@ -10,4 +10,4 @@ def config_dir() -> str:
     env = os.environ.get("EMBODIED_TACTILE_CONFIG_DIR")
     if env:
         return str(Path(env).resolve())
-    return str(Path(__file__).resolve().parents[2] / "configs")
+    return str(Path(__file__).resolve().parents[3] / "configs")

@@ -53,8 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from embodied_tactile.acquisition.emulator import Emulator, Faults, load_trial, simulated_trial, synthetic_trial
-    from embodied_tactile.acquisition.protocol import DeviceMap
+    from embodied_tactile.hardware.emulator import Emulator, Faults, load_trial, simulated_trial, synthetic_trial
+    from embodied_tactile.hardware.protocol import DeviceMap
 
     try:
         if args.trial_file:

@@ -28,8 +28,8 @@ from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 from lightning.pytorch.loggers.logger import rank_zero_experiment
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile.jsonio import write_json
-from embodied_tactile.threadenv import TrainingRegistry
+from embodied_tactile.run.jsonio import write_json
+from embodied_tactile.run.threadenv import TrainingRegistry
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,7 @@ def package_versions() -> dict[str, str | None]:
 
 def git_state(repo: str | os.PathLike | None = None) -> dict[str, Any]:
     """Commit, dirty flag and diff of the source tree (None where git is unavailable)."""
-    repo = Path(repo or Path(__file__).resolve().parents[2])
+    repo = Path(repo or Path(__file__).resolve().parents[3])
 
     def git(*args: str) -> str | None:
         try:
@@ -482,6 +482,6 @@ def configure_compile(cfg: DictConfig, model) -> int:
     Returns the number of networks switched on."""
     if not bool(cfg.get("compile_convs", False)):
         return 0
-    from .models.networks import compile_convs
+    from ..model.networks import compile_convs
 
     return compile_convs(model, True)

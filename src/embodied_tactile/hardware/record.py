@@ -42,7 +42,7 @@ _POSE_BUILTIN_KEYS = ("kind", "file", "time_base", "offset_s", "static_pose", "f
 
 
 def make_pose_source(cfg: DictConfig):
-    from embodied_tactile.acquisition.pose import ReplayPoseSource, StaticPoseSource
+    from embodied_tactile.hardware.pose import ReplayPoseSource, StaticPoseSource
 
     p = cfg.pose
     if p.get("_target_"):
@@ -61,7 +61,7 @@ def make_pose_source(cfg: DictConfig):
 
 
 def make_trial_attrs(cfg: DictConfig, device_desc: str, pose_name: str) -> dict[str, Any]:
-    from embodied_tactile.io.rawformat import make_attrs
+    from embodied_tactile.data.rawformat import make_attrs
 
     t = cfg.trial
     oid = int(t.object_id)
@@ -97,7 +97,7 @@ def _check_room(path, settings, fs_tactile: float, fs_pose: float, pose_columns:
     """ValueError when ``path`` has no room for the baseline and the first second of the
     trial beside ``reserve_mb``; a warning when the whole trial will not fit (it then stops
     early with ``stop_reason=disk_full``)."""
-    from embodied_tactile.acquisition.recorder import room_bytes, trial_bytes
+    from embodied_tactile.hardware.recorder import room_bytes, trial_bytes
 
     room = room_bytes(path) - settings.reserve_bytes
     first = trial_bytes(settings.baseline_s + 1.0, fs_tactile, fs_pose, pose_columns)
@@ -130,8 +130,8 @@ def _check_not_recorded(path, session, name: str) -> None:
 
 def run(cfg: DictConfig) -> int:
     """Record one trial as configured; returns the exit code."""
-    from embodied_tactile.acquisition.protocol import DeviceMap, PlausibilityConfig
-    from embodied_tactile.acquisition.recorder import (
+    from embodied_tactile.hardware.protocol import DeviceMap, PlausibilityConfig
+    from embodied_tactile.hardware.recorder import (
         EXIT_CONFIG,
         PortBusy,
         Recorder,
@@ -141,7 +141,7 @@ def run(cfg: DictConfig) -> int:
         open_port,
         trial_file,
     )
-    from embodied_tactile.io.rawformat import IncrementalTrialWriter, check_attrs, trial_name
+    from embodied_tactile.data.rawformat import IncrementalTrialWriter, check_attrs, trial_name
 
     logging.getLogger("embodied_tactile").setLevel(str(cfg.get("log_level", "INFO")))
     # ---- configuration (exit 2 on any problem, nothing written)

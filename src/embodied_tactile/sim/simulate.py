@@ -1,6 +1,6 @@
 """Simulate raw e-Skin trials into one HDF5 file.
 
-    python -m embodied_tactile.simulate skin=soft primitive=sliding \
+    python -m embodied_tactile.sim.simulate skin=soft primitive=sliding \
         out=data/raw/soft_sliding.h5 objects=[0,1] actions=[0,5] repetitions=1 seed=0 workers=2
 
 Every field of :class:`SimulateConfig` can be overridden with ``key=value`` (OmegaConf
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     except (SimParameterError, OutputFileError) as exc:
         print(f"simulate: error: {exc}", file=sys.stderr)
         return 2
-    logging.getLogger("embodied_tactile.simulate").info("wrote %s in %.1f s", path, time.perf_counter() - t0)
+    logging.getLogger("embodied_tactile.sim.simulate").info("wrote %s in %.1f s", path, time.perf_counter() - t0)
     return 0
 
 

@@ -1,10 +1,15 @@
 """What lets configs and checkpoints of earlier versions load, in one place, out of the
 model's hot path: options that were measured, rejected and removed; the values of options a
 saved config did not name; the parameter names of the layout before the fusion code moved
-into :mod:`.fusion`. Plain Python: no torch."""
+into :mod:`.fusion`; the module paths of the layout before the package was ordered by role.
+Plain Python: no torch."""
 
 from __future__ import annotations
 
+import importlib
+import importlib.abc
+import importlib.util
+import sys
 from typing import Any, Mapping
 
 #: options that were measured, rejected and removed (docs/model.md, "Removed options"),
@@ -65,3 +70,44 @@ def upgrade_state_dict(state: Mapping[str, Any], late: bool) -> dict[str, Any]:
         return key
 
     return {rename(k): v for k, v in state.items()}
+
+
+#: module paths that saved configs (``_target_`` of the model, its network, annealing schedule
+#: and logger) and checkpoints of the earlier layout name -> where that code is now; a
+#: submodule follows its package (``embodied_tactile.models.module`` -> ``embodied_tactile.model.module``)
+MOVED_MODULES = {"embodied_tactile.models": "embodied_tactile.model",
+                 "embodied_tactile.runtime": "embodied_tactile.run.runtime"}
+
+
+def moved_to(name: str) -> str | None:
+    """Today's path of a module that :data:`MOVED_MODULES` moved, or None."""
+    for old, new in MOVED_MODULES.items():
+        if name == old or name.startswith(old + "."):
+            return new + name[len(old):]
+    return None
+
+
+class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Imports a moved module under its old path as the same module object, so that
+    ``hydra.utils.get_class`` / ``instantiate`` of an old ``_target_`` and unpickling an old
+    checkpoint find today's classes."""
+
+    def find_spec(self, name, path=None, target=None):
+        new = moved_to(name)
+        if new is None:
+            return None
+        return importlib.util.spec_from_loader(name, self, is_package=hasattr(importlib.import_module(new), "__path__"))
+
+    def create_module(self, spec):
+        module = importlib.import_module(moved_to(spec.name))
+        spec.loader_state = module.__spec__
+        return module
+
+    def exec_module(self, module):
+        module.__spec__ = module.__spec__.loader_state  # the import system set the old path's spec
+
+
+def install_moved_modules() -> None:
+    """Lets the old paths of :data:`MOVED_MODULES` import (once per interpreter)."""
+    if not any(isinstance(f, _MovedModules) for f in sys.meta_path):
+        sys.meta_path.insert(0, _MovedModules())  # before the path finder, which would load a second copy

@@ -49,7 +49,7 @@ class LateFusion(nn.Module):
 
     Args: pathways ``[(name, [channel indices into obs]), ...]`` (at least two, together a
     partition of the C channels; :meth:`Modality.pathway_indices
-    <embodied_tactile.modality.Modality.pathway_indices>`), then the sizes as for
+    <embodied_tactile.data.modality.Modality.pathway_indices>`), then the sizes as for
     :class:`EarlyFusion`. ``encoders`` / ``decoders`` are keyed by pathway name.
     """
 

@@ -1,5 +1,5 @@
 """The Latent Filter (paper, section "Deep State-Space Model: Latent Filter") as a plain
-``nn.Module``; the Lightning wrapper lives in :mod:`embodied_tactile.models.module`.
+``nn.Module``; the Lightning wrapper lives in :mod:`embodied_tactile.model.module`.
 
 Time indexing (t = 1..T in the docs, 0-based in code):
 
@@ -7,7 +7,7 @@ Time indexing (t = 1..T in the docs, 0-based in code):
   ``y_update="direct"`` (the paper's recipe) its head gives q(y_t) itself; with ``"evidence"``
   (the class default, :class:`~.options.LatentFilterOptions`) it gives
   one step's Gaussian evidence about the trial-constant y and q(y_t) is the product of all
-  evidence so far (see :class:`~embodied_tactile.models.networks.YPosterior`). At t = 1 the LSTM gets zeros from a zero state.
+  evidence so far (see :class:`~embodied_tactile.model.networks.YPosterior`). At t = 1 the LSTM gets zeros from a zero state.
 * p(z_t | z_{t-1}, y_t, a_t): residual MLP, N(z_{t-1} + f_mu, softplus(f_v) + floor).
 * q_filt(z_t) = q(z_t | o_t) x p(z_t | z_{t-1}, y_t, a_t), normalised (variance form).
   z_1 comes from the encoder alone.
@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from embodied_tactile.modality import Modality, load_modality
+from embodied_tactile.data.modality import Modality, load_modality
 
 from .compat import upgrade_net_config
 from .fusion import ObservationModel, observation_model
@@ -54,10 +54,10 @@ def to_plain(cfg: Any) -> Any:
 
 
 def resolve_modality(modality: Any) -> dict[str, Any]:
-    """A modality (its yaml mapping, a :class:`~embodied_tactile.modality.Modality`, or the
+    """A modality (its yaml mapping, a :class:`~embodied_tactile.data.modality.Modality`, or the
     name of a file in ``configs/modality/``) -> plain dict with ``name``, ``channels``,
     ``fusion`` and ``pathways`` as ``[[pathway, [channel indices]], ...]``. The modality is
-    defined once, by its yaml (:mod:`embodied_tactile.modality`)."""
+    defined once, by its yaml (:mod:`embodied_tactile.data.modality`)."""
     mod = load_modality(modality) if isinstance(modality, str) else Modality.from_config(modality)
     out = {"name": mod.name, "channels": list(mod.channels), "fusion": mod.fusion,
            "pathways": [[name, idx] for name, idx in mod.pathway_indices()]}
@@ -140,7 +140,7 @@ class LatentFilter(nn.Module):
         self.n_channels = len(self.modality["channels"])
         enc = opts.encoder
         # built first: the same seed gives the same initial parameters as before the
-        # fusion code moved to models/fusion.py
+        # fusion code moved to model/fusion.py
         self.observation: ObservationModel = observation_model(
             self.modality["fusion"], self.modality["pathways"], n_z, list(enc.widths), enc.hidden, min_var)
         self.transition = TransitionNet(n_z, n_y, n_a, opts.transition_hidden, min_var)

@@ -20,9 +20,9 @@ import shlex
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from .constants import FACTOR_NAMES
+from ..constants import FACTOR_NAMES
 from .jsonio import read_json
-from .models.compat import UNSAVED_PRIOR_OPTIONS
+from ..model.compat import UNSAVED_PRIOR_OPTIONS
 
 FACTOR_SHORT = {"spatial_frequency": "spatial freq.", "amplitude": "amplitude", "stiffness": "stiffness",
                 "heterogeneity": "heterogeneity"}
@@ -137,7 +137,7 @@ SPLIT_MEANING = {
 POPULATION_COMMAND = "python train.py experiment=population"
 POPULATION_PAGE = "docs/generalisation.md"
 #: the learning curve's scores (written by eval.generalisation beside its page)
-POPULATION_SCORES = Path(__file__).resolve().parents[2] / "docs" / "generalisation_scores.json"
+POPULATION_SCORES = Path(__file__).resolve().parents[3] / "docs" / "generalisation_scores.json"
 POPULATION_SIZE = 256  # the population scene's number of training objects (configs/experiment/population.yaml)
 
 
