@@ -31,7 +31,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 import embodied_tactile.run.config  # noqa: F401  registers the typed configs before Hydra composes
-from embodied_tactile import cli, quiet, runfolder, runtime, settings, summary
+from embodied_tactile import cli
+from embodied_tactile.run import quiet, runfolder, runtime, settings, summary
 from embodied_tactile.run.jsonio import read_json, write_json
 
 log = logging.getLogger("train")

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_serial.py [--duration 10] [--rows paced,unpaced,faults]
 
-The emulator runs in its own process (``python -m embodied_tactile.hardware.emulate``), the
+The emulator runs in its own process (``embodied-tactile emulate``), the
 recorder (the same ``Recorder`` the CLI uses, writing HDF5 through
 ``IncrementalTrialWriter``) in this one, so the CPU figure is the recorder's alone:
 process CPU time (user + system, ``resource.getrusage``) / wall time of the recording.

@@ -4,7 +4,7 @@
     python benchmarks/bench_shared_machine.py --work /tmp/shared -- trainer.max_epochs=1 trainer.limit_train_batches=10
     python benchmarks/bench_shared_machine.py --work /tmp/shared --omp-wait-policy ACTIVE   # OpenMP spinning, for comparison
 
-The scene's data are prepared once first (``python -m embodied_tactile.data.prepare_cli`` with the
+The scene's data are prepared once first (``embodied-tactile prepare`` with the
 same overrides; not timed). Then one ``python train.py`` runs alone, then two start at the
 same moment, each in its own run folder under ``--work``, each with the default thread
 policy (``threads=auto``: the cores divided among the trainings live on the machine,

@@ -1,4 +1,4 @@
-"""The data preparation stage (embodied_tactile.data.prepare, python -m embodied_tactile.data.prepare_cli):
+"""The data preparation stage (embodied_tactile.data.prepare, embodied-tactile prepare):
 simulate, lock, build caches, list trials; the DataModule only splits and serves what it
 prepared."""
 
@@ -147,7 +147,7 @@ def _prepare_args(data_dir, *overrides):
 
 
 def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp_path, capsys):
-    from embodied_tactile import prepare
+    from embodied_tactile.data import prepare_cli as prepare
 
     d = tmp_path / "data"
     shutil.copytree(tiny_data_dir, d)  # raw file and caches of the tiny scene
@@ -157,12 +157,12 @@ def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp
     assert "simulated: 0 new trial(s)" in out
     hits = dict(re.findall(r"^  (\w+): (\S+) \(cache hit\)$", out, re.M))
     assert sorted(hits) == ["acc", "actions"] and all(p.startswith(str(d)) for p in hits.values()), out
-    assert prepare.main(["--help"]) == 0 and "python -m embodied_tactile.data.prepare_cli" in capsys.readouterr().out
+    assert prepare.main(["--help"]) == 0 and "embodied-tactile prepare" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])
 def test_main_in_process_bad_setting_is_one_line_exit_2(tmp_path, capsys, override, needle):
-    from embodied_tactile import prepare
+    from embodied_tactile.data import prepare_cli as prepare
 
     assert prepare.main(_prepare_args(tmp_path / "data", override)) == 2
     err = capsys.readouterr().err.strip()

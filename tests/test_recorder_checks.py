@@ -13,7 +13,7 @@ from embodied_tactile.hardware.emulator import Emulator, synthetic_trial
 from embodied_tactile.data import rawformat as R
 from test_acquisition import _check_genuine, _cli, _read_cli, _wait_line
 
-# every test starts the recorder CLI (python -m embodied_tactile.hardware.record) in a subprocess
+# every test starts the recorder CLI (embodied-tactile record) in a subprocess
 pytestmark = pytest.mark.slow
 
 

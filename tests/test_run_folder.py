@@ -94,7 +94,7 @@ def test_bad_setting_in_a_finished_run_folder_keeps_its_metrics(finished_run, fa
 # ----------------------------------------------------------------------------- lock
 def _hold_lock(run: Path) -> subprocess.Popen:
     """Another process holding the run folder's lock (as a running training does)."""
-    code = ("import sys, time; from embodied_tactile import runfolder; runfolder.lock(sys.argv[1]); "
+    code = ("import sys, time; from embodied_tactile.run import runfolder; runfolder.lock(sys.argv[1]); "
             "print('held', flush=True); time.sleep(120)")
     proc = subprocess.Popen([sys.executable, "-c", code, str(run)], env={**ENV, "PYTHONPATH": str(REPO / "src")},
                             stdout=subprocess.PIPE, text=True)

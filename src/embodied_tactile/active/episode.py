@@ -1,7 +1,7 @@
 """The closed loop: touch, preprocess, filter frame by frame, estimate, choose the next touch.
 
 B episodes (one object each) run in lockstep so that the filter and the decisions are
-batched; B = 1 is the single episode of ``python -m embodied_tactile.active.palpate``.
+batched; B = 1 is the single episode of ``embodied-tactile palpate``.
 
 Across touches the Latent Filter state carries over unchanged: the first frame of touch
 k + 1 is filtered as the frame that follows the last frame of touch k (transition prior from

@@ -1,8 +1,8 @@
 """Closed-loop active palpation with a trained Latent Filter (docs/active.md).
 
-    python -m embodied_tactile.active.palpate run=logs/train/runs/<run> object=7 budget=4
-    python -m embodied_tactile.active.palpate run=<run> object=7 budget=6 policy=random seed=1
-    python -m embodied_tactile.active.palpate run=<run> mode=evaluate budget=8 'evaluate.seeds=[0,1,2]'
+    embodied-tactile palpate run=logs/train/runs/<run> object=7 budget=4
+    embodied-tactile palpate run=<run> object=7 budget=6 policy=random seed=1
+    embodied-tactile palpate run=<run> mode=evaluate budget=8 'evaluate.seeds=[0,1,2]'
 
 ``mode=episode`` runs one episode on one object: after every touch it prints the factor
 estimates with their uncertainty (KRR of the posterior mean +- the Monte-Carlo std through

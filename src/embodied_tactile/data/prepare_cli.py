@@ -1,9 +1,9 @@
 """Prepare a scene's data on its own: simulate missing trials, build the caches, list the trials.
 
-    python -m embodied_tactile.data.prepare_cli                                  # train.py's default scene
-    python -m embodied_tactile.data.prepare_cli skin=hard primitive=sliding modality=acc
-    python -m embodied_tactile.data.prepare_cli data=recorded 'data.raw_files=[recordings/*.h5]'
-    python -m embodied_tactile.data.prepare_cli debug=fast paths.data_dir=/scratch/data
+    embodied-tactile prepare                                  # train.py's default scene
+    embodied-tactile prepare skin=hard primitive=sliding modality=acc
+    embodied-tactile prepare data=recorded 'data.raw_files=[recordings/*.h5]'
+    embodied-tactile prepare debug=fast paths.data_dir=/scratch/data
 
 The overrides are train.py's: the config is ``configs/train.yaml`` composed with them (its
 data / modality / skin / primitive / experiment / debug groups and ``configs/local/``), so

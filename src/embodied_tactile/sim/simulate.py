@@ -1,6 +1,6 @@
 """Simulate raw e-Skin trials into one HDF5 file.
 
-    python -m embodied_tactile.sim.simulate skin=soft primitive=sliding \
+    embodied-tactile simulate skin=soft primitive=sliding \
         out=data/raw/soft_sliding.h5 objects=[0,1] actions=[0,5] repetitions=1 seed=0 workers=2
 
 Every field of :class:`SimulateConfig` can be overridden with ``key=value`` (OmegaConf
