@@ -297,7 +297,7 @@ def test_remedies_are_config_switches(tmp_path):
 
 
 def test_bench_remedies_parse_into_latent_filter_keywords(tmp_path):
-    """``bench_pendulum --remedy``: plain names are LatentFilter keywords, ``prior.X`` names
+    """``experiments/pendulum.py --remedy``: plain names are LatentFilter keywords, ``prior.X`` names
     go into its ``prior`` mapping; a bad value is named."""
     import argparse
 

@@ -1,5 +1,5 @@
 """Driven, damped pendulum benchmark (Karl et al. 2017, Deep Variational Bayes Filters),
-NumPy only (no torch): the data side of ``benchmarks/bench_pendulum.py`` (docs/model.md,
+NumPy only (no torch): the data side of ``experiments/pendulum.py`` (docs/model.md,
 "Pendulum benchmark").
 
 Dynamics of the angle theta (rad, 0 = bob straight down), with natural frequency w0

@@ -8,8 +8,8 @@ imagined posteriors (``n_y_samples`` draws each). It times
 with 4 candidate actions, one torch thread, and prints a table of the median and worst
 latency in ms next to the time one touch takes (10 s of palpation).
 
-    python benchmarks/bench_active_decision.py                       # default-size network, synthetic KRR
-    python benchmarks/bench_active_decision.py --run logs/train/runs/<run>   # a trained run
+    python experiments/active_decision.py                       # default-size network, synthetic KRR
+    python experiments/active_decision.py --run logs/train/runs/<run>   # a trained run
 
 Without ``--run`` the network is an untrained LatentFilter of the default sizes (multi_l,
 n_z = n_y = 16, LSTM and transition 128) and the KRR an exact KRR on 320 synthetic rows (the

@@ -10,10 +10,10 @@ sequences of the training systems and on systems never seen (parameters between 
 each beside the untrained network's (linear / RBF kernel ridge R^2), and the open-loop
 prediction error. 128 training sequences per object by default.
 
-    python benchmarks/bench_pendulum.py                                # 2500 steps, seed 0
-    python benchmarks/bench_pendulum.py --steps 500 --seed 1 --batch-size 16
-    python benchmarks/bench_pendulum.py --remedy obs_dropout=0 --remedy y_update=direct   # recipe=elbo's inference
-    python benchmarks/bench_pendulum.py --context --remedy y_start=population             # the context objective
+    python experiments/pendulum.py                                # 2500 steps, seed 0
+    python experiments/pendulum.py --steps 500 --seed 1 --batch-size 16
+    python experiments/pendulum.py --remedy obs_dropout=0 --remedy y_update=direct   # recipe=elbo's inference
+    python experiments/pendulum.py --context --remedy y_start=population             # the context objective
 """
 
 from __future__ import annotations

@@ -15,22 +15,22 @@ all from the benchmark's data, by readers that are TOLD them?
   (``least_squares_parameters``: per-sequence least squares TOLD the equation of motion,
   not the labels; no training). The two say what the data allow a learned reader of this
   size and a reader with the true model structure;
-* with ``--load`` (a model saved by ``bench_pendulum.py --save``): a small LSTM trained on
+* with ``--load`` (a model saved by ``experiments/pendulum.py --save``): a small LSTM trained on
   that frozen model's filtered trajectories, ``z_trajectory`` (q_filt means z_1..z_t plus
   the actions) and ``y_trajectory`` (q(y_t) means plus the actions): whether the filter's
   z carries the parameters over time even where its y does not hold them.
 
-Held-out R^2 at the last frame (the same held-out sequences as bench_pendulum.py:
+Held-out R^2 at the last frame (the same held-out sequences as experiments/pendulum.py:
 ``generate(8, seed + 1000)``; training ``generate(n_train, seed)``). Every reader sees each
 parameter's label, so what it reaches bounds what an unsupervised y, read out by a
 regressor fitted on the same training sequences, can be expected to show.
 
-    python benchmarks/bench_pendulum_probes.py --seed 0                      # frames only
-    python benchmarks/bench_pendulum_probes.py --seed 0 --n-train 128 --gru-epochs 25
-    python benchmarks/bench_pendulum_probes.py --seed 0 --no-frames --state
-    python benchmarks/bench_pendulum_probes.py --seed 0 --no-frames --lf-path --lf-option y_update=evidence
-    python benchmarks/bench_pendulum.py --seed 0 --remedy ... --save /tmp/m.pt
-    python benchmarks/bench_pendulum_probes.py --seed 0 --load /tmp/m.pt --no-frames
+    python experiments/pendulum_probes.py --seed 0                      # frames only
+    python experiments/pendulum_probes.py --seed 0 --n-train 128 --gru-epochs 25
+    python experiments/pendulum_probes.py --seed 0 --no-frames --state
+    python experiments/pendulum_probes.py --seed 0 --no-frames --lf-path --lf-option y_update=evidence
+    python experiments/pendulum.py --seed 0 --remedy ... --save /tmp/m.pt
+    python experiments/pendulum_probes.py --seed 0 --load /tmp/m.pt --no-frames
 """
 
 from __future__ import annotations
@@ -100,7 +100,7 @@ def trajectory_lstm(x_tr: np.ndarray, t_tr: np.ndarray, x_te: np.ndarray, t_te: 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seed", type=int, default=0, help="data seed (train seed, held-out seed + 1000) and init seed")
-    p.add_argument("--n-train", type=int, default=32, help="training sequences per object (bench_pendulum: 32)")
+    p.add_argument("--n-train", type=int, default=32, help="training sequences per object (pendulum: 32)")
     p.add_argument("--gru-epochs", type=int, default=100, help="frames_gru epochs (100 x 256 / 16 = 1600 steps)")
     p.add_argument("--no-frames", action="store_true", help="skip frames_gru")
     p.add_argument("--lf-path", action="store_true", help="also train lf_path (the Latent Filter's inference path)")
@@ -108,7 +108,7 @@ def main(argv=None) -> None:
                    help="LatentFilter y option for lf_path, e.g. y_update=evidence y_evidence_max=1 (repeatable)")
     p.add_argument("--state", action="store_true",
                    help="also the readers of the true angle + per-frame CRB noise: state_lstm and physics_ls")
-    p.add_argument("--load", metavar="PATH", help="a model saved by bench_pendulum.py --save: probe its z and y")
+    p.add_argument("--load", metavar="PATH", help="a model saved by experiments/pendulum.py --save: probe its z and y")
     p.add_argument("--probe-epochs", type=int, default=300)
     p.add_argument("--probe-seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--threads", type=int, default=1)
@@ -121,7 +121,7 @@ def main(argv=None) -> None:
         rows.append(("frames_gru", f"seed {a.seed}, {a.gru_epochs} epochs", supervised(train, test, a.gru_epochs, a.seed),
                      time.perf_counter() - t0))
     if a.lf_path:
-        from embodied_tactile.bench.remedies import parse_remedy, remedy_kwargs  # as bench_pendulum --remedy
+        from embodied_tactile.bench.remedies import parse_remedy, remedy_kwargs  # as experiments/pendulum.py --remedy
 
         opts = remedy_kwargs(parse_remedy(o) for o in a.lf_option)
         t0 = time.perf_counter()

@@ -1,9 +1,9 @@
 """The context objective's ablation ladder on the validation objects (docs/experiments/context_objective.md).
 
-    python benchmarks/bench_context_ladder.py RUN [RUN ...]             # one row per run, then rung means
-    python benchmarks/bench_context_ladder.py --untrained RUN OUT       # OUT: RUN's network untrained, as a run folder
-    python benchmarks/bench_context_ladder.py --touches RUN [RUN ...]   # y from K = 1, 2 touches of each validation object
-    python benchmarks/bench_context_ladder.py --held-out test RUN ...   # the same on the test objects (the targets;
+    python experiments/context_ladder.py RUN [RUN ...]             # one row per run, then rung means
+    python experiments/context_ladder.py --untrained RUN OUT       # OUT: RUN's network untrained, as a run folder
+    python experiments/context_ladder.py --touches RUN [RUN ...]   # y from K = 1, 2 touches of each validation object
+    python experiments/context_ladder.py --held-out test RUN ...   # the same on the test objects (the targets;
                                                                         # needs evaluate.py RUN held_out=test first)
 
 Each RUN is a train.py folder of the population scene (any recipe). Per run:

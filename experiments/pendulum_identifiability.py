@@ -8,7 +8,7 @@ frame 10 under their own actions), the median and 90th percentile of that separa
 steps: damping 0.1 vs 0.6 1/s (its two levels) and the adjacent natural frequencies 3 vs 4
 rad/s, each with the other parameter at its true value. NumPy only, a few seconds.
 
-    python benchmarks/bench_pendulum_identifiability.py [--steps 1 2 4 8 16] [--n-per-object 40]
+    python experiments/pendulum_identifiability.py [--steps 1 2 4 8 16] [--n-per-object 40]
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """Held-out NMSE of the default scene against training choices (error against run time).
 
-    python benchmarks/bench_default_nmse.py                      # every variant below, in turn
-    python benchmarks/bench_default_nmse.py --only default whole_trials
-    python benchmarks/bench_default_nmse.py --only default --seeds 0 1     # speed targets 2 and 5 (docs/experiments/speed_levers.md)
-    python benchmarks/bench_default_nmse.py --work /tmp/nmse --data-dir data -- trainer.max_epochs=8
+    python experiments/default_nmse.py                      # every variant below, in turn
+    python experiments/default_nmse.py --only default whole_trials
+    python experiments/default_nmse.py --only default --seeds 0 1     # speed targets 2 and 5 (docs/experiments/speed_levers.md)
+    python experiments/default_nmse.py --work /tmp/nmse --data-dir data -- trainer.max_epochs=8
 
 Each variant is one ``python train.py <overrides>`` run of the embedded default scene
 (multi_l, soft skin, pressing; 80 training / 16 validation / 32 held-out sequences) in its own folder under

@@ -1,6 +1,6 @@
 """Do the label-conditioned prior's object codes put the objects into y? One row per run.
 
-    python benchmarks/bench_object_codes.py <run or multirun folder> [...]
+    python experiments/object_codes.py <run or multirun folder> [...]
 
 For each training run (a run folder, or every job of a multirun / study folder, found as
 evaluate.py finds them) on its own saved split and best checkpoint:

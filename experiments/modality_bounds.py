@@ -1,9 +1,9 @@
 """Where does each modality's information go? Upper bounds per modality, side by side.
 
-    python benchmarks/bench_modality_bounds.py --data-dir /tmp/mod9/data
-    python benchmarks/bench_modality_bounds.py --data-dir /tmp/mod9/data --primitive sliding
-    python benchmarks/bench_modality_bounds.py --data-dir /tmp/mod9/data --modalities acc --gru-epochs 5
-    python benchmarks/bench_modality_bounds.py --data-dir /tmp/mod9/data --preprocess acc_combine=magnitude
+    python experiments/modality_bounds.py --data-dir /tmp/mod9/data
+    python experiments/modality_bounds.py --data-dir /tmp/mod9/data --primitive sliding
+    python experiments/modality_bounds.py --data-dir /tmp/mod9/data --modalities acc --gru-epochs 5
+    python experiments/modality_bounds.py --data-dir /tmp/mod9/data --preprocess acc_combine=magnitude
 
 Scene: the default one (soft skin, pressing) at the cpu_budget experiment's size, 32 objects
 x 4 actions (indices 2, 6, 10, 14), prepared by the project's preparation stage

@@ -18,7 +18,7 @@ length scale chosen per factor on the validation objects; NMSE is on the test ob
 spatial frequency (1/m), log amplitude, log10 bulk Young's modulus, heterogeneity (0/1).
 Nested training sets: the first N training objects, as ``data.n_objects=N`` uses.
 
-    python benchmarks/bench_signal_content.py --raw <data_dir>/raw/population0_soft_pressing.h5
+    python experiments/signal_content.py --raw <data_dir>/raw/population0_soft_pressing.h5
 
 The raw file is the population scene's (``python train.py experiment=population
 data.n_objects=512`` simulates it, or :func:`embodied_tactile.sim.dataset.generate_dataset`).
