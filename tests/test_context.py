@@ -4,7 +4,7 @@ object id kept out of the model, the K-touch combination and the swap test."""
 import pytest
 import torch
 
-from embodied_tactile.model import EarlyFusionLatentFilter, LatentFilter
+from embodied_tactile.model import LatentFilterModule, LatentFilter
 from embodied_tactile.model.latent_filter import combine_touches
 from tests.conftest import tiny_datamodule
 
@@ -157,7 +157,7 @@ def test_context_terms_use_the_context_and_the_population_marginal():
 
 def test_module_trains_on_pairs_and_refuses_batches_without_a_context(tmp_path):
     torch.manual_seed(0)
-    module = EarlyFusionLatentFilter(LatentFilter("acc", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
+    module = LatentFilterModule(LatentFilter("acc", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
                                      context={"source": "trial", "initial_frames": 2})
     assert module.hparams["context"] == {"source": "trial", "initial_frames": 2, "refilter": False}
     batch = pair_batch()
@@ -173,7 +173,7 @@ def test_module_trains_on_pairs_and_refuses_batches_without_a_context(tmp_path):
     with pytest.raises(ValueError, match="context_obs"):
         module._terms({k: batch[k] for k in ("obs", "actions", "object_id")})
     with pytest.raises(ValueError, match="context.source"):
-        EarlyFusionLatentFilter(LatentFilter("acc", **TINY), context={"source": "object"})
+        LatentFilterModule(LatentFilter("acc", **TINY), context={"source": "object"})
 
 
 def test_y_filter_can_start_at_the_population_marginal():

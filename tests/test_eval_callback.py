@@ -259,10 +259,10 @@ def test_both_splits_inferred_in_one_pass_give_each_splits_own_latents():
     batches); every sequence's latents equal those of inferring each split on its own."""
     from embodied_tactile.eval.callback import collect_latents, rebatch
     from embodied_tactile.model.latent_filter import LatentFilter
-    from embodied_tactile.model.module import LateFusionLatentFilter
+    from embodied_tactile.model.module import LatentFilterModule
 
     torch.manual_seed(0)
-    model = LateFusionLatentFilter(LatentFilter("multi_l", n_z=4, n_y=3, encoder={"widths": [4, 8], "hidden": 16},
+    model = LatentFilterModule(LatentFilter("multi_l", n_z=4, n_y=3, encoder={"widths": [4, 8], "hidden": 16},
                                                 transition_hidden=16, lstm_hidden=16, obs_sigma=0.1))
     g = torch.Generator().manual_seed(1)
 

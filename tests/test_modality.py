@@ -53,8 +53,7 @@ def test_a_new_modality_is_one_yaml_file(tmp_path, tiny_data_dir):
     (extra / "modality").mkdir(parents=True)
     (extra / "modality" / "acc_bottom_l.yaml").write_text(
         "name: acc_bottom_l\nlabel: ACC+FSR_b late\nchannels: [fsr_b, acc]\nfusion: late\n"
-        "pathways:\n  force: [fsr_b]\n  vibration: [acc]\n"
-        "module: embodied_tactile.model.module.LateFusionLatentFilter\n")
+        "pathways:\n  force: [fsr_b]\n  vibration: [acc]\n")
     cfg = _compose_job([
         f"hydra.searchpath=[file://{extra}]", "modality=acc_bottom_l",
         f"data.objects={TINY_OBJECTS}", f"data.actions={TINY_ACTIONS}",

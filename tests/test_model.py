@@ -12,9 +12,7 @@ from torch.utils.data import DataLoader, Dataset
 from embodied_tactile.model import (
     ConstrainedAnnealing,
     EarlyFusion,
-    EarlyFusionLatentFilter,
     LateFusion,
-    LateFusionLatentFilter,
     LatentFilter,
     LatentFilterModule,
 )
@@ -124,48 +122,27 @@ def test_custom_late_pathways_and_bad_configs():
     with pytest.raises(ValueError, match="expects obs"):
         LatentFilter("acc", **TINY)(torch.zeros(1, 2, 3, 28, 28), torch.zeros(1, 2, 6))
     with pytest.raises(TypeError, match="net must be a LatentFilter or its config mapping"):
-        LateFusionLatentFilter("multi_l")
-    assert LateFusionLatentFilter(LatentFilter("multi_l", **TINY)).model.modality["name"] == "multi_l"
+        LatentFilterModule("multi_l")
+    assert LatentFilterModule(LatentFilter("multi_l", **TINY)).model.modality["name"] == "multi_l"
     # the module rebuilds the network from its config: the arguments live in LatentFilter only
     net = LatentFilter("multi_e", **TINY)
-    rebuilt = EarlyFusionLatentFilter(net.config())
+    rebuilt = LatentFilterModule(net.config())
     assert rebuilt.model.modality["name"] == "multi_e" and rebuilt.hparams["net"] == net.config()
     assert sum(p.numel() for p in rebuilt.parameters()) == sum(p.numel() for p in net.parameters())
 
 
-@pytest.mark.parametrize(("module_cls", "name", "built", "use"), [
-    (EarlyFusionLatentFilter, "multi_l", "LateFusion", "LateFusionLatentFilter"),
-    (EarlyFusionLatentFilter, "custom_late", "LateFusion", "LateFusionLatentFilter"),
-    (LateFusionLatentFilter, "multi_e", "EarlyFusion", "EarlyFusionLatentFilter"),
-    (LateFusionLatentFilter, "acc", "EarlyFusion", "EarlyFusionLatentFilter"),
-])
-def test_module_refuses_the_other_fusion(module_cls, name, built, use):
-    """Each Lightning module trains its own observation model and names the one to use."""
-    mod = {"name": "custom_late", "channels": ["fsr_t", "acc"], "fusion": "late",
-           "pathways": {"force": ["fsr_t"], "vibration": ["acc"]}} if name == "custom_late" else name
-    net = LatentFilter(mod, **TINY)
-    msg = (f"{module_cls.__name__} trains the {module_cls.fusion.__name__} observation model; modality "
-           f"'{name}' \\(fusion='{net.modality['fusion']}'\\) builds {built}: use {use}")
-    with pytest.raises(ValueError, match=msg):
-        module_cls(net)
-    with pytest.raises(ValueError, match=msg):  # the config path (load_from_checkpoint) too
-        module_cls(net.config())
-    assert LatentFilterModule(net).model is net  # the generic module takes either
-
-
 @pytest.mark.parametrize("name", modality_names())
 def test_module_fusion_class_is_the_one_that_encodes(name, monkeypatch):
-    """The module's ``fusion`` class is the network's observation model, and its encode /
-    decode are what the filter's encode / decode and forward run."""
+    """The modality's fusion is the network's observation model, and its encode / decode are
+    what the filter's encode / decode and forward run."""
     net = LatentFilter(name, **TINY)
-    module_cls = LateFusionLatentFilter if net.modality["fusion"] == "late" else EarlyFusionLatentFilter
-    module = module_cls(net)
-    assert type(module.model.observation) is module_cls.fusion
-    assert module_cls.fusion is (LateFusion if name == "multi_l" else EarlyFusion)
+    module = LatentFilterModule(net)
+    fusion = LateFusion if name == "multi_l" else EarlyFusion
+    assert type(module.model.observation) is fusion
     calls = []
     for method in ("encode", "decode"):
-        orig = getattr(module_cls.fusion, method)
-        monkeypatch.setattr(module_cls.fusion, method,
+        orig = getattr(fusion, method)
+        monkeypatch.setattr(fusion, method,
                             lambda self, x, _o=orig, _m=method: calls.append(_m) or _o(self, x))
     o = make_batch(N_CH[name], B=2, T=3)["obs"]
     out = module(o, torch.zeros(2, 3, 6))
@@ -404,7 +381,7 @@ def test_extreme_inputs_finite(case):
 def test_checkpoint_roundtrip(tmp_path):
     torch.manual_seed(0)
     batch = make_batch(3, B=4, T=5)
-    module = LateFusionLatentFilter(
+    module = LatentFilterModule(
         # eps above the reconstruction error at the default obs_sigma 0.1, so the KL switches on
         LatentFilter("multi_l", **TINY), annealing=ConstrainedAnnealing(eps=1e3, update_every=1),
         optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
@@ -414,7 +391,7 @@ def test_checkpoint_roundtrip(tmp_path):
     assert module.annealing.kl_on and module.annealing.last_update == 2
     path = tmp_path / "m.ckpt"
     tr.save_checkpoint(path)
-    loaded = LateFusionLatentFilter.load_from_checkpoint(path)  # torch.load weights_only default
+    loaded = LatentFilterModule.load_from_checkpoint(path)  # torch.load weights_only default
     assert loaded.hparams["annealing"]["name"] == "constrained"
     assert loaded.hparams["optimizer"] == {"name": "Adam", "lr": 1e-3}
     assert isinstance(loaded.annealing, ConstrainedAnnealing)
@@ -486,7 +463,7 @@ def test_hydra_instantiation_with_project_style_configs(tmp_path):
     from omegaconf import OmegaConf
 
     cfg = OmegaConf.create({
-        "_target_": "embodied_tactile.model.module.LateFusionLatentFilter",
+        "_target_": "embodied_tactile.model.module.LatentFilterModule",
         "net": {"_target_": "embodied_tactile.model.latent_filter.LatentFilter",
                 "modality": {"name": "multi_l", "label": "MULTI-L", "channels": ["acc", "fsr_t", "fsr_b"],
                              "fusion": "late", "pathways": {"vibration": ["acc"], "force": ["fsr_t", "fsr_b"]}},
@@ -568,7 +545,7 @@ def test_fixed_object_codes_stay_at_their_draws_while_the_rest_of_the_prior_lear
     assert 0.3 < float(codes.std()) < 0.7  # the draws' spread is pop_sigma_init
     others = {k: v.detach().clone() for k, v in net.prior.named_parameters() if v.requires_grad}
     assert set(others) == {"pop_mean", "pop_raw_var", "raw_var", "action.weight"}
-    module = EarlyFusionLatentFilter(net, optimizer={"name": "Adam", "lr": 1e-2})
+    module = LatentFilterModule(net, optimizer={"name": "Adam", "lr": 1e-2})
     data = ListDataset(make_batch(1, B=8, T=6))
     trainer(tmp_path, max_steps=4).fit(module, DataLoader(data, batch_size=4))
     torch.testing.assert_close(net.prior.embedding.weight.detach(), codes, rtol=0, atol=0)
@@ -578,7 +555,7 @@ def test_fixed_object_codes_stay_at_their_draws_while_the_rest_of_the_prior_lear
     torch.manual_seed(0)
     learned = LatentFilter("fsr_t", prior={"labels": True, "learn_embedding": True}, **TINY)
     before = learned.prior.embedding.weight.detach().clone()
-    trainer(tmp_path, max_steps=4).fit(EarlyFusionLatentFilter(learned, optimizer={"name": "Adam", "lr": 1e-2}),
+    trainer(tmp_path, max_steps=4).fit(LatentFilterModule(learned, optimizer={"name": "Adam", "lr": 1e-2}),
                                        DataLoader(data, batch_size=4))
     assert not torch.equal(learned.prior.embedding.weight.detach(), before)
 
@@ -591,36 +568,36 @@ def test_cosine_lr_schedule_falls_to_zero_over_the_runs_steps(tmp_path):
         def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
             lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
 
-    module = EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
+    module = LatentFilterModule(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
                                      lr_schedule="cosine")
     data = DataLoader(ListDataset(make_batch(1, B=8, T=4)), batch_size=2)  # 4 steps per epoch
     trainer(tmp_path, max_steps=-1, max_epochs=2, callbacks=[Record()]).fit(module, data)
     expected = [0.5e-2 * (1 + math.cos(math.pi * i / 8)) for i in range(8)]
     assert lrs == pytest.approx(expected, rel=1e-6)
     assert module.hparams["lr_schedule"] == "cosine"
-    constant = EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2})
+    constant = LatentFilterModule(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2})
     lrs.clear()
     trainer(tmp_path, max_steps=3, callbacks=[Record()]).fit(constant, data)
     assert lrs == [1e-2] * 3
     with pytest.raises(ValueError, match="lr_schedule must be one of"):
-        EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), lr_schedule="step")
+        LatentFilterModule(LatentFilter("fsr_t", **TINY), lr_schedule="step")
 
 
 def test_code_lr_scale_puts_the_object_codes_in_a_group_of_their_own():
     """code_lr_scale != 1: two parameter groups, the prior's codes alone at scale x lr (the
     cosine schedule scales both); 1: one group; <= 0 refused."""
     net = LatentFilter("fsr_t", **TINY)
-    module = EarlyFusionLatentFilter(net, optimizer={"name": "Adam", "lr": 1e-2}, code_lr_scale=10.0)
+    module = LatentFilterModule(net, optimizer={"name": "Adam", "lr": 1e-2}, code_lr_scale=10.0)
     opt = module.configure_optimizers()
     assert [g["lr"] for g in opt.param_groups] == pytest.approx([1e-2, 1e-1])
     assert opt.param_groups[1]["params"] == [net.prior.embedding.weight]
     n_params = sum(1 for _ in module.parameters())
     assert len(opt.param_groups[0]["params"]) == n_params - 1
     assert module.hparams["code_lr_scale"] == 10.0
-    one = EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2})
+    one = LatentFilterModule(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2})
     assert len(one.configure_optimizers().param_groups) == 1
     with pytest.raises(ValueError, match="code_lr_scale must be > 0"):
-        EarlyFusionLatentFilter(LatentFilter("fsr_t", **TINY), code_lr_scale=0.0)
+        LatentFilterModule(LatentFilter("fsr_t", **TINY), code_lr_scale=0.0)
 
 
 def test_population_term_enters_kl_y_and_old_checkpoints_load():
@@ -650,9 +627,8 @@ def test_checkpoint_of_the_pre_fusion_module_layout_loads(name, tmp_path):
     import lightning as L
 
     net = LatentFilter(name, **TINY)
-    module_cls = LateFusionLatentFilter if net.modality["fusion"] == "late" else EarlyFusionLatentFilter
-    module = module_cls(net)
-    late = module_cls is LateFusionLatentFilter
+    module = LatentFilterModule(net)
+    late = net.modality["fusion"] == "late"
 
     def old_key(k: str) -> str:
         for part in ("encoder", "decoder"):
@@ -667,13 +643,13 @@ def test_checkpoint_of_the_pre_fusion_module_layout_loads(name, tmp_path):
     ckpt = tmp_path / "old.ckpt"
     torch.save({"state_dict": state, "hyper_parameters": dict(module.hparams),
                 "pytorch-lightning_version": L.__version__}, ckpt)
-    loaded = module_cls.load_from_checkpoint(str(ckpt), map_location="cpu")
+    loaded = LatentFilterModule.load_from_checkpoint(str(ckpt), map_location="cpu")
     for k, v in module.state_dict().items():
         assert torch.equal(loaded.state_dict()[k], v), k
     torch.save({"state_dict": {k.replace("model.observation.", "model.other."): v for k, v in module.state_dict().items()},
                 "hyper_parameters": dict(module.hparams), "pytorch-lightning_version": L.__version__}, ckpt)
     with pytest.raises(RuntimeError, match="state_dict"):
-        module_cls.load_from_checkpoint(str(ckpt), map_location="cpu")
+        LatentFilterModule.load_from_checkpoint(str(ckpt), map_location="cpu")
 
 
 # ------------------------------------------------------------------ input standardisation
@@ -807,8 +783,8 @@ def test_benchmark_reference_loss_equals_the_vectorised_elbo_terms():
 
 
 @pytest.mark.parametrize("old, new", [
-    ("embodied_tactile.models.module.EarlyFusionLatentFilter", "embodied_tactile.model.module.EarlyFusionLatentFilter"),
-    ("embodied_tactile.models.module.LateFusionLatentFilter", "embodied_tactile.model.module.LateFusionLatentFilter"),
+    ("embodied_tactile.models.module.EarlyFusionLatentFilter", "embodied_tactile.model.module.LatentFilterModule"),
+    ("embodied_tactile.models.module.LateFusionLatentFilter", "embodied_tactile.model.module.LatentFilterModule"),
     ("embodied_tactile.models.latent_filter.LatentFilter", "embodied_tactile.model.latent_filter.LatentFilter"),
     ("embodied_tactile.models.annealing.LinearKLWarmup", "embodied_tactile.model.annealing.LinearKLWarmup"),
     ("embodied_tactile.runtime.ResumableCSVLogger", "embodied_tactile.run.runtime.ResumableCSVLogger"),

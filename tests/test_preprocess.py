@@ -18,6 +18,24 @@ from embodied_tactile.data.preprocess import PreprocessConfig, preprocess_trial,
 from embodied_tactile.data import rawformat
 from embodied_tactile.data.rawformat import RawTrial, TrialFormatError, make_attrs, write_trial
 
+
+def fingerprint_file(path, names, fields) -> dict[str, str]:
+    """``{field: digest}`` of one raw file computed serially (trial names, attrs and the stored
+    bytes of the datasets each field reads): the reference for the digests ``build_cache``
+    computes chunk by chunk on its worker pool."""
+    fields = list(fields)
+    dpaths = cache_mod._fields_datasets(fields)
+    attrs_json: dict[str, str] = {}
+    digests: dict[str, dict[str, str]] = {}
+    with rawformat.open_raw(path) as f, open(path, "rb") as fh:
+        for name in names:
+            try:
+                attrs_json[name] = cache_mod._attrs_json(rawformat.read_attrs(f["trials"][name]))
+            except (OSError, KeyError, RuntimeError) as exc:
+                attrs_json[name] = f"unreadable: {exc}"
+            digests[name] = cache_mod._trial_digests(f, fh, name, dpaths)
+    return cache_mod._combine_fingerprint(names, attrs_json, digests, fields)
+
 T = 300
 
 
@@ -382,7 +400,7 @@ def test_process_pool_build_equals_in_process(raw_file, tmp_path, cfg):
         assert cache_info(serial[f])["skipped"] == cache_info(pooled[f])["skipped"]
     assert [s["trial"] for s in cache_info(pooled["fsr"])["skipped"]] == [bad]
     assert json.loads(h5py.File(pooled["acc"], "r").attrs["sources"]) == [str(raw_file)]
-    assert cache_mod.fingerprint_file(raw_file, [n for n, _ in list_cached(serial["acc"])], ("acc",))["acc"] == (
+    assert fingerprint_file(raw_file, [n for n, _ in list_cached(serial["acc"])], ("acc",))["acc"] == (
         cache_info(serial["acc"])["source_digests"][0]
     )  # the serial fingerprint and the pool's per-chunk one agree
 

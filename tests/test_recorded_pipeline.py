@@ -66,11 +66,11 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     assert dm.describe()["source"] == "recorded"
 
     from embodied_tactile.model import LatentFilter
-    from embodied_tactile.model.module import LateFusionLatentFilter
+    from embodied_tactile.model.module import LatentFilterModule
 
     torch.manual_seed(0)
     net = LatentFilter("multi_l", encoder={"widths": [4, 8], "hidden": 16}, transition_hidden=16, lstm_hidden=16)
-    model = LateFusionLatentFilter(net, optimizer={"name": "Adam", "lr": 1e-3})
+    model = LatentFilterModule(net, optimizer={"name": "Adam", "lr": 1e-3})
     from embodied_tactile.run.runtime import HandOverStatistics
 
     trainer = L.Trainer(max_epochs=1, accelerator="cpu", logger=False, enable_checkpointing=False, callbacks=[HandOverStatistics()],

@@ -1,5 +1,5 @@
 """Latent Filter networks, observation models (early / late fusion), annealing schedules and
-LightningModules (torch + lightning only), and their typed options (:mod:`.options`, plain
+the LightningModule (torch + lightning only), and their typed options (:mod:`.options`, plain
 dataclasses). The names below load on first use, so that ``model.options`` imports
 without torch."""
 
@@ -12,7 +12,7 @@ _WHERE = {
                                        "check_finite")},
     "EarlyFusion": ".fusion", "LateFusion": ".fusion",
     "LatentFilter": ".latent_filter", "resolve_modality": ".latent_filter",
-    "EarlyFusionLatentFilter": ".module", "LateFusionLatentFilter": ".module", "LatentFilterModule": ".module",
+    "LatentFilterModule": ".module",
 }
 
 __all__ = sorted(_WHERE)

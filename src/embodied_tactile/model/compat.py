@@ -1,7 +1,7 @@
 """What lets configs and checkpoints of earlier versions load, in one place, out of the
 model's hot path: options that were measured, rejected and removed; the values of options a
 saved config did not name; the parameter names of the layout before the fusion code moved
-into :mod:`.fusion`; the module paths of the layout before the package was ordered by role.
+into :mod:`.fusion`; the LightningModule classes and module paths that saved configs name.
 Plain Python: no torch."""
 
 from __future__ import annotations
@@ -71,6 +71,10 @@ def upgrade_state_dict(state: Mapping[str, Any], late: bool) -> dict[str, Any]:
 
     return {rename(k): v for k, v in state.items()}
 
+
+#: LightningModule classes of earlier versions -> today's (the fusion-specific subclasses
+#: differed only in the observation model they accepted, which the modality decides)
+RENAMED_CLASSES = {"EarlyFusionLatentFilter": "LatentFilterModule", "LateFusionLatentFilter": "LatentFilterModule"}
 
 #: module paths that saved configs (``_target_`` of the model, its network, annealing schedule
 #: and logger) and checkpoints of the earlier layout name -> where that code is now; a

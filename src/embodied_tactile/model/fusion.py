@@ -13,7 +13,7 @@ observation means (``decode`` -> (N, C, 28, 28), channels in ``obs`` order).
   and the decoders' outputs are concatenated and put back in ``obs`` channel order.
 
 :func:`observation_model` picks the class from the modality's ``fusion``; the Lightning
-modules (:mod:`.module`) each name the class they train.
+module (:mod:`.module`) trains whichever the network built.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""LightningModules for the Latent Filter (uni-modal, early- and late-fusion)."""
+"""The LightningModule of the Latent Filter, for every modality (uni-modal, early and late fusion)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ from typing import Any, Callable, Optional
 
 import lightning as L
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from .annealing import AnnealingSchedule, build_schedule, check_finite
-from .compat import upgrade_context_config, upgrade_state_dict
-from .fusion import EarlyFusion, LateFusion
+from .compat import RENAMED_CLASSES, upgrade_context_config, upgrade_state_dict
+from .fusion import LateFusion
 from .latent_filter import LatentFilter, to_plain
 from .options import ContextOptions, ModuleOptions, OptimizerOptions, build, defaults
 
@@ -98,9 +98,8 @@ def check_context(context: Optional[Mapping[str, Any]]) -> Optional[dict[str, An
 
 
 class LatentFilterModule(L.LightningModule):
-    """Latent Filter training module for any modality (``fusion`` single|early|late); the
-    subclasses :class:`EarlyFusionLatentFilter` and :class:`LateFusionLatentFilter` each
-    train one observation model (:mod:`.fusion`), named by their ``fusion`` attribute.
+    """Latent Filter training module for any modality (``fusion`` single|early|late): the
+    network builds the observation model (:mod:`.fusion`) from its modality.
 
     Args (Hydra-instantiable; see docs/model.md and configs/model/latent_filter.yaml):
         net: the :class:`~.latent_filter.LatentFilter` (Hydra builds it from ``model.net``
@@ -133,9 +132,6 @@ class LatentFilterModule(L.LightningModule):
     val/nll, val/kl_z, val/kl_y (and test/* likewise).
     """
 
-    #: the observation model (:mod:`.fusion`) this class trains; None = any
-    fusion: Optional[type[nn.Module]] = None
-
     def __init__(self, net: LatentFilter | Mapping[str, Any], annealing: Any = None, optimizer: Any = None,
                  check_finite: bool = _DEFAULT.check_finite, lr_schedule: str = _DEFAULT.lr_schedule,
                  code_lr_scale: float = _DEFAULT.code_lr_scale, context: Optional[Mapping[str, Any]] = None) -> None:
@@ -150,10 +146,6 @@ class LatentFilterModule(L.LightningModule):
                 raise TypeError(f"{type(self).__name__}: net must be a LatentFilter or its config mapping, "
                                 f"got {type(net).__name__}")
             net = LatentFilter.from_config(net)
-        if self.fusion is not None and not isinstance(net.observation, self.fusion):
-            raise ValueError(f"{type(self).__name__} trains the {self.fusion.__name__} observation model; modality "
-                             f"{net.modality['name']!r} (fusion={net.modality['fusion']!r}) builds "
-                             f"{type(net.observation).__name__}: use {_module_for(net.observation)}")
         schedule = build_schedule(annealing)
         self._optimizer = _optimizer_factory(optimizer)
         self.check_finite = bool(check_finite)
@@ -285,24 +277,10 @@ class LatentFilterModule(L.LightningModule):
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": cosine, "interval": "step"}}
 
 
-class EarlyFusionLatentFilter(LatentFilterModule):
-    """Latent Filter with ONE encoder over all stacked channels (uni-modal or early fusion):
-    the channels are fused before the encoder, by stacking (:class:`~.fusion.EarlyFusion`)."""
 
-    fusion = EarlyFusion
-
-
-class LateFusionLatentFilter(LatentFilterModule):
-    """Latent Filter with one encoder/decoder pathway per sensor type, integrated in latent
-    space by a product of Gaussians (:class:`~.fusion.LateFusion`, float32
-    :func:`~.networks.fuse_gaussians`)."""
-
-    fusion = LateFusion
-
-
-def _module_for(observation: nn.Module) -> str:
-    """The Lightning module class that trains this observation model."""
-    for cls in (EarlyFusionLatentFilter, LateFusionLatentFilter):
-        if isinstance(observation, cls.fusion):
-            return cls.__name__
-    return LatentFilterModule.__name__
+def __getattr__(name: str) -> Any:
+    """The class names of earlier versions (:data:`~.compat.RENAMED_CLASSES`), which the
+    ``_target_`` of saved configs names."""
+    if name in RENAMED_CLASSES:
+        return globals()[RENAMED_CLASSES[name]]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -48,7 +48,7 @@ class OptimizerNode:
 
 @dataclass
 class ModelNode(ModuleOptions):
-    """``model``: the LightningModule (its class follows the modality: ``${modality.module}``)."""
+    """``model``: the LightningModule (:class:`~embodied_tactile.model.module.LatentFilterModule`)."""
 
     _target_: str = MISSING
     net: LatentFilterNode = field(default_factory=LatentFilterNode)
