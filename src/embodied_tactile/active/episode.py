@@ -8,7 +8,7 @@ k + 1 is filtered as the frame that follows the last frame of touch k (transitio
 z at the end of touch k, LSTM state kept, a_{t-1} = the last action of touch k). The lift-off
 and repositioning between touches is not represented (the model never saw a gap), so the
 online posterior over an episode equals the batched posterior over its concatenated frames
-(tests/test_active.py). Each touch's actions are relative to its own first pose, like every
+(tests/unit/test_active.py). Each touch's actions are relative to its own first pose, like every
 trial the model was trained on.
 """
 

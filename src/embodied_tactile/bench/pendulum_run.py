@@ -1,6 +1,6 @@
 """Train the project's :class:`~embodied_tactile.model.LatentFilter` on the pendulum
 benchmark (:mod:`embodied_tactile.data.pendulum`) and read it out (docs/model.md,
-"Pendulum benchmark"). Used by ``experiments/pendulum.py`` and tests/test_pendulum.py.
+"Pendulum benchmark"). Used by ``experiments/pendulum.py`` and tests/unit/test_pendulum.py.
 
 Read-outs on held-out sequences, each fitted on the training sequences only, linear
 (least squares) and RBF kernel ridge (:func:`embodied_tactile.eval.krr.fit_alignment`,

@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 from embodied_tactile.run import runtime, threadenv
 from embodied_tactile.run.threadenv import TrainingRegistry
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_concurrent_jobs_follows_launcher_and_ddp():

@@ -765,7 +765,7 @@ def test_benchmark_reference_loss_equals_the_vectorised_elbo_terms():
     import importlib.util
     from pathlib import Path
 
-    spec = importlib.util.spec_from_file_location("steps", Path(__file__).parents[1] / "benchmarks" / "steps.py")
+    spec = importlib.util.spec_from_file_location("steps", Path(__file__).parents[2] / "benchmarks" / "steps.py")
     steps = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(steps)
     bench_batch, naive_terms = steps.make_batch, steps.naive_terms

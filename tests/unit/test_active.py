@@ -21,7 +21,7 @@ from embodied_tactile.data.preprocess import PreprocessConfig
 from embodied_tactile.eval.krr import fit_alignment
 from embodied_tactile.model.latent_filter import LatentFilter
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 N_Y = 4
 #: action index -> value of action column 0 in its nominal trajectory; the constructed y
 #: posterior gains evidence softplus(10 tanh(tanh(a0)) - 5) per frame: action 6 is the most

@@ -11,7 +11,7 @@ import torch
 
 from embodied_tactile.model.networks import SMALL_BATCH_ONEDNN_OFF, small_batch_convs
 
-SRC = Path(__file__).resolve().parents[1] / "src" / "embodied_tactile"
+SRC = Path(__file__).resolve().parents[2] / "src" / "embodied_tactile"
 
 needs_onednn = pytest.mark.skipif(not torch.backends.mkldnn.is_available(), reason="torch built without oneDNN")
 
@@ -109,7 +109,7 @@ def test_train_config_switch_compile_convs():
     from embodied_tactile.run import runtime
     from embodied_tactile.model import LatentFilter
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     assert OmegaConf.load(root / "configs" / "train.yaml").compile_convs is False  # the measured default
     m = LatentFilter("fsr_tb")
     assert runtime.configure_compile(OmegaConf.create({"compile_convs": False}), m) == 0

@@ -239,7 +239,7 @@ def test_faults(tmp_path, trial3s, kind, faults):
 
 
 # --------------------------------------------------------------------------- the CLI, signals, unplugging
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _cli(tmp_path, port, *over, preexec_fn=None):

@@ -285,7 +285,7 @@ def test_recipe_context_sets_the_pairing_and_the_rungs(tmp_path):
     marginal; recipe=filter (A0) has no context anywhere; the paper's scene has none either."""
     from hydra.utils import instantiate
 
-    from tests.test_configs import _compose
+    from tests.unit.test_configs import _compose
 
     cfg = _compose(["experiment=population"], tmp_path)
     assert cfg.data.context == "trial" and cfg.model.net.obs_dropout == 0.0
