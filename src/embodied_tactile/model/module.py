@@ -277,7 +277,6 @@ class LatentFilterModule(L.LightningModule):
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": cosine, "interval": "step"}}
 
 
-
 def __getattr__(name: str) -> Any:
     """The class names of earlier versions (:data:`~.compat.RENAMED_CLASSES`), which the
     ``_target_`` of saved configs names."""
