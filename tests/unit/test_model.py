@@ -795,3 +795,14 @@ def test_saved_configs_of_the_earlier_layout_name_todays_classes(old, new):
     from hydra.utils import get_class
 
     assert get_class(old) is get_class(new)
+
+
+def test_saved_targets_compare_in_todays_spelling():
+    from embodied_tactile.model.compat import current_target
+
+    assert current_target("embodied_tactile.models.module.EarlyFusionLatentFilter") == \
+        "embodied_tactile.model.module.LatentFilterModule"
+    assert current_target("embodied_tactile.models.annealing.LinearKLWarmup") == "embodied_tactile.model.annealing.LinearKLWarmup"
+    assert current_target("embodied_tactile.runtime.ResumableCSVLogger") == "embodied_tactile.run.runtime.ResumableCSVLogger"
+    assert current_target("embodied_tactile.data.datamodule.TactileDataModule") == "embodied_tactile.data.datamodule.TactileDataModule"
+    assert current_target("torch.optim.Adam") == "torch.optim.Adam"

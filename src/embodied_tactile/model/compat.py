@@ -91,6 +91,24 @@ def moved_to(name: str) -> str | None:
     return None
 
 
+#: config keys that saved configs hold and today's configs no longer write (the modality
+#: named its LightningModule before one class served every modality)
+DROPPED_CONFIG_KEYS = ("modality.module", "model.net.modality.module")
+
+
+def current_target(target: str) -> str:
+    """Today's spelling of a saved ``_target_`` (``embodied_tactile.models.module.
+    LateFusionLatentFilter`` -> ``embodied_tactile.model.module.LatentFilterModule``); any
+    other string unchanged. For comparing a saved config with today's."""
+    module, _, name = target.rpartition(".")
+    new = moved_to(module)
+    if new is None:
+        return target
+    if new == "embodied_tactile.model.module":
+        name = RENAMED_CLASSES.get(name, name)
+    return f"{new}.{name}"
+
+
 class _MovedModules(importlib.abc.MetaPathFinder, importlib.abc.Loader):
     """Imports a moved module under its old path as the same module object, so that
     ``hydra.utils.get_class`` / ``instantiate`` of an old ``_target_`` and unpickling an old
