@@ -37,7 +37,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from embodied_tactile import quiet
+from embodied_tactile.run import quiet
 from embodied_tactile.eval.pipeline import evaluate
 from embodied_tactile.eval.runs import EvaluationError, latest_target
 

@@ -11,7 +11,7 @@ metrics.json, split.json and provenance.json (git commit, package versions, raw 
 Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt; the folder
 is locked while a training runs, and a restart with settings, split or data (per trial) that
 differ, or with fewer epochs than its checkpoint's, is refused; the same command on a
-finished run changes nothing (embodied_tactile.runfolder). Exit codes: 0 finished (or
+finished run changes nothing (embodied_tactile.run.runfolder). Exit codes: 0 finished (or
 already finished), 2 bad setting or refused start, 130 / 143 SIGINT / SIGTERM (last.ckpt
 saved after the step under way, "interrupted"), 74 a checkpoint could not be written, 1 any
 other failure; a multirun runs every job and exits 1 when one did not finish (its table
@@ -24,7 +24,7 @@ import logging
 import sys
 import time
 
-import embodied_tactile.threadenv  # noqa: F401  OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP
+import embodied_tactile.run.threadenv  # noqa: F401  OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP
 import hydra
 import lightning as L
 import torch
@@ -33,10 +33,11 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-import embodied_tactile.config  # noqa: F401  registers the typed configs before Hydra composes
-from embodied_tactile import cli, quiet, runfolder, runtime, settings, summary
+import embodied_tactile.run.config  # noqa: F401  registers the typed configs before Hydra composes
+from embodied_tactile import cli
+from embodied_tactile.run import quiet, runfolder, runtime, settings, summary
 from embodied_tactile.data.datamodule import ConstantChannelError
-from embodied_tactile.jsonio import read_json, write_json
+from embodied_tactile.run.jsonio import read_json, write_json
 
 log = logging.getLogger("train")
 

@@ -20,7 +20,7 @@ import time
 
 import torch
 
-from embodied_tactile.models.latent_filter import LatentFilter
+from embodied_tactile.model.latent_filter import LatentFilter
 
 
 def split_sizes(n: int, size: int) -> list[int]:

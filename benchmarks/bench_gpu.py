@@ -44,8 +44,8 @@ POPULATION_FACTOR = 16  # the population scene at this many times its optimiser-
 def compose(overrides: list[str]):
     from hydra import compose as hydra_compose, initialize_config_dir
 
-    import embodied_tactile.config  # noqa: F401  typed configs and resolvers
-    from embodied_tactile.config import config_dir
+    import embodied_tactile.run.config  # noqa: F401  typed configs and resolvers
+    from embodied_tactile.run.config import config_dir
 
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         return hydra_compose(config_name="train", overrides=[*overrides, "paths.data_dir=/nonexistent"])

@@ -32,7 +32,7 @@ import scipy.signal
 
 from embodied_tactile.data import preprocess as P
 from embodied_tactile.data.preprocess import PreprocessConfig, acc_logmel, acc_logmel_naive, preprocess_trials
-from embodied_tactile.io.rawformat import RawTrial, make_attrs, read_trial, write_trial
+from embodied_tactile.data.rawformat import RawTrial, make_attrs, read_trial, write_trial
 
 CODECS = {
     "gzip-1 + shuffle (old default)": {"compression": "gzip", "compression_opts": 1, "shuffle": True},

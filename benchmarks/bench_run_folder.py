@@ -28,8 +28,8 @@ def checkpoint_times(work: Path, repeats: int) -> dict[str, float]:
     from hydra.utils import instantiate
     from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
-    from embodied_tactile.runfolder import AtomicCheckpointIO
-    from embodied_tactile.config import config_dir  # registers the typed configs
+    from embodied_tactile.run.runfolder import AtomicCheckpointIO
+    from embodied_tactile.run.config import config_dir  # registers the typed configs
 
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         cfg = compose(config_name="train", overrides=["hydra.runtime.output_dir=/tmp"])

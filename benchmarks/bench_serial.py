@@ -2,7 +2,7 @@
 
     python benchmarks/bench_serial.py [--duration 10] [--rows paced,unpaced,faults]
 
-The emulator runs in its own process (``python -m embodied_tactile.emulate``), the
+The emulator runs in its own process (``embodied-tactile emulate``), the
 recorder (the same ``Recorder`` the CLI uses, writing HDF5 through
 ``IncrementalTrialWriter``) in this one, so the CPU figure is the recorder's alone:
 process CPU time (user + system, ``resource.getrusage``) / wall time of the recording.
@@ -20,10 +20,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from embodied_tactile.acquisition.pose import StaticPoseSource
-from embodied_tactile.acquisition.protocol import DeviceMap
-from embodied_tactile.acquisition.recorder import Recorder, RecorderSettings, finish, open_port
-from embodied_tactile.io import rawformat as R
+from embodied_tactile.hardware.pose import StaticPoseSource
+from embodied_tactile.hardware.protocol import DeviceMap
+from embodied_tactile.hardware.recorder import Recorder, RecorderSettings, finish, open_port
+from embodied_tactile.data import rawformat as R
 
 ROWS = {
     "paced": ("paced 700/s, no faults", []),
@@ -41,7 +41,7 @@ def _cpu() -> float:
 def run_row(key: str, duration: float, tmp: Path) -> dict:
     label, extra = ROWS[key]
     emu = subprocess.Popen(
-        [sys.executable, "-m", "embodied_tactile.emulate", "--synthetic", "3", "--seed", "7", *extra],
+        [sys.executable, "-m", "embodied_tactile.hardware.emulate", "--synthetic", "3", "--seed", "7", *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     port = emu.stdout.readline().strip()

@@ -4,7 +4,7 @@
     python benchmarks/bench_shared_machine.py --work /tmp/shared -- trainer.max_epochs=1 trainer.limit_train_batches=10
     python benchmarks/bench_shared_machine.py --work /tmp/shared --omp-wait-policy ACTIVE   # OpenMP spinning, for comparison
 
-The scene's data are prepared once first (``python -m embodied_tactile.prepare`` with the
+The scene's data are prepared once first (``embodied-tactile prepare`` with the
 same overrides; not timed). Then one ``python train.py`` runs alone, then two start at the
 same moment, each in its own run folder under ``--work``, each with the default thread
 policy (``threads=auto``: the cores divided among the trainings live on the machine,
@@ -96,9 +96,9 @@ def main() -> None:
     data_dir = args.data_dir or args.work / "data"
     extra = list(args.overrides) + ([f"threads={args.threads}"] if args.threads else [])
     env = environment(args.omp_wait_policy)
-    from embodied_tactile.runtime import available_cores
+    from embodied_tactile.run.runtime import available_cores
 
-    subprocess.run([sys.executable, "-m", "embodied_tactile.prepare", f"paths.data_dir={data_dir}", *extra],
+    subprocess.run([sys.executable, "-m", "embodied_tactile.data.prepare_cli", f"paths.data_dir={data_dir}", *extra],
                    cwd=REPO, env=env, check=True, capture_output=True)
 
     print(f"CPU: {cpu_model()}, {available_cores()} available cores; train.py {' '.join(extra) or '(default)'}; "

@@ -22,7 +22,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from embodied_tactile import constants as C  # noqa: E402
-from embodied_tactile.io.rawformat import scan_raw  # noqa: E402
+from embodied_tactile.data.rawformat import scan_raw  # noqa: E402
 from embodied_tactile.sim import generate_dataset, simulate_trial  # noqa: E402
 
 

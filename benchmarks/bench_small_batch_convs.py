@@ -19,7 +19,7 @@ import time
 
 import torch
 
-from embodied_tactile.models import LatentFilter
+from embodied_tactile.model import LatentFilter
 
 
 @contextlib.contextmanager

@@ -20,8 +20,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 
 from steps import make_batch, matmul_ceiling, step, training_module  # noqa: E402
-from embodied_tactile.models import LatentFilter  # noqa: E402
-from embodied_tactile.models.networks import ConvDecoder, ConvEncoder  # noqa: E402
+from embodied_tactile.model import LatentFilter  # noqa: E402
+from embodied_tactile.model.networks import ConvDecoder, ConvEncoder  # noqa: E402
 
 
 def main() -> None:

@@ -46,9 +46,9 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from steps import make_batch, matmul_ceiling, naive_terms  # noqa: E402
 
-from embodied_tactile.models import LatentFilter  # noqa: E402
-from embodied_tactile.models import networks  # noqa: E402
-from embodied_tactile.models.networks import gaussian_nll  # noqa: E402
+from embodied_tactile.model import LatentFilter  # noqa: E402
+from embodied_tactile.model import networks  # noqa: E402
+from embodied_tactile.model.networks import gaussian_nll  # noqa: E402
 
 LEVERS = ("naive", "eager", "compile_convs", "cl_end_to_end", "onednn_off", "compile_step")
 

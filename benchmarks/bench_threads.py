@@ -30,7 +30,7 @@ from pathlib import Path
 
 
 def worker(args: argparse.Namespace) -> None:
-    from embodied_tactile import runtime
+    from embodied_tactile.run import runtime
 
     threads = runtime.set_threads(runtime.thread_budget("auto", runtime.concurrent_jobs(args.jobs)) if args.threads == "auto"
                                   else int(args.threads))  # a fixed count bypasses the policy (its ceiling too)
@@ -39,7 +39,7 @@ def worker(args: argparse.Namespace) -> None:
     import torch
 
     from steps import make_batch, step, training_module
-    from embodied_tactile.models import LatentFilter
+    from embodied_tactile.model import LatentFilter
 
     torch.manual_seed(0)
     m = LatentFilter(args.modality)
@@ -89,7 +89,7 @@ def main() -> None:
         worker(args)
         return
 
-    from embodied_tactile.runtime import available_cores
+    from embodied_tactile.run.runtime import available_cores
 
     print(f"{args.modality}, B={args.batch} T={args.seq} 28x28, {args.steps} timed steps per job, threads={args.threads}, "
           f"{available_cores()} available cores, os.cpu_count() {os.cpu_count()}")

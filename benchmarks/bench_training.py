@@ -20,8 +20,8 @@ import time
 
 import torch
 
-from embodied_tactile.models import LatentFilter
-from embodied_tactile.modality import modality_names
+from embodied_tactile.model import LatentFilter
+from embodied_tactile.data.modality import modality_names
 from steps import make_batch, naive_terms
 
 

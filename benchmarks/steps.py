@@ -10,8 +10,8 @@ import warnings
 
 import torch
 
-from embodied_tactile.models import LatentFilter, LatentFilterModule
-from embodied_tactile.models.networks import gaussian_entropy, gaussian_nll, kl_diag_gaussians
+from embodied_tactile.model import LatentFilter, LatentFilterModule
+from embodied_tactile.model.networks import gaussian_entropy, gaussian_nll, kl_diag_gaussians
 
 
 def naive_terms(m: LatentFilter, batch: dict, sample: bool = True) -> dict:

@@ -42,7 +42,7 @@ from embodied_tactile.eval.results import first_below
 from embodied_tactile.eval.runs import (DataCache, collect_split, data_config, discover, load_module, trial_names,
                                         untrained_module)
 from embodied_tactile.eval.targets import encode_split
-from embodied_tactile.modality import Modality
+from embodied_tactile.data.modality import Modality
 
 CANDIDATES = {
     "paper": {"readout": "final_segment"},

@@ -6,7 +6,7 @@
 For a population-scene RUN whose objects are touched several times (``data.actions``), every
 object's trials get one fixed random order (``--seed``); for each K the last-frame posteriors
 q(y | touch k) of its first K trials are combined by
-:func:`~embodied_tactile.models.latent_filter.combine_touches` (the prior counted once:
+:func:`~embodied_tactile.model.latent_filter.combine_touches` (the prior counted once:
 ``LatentFilter.touch_prior``). The read-out is fitted at the same K on the training objects
 (one row per object; alpha and gamma cross-validated by object, the run's own alignment
 grids) and scores the held-out objects at that K: NMSE mean over factors, normalised by the
@@ -39,7 +39,7 @@ def posteriors(net, loader, names) -> dict:
 
 def combined(split: dict, k: int, prior, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per object with at least ``k`` trials: q(y | its first k trials in a random order)."""
-    from embodied_tactile.models.latent_filter import combine_touches
+    from embodied_tactile.model.latent_filter import combine_touches
 
     objects = np.asarray(split["object_id"])
     means, facs, ids = [], [], []

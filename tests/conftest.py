@@ -7,7 +7,7 @@ import zlib
 from pathlib import Path
 
 import pytest
-import embodied_tactile.config  # noqa: E402,F401  registers the typed configs and ${prior_rows:...}
+import embodied_tactile.run.config  # noqa: E402,F401  registers the typed configs and ${prior_rows:...}
 
 # Never reach the network from tests; keep numba's cache out of read-only site-packages.
 os.environ.setdefault("WANDB_MODE", "disabled")

@@ -1,9 +1,9 @@
 """The command-line side of the Hydra entry points: one line and exit status 2 for a bad
 setting (:func:`fail`), ``main()`` of a Hydra command (:func:`hydra_command`), and train.py's
 Hydra callback (:class:`EntryCallback`, registered in ``configs/train.yaml``): settings are
-checked (:mod:`embodied_tactile.settings`) and the run folder claimed
-(:mod:`embodied_tactile.runfolder`) before Hydra creates it; a multirun ends with its summary
-(:mod:`embodied_tactile.summary`)."""
+checked (:mod:`embodied_tactile.run.settings`) and the run folder claimed
+(:mod:`embodied_tactile.run.runfolder`) before Hydra creates it; a multirun ends with its summary
+(:mod:`embodied_tactile.run.summary`)."""
 
 from __future__ import annotations
 
@@ -18,14 +18,14 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from embodied_tactile.config import config_dir
-from embodied_tactile.settings import (EXIT_BAD_SETTINGS, SettingsError, Spec, check_paths, check_train_config,
+from embodied_tactile.run.config import config_dir
+from embodied_tactile.run.settings import (EXIT_BAD_SETTINGS, SettingsError, Spec, check_paths, check_train_config,
                                        config_value)
 
 
 def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
                   errors: tuple[type[Exception], ...] = ()) -> Callable[[], None]:
-    """``main()`` of a Hydra command (``python -m embodied_tactile.record`` / ``.palpate``)
+    """``main()`` of a Hydra command (``python -m embodied_tactile.hardware.record`` / ``.palpate``)
     whose ``run(cfg)`` returns the exit status. An exception of ``errors`` prints
     ``<prog>: error: <message>`` and exits 2; so does a config composition error (Hydra's
     own exit 1); ``--help`` / ``--cfg`` exit 0."""
@@ -72,7 +72,7 @@ def fail(err: SettingsError, prog: str = "train.py") -> None:
     raise Exit(EXIT_BAD_SETTINGS, str(err))
 
 
-#: a dataclass field's Python type -> the kind :class:`~embodied_tactile.settings.Spec` describes
+#: a dataclass field's Python type -> the kind :class:`~embodied_tactile.run.settings.Spec` describes
 _KINDS = {int: "int", float: "float", bool: "bool", str: "str"}
 
 
@@ -93,15 +93,15 @@ def _declared(cls: type, path: Sequence[str]) -> tuple[Any, bool]:
 
 def check_typed_overrides(args: Sequence[str]) -> None:
     """Command-line values of the typed model options (``model.*``,
-    :class:`~embodied_tactile.config.ModelNode`) checked against their dataclass types before
+    :class:`~embodied_tactile.run.config.ModelNode`) checked against their dataclass types before
     Hydra merges them, every value of a sweep included: one line naming key, value and the
     type, exit 2 (Hydra's own merge error is several lines, exit 1)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    from embodied_tactile.config import ModelNode
-    from embodied_tactile.models.options import ContextOptions
+    from embodied_tactile.run.config import ModelNode
+    from embodied_tactile.model.options import ContextOptions
 
     try:
         overrides = OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
@@ -124,7 +124,7 @@ def check_typed_overrides(args: Sequence[str]) -> None:
 
 class EntryCallback(Callback):
     """Hydra callback of train.py: check settings before any folder is made; at the end of a
-    multirun, print its summary (:mod:`embodied_tactile.summary`)."""
+    multirun, print its summary (:mod:`embodied_tactile.run.summary`)."""
 
     def __init__(self) -> None:
         self._sweep_dir: str | None = None
@@ -133,7 +133,7 @@ class EntryCallback(Callback):
         self._check(config, "hydra.run.dir")
         # runfolder loads lightning (seconds): only train.py's callback needs it, so that record /
         # palpate start at once (a recorder on a busy port must be refused while the other runs)
-        from embodied_tactile.runfolder import RunFinished, claim_at_entry
+        from embodied_tactile.run.runfolder import RunFinished, claim_at_entry
 
         try:
             claim_at_entry(config)
@@ -150,7 +150,7 @@ class EntryCallback(Callback):
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """The sweep's table (job, status, overrides, reason); exit 1 when a job did not finish."""
-        from embodied_tactile.summary import multirun_rows, print_multirun_summary  # loads torch: only here
+        from embodied_tactile.run.summary import multirun_rows, print_multirun_summary  # loads torch: only here
 
         if self._sweep_dir and Path(self._sweep_dir).is_dir():
             print_multirun_summary(self._sweep_dir)

@@ -1,14 +1,14 @@
 """The closed loop: touch, preprocess, filter frame by frame, estimate, choose the next touch.
 
 B episodes (one object each) run in lockstep so that the filter and the decisions are
-batched; B = 1 is the single episode of ``python -m embodied_tactile.palpate``.
+batched; B = 1 is the single episode of ``embodied-tactile palpate``.
 
 Across touches the Latent Filter state carries over unchanged: the first frame of touch
 k + 1 is filtered as the frame that follows the last frame of touch k (transition prior from
 z at the end of touch k, LSTM state kept, a_{t-1} = the last action of touch k). The lift-off
 and repositioning between touches is not represented (the model never saw a gap), so the
 online posterior over an episode equals the batched posterior over its concatenated frames
-(tests/test_active.py). Each touch's actions are relative to its own first pose, like every
+(tests/unit/test_active.py). Each touch's actions are relative to its own first pose, like every
 trial the model was trained on.
 """
 

@@ -203,7 +203,7 @@ def plot_curves(summary: dict[str, Any], path: Path, title: str) -> None:
 def write_outputs(out_dir: Path, summary: dict[str, Any], result: dict[str, Any], meta: dict[str, Any],
                   caption: str) -> dict[str, str]:
     out_dir.mkdir(parents=True, exist_ok=True)
-    from embodied_tactile.jsonio import write_json
+    from embodied_tactile.run.jsonio import write_json
 
     tab = curve_table(summary, caption)
     paths = {"md": out_dir / "active_nmse.md", "csv": out_dir / "active_nmse.csv", "tex": out_dir / "active_nmse.tex",

@@ -23,8 +23,8 @@ import torch
 from embodied_tactile.data.preprocess import PreprocessConfig, preprocess_trial
 from embodied_tactile.eval.krr import Alignment
 from embodied_tactile.eval.targets import encode_factors
-from embodied_tactile.io.rawformat import RawTrial
-from embodied_tactile.modality import CHANNELS, fields_for_channels
+from embodied_tactile.data.rawformat import RawTrial
+from embodied_tactile.data.modality import CHANNELS, fields_for_channels
 
 
 @dataclass

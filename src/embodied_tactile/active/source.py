@@ -3,7 +3,7 @@
 
 A touch is addressed by (object, action parameter set, ``use``): ``use`` counts how often the
 episode already touched that object with that action (0 for the first time). Both sources
-return one :class:`~embodied_tactile.io.rawformat.RawTrial`; preprocessing and the model
+return one :class:`~embodied_tactile.data.rawformat.RawTrial`; preprocessing and the model
 never see which source answered.
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import RawTrial, read_trial, scan_raw, trial_name
+from embodied_tactile.data.rawformat import RawTrial, read_trial, scan_raw, trial_name
 
 
 @runtime_checkable

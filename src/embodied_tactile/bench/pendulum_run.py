@@ -1,6 +1,6 @@
-"""Train the project's :class:`~embodied_tactile.models.LatentFilter` on the pendulum
-benchmark (:mod:`embodied_tactile.bench.pendulum`) and read it out (docs/model.md,
-"Pendulum benchmark"). Used by ``benchmarks/bench_pendulum.py`` and tests/test_pendulum.py.
+"""Train the project's :class:`~embodied_tactile.model.LatentFilter` on the pendulum
+benchmark (:mod:`embodied_tactile.data.pendulum`) and read it out (docs/model.md,
+"Pendulum benchmark"). Used by ``experiments/pendulum.py`` and tests/unit/test_pendulum.py.
 
 Read-outs on held-out sequences, each fitted on the training sequences only, linear
 (least squares) and RBF kernel ridge (:func:`embodied_tactile.eval.krr.fit_alignment`,
@@ -39,17 +39,17 @@ from sklearn.metrics import r2_score
 from torch import nn
 from torch.utils.data import DataLoader, Dataset, RandomSampler
 
-from embodied_tactile import quiet
+from embodied_tactile.run import quiet
 from embodied_tactile.data.statistics import DataStatistics
 from embodied_tactile.eval.krr import fit_alignment
-from embodied_tactile.models.annealing import AnnealingSchedule
-from embodied_tactile.models.latent_filter import LatentFilter
-from embodied_tactile.models.module import LatentFilterModule
-from embodied_tactile.models.networks import ConvDecoder, ConvEncoder
-from embodied_tactile.paths import config_dir
-from embodied_tactile.runtime import HandOverStatistics
+from embodied_tactile.model.annealing import AnnealingSchedule
+from embodied_tactile.model.latent_filter import LatentFilter
+from embodied_tactile.model.module import LatentFilterModule
+from embodied_tactile.model.networks import ConvDecoder, ConvEncoder
+from embodied_tactile.run.paths import config_dir
+from embodied_tactile.run.runtime import HandOverStatistics
 
-from .pendulum import N_OBJECTS, UNSEEN_SYSTEMS, PendulumData, generate, render
+from embodied_tactile.data.pendulum import N_OBJECTS, UNSEEN_SYSTEMS, PendulumData, generate, render
 
 #: the benchmark's modality: one image channel (the channel name is only a label here)
 MODALITY = {"name": "pendulum", "channels": ["fsr_t"], "fusion": "single"}
@@ -125,7 +125,7 @@ class PendulumDataModule(L.LightningDataModule):
     """The benchmark's training data for the project's Trainer: ``steps`` batches of
     ``batch_size`` sequences drawn with replacement (seeded), and the data's
     :class:`~embodied_tactile.data.statistics.DataStatistics` (handed to the module by
-    :class:`~embodied_tactile.runtime.HandOverStatistics`)."""
+    :class:`~embodied_tactile.run.runtime.HandOverStatistics`)."""
 
     def __init__(self, data: PendulumData, steps: int, batch_size: int = 16, seed: int = 0,
                  context: bool = False) -> None:
@@ -169,7 +169,7 @@ def train(model: LatentFilter, data: PendulumData, steps: int, batch_size: int =
     (configs/annealing/linear.yaml: linear KL warm-up over the first 10 % of the steps, the
     plain ELBO afterwards) unless ``annealing`` names one, and Adam at ``lr``; the object
     label goes to the prior only, as in training on the tactile data. ``context``: the
-    context objective's settings (:class:`~embodied_tactile.models.options.ContextOptions`;
+    context objective's settings (:class:`~embodied_tactile.model.options.ContextOptions`;
     ``source`` must be ``trial``: y from another sequence of the same system); None = the
     filtering ELBO."""
     torch.manual_seed(seed)

@@ -56,10 +56,10 @@ from embodied_tactile.data.preprocess import (
     preprocess_trials,
     time_problems,
 )
-from embodied_tactile.io import rawformat
-from embodied_tactile.jsonio import to_jsonable
-from embodied_tactile.io.rawformat import FIELDS as RAW_PATHS
-from embodied_tactile.io.rawformat import TrialFormatError
+from embodied_tactile.data import rawformat
+from embodied_tactile.run.jsonio import to_jsonable
+from embodied_tactile.data.rawformat import FIELDS as RAW_PATHS
+from embodied_tactile.data.rawformat import TrialFormatError
 
 log = logging.getLogger(__name__)
 
@@ -165,24 +165,6 @@ def trial_fingerprint(name: str, attrs_json: str, digests: Mapping[str, str], fi
 
 def _fields_datasets(fields: Iterable[str]) -> list[str]:
     return list(dict.fromkeys(d for f in fields for d in _raw_datasets(f)))
-
-
-def fingerprint_file(path: str | os.PathLike, names: Sequence[str], fields: Iterable[str]) -> dict[str, str]:
-    """``{field: digest}`` of one raw file: trial names, attrs and the stored bytes of the
-    datasets each field reads. Datasets of other fields are never opened. (``build_cache``
-    computes the same digests chunk by chunk on its worker pool.)"""
-    fields = list(fields)
-    dpaths = _fields_datasets(fields)
-    attrs_json: dict[str, str] = {}
-    digests: dict[str, dict[str, str]] = {}
-    with rawformat.open_raw(path) as f, open(path, "rb") as fh:
-        for name in names:
-            try:
-                attrs_json[name] = _attrs_json(rawformat.read_attrs(f["trials"][name]))
-            except (OSError, KeyError, RuntimeError) as exc:
-                attrs_json[name] = f"unreadable: {exc}"
-            digests[name] = _trial_digests(f, fh, name, dpaths)
-    return _combine_fingerprint(names, attrs_json, digests, fields)
 
 
 def cache_key(field: str, cfg: PreprocessConfig, source_digests: Sequence[str]) -> str:

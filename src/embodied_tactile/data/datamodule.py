@@ -26,8 +26,8 @@ from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from embodied_tactile.data.prepare import PreparedData, Scene, TrialRef, data_dir_lock, prepare_scene
 from embodied_tactile.data.statistics import DataStatistics
-from embodied_tactile.jsonio import write_json
-from embodied_tactile.modality import CHANNELS, fields_for_channels
+from embodied_tactile.run.jsonio import write_json
+from embodied_tactile.data.modality import CHANNELS, fields_for_channels
 
 __all__ = ["ConstantChannelError", "TactileDataModule", "TactileSequenceDataset", "split_trials", "TrialRef", "PreparedData", "Scene",
            "data_dir_lock", "fields_for_channels"]
@@ -466,7 +466,7 @@ class TactileDataModule(L.LightningDataModule):
         self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
         #: the training split's channel statistics and size (setup("fit")), handed to the model by
-        #: :class:`embodied_tactile.runtime.HandOverStatistics`
+        #: :class:`embodied_tactile.run.runtime.HandOverStatistics`
         self.statistics: DataStatistics | None = None
         self.val_set: TactileSequenceDataset | None = None  # model selection (training objects)
         self.test_set: TactileSequenceDataset | None = None  # held out: evaluation only
@@ -526,7 +526,7 @@ class TactileDataModule(L.LightningDataModule):
         """:class:`ConstantChannelError` naming the first channel whose training frames are
         all one value (or not finite): its layer, cached field and raw dataset, the
         modality's channels and the raw files (the encoders divide by its std)."""
-        from embodied_tactile.modality import CHANNELS
+        from embodied_tactile.data.modality import CHANNELS
 
         for i, c in enumerate(self.channels):
             mean, std = float(statistics.channel_mean[i]), float(statistics.channel_std[i])

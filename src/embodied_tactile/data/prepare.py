@@ -13,7 +13,7 @@ x actions, simulated or recorded), under an advisory lock on the data folder
 
 It returns :class:`PreparedData`: the cache files, the usable trials, the skipped trials
 with reasons, the interrupted recordings left out. The DataModule splits and serves it
-(``TactileDataModule.prepare_data`` calls this stage); ``python -m embodied_tactile.prepare``
+(``TactileDataModule.prepare_data`` calls this stage); ``python -m embodied_tactile.data.prepare_cli``
 runs it on its own. No torch here.
 """
 
@@ -32,8 +32,8 @@ from typing import Any, Iterator, Mapping, Sequence
 import h5py
 
 from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import unique_paths
-from embodied_tactile.modality import fields_for_channels
+from embodied_tactile.data.rawformat import unique_paths
+from embodied_tactile.data.modality import fields_for_channels
 
 log = logging.getLogger(__name__)
 
@@ -144,7 +144,7 @@ def catalogue_trials(actions: Sequence[int] | None = None, repetitions: int = 1,
     all 16, x ``repetitions``), named as the raw file names them, without simulating: for
     split arithmetic (which trials are held out, how many batches an epoch has)."""
     from ..constants import N_ACTIONS, OBJECTS
-    from ..io.rawformat import trial_name
+    from .rawformat import trial_name
 
     acts = range(N_ACTIONS) if actions is None else [int(a) for a in actions]
     return [TrialRef(trial_name({"object_id": o.object_id, "skin": skin, "primitive": primitive, "action_index": a,

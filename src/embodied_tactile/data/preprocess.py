@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import warnings
 from dataclasses import dataclass
 from fractions import Fraction
@@ -32,7 +31,7 @@ import scipy.ndimage
 import scipy.signal
 
 from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import RawTrial
+from embodied_tactile.data.rawformat import RawTrial
 
 #: Bump when the numbers this module produces change for the same config and raw data;
 #: part of every cache key (``data.cache``). 2: the accelerometer path runs in float32
@@ -602,8 +601,3 @@ def output_shape(cfg: PreprocessConfig, field: str) -> tuple[int, ...]:
 def preprocess_trial(trial: RawTrial, cfg: PreprocessConfig | None = None, fields: Iterable[str] = FIELDS) -> dict[str, np.ndarray]:
     """One trial: ``acc`` (T, 28, 28), ``fsr`` (T, 2, 28, 28), ``actions`` (T, 6), float32."""
     return {k: v[0] for k, v in preprocess_trials([trial], cfg, fields).items()}
-
-
-def config_json(cfg: PreprocessConfig, field: str | None = None) -> str:
-    d = cfg.to_dict() if field is None else cfg.field_dict(field)
-    return json.dumps(d, sort_keys=True)

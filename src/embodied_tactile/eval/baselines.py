@@ -45,7 +45,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from ..models.options import LatentFilterOptions
+from ..model.options import LatentFilterOptions
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment
 from .results import Results, evaluate_latents
 
@@ -299,7 +299,7 @@ class GRURegressor:
         class LatentFilterNet(nn.Module):
             def __init__(self):
                 super().__init__()
-                from ..models import LatentFilter
+                from ..model import LatentFilter
 
                 self.lf = LatentFilter(modality, n_a=action_dim, **dict(latent_filter or {}))
                 self.head = nn.Linear(self.lf.n_y, n_out)

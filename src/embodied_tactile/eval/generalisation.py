@@ -28,8 +28,8 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from ..constants import FACTOR_NAMES
-from ..jsonio import write_json
-from ..summary import recipe
+from ..run.jsonio import write_json
+from ..run.summary import recipe
 from .results import scored_on_validation
 
 _BASELINE_NAMES = {"handcrafted_krr": "hand-crafted + KRR", "gru": "supervised conv + GRU", "mean": "mean predictor"}

@@ -28,8 +28,8 @@ from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect
                                         load_module, run_split, run_state, trial_names, trial_objects,
                                         untrained_module)
 from embodied_tactile.eval.results import SPLIT_KINDS
-from embodied_tactile.jsonio import read_json
-from embodied_tactile.paths import config_dir
+from embodied_tactile.run.jsonio import read_json
+from embodied_tactile.run.paths import config_dir
 
 BASELINES = ("untrained", "handcrafted", "gru", "mean")
 MULTIRUN_BASELINES = ("untrained", "handcrafted", "mean")
@@ -167,10 +167,10 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     """-> (Results of every method, krr history rows, info dict)."""
     from embodied_tactile.eval.results import evaluate_latents
     from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
-    from embodied_tactile.modality import Modality
+    from embodied_tactile.data.modality import Modality
     from embodied_tactile.eval.figures import read_history
     from embodied_tactile.eval.targets import encode_split
-    from embodied_tactile.runtime import data_changes, data_identity, trial_digests
+    from embodied_tactile.run.runtime import data_changes, data_identity, trial_digests
 
     t_run = time.perf_counter()
     cfg = run.cfg
@@ -343,7 +343,7 @@ class OwnedOutput:
     def __enter__(self) -> Path:
         import shutil
 
-        from embodied_tactile.runfolder import try_lock, write_holder
+        from embodied_tactile.run.runfolder import try_lock, write_holder
 
         self.out.parent.mkdir(parents=True, exist_ok=True)
         fd, holder = try_lock(self.out.with_name(f".{self.out.name}.lock"))
@@ -395,7 +395,7 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     overrides, selection = split_overrides(overrides)
     opts = parse_options(overrides)
     if opts.torch_threads:
-        from embodied_tactile.runtime import set_threads
+        from embodied_tactile.run.runtime import set_threads
 
         set_threads(int(opts.torch_threads))
     target = Path(target)
@@ -419,7 +419,7 @@ def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, sele
     publishes it as ``owned.out``."""
     from embodied_tactile.eval.report import write_report
     from embodied_tactile.eval.results import config_axes
-    from embodied_tactile.runtime import peak_rss_bytes
+    from embodied_tactile.run.runtime import peak_rss_bytes
 
     out, tmp = owned.out, owned.tmp
     t0 = time.perf_counter()

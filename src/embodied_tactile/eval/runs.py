@@ -21,8 +21,8 @@ from typing import Any, Mapping
 
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile import summary
-from embodied_tactile.jsonio import read_json
+from embodied_tactile.run import summary
+from embodied_tactile.run.jsonio import read_json
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ def find_checkpoint(run_dir: Path, which: str = "best") -> Path:
     that does not open as a checkpoint (truncated, another format) is skipped with a
     warning naming it; EvaluationError naming the folder (and the skipped files) when no
     candidate is readable."""
-    from embodied_tactile.runfolder import best_checkpoint
+    from embodied_tactile.run.runfolder import best_checkpoint
 
     ck_dir = run_dir / "checkpoints"
     last = ck_dir / "last.ckpt"
@@ -105,7 +105,7 @@ def run_state(run: Run, allow_running: bool = False) -> dict:
     whether the final read-out was done), ``checkpoint`` (the file evaluated, relative to the
     folder), its ``epoch`` and ``step``, and ``line``: what evaluate.py prints first when the
     run is not finished. EvaluationError for a run being trained unless ``allow_running``."""
-    from embodied_tactile.runfolder import checkpoint_progress, in_folder, training_holder
+    from embodied_tactile.run.runfolder import checkpoint_progress, in_folder, training_holder
 
     try:
         import torch
@@ -273,7 +273,7 @@ def data_config(run: Run, opts: DictConfig) -> dict:
             raise ValueError("no list of test trials")
     except (OSError, ValueError) as err:
         raise EvaluationError(f"{split}: not a split file written by train.py ({type(err).__name__}: {err})") from None
-    from embodied_tactile.runfolder import split_overlap
+    from embodied_tactile.run.runfolder import split_overlap
 
     both = split_overlap(side)
     if both:
@@ -403,7 +403,7 @@ def train_log_dir() -> str:
     """``paths.log_dir`` as train.py composes it (configs/train.yaml + configs/local/)."""
     from hydra import compose, initialize_config_dir
 
-    from embodied_tactile.config import config_dir  # registers the typed configs
+    from embodied_tactile.run.config import config_dir  # registers the typed configs
 
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         return str(compose(config_name="train").paths.log_dir)

@@ -117,7 +117,7 @@ def _default_scene() -> dict:
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from ..config import config_dir
+    from ..run.config import config_dir
 
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         cfg = compose(config_name="train")
@@ -464,7 +464,7 @@ def floor_table(blob: Mapping) -> Table | None:
     same read-out of the untrained network (its step-0 check, ``krr_history.jsonl``), whole
     trajectory and last frame, mean over seeds, and in how many seeds the trained filter is
     below its own floor on both; None when no run has both rows."""
-    from ..summary import krr_history
+    from ..run.summary import krr_history
 
     cells: dict[tuple, list[tuple[float, float, float, float]]] = defaultdict(list)
     for f in _run_files(blob):

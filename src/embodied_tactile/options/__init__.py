@@ -1,5 +1,5 @@
 """Typed options with their one default each (dataclasses, no heavy imports): the
-alignment's here; the Latent Filter's in :mod:`embodied_tactile.models.options`."""
+alignment's here; the Latent Filter's in :mod:`embodied_tactile.model.options`."""
 
 from .alignment import AlignmentOptions, alignment_options
 

@@ -18,7 +18,7 @@ from typing import Iterable
 import h5py
 
 from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import trial_name, write_trial
+from embodied_tactile.data.rawformat import trial_name, write_trial
 from embodied_tactile.sim import objects as O
 from embodied_tactile.sim.physics import PHYSICS_VERSION, VERSION_ATTR, PhysicsOverrides
 from embodied_tactile.sim.trial import simulate_trial

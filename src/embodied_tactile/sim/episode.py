@@ -22,7 +22,7 @@ times the episode touched with that action before). So
 
 from __future__ import annotations
 
-from embodied_tactile.io.rawformat import RawTrial
+from embodied_tactile.data.rawformat import RawTrial
 from embodied_tactile.sim.physics import PhysicsOverrides
 from embodied_tactile.sim.trial import simulate_trial
 

@@ -6,7 +6,7 @@ import numpy as np
 from scipy import optimize, signal
 
 from embodied_tactile import constants as C
-from embodied_tactile.io.rawformat import RawTrial, make_attrs, trial_name
+from embodied_tactile.data.rawformat import RawTrial, make_attrs, trial_name
 from embodied_tactile.sim import objects as O
 from embodied_tactile.sim import physics as P
 from embodied_tactile.sim.physics import PhysicsOverrides

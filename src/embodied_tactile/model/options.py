@@ -1,0 +1,125 @@
+"""The Latent Filter's and its training module's options, typed, with their defaults: the
+one place each default is written.
+
+:class:`~.latent_filter.LatentFilter`, :class:`~.networks.HierarchicalPrior` and
+:class:`~.module.LatentFilterModule` read their defaults from here; Hydra composes the same
+dataclasses as structured configs (:mod:`embodied_tactile.run.config` registers them as
+``model/net`` and ``model/optimizer``), so ``configs/`` names only what a scene or a recipe
+changes and the command line can change any field (``model.net.prior.labels=true``).
+Plain dataclasses: no torch, no Hydra.
+"""
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, List, Mapping, Optional
+
+
+@dataclass
+class EncoderOptions:
+    """Every encoder's (and its decoder's) convolution widths and hidden width."""
+
+    widths: List[int] = field(default_factory=lambda: [16, 32])
+    hidden: int = 128
+
+
+@dataclass
+class PriorOptions:
+    """The hierarchical prior over y (:class:`~.networks.HierarchicalPrior`, docs/model.md):
+    object-level sigma at ``sigma_init`` (fixed unless ``learn_sigma``), variance floor,
+    action term, the population's initial sigma, the population term's weight (None: 1 / the
+    training sequences, set at the start of fit), object labels (``labels``: the paper's
+    label-conditioned prior) and learnable object codes (``learn_embedding``)."""
+
+    sigma_init: float = 0.5
+    learn_sigma: bool = False
+    var_floor: float = 1e-2
+    action_term: bool = True
+    pop_sigma_init: float = 0.5
+    population_weight: Optional[float] = None
+    labels: bool = False
+    learn_embedding: bool = False
+
+
+@dataclass
+class LatentFilterOptions:
+    """The network's options (:class:`~.latent_filter.LatentFilter`'s docstring says what
+    each does); ``modality`` is not an option but the network's input, given beside them."""
+
+    n_z: int = 16
+    n_y: int = 16
+    n_a: int = 6
+    n_objects: int = 32
+    encoder: EncoderOptions = field(default_factory=EncoderOptions)
+    transition_hidden: int = 128
+    lstm_hidden: int = 128
+    min_var: float = 1e-3
+    obs_sigma: float = 0.1
+    learn_obs_sigma: bool = True
+    obs_sigma_min: float = 1e-2
+    prior: PriorOptions = field(default_factory=PriorOptions)
+    y_update: str = "evidence"
+    y_prior_precision: float = 1.0
+    y_start: str = "fixed"
+    y_evidence_max: Optional[float] = 1.0
+    y_evidence_range: Optional[float] = 2.0
+    obs_dropout: float = 0.5
+    input_standardize: bool = True
+
+
+@dataclass
+class ContextOptions:
+    """The context objective (docs/model.md, "The context objective"): where y's context
+    comes from (``trial``: another trial of the same object; ``window``: a disjoint window
+    of the same trial), how many target frames are filtered before the open-loop rollout,
+    whether every target frame is filtered (``refilter``, a leak control), and the weight of
+    the target window's filtering ELBO added to the objective (``filter_weight``; 0: the
+    context objective alone)."""
+
+    source: str = "trial"
+    initial_frames: int = 3
+    refilter: bool = False
+    filter_weight: float = 0.0
+
+
+@dataclass
+class OptimizerOptions:
+    """Adam and its learning rate: the CPU budget's 2e-3 (docs/model.md, "CPU budget");
+    ``experiment=paper`` sets the paper's 1e-5."""
+
+    name: str = "Adam"
+    lr: float = 2e-3
+
+
+@dataclass
+class ModuleOptions:
+    """The LightningModule's own options (:class:`~.module.LatentFilterModule`)."""
+
+    check_finite: bool = True
+    lr_schedule: str = "constant"
+    code_lr_scale: float = 1.0
+
+
+def build(cls: type, given: Optional[Mapping[str, Any]], owner: str) -> Any:
+    """``cls`` filled from a mapping (nested option groups included), the dataclass's
+    defaults where the mapping is silent; ValueError naming ``owner`` and every unknown key."""
+    given = dict(given or {})
+    names = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(given) - set(names))
+    if unknown:
+        raise ValueError(f"unknown {owner} options {unknown} (known: {sorted(names)})")
+    kwargs = {}
+    for name, value in given.items():
+        nested = _NESTED.get((cls, name))
+        kwargs[name] = build(nested, value, f"{owner} {name}") if nested and not isinstance(value, nested) else value
+    return cls(**kwargs)
+
+
+_NESTED = {(LatentFilterOptions, "encoder"): EncoderOptions, (LatentFilterOptions, "prior"): PriorOptions}
+
+
+def defaults(cls: type) -> dict[str, Any]:
+    """The dataclass's defaults as a plain dict (nested groups as dicts)."""
+    return asdict(cls())
+
+
+__all__ = ["EncoderOptions", "PriorOptions", "LatentFilterOptions", "ContextOptions", "OptimizerOptions",
+           "ModuleOptions", "build", "defaults"]

@@ -1,0 +1,106 @@
+"""The typed part of the Hydra configuration: the Latent Filter's options
+(:mod:`embodied_tactile.model.options`) as structured configs, and the one resolver.
+
+Registered on import (idempotent), so that every entry point that composes ``configs/``
+(train.py, evaluate.py, ``python -m embodied_tactile.data.prepare_cli``, the tests) imports this
+module first:
+
+* ``model: schema`` (:class:`ModelNode`): the LightningModule's options
+  (:class:`~embodied_tactile.model.options.ModuleOptions`), the network ``net``
+  (:class:`~embodied_tactile.model.options.LatentFilterOptions` with ``_target_`` and
+  ``modality``), the optimizer (Adam as a partial with the learning rate of
+  :class:`~embodied_tactile.model.options.OptimizerOptions`) and the context objective's
+  options (:class:`~embodied_tactile.model.options.ContextOptions`, null unless a recipe
+  sets them). configs/model/latent_filter.yaml composes it and names only what depends on
+  the scene.
+* ``alignment: schema`` (:class:`~embodied_tactile.options.alignment.AlignmentOptions`): the
+  latent -> factor read-out, shared by the training's final alignment and evaluate.py.
+* ``${prior_rows:objects,n_test,n_val,n_train}``: rows of the prior's object-code table.
+"""
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, OmegaConf
+
+from embodied_tactile.options.alignment import AlignmentOptions
+from embodied_tactile.model.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
+from embodied_tactile.run.paths import config_dir
+
+
+@dataclass
+class LatentFilterNode(LatentFilterOptions):
+    """``model.net``: what Hydra instantiates into a :class:`~embodied_tactile.model.LatentFilter`."""
+
+    _target_: str = "embodied_tactile.model.latent_filter.LatentFilter"
+    modality: Any = MISSING
+
+
+@dataclass
+class OptimizerNode:
+    """``model.optimizer``: ``torch.optim.<name>(params, lr=...)`` built by the module."""
+
+    _target_: str = f"torch.optim.{OptimizerOptions.name}"
+    _partial_: bool = True
+    lr: float = OptimizerOptions.lr
+
+
+@dataclass
+class ModelNode(ModuleOptions):
+    """``model``: the LightningModule (:class:`~embodied_tactile.model.module.LatentFilterModule`)."""
+
+    _target_: str = MISSING
+    net: LatentFilterNode = field(default_factory=LatentFilterNode)
+    annealing: Any = MISSING
+    optimizer: OptimizerNode = field(default_factory=OptimizerNode)
+    context: Optional[ContextOptions] = None
+
+
+def prior_rows(objects: Any, n_test: int, n_val: int, n_train: int) -> int:
+    """Rows of the prior's object-code table for a scene (``${prior_rows:...}`` in
+    configs/model/latent_filter.yaml): the catalogue's 32, or every population id."""
+    from embodied_tactile.constants import N_OBJECTS, POPULATION_ID_BASE
+
+    if objects == "population":
+        return POPULATION_ID_BASE + int(n_test) + int(n_val) + int(n_train)
+    return N_OBJECTS
+
+
+#: longest folder name made from overrides (file systems allow 255 bytes)
+MAX_DIRNAME = 200
+
+
+def folder_name(text: Any) -> str:
+    """One folder name from a text such as Hydra's ``override_dirname``
+    (``${folder_name:...}`` in configs/train.yaml): never a path separator (``%`` -> ``%25``,
+    ``/`` -> ``%2F``, the OS's own separators likewise), never ``.`` / ``..``, and at most
+    :data:`MAX_DIRNAME` bytes (longer: cut, with a digest of the whole so names stay unique)."""
+    import hashlib
+    import os
+
+    name = str(text).replace("%", "%25").replace("/", "%2F")
+    for sep in {os.sep, os.altsep} - {None, "/"}:
+        name = name.replace(sep, "%" + format(ord(sep), "02X"))
+    if name in ("", ".", ".."):
+        name = name.replace(".", "%2E") or "_"
+    if len(name.encode()) > MAX_DIRNAME:
+        digest = hashlib.sha1(name.encode()).hexdigest()[:12]
+        name = name.encode()[: MAX_DIRNAME - 13].decode(errors="ignore") + "-" + digest
+    return name
+
+
+def register() -> None:
+    """Store the structured configs and the resolvers (a second call changes nothing)."""
+    cs = ConfigStore.instance()
+    cs.store(group="model", name="schema", node=ModelNode)
+    cs.store(group="alignment", name="schema", node=AlignmentOptions)
+    if not OmegaConf.has_resolver("prior_rows"):
+        OmegaConf.register_new_resolver("prior_rows", prior_rows)
+    if not OmegaConf.has_resolver("folder_name"):
+        OmegaConf.register_new_resolver("folder_name", folder_name)
+
+
+register()
+
+__all__ = ["LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]

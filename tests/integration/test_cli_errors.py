@@ -1,0 +1,239 @@
+"""Bad settings at the entry of train.py: one line naming key / path and value, exit 2, no
+traceback, no run folder; a run that fails later is marked failed; the third-party message
+filter (quiet.py) drops the known messages and keeps the project's own."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO
+
+ENV = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
+
+
+def train(tmp_path: Path, *overrides: str, timeout: int = 240) -> subprocess.CompletedProcess:
+    flags = [o for o in overrides if o.startswith("-")]
+    cmd = [sys.executable, str(REPO / "train.py"), *flags, "debug=fast", f"paths.log_dir={tmp_path / 'logs'}",
+           *[o for o in overrides if not o.startswith("-")]]
+    return subprocess.run(cmd, cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=timeout)
+
+
+def _one_line_exit_2(res: subprocess.CompletedProcess, *needles: str) -> str:
+    assert res.returncode == 2, (res.returncode, res.stdout[-2000:], res.stderr[-3000:])
+    err = res.stderr.strip()
+    assert "Traceback" not in res.stderr + res.stdout
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("train.py: error: ")
+    for n in needles:
+        assert n in err, (n, err)
+    return err
+
+
+def test_typed_check_covers_the_optional_context_group(capsys):
+    """model.context.* is None unless a recipe sets it: its keys are still checked by type,
+    and a right value passes (it used to stop train.py with an AssertionError)."""
+    from embodied_tactile.cli import check_typed_overrides
+
+    check_typed_overrides(["recipe=context", "model.context.source=window", "model.context.refilter=true",
+                           "model.net.y_start=fixed"])
+    with pytest.raises(SystemExit) as info:
+        check_typed_overrides(["model.context.initial_frames=many"])
+    assert info.value.code == 2
+    assert "model.context.initial_frames='many' (str): expected an integer" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # train.py subprocess
+@pytest.mark.parametrize("override, needles", [
+    ("trainer.max_epochs=abc", ("trainer.max_epochs='abc'", "integer")),
+    ("data.batch_size=0", ("data.batch_size=0", ">= 1")),
+    ("model.optimizer.lr=fast", ("model.optimizer.lr='fast'", "number")),
+    ("data.train_window=1", ("data.train_window=1", ">= 2")),
+])
+def test_wrongly_typed_setting_names_key_and_value(tmp_path, override, needles):
+    res = train(tmp_path, f"paths.data_dir={tmp_path / 'data'}", override)
+    _one_line_exit_2(res, *needles)
+    runs = tmp_path / "logs" / "train" / "runs"
+    assert not (runs.exists() and any(runs.iterdir())), "a bad setting must not leave a run folder"
+
+
+@pytest.mark.slow  # train.py subprocess
+def test_log_dir_that_cannot_be_created(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    res = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", f"paths.data_dir={tmp_path / 'data'}",
+                          f"paths.log_dir={blocker}/logs"], cwd=tmp_path, env=ENV, capture_output=True, text=True,
+                         timeout=240)
+    _one_line_exit_2(res, f"paths.log_dir={blocker}/logs", "cannot create or write")
+
+
+@pytest.mark.slow  # train.py subprocess
+def test_data_dir_that_is_a_file(tmp_path):
+    blocker = tmp_path / "data.txt"
+    blocker.write_text("not a folder")
+    res = train(tmp_path, f"paths.data_dir={blocker}")
+    _one_line_exit_2(res, f"paths.data_dir={blocker}", "not a folder")
+
+
+@pytest.mark.slow  # train.py subprocess
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_unwritable_data_dir(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        res = train(tmp_path, f"paths.data_dir={ro}")
+    finally:
+        ro.chmod(0o700)
+    _one_line_exit_2(res, f"paths.data_dir={ro}")
+
+
+@pytest.mark.slow  # train.py subprocess
+def test_swept_bad_value_fails_its_job_and_the_sweep_says_so(tmp_path):
+    """A value swept with -m reaches only the job: train.py checks again there and marks the
+    job folder failed; the other jobs still run, the sweep's table names each refused job
+    with its reason, exit 1."""
+    sweep = tmp_path / "multi"
+    res = train(tmp_path, "-m", f"paths.data_dir={tmp_path / 'data'}", "trainer.max_epochs=abc",
+                f"hydra.sweep.dir={sweep}")
+    _one_line_exit_2(res, "trainer.max_epochs='abc'")  # caught before the sweep starts
+    res = train(tmp_path, "-m", f"paths.data_dir={tmp_path / 'data'}", "seed=x,y", f"hydra.sweep.dir={sweep}")
+    assert res.returncode == 1 and "Traceback" not in res.stderr
+    assert "train.py: error: seed='x' (str): expected an integer" in res.stderr
+    assert "train.py: error: seed='y' (str): expected an integer" in res.stderr  # the second job ran too
+    rows = [ln.split(None, 2) for ln in res.stdout.splitlines() if ln.strip().startswith("seed=")]
+    assert [(r[0], r[1]) for r in rows] == [("seed=x", "refused"), ("seed=y", "refused")]
+    assert all("expected an integer" in r[2] for r in rows)
+    job = json.loads((sweep / "seed=x" / "metrics.json").read_text())
+    assert job["status"] == "failed" and "seed='x'" in job["error"]
+    assert not (sweep / "seed=x" / "config_resolved.yaml").exists()
+
+
+@pytest.mark.slow  # train.py subprocess
+def test_failed_run_is_marked_failed(tmp_path):
+    res = train(tmp_path, f"paths.data_dir={tmp_path / 'data'}", "data=recorded",
+                f"data.raw_files=[{tmp_path / 'missing.h5'}]")
+    assert res.returncode != 0
+    (run,) = (tmp_path / "logs" / "train" / "runs").iterdir()
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["status"] == "failed" and "missing.h5" in m["error"] and m["error_type"] == "FileNotFoundError"
+
+
+def test_settings_spec_unit():
+    from omegaconf import OmegaConf
+
+    from embodied_tactile.run.settings import SettingsError, Spec, check_train_config
+
+    assert not Spec(("int",)).accepts(True)  # a bool is not an epoch count
+    assert Spec(("float",), lo=0).accepts(3) and not Spec(("float",)).accepts(float("nan"))
+    assert Spec(("int",), nullable=True).accepts(None) and not Spec(("int",)).accepts(None)
+    check_train_config(OmegaConf.create({"trainer": {"max_epochs": 3}, "callbacks": None}))
+    with pytest.raises(SettingsError, match=r"trainer.limit_val_batches=-1 \(int\): expected an integer or a number >= 0"):
+        check_train_config(OmegaConf.create({"trainer": {"limit_val_batches": -1}}))
+    # open bounds, and bounds between two keys, as the data module and the model enforce them
+    assert Spec(("float",), lo=0, hi=1, hi_open=True).accepts(0.0) and not Spec(("float",), lo=0, hi=1, hi_open=True).accepts(1.0)
+    for bad, match in [({"data": {"test_fraction": 0}}, r"data.test_fraction=0 \(int\): expected a number in \(0, 1\)"),
+                       ({"data": {"test_fraction": 0.25, "val_fraction": 0.75}}, "test_fraction \+ val_fraction < 1"),
+                       ({"model": {"net": {"obs_dropout": 1.0}}}, r"model.net.obs_dropout=1.0 .* in \[0, 1\)"),
+                       ({"model": {"net": {"obs_sigma": 0.01, "obs_sigma_min": 0.01}}}, "obs_sigma > obs_sigma_min"),
+                       ({"model": {"code_lr_scale": 0}}, r"model.code_lr_scale=0 .* > 0")]:
+        with pytest.raises(SettingsError, match=match):
+            check_train_config(OmegaConf.create(bad))
+    check_train_config(OmegaConf.create({"data": {"test_fraction": 0.25, "val_fraction": 0.125, "train_window": 2}}))
+
+
+# ----------------------------------------------------------------------------- quiet.py
+def test_known_third_party_warnings_are_silenced_project_warnings_kept():
+    from embodied_tactile.run.quiet import silence_third_party
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        silence_third_party()
+        warnings.warn("`isinstance(treespec, LeafSpec)` is deprecated, use `isinstance(treespec, TreeSpec) and "
+                      "treespec.is_leaf()` instead.", FutureWarning)
+        warnings.warn("n_jobs value -1 overridden to 1 by setting random_state. Use no seed for parallelism.",
+                      UserWarning)
+        warnings.warn("The 'train_dataloader' does not have many workers which may be a bottleneck.", UserWarning)
+        warnings.warn("embodied_tactile: 3 trials skipped (bad FSR field)", UserWarning)
+        warnings.warn("some other torch deprecation", FutureWarning)
+    assert [str(w.message) for w in seen] == ["embodied_tactile: 3 trials skipped (bad FSR field)",
+                                              "some other torch deprecation"]
+
+
+@pytest.mark.slow  # numba compiles UMAP once per process (as test_eval's UMAP test)
+def test_real_umap_and_pytree_warnings_are_silenced():
+    """The filters match the libraries' real messages (not copies that could drift)."""
+    import numpy as np
+
+    from embodied_tactile.run.quiet import silence_third_party
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        silence_third_party()
+        from lightning.pytorch.utilities._pytree import _tree_flatten
+
+        _tree_flatten(1.0)  # builds torch's deprecated LeafSpec inside Lightning
+        import umap
+
+        umap.UMAP(n_components=2, n_neighbors=3, random_state=0, n_jobs=-1).fit(np.random.default_rng(0).normal(size=(12, 3)))
+    msgs = [str(w.message) for w in seen]
+    assert not [m for m in msgs if "LeafSpec" in m or "n_jobs" in m], msgs
+
+
+def test_litlogger_tip_dropped_other_lightning_info_kept(caplog):
+    from embodied_tactile.run.quiet import silence_third_party
+    from lightning.pytorch.utilities.rank_zero import rank_zero_info
+
+    silence_third_party()
+    with caplog.at_level(logging.INFO):
+        rank_zero_info("💡 Tip: For seamless cloud logging and experiment tracking, try installing "
+                       "[litlogger](https://pypi.org/project/litlogger/) to enable LitLogger")
+        rank_zero_info("GPU available: False, used: False")
+    text = caplog.text
+    assert "litlogger" not in text and "GPU available" in text
+
+
+@pytest.mark.slow  # train.py subprocess
+def test_default_train_run_prints_none_of_the_known_messages(tmp_path, fast_data_dir):
+    res = train(tmp_path, f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={tmp_path / 'run'}")
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    for noise in ("litlogger", "LeafSpec", "litmodels"):
+        assert noise not in out, noise
+
+
+def test_hydra_command_exit_statuses(tmp_path, monkeypatch, capsys):
+    """The one wrapper of the Hydra commands (record, palpate): run's status, a listed error
+    as one line and 2, a bad override 2, ``--cfg job`` and ``--help`` 0."""
+    from embodied_tactile.cli import hydra_command
+
+    monkeypatch.chdir(tmp_path)
+    seen = []
+
+    def run(cfg):
+        seen.append(cfg.port)
+        if cfg.port == "bad":
+            raise KeyError("no such thing")
+        return 3
+
+    main = hydra_command("record", run, "prog", errors=(KeyError,))
+
+    def status(*argv):
+        monkeypatch.setattr(sys, "argv", ["prog", f"hydra.run.dir={tmp_path / 'run'}", *argv])
+        with pytest.raises(SystemExit) as exc:
+            main()
+        return exc.value.code
+
+    assert status("port=loop://") == 3 and seen == ["loop://"]
+    assert status("port=bad") == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "prog: error: 'no such thing'"
+    assert status("no_such_key=1") == 2
+    assert status("--cfg", "job") == 0 and status("--help") == 0
+    assert seen == ["loop://", "bad"]

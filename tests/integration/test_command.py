@@ -1,0 +1,39 @@
+"""The one command: ``embodied-tactile --help`` lists every subcommand, and each subcommand's
+``--help`` reaches its entry point (a subprocess each, as a user types it)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from embodied_tactile.__main__ import COMMANDS
+
+#: a line of each entry point's own help
+OWN_HELP = {"train": "train is powered by Hydra", "evaluate": "usage: evaluate.py", "simulate": "Simulate raw e-Skin trials",
+            "prepare": "Prepare a scene's data", "record": "powered by Hydra", "emulate": "--trial-file",
+            "palpate": "powered by Hydra", "report": "--paper-units"}
+
+
+def command(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "embodied_tactile", *args], capture_output=True, text=True, timeout=180)
+
+
+def test_help_lists_one_line_per_subcommand():
+    res = command("--help")
+    assert res.returncode == 0, res.stderr
+    listed = [line.split()[0] for line in res.stdout.splitlines() if line.startswith("  ")]
+    assert listed == list(COMMANDS) == list(OWN_HELP)
+
+
+def test_unknown_or_missing_subcommand_exits_2():
+    assert command("fly").returncode == 2
+    assert command().returncode == 2
+
+
+@pytest.mark.parametrize("name", list(COMMANDS))
+def test_subcommand_help(name):
+    res = command(name, "--help")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert OWN_HELP[name] in res.stdout, res.stdout[:2000]

@@ -1,0 +1,273 @@
+"""evaluate.py end to end on tiny trained runs (debug=fast): one run trained with a
+non-default modality (fsr_tb) from another working directory with a relative data_dir, and
+a two-job multirun (acc, fsr_t) sharing the data folder."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+import evaluate as cli  # noqa: E402  (the script: main())
+from embodied_tactile.eval import pipeline as ev  # noqa: E402
+from embodied_tactile.eval import runs  # noqa: E402
+
+# every test uses `trained`: train.py subprocesses (a run and a two-job multirun)
+pytestmark = pytest.mark.slow
+
+FAST = ["print_tables=false", "alignment.cv=2"]
+
+
+def _train(args, cwd, log):
+    env = dict(os.environ, WANDB_MODE="disabled", PYTHONUNBUFFERED="1")
+    p = subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=cwd, env=env,
+                       capture_output=True, text=True, timeout=240)
+    log.write_text(p.stdout + p.stderr)
+    assert p.returncode == 0, p.stderr[-3000:]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """run: modality=fsr_tb, seed 3, trained in <tmp> with the RELATIVE data_dir 'data' (evaluation
+    from the repo must find it through provenance.json's cwd); multi: modality=acc,fsr_t."""
+    tmp = tmp_path_factory.mktemp("evaluate")
+    _train(["debug=fast", "modality=fsr_tb", "seed=3", "paths.data_dir=data", f"hydra.run.dir={tmp}/run"], tmp,
+           tmp / "run.log")
+    _train(["-m", "debug=fast", "modality=acc,fsr_t", f"paths.data_dir={tmp}/data", f"hydra.sweep.dir={tmp}/multi"],
+           REPO, tmp / "multi.log")
+    return tmp
+
+
+def _finite_tree(obj, path="") -> list[str]:
+    bad = []
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            bad += _finite_tree(v, f"{path}.{k}")
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            bad += _finite_tree(v, f"{path}[{i}]")
+    elif isinstance(obj, float) and not math.isfinite(obj):
+        bad.append(path)
+    return bad
+
+
+def test_run_cli_writes_everything_as_trained_modality(trained):
+    run = trained / "run"
+    env = dict(os.environ, WANDB_MODE="disabled")
+    p = subprocess.run([sys.executable, str(REPO / "evaluate.py"), str(run), "gru.epochs=2", "alignment.cv=2"],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+    assert p.returncode == 0, f"rc={p.returncode}\nSTDOUT:\n{p.stdout[-2000:]}\nSTDERR:\n{p.stderr[-6000:]}"
+    out = run / "evaluation"
+    for name in ("action_config", "environmentshape", "summary", "runtime"):
+        for ext in ("md", "csv", "tex"):
+            assert (out / f"table_{name}.{ext}").stat().st_size > 0
+        assert f"**{name}.**" not in p.stdout  # tables go to files; the terminal gets what was measured
+    printed = p.stdout.strip().splitlines()
+    assert len(printed) <= 40, p.stdout
+    assert "split trial: held-out trials of training objects: recognition" in p.stdout  # the paper's split, named
+    for method in ("Latent Filter", "hand-crafted KRR", "GRU", "mean"):  # NMSE per factor beside the baselines
+        assert any(line.startswith(f"| {method} |") for line in printed), p.stdout
+    assert "| method | spatial_frequency | amplitude | stiffness | heterogeneity | overall | last frame |" in p.stdout
+    figs = {f.name for f in (out / "figures").glob("*.png")}
+    for f in ("nmse_time_by_modality.png", "nmse_time_by_skin.png", "nmse_time_by_method.png",
+              "nmse_time_by_best_worst_action.png", "error_vs_runtime.png",
+              "umap_latent_filter_fsr_tb_soft_pressing.png", "distances_latent_filter_fsr_tb_soft_pressing.png"):
+        assert f in figs, sorted(figs)
+    res = json.loads((out / "results.json").read_text())
+    # the run's own modality, no argument given
+    assert {r["modality"] for r in res["runs"]} == {"fsr_tb"}
+    assert {r["method"] for r in res["runs"]} == {"latent_filter", "untrained", "handcrafted_krr", "gru", "mean"}
+    assert "| latent_filter | fsr_tb | soft | pressing |" in (out / "table_summary.md").read_text()
+    # the saved split is reused: sizes equal split.json
+    split = json.loads((run / "split.json").read_text())
+    for r in res["runs"]:
+        assert (r["n_train"], r["n_test"]) == (len(split["train"]), len(split["test"]))
+        assert math.isfinite(r["nmse_trajectory_overall"]) and math.isfinite(r["nmse_last_step_overall"])
+        assert all(math.isfinite(v) for v in r["nmse_trajectory"].values())
+    lf = next(r for r in res["runs"] if r["method"] == "latent_filter")
+    gru = next(r for r in res["runs"] if r["method"] == "gru")
+    assert gru["params"]["gru"]["seed"] == 3  # gru.seed null: the run's seed
+    assert lf["params"]["train_time_s"] > 0 and lf["params"]["inference_s_per_sequence"] > 0
+    assert res["histories"], "krr_history.jsonl rows missing"
+    # every table states the NMSE definition, the split sizes and the data source
+    for t in res["tables"]:
+        assert res["nmse_definition"] in t["caption"]
+        assert f"{len(split['train'])} train / {len(split['test'])} held-out" in t["caption"]
+        assert "Data source: simulated" in t["caption"]
+    assert not _finite_tree(res["runs"]), _finite_tree(res["runs"])
+    info = json.loads((out / "evaluation.json").read_text())["runs"][0]
+    assert info["channels"] == ["fsr_t", "fsr_b"] and info["modality"] == "fsr_tb"
+    assert Path(info["checkpoint"]).name == "last.ckpt"  # the final weights, whose read-out the training printed
+
+
+def test_saved_split_reused_and_leakage_guard(trained):
+    from embodied_tactile.eval import LeakageError, evaluate_latents
+
+    run = trained / "run"
+    opts = ev.parse_options(FAST)
+    _, (r,), _ = runs.discover(run, "best")
+    cache = runs.DataCache()
+    key, dm = cache.get(runs.data_config(r, opts))
+    split = json.loads((run / "split.json").read_text())
+    assert runs.trial_names(dm, "train") == split["train"] and runs.trial_names(dm, "test") == split["test"]
+    from hydra.utils import get_class
+
+    model = get_class(str(r.cfg.model._target_)).load_from_checkpoint(str(r.ckpt), map_location="cpu")
+    tr, _ = runs.collect_split(model, cache.batches(key, dm, "train"), runs.trial_names(dm, "train"), "y")
+    te, _ = runs.collect_split(model, cache.batches(key, dm, "test"), runs.trial_names(dm, "test"), "y")
+    assert not set(tr["seq_id"]) & set(te["seq_id"])  # scored ids disjoint from fitted ids
+    assert tr["obs"].shape[2] == 2  # fsr_tb: two channels, from the run's config
+    with pytest.raises(LeakageError):  # scoring a fitted sequence is refused
+        evaluate_latents(tr, {k: v[:2] for k, v in tr.items()}, latent="y", alignment={"cv": 2})
+
+
+def test_checkpoint_path(trained, tmp_path):
+    ckpt = trained / "run" / "checkpoints" / "last.ckpt"
+    out = ev.evaluate(ckpt, [*FAST, f"out={tmp_path}/ev", "baselines=[mean]", "umap=false", "figures=false"])
+    assert Path(out["runs"][0]["checkpoint"]) == ckpt.resolve()
+    assert out["runs"][0]["modality"] == "fsr_tb"
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert {r["method"] for r in res["runs"]} == {"latent_filter", "mean"}
+
+
+def test_validation_side_scores_the_validation_trials_apart_from_the_test_report(trained):
+    run = trained / "run"
+    out = ev.evaluate(run, [*FAST, "held_out=val", "baselines=[mean]", "umap=false", "figures=false"])
+    split = json.loads((run / "split.json").read_text())
+    assert Path(out["out"]) == run / "evaluation-val"
+    info = out["runs"][0]
+    assert info["held_out"] == "val" and info["n_test"] == len(split["val"]) != len(split["test"])
+    assert "the val side" in info["training_final_alignment"]["other"]  # the training scored the test side
+    res = json.loads((run / "evaluation-val" / "results.json").read_text())
+    assert {r["params"]["held_out"] for r in res["runs"]} == {"val"}
+    assert "validation side" in res["caption_note"]
+    with pytest.raises(ev.EvaluationError, match="held_out"):
+        ev.parse_options(["held_out=train"])
+
+
+def test_multirun_aggregate_and_skip(trained, capsys):
+    multi = trained / "multi"
+    broken = multi / "modality=broken"  # a job killed before its first checkpoint
+    broken.mkdir(exist_ok=True)
+    shutil.copy(multi / "modality=acc" / "config_resolved.yaml", broken / "config_resolved.yaml")
+    out = ev.evaluate(multi, [*FAST, "umap=false"])
+    printed = capsys.readouterr().out
+    assert Path(out["out"]) == multi / "evaluation"
+    assert len(out["runs"]) == 2 and {i["modality"] for i in out["runs"]} == {"acc", "fsr_t"}
+    assert "SKIPPED" in printed and "modality=broken" in printed
+    assert len(out["skipped"]) == 1 and "no checkpoint" in out["skipped"][0]["reason"]
+    res = json.loads((multi / "evaluation" / "results.json").read_text())
+    lf = [r for r in res["runs"] if r["method"] == "latent_filter"]
+    assert {r["modality"] for r in lf} == {"acc", "fsr_t"}
+    assert {r["method"] for r in res["runs"]} == {"latent_filter", "untrained", "handcrafted_krr", "mean"}  # no GRU by default
+    assert all(math.isfinite(r["nmse_trajectory_overall"]) for r in res["runs"])
+    assert set(res["histories"]) == {"acc/soft/pressing", "fsr_t/soft/pressing"}
+    curves = res["figure_curves"]["modality"]
+    assert {"acc", "fsr_t"} <= set(curves) and np.isfinite(np.asarray(curves["acc"], float)).all()
+    for name in ("action_config", "environmentshape", "summary", "runtime"):
+        assert (multi / "evaluation" / f"table_{name}.tex").exists()
+    assert (multi / "evaluation" / "figures" / "error_vs_runtime.png").exists()
+    assert (multi / "evaluation" / "figures" / "distances_latent_filter_acc_soft_pressing.png").exists()
+    shutil.rmtree(broken)
+
+
+def test_study_parts_are_merged(trained, tmp_path):
+    """A study run in parts (one multirun folder each, under one study folder) evaluates as one."""
+    study = tmp_path / "study"
+    for part, job in (("seed0", "modality=acc"), ("seed1", "modality=fsr_t")):
+        shutil.copytree(trained / "multi" / job, study / part / job)
+    (study / "evaluation" / "figures").mkdir(parents=True)  # an earlier report is not a job
+    assert [d.relative_to(study).as_posix() for d in runs.job_dirs(study)] == ["seed0/modality=acc",
+                                                                              "seed1/modality=fsr_t"]
+    out = ev.evaluate(study, [*FAST, "baselines=[mean]", "umap=false", "figures=false"])
+    assert Path(out["out"]) == study / "evaluation"
+    assert sorted(i["modality"] for i in out["runs"]) == ["acc", "fsr_t"]
+    res = json.loads((study / "evaluation" / "results.json").read_text())
+    assert {r["modality"] for r in res["runs"] if r["method"] == "latent_filter"} == {"acc", "fsr_t"}
+
+
+def test_checkpoint_of_an_older_network_layout_is_a_clear_error(trained, tmp_path, capsys):
+    import torch
+
+    run = tmp_path / "old_layout"
+    shutil.copytree(trained / "run", run, ignore=shutil.ignore_patterns("evaluation*"))
+    ckpt = sorted((run / "checkpoints").glob("*.ckpt"))[0]
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    state["state_dict"] = {k.replace("model.observation.", "model.encoders_v0."): v
+                           for k, v in state["state_dict"].items()}
+    torch.save(state, ckpt)
+    assert cli.main([str(ckpt), "baselines=[mean]", "figures=false"]) == 2
+    err = capsys.readouterr().err
+    assert "weights do not fit this code's" in err and str(run / "checkpoints") in err
+    assert "model.observation." in err or "model.encoders_v0." in err  # the first mismatching key
+
+
+def test_folder_without_checkpoint_is_a_clear_error(trained, tmp_path, capsys):
+    empty = tmp_path / "no_ckpt_run"
+    empty.mkdir()
+    shutil.copy(trained / "run" / "config_resolved.yaml", empty / "config_resolved.yaml")
+    assert cli.main([str(empty)]) == 2
+    err = capsys.readouterr().err
+    assert "no checkpoint" in err and str(empty) in err
+    assert cli.main([str(tmp_path / "nowhere")]) == 2
+    assert "no such file or folder" in capsys.readouterr().err
+    # the scene is not an evaluation option: modality= SELECTS runs (this one is fsr_tb), never overrides
+    assert cli.main([str(trained / "run"), "modality=acc"]) == 2
+    err = capsys.readouterr().err
+    assert "no run matches modality=acc" in err and "fsr_tb" in err and "never changes a run's scene" in err
+    assert cli.main([str(trained / "run"), "no_such_key=1"]) == 2
+    assert "unknown evaluation option" in capsys.readouterr().err
+
+
+def test_select_runs_by_any_axis(trained, capsys):
+    multi = trained / "multi"
+    out = ev.evaluate(multi, [*FAST, "modality=acc", "umap=false", "figures=false", "baselines=[mean]"])
+    assert [i["modality"] for i in out["runs"]] == ["acc"]
+    assert Path(out["out"]).name == "evaluation-modality=acc"  # the whole sweep's report is left alone
+    out = ev.evaluate(multi, [*FAST, "modality=[acc,fsr_t]", "skin=soft", "seed=0", "figures=false", "baselines=[mean]"])
+    assert sorted(i["modality"] for i in out["runs"]) == ["acc", "fsr_t"]
+    with pytest.raises(ev.EvaluationError, match="no run matches skin=hard"):
+        ev.evaluate(multi, [*FAST, "skin=hard"])
+
+
+def test_train_then_evaluate_final_numbers_match(trained, capsys):
+    """One run, one number: the training's final KRR alignment (metrics.json krr_final, the
+    last krr_history.jsonl row, the last log line) and evaluate.py with its default alignment
+    on the final weights agree; with other settings the output says why and by how much."""
+    run = trained / "run"
+    metrics = json.loads((run / "metrics.json").read_text())
+    final = metrics["krr_final"]
+    assert final["final"] and final["val_frame_stride"] == 1
+    hist = [json.loads(line) for line in (run / "krr_history.jsonl").read_text().splitlines()]
+    assert hist[-1]["nmse_overall"] == final["nmse_overall"]
+    assert "KRR alignment (final weights, evaluate.py settings)" in (trained / "run.log").read_text()
+    # data preparation is timed apart from training
+    assert metrics["data_prepare_s"] > 0 and metrics["train_wall_s"] > 0
+    out = ev.evaluate(run, ["print_tables=false", "baselines=[mean]", "figures=false"])  # default: the final weights
+    c = out["runs"][0]["training_final_alignment"]
+    assert c["other"] == [], c
+    assert c["evaluate_nmse_overall"] == pytest.approx(final["nmse_overall"], abs=1e-6)
+    printed = capsys.readouterr().out
+    assert "printed by the training (difference" in printed
+    res = json.loads((Path(out["out"]) / "results.json").read_text())
+    lf = next(r for r in res["runs"] if r["method"] == "latent_filter")
+    assert lf["nmse_trajectory_overall"] == pytest.approx(final["nmse_overall"], abs=1e-6)
+    # one time base: the runtime table's Latent Filter time is the history's, without data preparation
+    assert lf["params"]["train_time_s"] == pytest.approx(hist[-1]["train_wall_time_s"])
+    assert lf["params"]["data_prepare_s"] == pytest.approx(metrics["data_prepare_s"])
+    # another read-out: said
+    out = ev.evaluate(run, ["print_tables=false", "alignment.cv=2", "alignment.frames_per_sequence=2",
+                            "baselines=[mean]", "figures=false", f"out={trained}/ev_cv2"])
+    c = out["runs"][0]["training_final_alignment"]
+    assert c["other"] == ["read-out {'cv': 2, 'frames_per_sequence': 2}"], c
+    assert "another measurement: read-out" in capsys.readouterr().out

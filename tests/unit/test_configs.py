@@ -1,0 +1,185 @@
+"""Every option of every config group composes and instantiates; the ablation grid has 24 jobs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.utils import instantiate
+from omegaconf import OmegaConf, open_dict
+
+from conftest import REPO
+
+CONFIGS = REPO / "configs"
+GROUPS = ["data", "modality", "skin", "primitive", "model", "annealing", "recipe", "trainer", "logger", "callbacks", "experiment", "debug", "combo"]
+
+
+def options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONFIGS / group).glob("*.yaml"))
+
+
+def _compose(overrides: list[str], tmp_path: Path):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose(
+            config_name="train",
+            overrides=[*overrides, f"paths.log_dir={tmp_path}/logs", f"paths.data_dir={tmp_path}/data"],
+            return_hydra_config=True,
+        )
+    # ${hydra:runtime.output_dir} is only set inside a running app: give it a value here.
+    with open_dict(cfg):
+        cfg.hydra.runtime.output_dir = str(tmp_path / "run")
+    from hydra.core.hydra_config import HydraConfig
+
+    HydraConfig.instance().set_config(cfg)
+    return cfg
+
+
+def _compose_job(overrides: list[str], tmp_path: Path):
+    """The job config (no hydra node), with ${hydra:...} resolvable."""
+    cfg = _compose(overrides, tmp_path)
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg
+
+
+@pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in options(g)])
+def test_every_option_composes_and_instantiates(group, option, tmp_path):
+    extra = ["data.raw_files=[x.h5]"] if (group, option) == ("data", "recorded") else []
+    cfg = _compose_job([f"{group}={option}", *extra], tmp_path)
+    OmegaConf.resolve(cfg)
+    dm = instantiate(cfg.data)
+    assert dm.channels == list(cfg.modality.channels)
+    model = instantiate(cfg.model)
+    assert sum(p.numel() for p in model.parameters()) > 0
+    for c in (cfg.get("callbacks") or {}).values():
+        instantiate(c)
+    for c in (cfg.get("logger") or {}).values():
+        instantiate(c)
+    if group != "trainer" or option == "cpu":  # gpu/ddp need their hardware to build a Trainer
+        instantiate(cfg.trainer)
+    else:
+        assert cfg.trainer._target_ == "lightning.pytorch.Trainer"
+
+
+def test_modality_sizes_flow_by_interpolation(tmp_path):
+    cfg = _compose_job(["modality=fsr_tb"], tmp_path)
+    assert list(cfg.data.channels) == ["fsr_t", "fsr_b"]
+    assert cfg.model.net.modality.name == "fsr_tb"
+
+
+def test_wandb_is_offline_by_default(tmp_path, monkeypatch):
+    monkeypatch.delenv("WANDB_OFFLINE", raising=False)
+    cfg = _compose_job(["logger=wandb"], tmp_path)
+    assert cfg.logger.wandb.offline is True
+
+
+def test_paper_experiment_settings(tmp_path):
+    cfg = _compose_job(["experiment=paper"], tmp_path)
+    assert cfg.model.optimizer.lr == pytest.approx(1e-5)
+    assert cfg.data.batch_size == 48 and cfg.trainer.max_epochs == 500
+    assert cfg.annealing.name == "dvbf"
+
+
+def test_ablation_sweep_lists_24_jobs(tmp_path):
+    cfg = _compose(["sweep=ablation"], tmp_path)
+    params = cfg.hydra.sweeper.params
+    combos = params.combo.split(",")
+    prims = params.primitive.split(",")
+    assert len(combos) == 8 and len(prims) == 3 and len(combos) * len(prims) == 24
+    for combo in combos:
+        c = _compose_job([f"combo={combo}"], tmp_path)
+        mod, skin = combo.rsplit("_", 1)
+        assert c.modality.name == mod and c.skin.name == skin
+
+
+def _sweep_jobs(name: str, tmp_path) -> list[dict]:
+    """The jobs a sweep file expands to (Hydra's basic sweeper: the product of its params)."""
+    import itertools
+
+    params = _compose([f"sweep={name}"], tmp_path).hydra.sweeper.params
+    keys = list(params)
+    return [dict(zip(keys, vals)) for vals in itertools.product(*(str(params[k]).split(",") for k in keys))]
+
+
+@pytest.mark.slow  # composes every job of the study and study_min sweeps (~100 Hydra compositions)
+def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
+    cells = lambda jobs: {(c.modality.name, c.skin.name, c.primitive.name)  # noqa: E731
+                          for c in (_compose_job([f"combo={j['combo']}"] + ([f"primitive={j['primitive']}"]
+                                                 if "primitive" in j else []), tmp_path) for j in jobs)}
+    study = _sweep_jobs("study", tmp_path)
+    assert len(study) == 24 * 3 and {j["seed"] for j in study} == {"0", "1", "2"}
+    full = cells(study)
+    assert len(full) == 24  # 8 modality x skin combinations x 3 primitives, each with every seed
+    assert {(m, s) for m, s, _ in full} == {("acc", "soft"), ("fsr_t", "soft"), ("fsr_b", "soft"), ("fsr_tb", "soft"),
+                                            ("multi_e", "soft"), ("multi_l", "soft"), ("fsr_tb", "hard"),
+                                            ("multi_l", "hard")}
+    small = _sweep_jobs("study_min", tmp_path)
+    assert len(small) == 10 * 3
+    minimum = cells(small)
+    assert minimum == {c for c in full if c[2] == "pressing"} | {("multi_l", "soft", p) for p in ("precession", "sliding")}
+    assert _compose_job(["sweep=study"], tmp_path).trainer.max_epochs == 16  # the CPU budget (experiment=cpu_budget)
+
+
+def test_the_class_built_with_no_options_is_the_configured_filter_recipe(tmp_path):
+    """One source of defaults: recipe=filter's network is LatentFilter(modality) with nothing
+    else named (but the scene's code-table size), the composed config holds every field of
+    the typed options with the dataclass's values, a command-line override still reaches the
+    network, and an unknown option is refused by name, in Hydra and in the class."""
+    from dataclasses import asdict
+
+    from embodied_tactile.model.latent_filter import LatentFilter
+    from embodied_tactile.model.options import LatentFilterOptions, OptimizerOptions
+
+    cfg = _compose(["recipe=filter"], tmp_path)
+    configured = instantiate(cfg.model.net)
+    bare = LatentFilter(OmegaConf.to_container(cfg.modality, resolve=True), n_objects=cfg.model.net.n_objects)
+    assert configured.config() == bare.config()
+    assert configured.config()["prior"]["learn_embedding"] is False and configured.config()["obs_sigma"] == 0.1
+    changed = instantiate(_compose(["model.net.obs_dropout=0.25", "model.net.prior.learn_sigma=true"], tmp_path).model.net)
+    assert changed.obs_dropout == 0.25 and changed.config()["prior"]["learn_sigma"] is True
+    composed = OmegaConf.to_container(_compose(["recipe=filter"], tmp_path).model.net, resolve=True)
+    options = asdict(LatentFilterOptions())
+    assert {k: composed[k] for k in options if k != "n_objects"} == {k: v for k, v in options.items() if k != "n_objects"}
+    assert _compose([], tmp_path).model.optimizer.lr == OptimizerOptions.lr
+    with pytest.raises(ValueError, match="unknown Latent Filter prior options \\['no_such_option'\\]"):
+        LatentFilter("acc", prior={"no_such_option": 1})
+    with pytest.raises(Exception, match="no_such_option"):
+        _compose(["model.net.prior.no_such_option=1"], tmp_path)
+
+
+def test_recipes_name_the_objective(tmp_path):
+    """recipe=paper (the default of the paper's scene) is the paper's model: the ELBO (kl_y
+    weight 1) with the label-conditioned prior and learned object codes, y direct, no dropout;
+    filter is the model class's defaults (the plain ELBO without labels, observation dropout and
+    evidence y); the population scene's default is the context objective without labels, y's
+    filter starting at the population marginal (test_context.py); elbo drops the two switches, recognition
+    adds the labels with fixed codes and weights kl_y 100; the paper's experiment is the paper's
+    recipe under its DVBF annealing; a command-line y weight still wins."""
+    from embodied_tactile.model.latent_filter import LatentFilter
+
+    filter_ = instantiate(_compose(["recipe=filter"], tmp_path).model.net)
+    assert filter_.obs_dropout == 0.5 and filter_.config()["y_update"] == "evidence"
+    assert filter_.config()["y_evidence_max"] == 1 and filter_.config()["prior"]["labels"] is False
+    assert LatentFilter("multi_l").config()["prior"]["labels"] is False
+    population = _compose(["experiment=population"], tmp_path)
+    assert instantiate(population.model.net).config()["prior"] == filter_.config()["prior"] | {
+        "population_weight": population.model.net.prior.population_weight}
+    assert population.model.context.source == "trial" and population.model.net.y_start == "population"
+    assert population.model.net.obs_dropout == 0.0 and population.annealing.schedule.y_weight == 1.0
+    elbo = instantiate(_compose(["recipe=elbo"], tmp_path).model.net).config()
+    assert elbo["obs_dropout"] == 0.0 and elbo["y_update"] == "direct" and elbo["prior"]["labels"] is False
+    default = _compose([], tmp_path)
+    assert default.annealing.schedule.y_weight == 1.0
+    paper_net = {**elbo, "prior": {**elbo["prior"], "labels": True, "learn_embedding": True}}
+    assert instantiate(default.model.net).config() == paper_net
+    assert default.model.net.prior.labels is True and default.model.net.prior.learn_embedding is True
+    recognition = _compose(["recipe=recognition"], tmp_path)
+    assert recognition.annealing.schedule.y_weight == 100.0 and recognition.model.net.prior.labels is True
+    assert instantiate(recognition.model.net).config() == {**elbo, "prior": {**elbo["prior"], "labels": True}}
+    paper = _compose(["experiment=paper"], tmp_path)
+    assert "y_weight" not in paper.annealing.schedule and paper.annealing.name == "dvbf"
+    assert instantiate(paper.model.net).config() == paper_net
+    assert _compose(["recipe=elbo", "annealing.schedule.y_weight=3"], tmp_path).annealing.schedule.y_weight == 3

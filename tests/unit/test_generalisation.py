@@ -1,0 +1,124 @@
+"""The learning-curve page: collected from evaluated population runs, aggregated over seeds."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from omegaconf import OmegaConf
+
+from embodied_tactile.constants import FACTOR_NAMES
+from embodied_tactile.eval import generalisation as G
+from embodied_tactile.run.summary import recipe
+
+
+def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None, held_out=None):
+    d = root / f"n{n}_s{seed}_{labels}"
+    (d / "evaluation").mkdir(parents=True)
+    cfg = {"seed": seed, "modality": {"name": "multi_l"}, "model": {"net": {"prior": {"labels": labels}}},
+           "data": {"objects": objects, "split": "object", "n_objects": n}}
+    OmegaConf.save(OmegaConf.create(cfg), d / "config_resolved.yaml")
+    (d / "provenance.json").write_text(json.dumps({"git_commit": "abcdef0123"}))
+    runs = [{"method": m, "nmse_trajectory": {f: v for f in FACTOR_NAMES}, "nmse_trajectory_overall": v,
+             "nmse_last_step": {f: v / 2 for f in FACTOR_NAMES}, "nmse_last_step_overall": v / 2,
+             "targets": "physical"} for m, v in (("latent_filter", lf), ("gru", 0.5), ("mean", 1.0))]
+    if gru_std is not None:  # evaluate.py's results carry the GRU's settings
+        runs[1]["params"] = {"gru": {"input_standardize": gru_std}}
+    if held_out is not None:  # evaluate.py's held_out option, as its results carry it
+        runs[0]["params"] = {"held_out": held_out}
+    (d / "evaluation" / "results.json").write_text(json.dumps({"runs": runs}))
+    initial = {"epoch": -1, "step": 0, "initial": True, "nmse": {f: 1.05 for f in FACTOR_NAMES}, "nmse_overall": 1.05,
+               "nmse_last": {f: 1.1 for f in FACTOR_NAMES}, "nmse_last_overall": 1.1}
+    later = dict(initial, epoch=0, step=30, initial=False, nmse_overall=0.2)
+    (d / "krr_history.jsonl").write_text(json.dumps(initial) + "\n" + json.dumps(later) + "\n")
+
+
+def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
+    root = tmp_path / "runs"
+    for seed, lf in ((0, 0.8), (1, 0.9), (2, 1.0)):
+        _run(root, 24, seed, lf)
+    _run(root, 24, 0, 0.95, labels=False)
+    _run(root, 256, 0, 0.4, gru_std=True)
+    _run(root, 64, 0, 0.1, objects=None)  # not a population run: left out
+    rows = G.collect([root])
+    methods = {r["method"] for r in rows}
+    assert methods == {"Latent Filter multi_l (labels)", "Latent Filter multi_l (no labels)",
+                       "Latent Filter multi_l (labels), untrained", "Latent Filter multi_l (no labels), untrained",
+                       "supervised conv + GRU (multi_l, raw inputs)", "supervised conv + GRU (multi_l, standardised inputs)",
+                       "mean predictor"}
+    gru = {r["method"]: r["n_objects"] for r in rows if "GRU" in r["method"]}
+    assert gru == {"supervised conv + GRU (multi_l, raw inputs)": 24,
+                   "supervised conv + GRU (multi_l, standardised inputs)": 256}
+    # the GRU and mean of the labels=false run duplicate the labels=true run's: counted once
+    assert sum(1 for r in rows if r["method"] == "mean predictor" and r["n_objects"] == 24) == 3
+    agg = G.aggregate(rows)
+    cell = agg["Latent Filter multi_l (labels)"][24]
+    assert cell["mean"] == pytest.approx(0.9) and cell["seeds"] == [0, 1, 2]
+    assert cell["lo"] < 0.9 < cell["hi"] and cell["hi"] - cell["lo"] == pytest.approx(2 * 4.303 * 0.1 / 3**0.5, rel=1e-3)
+    single = agg["Latent Filter multi_l (labels)"][256]
+    assert single["mean"] == pytest.approx(0.4) and single["lo"] != single["lo"]  # one seed: no interval
+    assert agg["Latent Filter multi_l (labels), untrained"][24]["mean"] == pytest.approx(1.05)
+    last = G.aggregate(rows, "overall", "last_step")
+    assert last["Latent Filter multi_l (labels)"][24]["mean"] == pytest.approx(0.45)
+    assert last["Latent Filter multi_l (labels), untrained"][24]["mean"] == pytest.approx(1.1)
+    page = G.write_page(rows, tmp_path / "docs", command="test")
+    text = page.read_text()
+    assert "0.900 [" in text and "0.450 [" in text and "not run" in text and "abcdef0" in text
+    assert "## Mean over factors, last step" in text
+    assert (tmp_path / "docs" / "figures" / "generalisation_curve.png").stat().st_size > 1000
+    assert 64 not in {r["n_objects"] for r in rows}
+
+
+def test_cli_refuses_a_folder_without_population_runs(tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        G.main([str(tmp_path), "--out", str(tmp_path / "docs")])
+    assert info.value.code == 2
+    assert "no evaluated population runs" in capsys.readouterr().err
+
+
+def test_recipe_names_the_settings_that_tell_recipes_apart():
+    cfg = OmegaConf.create({"model": {"net": {"prior": {"labels": False}, "y_update": "evidence", "obs_dropout": 0.5}},
+                            "annealing": {"schedule": {"y_weight": 1.0}}})
+    assert recipe(cfg) == "no labels, y_weight 1, y evidence, dropout 0.5"
+    cfg.model.net.obs_dropout = 0.0
+    cfg.model.net.prior.labels = True
+    assert recipe(cfg) == "labels, y_weight 1, y evidence"
+    cfg.model.net.prior.learn_embedding = True  # the paper's recipe: the object codes learn
+    assert recipe(cfg) == "labels, learned codes, y_weight 1, y evidence"
+    ctx = OmegaConf.create({"model": {"net": {"prior": {"labels": False}, "y_update": "evidence", "y_start": "population"},
+                                      "context": {"source": "trial", "refilter": False}},
+                            "annealing": {"schedule": {"y_weight": 1.0}}})
+    assert recipe(ctx) == "context objective (trial), no labels, y_weight 1, y evidence, y from the population"
+
+
+def test_parts_merge_through_the_scores_file_and_a_later_root_replaces_a_score(tmp_path):
+    first, second = tmp_path / "part1", tmp_path / "part2"
+    _run(first, 24, 0, 0.8)
+    _run(first, 256, 0, 0.6)
+    G.write_page(G.collect([first]), tmp_path / "docs", command="test")
+    scores = tmp_path / "docs" / "generalisation_scores.json"
+    _run(second, 256, 0, 0.4)  # seed 0 at 256 run again
+    _run(second, 256, 1, 0.5)
+    rows = G.collect([scores, second])
+    agg = G.aggregate(rows)["Latent Filter multi_l (labels)"]
+    assert agg[24]["mean"] == pytest.approx(0.8)  # only in the scores file: kept
+    assert agg[256]["seeds"] == [0, 1] and agg[256]["mean"] == pytest.approx(0.45)  # 0.6 replaced by 0.4
+    assert G.collect([scores]) == G.collect([first])  # the file holds every score as collected
+
+
+def test_a_file_that_is_not_a_scores_file_is_named(tmp_path, capsys):
+    bad = tmp_path / "results.json"
+    bad.write_text(json.dumps({"runs": []}))
+    with pytest.raises(SystemExit):
+        G.main([str(bad), "--out", str(tmp_path / "docs")])
+    assert "results.json: not a scores file" in capsys.readouterr().err
+
+
+def test_validation_side_scores_are_refused_with_the_file_named(tmp_path, capsys):
+    _run(tmp_path / "runs", 24, 0, 0.8, held_out="test")
+    assert len(G.collect([tmp_path / "runs"])) == 4
+    _run(tmp_path / "val", 24, 1, 0.8, held_out="val")
+    with pytest.raises(SystemExit):
+        G.main([str(tmp_path / "val"), "--out", str(tmp_path / "docs")])
+    err = capsys.readouterr().err
+    assert "n24_s1_True/evaluation/results.json: latent_filter scored on the validation side" in err

@@ -1,0 +1,170 @@
+"""The data preparation stage (embodied_tactile.data.prepare, embodied-tactile prepare):
+simulate, lock, build caches, list trials; the DataModule only splits and serves what it
+prepared."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from conftest import TINY_ACTIONS, TINY_OBJECTS, tiny_datamodule, tiny_scene
+
+N_TINY = len(TINY_OBJECTS) * len(TINY_ACTIONS) * 2
+
+
+def _prepare_cli(tmp_path, data_dir, *overrides):
+    cmd = [sys.executable, "-m", "embodied_tactile.data.prepare_cli", f"paths.data_dir={data_dir}", "modality=acc",
+           f"data.objects=[{','.join(map(str, TINY_OBJECTS))}]", f"data.actions=[{','.join(map(str, TINY_ACTIONS))}]",
+           "data.repetitions=2", "data.sim_workers=1", "data.preprocess_workers=1", *overrides]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    return subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.slow  # prepare CLI subprocess
+def test_cli_prepares_the_tiny_scene_and_a_second_call_is_a_cache_hit(tiny_data_dir, tmp_path):
+    d = tmp_path / "data"
+    shutil.copytree(tiny_data_dir / "raw", d / "raw")
+    first = _prepare_cli(tmp_path, d)
+    assert first.returncode == 0, first.stderr[-3000:]
+    out = first.stdout
+    assert f"trials: {N_TINY} usable, 0 skipped, 0 incomplete left out" in out, out
+    assert "simulated: 0 new trial(s)" in out  # the copied raw file holds every trial
+    built = dict(re.findall(r"^  (\w+): (\S+) \(built\)$", out, re.M))
+    assert sorted(built) == ["acc", "actions"], out  # acc-only: no fsr cache
+    assert all(os.path.exists(p) for p in built.values())
+    second = _prepare_cli(tmp_path, d)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert f"trials: {N_TINY} usable, 0 skipped" in second.stdout
+    hits = dict(re.findall(r"^  (\w+): (\S+) \(cache hit\)$", second.stdout, re.M))
+    assert hits == built, second.stdout
+
+
+@pytest.mark.slow  # prepare CLI subprocess
+def test_cli_simulates_missing_trials_and_reports_skipped_ones(tiny_data_dir, tmp_path):
+    """Trials absent from the raw file are simulated; a bad one is listed with its reason."""
+    import h5py
+
+    from embodied_tactile.data import rawformat as rf
+
+    d = tmp_path / "data"
+    shutil.copytree(tiny_data_dir / "raw", d / "raw")
+    raw = d / "raw" / "soft_pressing.h5"
+    good, _ = rf.scan_raw(raw, validate_data=False)
+    names = sorted(g.name for g in good)
+    with h5py.File(raw, "a") as f:
+        del f["trials"][names[0]]  # missing: simulated again
+        f["trials"][names[1]]["tactile/acc"][3, 0, 0, 0] = float("nan")  # bad: skipped, named
+    res = _prepare_cli(tmp_path, d, "+data.preprocess.n_frames=30")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "simulated: 1 new trial(s)" in res.stdout
+    assert f"trials: {N_TINY - 1} usable, 1 skipped" in res.stdout
+    assert re.search(rf"skipped \S*{raw.name} / {names[1]} \(\S+\): .*tactile/acc", res.stdout), res.stdout
+
+
+@pytest.mark.slow  # prepare CLI subprocess
+@pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])
+def test_cli_bad_setting_is_one_line_exit_2(tmp_path, override, needle):
+    res = _prepare_cli(tmp_path, tmp_path / "data", override)
+    assert res.returncode == 2, (res.stdout[-2000:], res.stderr[-2000:])
+    err = res.stderr.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("prepare: error: ") and needle in err, err
+    assert not (tmp_path / "data").exists()  # nothing prepared
+
+
+def test_datamodule_after_the_stage_does_no_simulation(tiny_prepared, monkeypatch):
+    """With the prepared scene attached, prepare_data / setup neither simulate nor build
+    caches; without it, prepare_data runs the stage (so the patch below does bite)."""
+    import embodied_tactile.data.cache as cache
+    import embodied_tactile.sim as sim
+
+    def fail(*a, **k):
+        raise AssertionError("simulated / built a cache after the preparation stage")
+
+    monkeypatch.setattr(sim, "generate_dataset", fail)
+    monkeypatch.setattr(cache, "build_cache", fail)
+    d = tiny_prepared.scene.data_dir
+    dm = tiny_datamodule(d, ["acc"])
+    dm.attach(tiny_prepared)
+    dm.prepare_data()
+    dm.setup()
+    served = {t.name for s in (dm.train_set, dm.val_set, dm.test_set) for t in s.trials}
+    assert served == {t.name for t in tiny_prepared.trials} and len(served) == N_TINY
+    assert next(iter(dm.train_dataloader()))["obs"].shape[2] == 1
+    assert dm.cache_files == tiny_prepared.cache_files
+    with pytest.raises(AssertionError, match="after the preparation stage"):
+        tiny_datamodule(d, ["acc"]).prepare_data()
+    with pytest.raises(ValueError, match="not this DataModule's scene"):
+        tiny_datamodule(d, ["acc", "fsr_t"]).attach(tiny_prepared)
+
+
+def test_setup_without_prepare_data_finds_the_caches_and_never_simulates(tiny_prepared, monkeypatch):
+    """A DDP rank whose rank 0 ran prepare_data: setup finds the caches, simulates nothing."""
+    import embodied_tactile.sim as sim
+
+    def fail(*a, **k):
+        raise AssertionError("setup simulated")
+
+    monkeypatch.setattr(sim, "generate_dataset", fail)
+    dm = tiny_datamodule(tiny_prepared.scene.data_dir, ["acc"])
+    dm.setup()
+    assert dm.cache_files == tiny_prepared.cache_files and dm.prepared.cache_built == []
+    assert len(dm.train_set) + len(dm.val_set) + len(dm.test_set) == N_TINY
+
+
+def test_scene_from_a_data_config_ignores_split_and_loader_keys(tmp_path):
+    from embodied_tactile.data.prepare import Scene
+
+    scene = tiny_scene(tmp_path)
+    cfg = {**{k: getattr(scene, k) for k in ("data_dir", "source", "skin", "primitive", "channels", "objects",
+                                              "actions", "repetitions", "sim_workers", "preprocess_workers")},
+           "_target_": "x", "split": "object", "batch_size": 3, "split_file": "s.json", "raw_files": None}
+    assert Scene.from_config(cfg) == scene
+    with pytest.raises(ValueError, match="unknown observation channel"):
+        tiny_scene(tmp_path, channels=("gyro",))
+
+
+def test_each_simulator_seed_has_its_own_raw_file(tmp_path):
+    """The study varies the simulated dataset with the seed: one raw file per simulator seed,
+    seed 0 keeping the plain name (trial names do not hold the seed)."""
+    from embodied_tactile.data.prepare import Scene
+
+    assert Scene(data_dir=str(tmp_path)).raw_paths == [tmp_path / "raw" / "soft_pressing.h5"]
+    assert Scene(data_dir=str(tmp_path), skin="hard", primitive="sliding", sim_seed=2).raw_paths == [
+        tmp_path / "raw" / "hard_sliding_sim2.h5"]
+
+
+# ----------------------------------------------------------------------------- the entry point in this process
+# (the CLI tests above start it in a subprocess and are marked slow; these keep its logic in -m "not slow")
+def _prepare_args(data_dir, *overrides):
+    return [f"paths.data_dir={data_dir}", "modality=acc", f"data.objects=[{','.join(map(str, TINY_OBJECTS))}]",
+            f"data.actions=[{','.join(map(str, TINY_ACTIONS))}]", "data.repetitions=2", "data.sim_workers=1",
+            "data.preprocess_workers=1", *overrides]
+
+
+def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp_path, capsys):
+    from embodied_tactile.data import prepare_cli as prepare
+
+    d = tmp_path / "data"
+    shutil.copytree(tiny_data_dir, d)  # raw file and caches of the tiny scene
+    assert prepare.main(_prepare_args(d)) == 0
+    out = capsys.readouterr().out
+    assert f"trials: {N_TINY} usable, 0 skipped, 0 incomplete left out" in out, out
+    assert "simulated: 0 new trial(s)" in out
+    hits = dict(re.findall(r"^  (\w+): (\S+) \(cache hit\)$", out, re.M))
+    assert sorted(hits) == ["acc", "actions"] and all(p.startswith(str(d)) for p in hits.values()), out
+    assert prepare.main(["--help"]) == 0 and "embodied-tactile prepare" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])
+def test_main_in_process_bad_setting_is_one_line_exit_2(tmp_path, capsys, override, needle):
+    from embodied_tactile.data import prepare_cli as prepare
+
+    assert prepare.main(_prepare_args(tmp_path / "data", override)) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("prepare: error: ") and needle in err, err
+    assert not (tmp_path / "data").exists()  # nothing prepared
