@@ -183,7 +183,7 @@ def test_filter_weight_adds_the_target_windows_filtering_elbo():
 
     def terms(context):
         torch.manual_seed(0)
-        module = EarlyFusionLatentFilter(LatentFilter("acc", **TINY), context=context)
+        module = LatentFilterModule(LatentFilter("acc", **TINY), context=context)
         torch.manual_seed(1)
         return module, module._terms(batch)
 
@@ -196,7 +196,7 @@ def test_filter_weight_adds_the_target_windows_filtering_elbo():
         assert float(alone[k]) == pytest.approx(float(ctx[k]), rel=1e-6)
         assert float(both[k]) == pytest.approx(float(ctx[k]) + 0.5 * float(filt[k]), rel=1e-5)
     with pytest.raises(ValueError, match="filter_weight"):
-        EarlyFusionLatentFilter(LatentFilter("acc", **TINY), context={"source": "trial", "filter_weight": -1.0})
+        LatentFilterModule(LatentFilter("acc", **TINY), context={"source": "trial", "filter_weight": -1.0})
 
 
 def test_y_filter_can_start_at_the_population_marginal():
