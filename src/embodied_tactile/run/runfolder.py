@@ -178,7 +178,13 @@ def _may_change(key: str) -> bool:
 def config_changes(saved: Mapping[str, Any], new: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:
     """``{dotted key: (saved value, new value)}`` of the keys outside :data:`MAY_CHANGE`
     whose values differ (a key present on one side only counts, with ``<absent>``)."""
-    a, b = _flatten(saved), _flatten(new)
+    from embodied_tactile.model.compat import DROPPED_CONFIG_KEYS, current_target
+
+    def today(flat: dict) -> dict:  # a config saved before a module moved reads as today's
+        return {k: current_target(v) if k.endswith("_target_") and isinstance(v, str) else v
+                for k, v in flat.items() if k not in DROPPED_CONFIG_KEYS}
+
+    a, b = today(_flatten(saved)), today(_flatten(new))
     missing = "<absent>"
     return {k: (a.get(k, missing), b.get(k, missing)) for k in sorted(set(a) | set(b))
             if not _may_change(k) and a.get(k, missing) != b.get(k, missing)}
