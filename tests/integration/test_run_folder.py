@@ -46,9 +46,9 @@ def test_config_changes_names_keys_that_shape_model_or_data():
     assert config_changes(saved, saved) == {}
     # a config saved before the modules moved reads as today's: the same run, resumable
     old = {"model": {"_target_": "embodied_tactile.models.module.LateFusionLatentFilter"},
-           "modality": {"module": "embodied_tactile.models.module.LateFusionLatentFilter"}}
+           "modality": {"name": "acc", "module": "embodied_tactile.models.module.LateFusionLatentFilter"}}
     assert config_changes(old, {"model": {"_target_": "embodied_tactile.model.module.LatentFilterModule"},
-                                "modality": {}}) == {}
+                                "modality": {"name": "acc"}}) == {}
 
 
 def test_check_resume_refuses_other_settings_before_writing(tmp_path):
