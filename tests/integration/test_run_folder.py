@@ -280,7 +280,7 @@ def test_evaluation_skips_a_truncated_checkpoint(finished_run, tmp_path, caplog)
         assert find_checkpoint(run, "best") == run / "checkpoints" / "last.ckpt"
     assert str(best) in caplog.text
     (run / "checkpoints" / "last.ckpt").write_bytes(b"\0" * 100)
-    with pytest.raises(EvaluationError, match=rf"no checkpoint in run folder {run} that can be read.*{best.name}"):
+    with pytest.raises(EvaluationError, match=rf"no checkpoint \(best or last\) in run folder {run} that can be read.*{best.name}"):
         find_checkpoint(run, "best")
 
 
@@ -323,7 +323,7 @@ def test_copied_run_folder_never_reads_the_original_checkpoints(finished_run, tm
     shutil.rmtree(copy / "checkpoints")
     assert evaluate_cli([str(copy), *EVAL_FAST]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert err.startswith(f"evaluate.py: error: no checkpoint in run folder {copy} ")
+    assert err.startswith(f"evaluate.py: error: no checkpoint (last.ckpt) in run folder {copy} ")
     assert not (copy / "evaluation").exists()
 
 
