@@ -626,8 +626,8 @@ def test_moved_run_folder_resumes_and_evaluates_as_the_original(finished_run, fa
     from embodied_tactile.run.runfolder import best_checkpoint
 
     assert (moved / metrics["best_checkpoint"]) == best_checkpoint(moved)[0]
-    assert evaluate_cli([str(moved), *EVAL_FAST]) == 0
-    ev = json.loads((moved / "evaluation" / "evaluation.json").read_text())
+    assert evaluate_cli([str(moved), *EVAL_FAST, "checkpoint=best"]) == 0
+    ev = json.loads((moved / "evaluation-best" / "evaluation.json").read_text())
     assert ev["runs"][0]["checkpoint"] == str(best_checkpoint(moved)[0])
 
 
@@ -697,7 +697,7 @@ def test_evaluation_knows_the_runs_state(finished_run, tmp_path, evaluate_cli, c
         assert evaluate_cli([str(run), *EVAL_FAST, "allow_running=true"]) == 0
         first = capsys.readouterr().out.splitlines()[0]
         assert first.startswith(f"evaluate.py: run {run} is being trained (pid {holder.pid}")
-        assert "evaluating checkpoint checkpoints/best-epoch000.ckpt (epoch(s) 1, step " in first
+        assert "evaluating checkpoint checkpoints/last.ckpt (epoch(s) 1, step " in first  # the default: the final weights
         states = json.loads((run / "evaluation" / "results.json").read_text())["run_states"]
         assert states[str(run)]["status"] == "training"
     finally:
