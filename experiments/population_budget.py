@@ -33,8 +33,13 @@ DEFAULT_KEYS = ("recipe", "trainer.max_epochs", "model.lr_schedule", "model.opti
 
 
 def _select(cfg, key):
-    if key == "recipe":  # the objective's own options
-        return OmegaConf.to_container(cfg.model.get("context"), resolve=True) if cfg.model.get("context") else None
+    if key == "recipe":  # the objective's own options, each at its default where a run predates it
+        from dataclasses import asdict
+
+        from embodied_tactile.model.options import ContextOptions
+
+        given = cfg.model.get("context")
+        return {**asdict(ContextOptions()), **OmegaConf.to_container(given, resolve=True)} if given else None
     v = OmegaConf.select(cfg, key)
     return OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
 

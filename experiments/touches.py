@@ -52,6 +52,8 @@ def combined(split: dict, k: int, prior, rng: np.random.Generator) -> tuple[np.n
         means.append(cm[0].numpy())
         facs.append(split["factors"][int(idx[0])])
         ids.append(o)
+    if not means:
+        return np.empty((0, 0)), np.empty((0, 0)), np.asarray(ids)
     return np.stack(means), np.stack(facs), np.asarray(ids)
 
 
@@ -82,7 +84,7 @@ def score(run_dir: Path, held_out: str, ks, seed: int) -> dict:
     for k in ks:
         x_tr, f_tr, o_tr = combined(tr, k, prior, np.random.default_rng(seed))
         x_te, f_te, _ = combined(te, k, prior, np.random.default_rng(seed + 1))
-        if len(x_te) == 0:
+        if len(x_te) == 0 or len(x_tr) == 0:
             continue
         fit = fit_alignment(x_tr, f_tr, groups=o_tr, **align)
         out[f"K={k}"] = overall(nmse(f_te, fit.predict(x_te)[:, 0], var_ref=reference_variance(f_te)))
