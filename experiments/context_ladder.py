@@ -206,6 +206,28 @@ def _combined(split: dict, prior) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.stack(means), np.stack(facs), np.asarray(ids)
 
 
+def split_posteriors(run_dir: Path, checkpoint: str, held_out: str = "val"):
+    """A run's network and :func:`_posteriors` of its training trials and of its validation
+    (or test) trials, factors encoded as the run's targets -> (run, net, train, held-out)."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from embodied_tactile.eval.pipeline import parse_options
+    from embodied_tactile.eval.runs import data_config, load_module, load_run, trial_names
+    from embodied_tactile.eval.targets import encode_split
+
+    run = load_run(run_dir, checkpoint)
+    dm = instantiate(OmegaConf.create(data_config(run, parse_options([]))), _convert_="all")
+    dm.prepare_data()
+    dm.setup("fit")
+    net = load_module(run).model
+    targets = str(run.cfg.get("targets") or "design_rank")
+    tr = encode_split(_posteriors(net, dm.train_eval_dataloader(), trial_names(dm, "train")), targets)
+    loader = dm.val_eval_dataloader() if held_out == "val" else dm.test_dataloader()
+    te = encode_split(_posteriors(net, loader, trial_names(dm, held_out)), targets)
+    return run, net, tr, te
+
+
 def touches(run_dir: Path, checkpoint: str, prior: str = "start", held_out: str = "val") -> dict:
     """The K-touch read-out on the validation (or test) objects (every one has 2 trials, the population
     scene's 2 actions), last-frame NMSE (mean over factors, normalised by the variance of the
@@ -221,27 +243,12 @@ def touches(run_dir: Path, checkpoint: str, prior: str = "start", held_out: str 
       fitted on the training objects' y at the same K (one latent per trial, the last frame's;
       one per object, its trials combined) and applied to the validation objects' y at that K.
     """
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
     from embodied_tactile.eval.krr import alignment_kwargs, fit_alignment
     from embodied_tactile.eval.metrics import nmse, overall, reference_variance
-    from embodied_tactile.eval.pipeline import parse_options
     from embodied_tactile.eval.results import evaluate_latents
-    from embodied_tactile.eval.runs import data_config, load_module, load_run, trial_names
-    from embodied_tactile.eval.targets import encode_split
 
-    opts = parse_options([])
-    run = load_run(run_dir, checkpoint)
-    dm = instantiate(OmegaConf.create(data_config(run, opts)), _convert_="all")
-    dm.prepare_data()
-    dm.setup("fit")
-    net = load_module(run).model
-    targets = str(run.cfg.get("targets") or "design_rank")
-    tr = encode_split(_posteriors(net, dm.train_eval_dataloader(), trial_names(dm, "train")), targets)
-    loader = dm.val_eval_dataloader() if held_out == "val" else dm.test_dataloader()
-    te = encode_split(_posteriors(net, loader, trial_names(dm, held_out)), targets)
-    align_opts = OmegaConf.to_container(opts.alignment)
+    run, net, tr, te = split_posteriors(run_dir, checkpoint, held_out)
+    align_opts = {"readout": "final_segment"}  # one alignment of the final tenth, read at the last frame
     _, align = evaluate_latents(tr, te, latent="y", alignment=align_opts, split="object")
     if prior == "marginal":
         with torch.no_grad():

@@ -23,20 +23,6 @@ import numpy as np
 import torch
 
 
-def posteriors(net, loader, names) -> dict:
-    """Last-frame y means / variances, factors and object ids of every trial a loader serves."""
-    m, v, fac, obj = [], [], [], []
-    with torch.no_grad():
-        for b in loader:
-            out = net.infer_latents(b)
-            m.append(out["y_mean"][:, -1])
-            v.append(out["y_var"][:, -1])
-            fac.append(b["factors"].numpy())
-            obj.append(b["object_id"].numpy())
-    return {"y": torch.cat(m), "y_var": torch.cat(v), "factors": np.concatenate(fac), "object_id": np.concatenate(obj),
-            "seq_id": np.asarray(names)}
-
-
 def combined(split: dict, k: int, prior, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per object with at least ``k`` trials: q(y | its first k trials in a random order)."""
     from embodied_tactile.model.latent_filter import combine_touches
@@ -48,7 +34,7 @@ def combined(split: dict, k: int, prior, rng: np.random.Generator) -> tuple[np.n
         if len(idx) < k:
             continue
         pick = torch.as_tensor(rng.permutation(idx)[:k])
-        cm, _ = combine_touches(split["y"][pick][:, None], split["y_var"][pick][:, None], *prior)
+        cm, _ = combine_touches(split["y_last"][pick][:, None], split["y_var_last"][pick][:, None], *prior)
         means.append(cm[0].numpy())
         facs.append(split["factors"][int(idx[0])])
         ids.append(o)
@@ -58,25 +44,14 @@ def combined(split: dict, k: int, prior, rng: np.random.Generator) -> tuple[np.n
 
 
 def score(run_dir: Path, held_out: str, ks, seed: int) -> dict:
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
+    from context_ladder import split_posteriors  # experiments/ is the script's folder
 
     from embodied_tactile.eval.krr import fit_alignment
     from embodied_tactile.eval.metrics import nmse, overall, reference_variance
     from embodied_tactile.eval.pipeline import parse_options, run_alignment
-    from embodied_tactile.eval.runs import data_config, load_module, load_run, trial_names
-    from embodied_tactile.eval.targets import encode_split
 
+    run, net, tr, te = split_posteriors(run_dir, "last", held_out)
     opts = parse_options([])
-    run = load_run(run_dir, "last")
-    dm = instantiate(OmegaConf.create(data_config(run, opts)), _convert_="all")
-    dm.prepare_data()
-    dm.setup("fit")
-    net = load_module(run).model
-    targets = str(run.cfg.get("targets") or "design_rank")
-    tr = encode_split(posteriors(net, dm.train_eval_dataloader(), trial_names(dm, "train")), targets)
-    loader = dm.val_eval_dataloader() if held_out == "val" else dm.test_dataloader()
-    te = encode_split(posteriors(net, loader, trial_names(dm, held_out)), targets)
     align = {k: v for k, v in run_alignment(run.cfg, opts).items()
              if k in ("cv", "alphas", "gammas", "nystroem_threshold", "n_components", "seed", "n_threads")}
     prior = net.touch_prior()
