@@ -162,3 +162,62 @@ def test_training_passes_run_the_convs_in_chunks_with_the_same_loss_and_gradient
     assert g_chunked.keys() == g_whole.keys() and len(g_whole) > 10
     for name, g in g_whole.items():
         torch.testing.assert_close(g_chunked[name], g, rtol=1e-4, atol=1e-4, msg=name)
+
+
+@pytest.mark.parametrize("c_in,c_out", [(16, 1), (16, 2), (3, 5)])
+def test_subpixel_conv_transpose_equals_the_transposed_conv(c_in, c_out):
+    """The decoder's last layer as one 3x3 conv and a pixel shuffle: the same output and
+    the same gradients (input, weight, bias) as F.conv_transpose2d, up to float rounding."""
+    from torch.nn import functional as F
+
+    from embodied_tactile.model.networks import subpixel_conv_transpose
+
+    torch.manual_seed(0)
+    x = torch.randn(4, c_in, 14, 14, requires_grad=True)
+    w = torch.randn(c_in, c_out, 4, 4, requires_grad=True)
+    b = torch.randn(c_out, requires_grad=True)
+    g = torch.randn(4, c_out, 28, 28)
+    outs = []
+    for fn in (lambda: F.conv_transpose2d(x, w, b, stride=2, padding=1), lambda: subpixel_conv_transpose(x, w, b)):
+        y = fn()
+        grads = torch.autograd.grad(y, (x, w, b), g)
+        outs.append((y, *grads))
+    for ref, new in zip(*outs):  # the bias gradient sums 4 x 784 terms per batch row: rtol 1e-4
+        torch.testing.assert_close(new, ref, rtol=1e-4, atol=1e-5)
+
+
+def _decoder_reference(dec, z):
+    """ConvDecoder.body before the sub-pixel layer (the reference computation)."""
+    h = dec.fc(z).view(z.shape[0], dec.w2, 7, 7).contiguous(memory_format=torch.channels_last)
+    return dec.deconv(h)
+
+
+def test_training_step_equals_the_reference_decoder(monkeypatch):
+    """A training loss and its gradients on a fixed batch of >= CHANNELS_LAST_MIN_FRAMES
+    frames: the sub-pixel last layer and the contiguous means give the reference's to
+    float rounding (the loss to ~1e-6 relative)."""
+    from embodied_tactile.model import LatentFilter, networks
+
+    torch.manual_seed(0)
+    m = LatentFilter("multi_l", obs_sigma=0.1, obs_dropout=0.0, encoder={"widths": [4, 8], "hidden": 16})
+    batch = {"obs": torch.rand(2, 40, 3, 28, 28), "actions": torch.randn(2, 40, 6),
+             "object_id": torch.tensor([0, 5])}
+    assert 80 >= networks.CHANNELS_LAST_MIN_FRAMES
+
+    def loss_and_grads():
+        m.zero_grad()
+        torch.manual_seed(1)  # the same draws in both passes
+        t = m.elbo_terms(batch, sample=True)
+        loss = t["nll"] + t["kl_z"] + t["kl_y"]
+        loss.backward()
+        grads = {n: p.grad.clone() for n, p in m.named_parameters() if p.grad is not None}
+        return loss.detach(), grads, t["out"]["recon"].is_contiguous()
+
+    loss_new, g_new, contiguous = loss_and_grads()
+    assert contiguous  # the means in the observations' layout
+    monkeypatch.setattr(networks.ConvDecoder, "body", _decoder_reference)
+    loss_ref, g_ref, _ = loss_and_grads()
+    assert abs(float(loss_new) - float(loss_ref)) <= 1e-6 * abs(float(loss_ref)) + 1e-4
+    assert g_new.keys() == g_ref.keys() and len(g_ref) > 10
+    for name, g in g_ref.items():  # relative to each gradient's largest entry (measured <= 2e-6)
+        assert float((g_new[name] - g).abs().max()) <= 1e-5 * float(g.abs().max()), name

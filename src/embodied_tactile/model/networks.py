@@ -242,11 +242,40 @@ class ConvDecoder(_CompilableBody):
         return _run(self, z)
 
     def body(self, z: Tensor) -> Tensor:
-        """MLP and transposed convs (what :func:`compile_convs` compiles)."""
+        """MLP and transposed convs (what :func:`compile_convs` compiles). Batches of at
+        least :data:`CHANNELS_LAST_MIN_FRAMES` frames on CPU run the convs in channels_last,
+        the last transposed conv as :func:`subpixel_conv_transpose`, and return the means in
+        the contiguous layout of the observations (the likelihood's elementwise ops read
+        both alike)."""
         h = self.fc(z).view(z.shape[0], self.w2, 7, 7)
-        if z.shape[0] >= CHANNELS_LAST_MIN_FRAMES and z.device.type == "cpu":
-            h = h.contiguous(memory_format=torch.channels_last)  # ~2x faster transposed convs
-        return self.deconv(h)
+        if not (z.shape[0] >= CHANNELS_LAST_MIN_FRAMES and z.device.type == "cpu"):
+            return self.deconv(h)
+        h = h.contiguous(memory_format=torch.channels_last)  # ~2x faster transposed convs
+        h = self.deconv[1](self.deconv[0](h))
+        last = self.deconv[2]
+        return subpixel_conv_transpose(h, last.weight, last.bias).contiguous()
+
+
+#: ``_SUBPIXEL_TAPS[r]``: for output phase r (row or column 2m + r) of a stride-2, 4-tap,
+#: padding-1 transposed conv, the kernel tap that input m - 1, m, m + 1 meets (4: none)
+_SUBPIXEL_TAPS = ((3, 1, 4), (4, 2, 0))
+
+
+def subpixel_conv_transpose(x: Tensor, weight: Tensor, bias: Optional[Tensor]) -> Tensor:
+    """``F.conv_transpose2d(x, weight, bias, stride=2, padding=1)`` for a 4x4 kernel
+    (:class:`ConvDecoder`'s layers), computed as one 3x3 convolution to the four output
+    phases (2 x 2 of each output pixel's row and column parity) and a pixel shuffle. The
+    same products and sums, float rounding aside (tests/unit/test_speed_switch.py). oneDNN's
+    transposed-conv forward to 1-2 output channels runs far below its conv forward on CPU
+    (docs/experiments/speed_levers.md, 2026-11-27)."""
+    c_in, c_out = weight.shape[:2]
+    if weight.shape[2:] != (4, 4):
+        raise ValueError(f"subpixel_conv_transpose needs a 4x4 kernel, got {tuple(weight.shape)}")
+    idx = torch.tensor(_SUBPIXEL_TAPS, device=weight.device)  # (phase, tap)
+    w = F.pad(weight, (0, 1, 0, 1))[:, :, idx[:, :, None, None], idx[None, None, :, :]]  # (in, out, r, a, s, b)
+    w = w.permute(1, 2, 4, 0, 3, 5).reshape(4 * c_out, c_in, 3, 3)
+    b = None if bias is None else bias.repeat_interleave(4)
+    return F.pixel_shuffle(F.conv2d(x, w, b, padding=1), 2)
 
 
 class TransitionNet(nn.Module):
