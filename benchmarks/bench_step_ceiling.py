@@ -7,8 +7,9 @@ wall and process CPU seconds), GFLOP/s, and the 2048x2048 fp32 matmul rate measu
 the first round and after every round in the same process. Modes:
 
   fp32     the code as it is (float32, eager)
-  before   the same with the decoder as it was before 2026-11-27 (last layer a oneDNN
-           transposed conv, channels_last means): the reference of the sub-pixel change
+  before   the code as it was before 2026-11-27 (the reference of that day's changes): the
+           decoder's last layer a oneDNN transposed conv with channels_last means, the
+           likelihood elementwise then summed, the input check by ``isfinite().all()``
   bf16     CPU autocast to bfloat16 (the float32 regions of ``networks.float32_region`` kept)
   compile  torch.compile of encoders and decoders (not the time loop)
   naive    the per-frame reference: encoder and decoder called inside the time loop
@@ -42,6 +43,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from steps import make_batch, matmul_ceiling, naive_terms, step, training_module  # noqa: E402
 from embodied_tactile.model import LatentFilter  # noqa: E402
+from embodied_tactile.model import latent_filter as lf  # noqa: E402
+from embodied_tactile.model import module as lf_module  # noqa: E402
 from embodied_tactile.model import networks  # noqa: E402
 from embodied_tactile.model.networks import ConvDecoder, ConvEncoder  # noqa: E402
 
@@ -52,21 +55,32 @@ WHOLE_TRIAL_FRAMES = 300
 
 def decoder_body_before(dec: ConvDecoder, z: torch.Tensor) -> torch.Tensor:
     """``ConvDecoder.body`` as it was before 2026-11-27: every transposed conv through
-    oneDNN, the means left in channels_last (the reference of mode ``before``)."""
+    oneDNN, the means left in channels_last."""
     h = dec.fc(z).view(z.shape[0], dec.w2, 7, 7)
     if z.shape[0] >= networks.CHANNELS_LAST_MIN_FRAMES and z.device.type == "cpu":
         h = h.contiguous(memory_format=torch.channels_last)
     return dec.deconv(h)
 
 
+def nll_frames_before(x: torch.Tensor, mean: torch.Tensor, log_sigma: torch.Tensor) -> torch.Tensor:
+    """The likelihood as the ELBO summed it before 2026-11-27: elementwise, then summed."""
+    return networks.gaussian_nll(x, mean, log_sigma.view(-1, 1, 1)).sum(dim=(-3, -2, -1))
+
+
 @contextlib.contextmanager
-def decoder_before():
-    body = ConvDecoder.body
-    ConvDecoder.body = decoder_body_before
+def code_before():
+    """Mode ``before``: the decoder, the likelihood sum and the input check as they were
+    before 2026-11-27 (the reference of that day's changes)."""
+    saved = ConvDecoder.body, lf.gaussian_nll_frames, lf_module.nonfinite_inputs
+    check = lf_module.nonfinite_inputs
+    ConvDecoder.body, lf.gaussian_nll_frames = decoder_body_before, nll_frames_before
+    lf_module.nonfinite_inputs = lambda batch, max_frames=8: (  # noqa: E731
+        [] if all(not torch.is_tensor(x) or bool(torch.isfinite(x).all())
+                  for x in (batch.get("obs"), batch.get("actions"))) else check(batch, max_frames))
     try:
         yield
     finally:
-        ConvDecoder.body = body
+        ConvDecoder.body, lf.gaussian_nll_frames, lf_module.nonfinite_inputs = saved
 
 
 def scene_module(scene: str, modality: str | None):
@@ -106,7 +120,7 @@ class Mode:
         if mode == "bf16":
             self.ctx = lambda: torch.autocast("cpu", dtype=torch.bfloat16)
         elif mode == "before":
-            self.ctx = decoder_before
+            self.ctx = code_before
         elif mode == "compile":
             for parent in list(m.observation.modules()):  # every encoder and decoder, in place
                 for k, child in list(parent.named_children()):
@@ -228,7 +242,7 @@ def main() -> None:
     for mode in modes:  # warm-up (and compilation); FLOPs of the first mode's step
         cm = FlopCounterMode(display=False) if flops is None else contextlib.nullcontext()
         t0 = time.perf_counter()
-        with cm:
+        with cm, code_before() if flops is None else contextlib.nullcontext():  # the useful FLOPs
             mode.run(batch)
         if flops is None:
             flops = cm.get_total_flops()
@@ -243,7 +257,8 @@ def main() -> None:
         ceil.append(matmul_ceiling())
     c = max(ceil)
     gflop = flops / 1e9
-    print(f"\n{gflop:.1f} GFLOP per step (flop_counter, mode {modes[0].name}); matmul ceiling "
+    print(f"\n{gflop:.1f} GFLOP per step (flop_counter, mode {modes[0].name} with the code before: the "
+          f"sub-pixel layer's zero taps not counted); matmul ceiling "
           f"{', '.join(f'{x:.0f}' for x in ceil)} GFLOP/s (before the first round, after each; max {c:.0f} used); "
           f"load at end {', '.join(f'{x:.1f}' for x in os.getloadavg())}")
     ref = {name: statistics.median(md.wall) for md in modes for name in [md.name]}

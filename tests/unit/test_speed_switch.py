@@ -192,11 +192,12 @@ def _decoder_reference(dec, z):
     return dec.deconv(h)
 
 
-def test_training_step_equals_the_reference_decoder(monkeypatch):
+def test_training_step_equals_the_reference_computation(monkeypatch):
     """A training loss and its gradients on a fixed batch of >= CHANNELS_LAST_MIN_FRAMES
-    frames: the sub-pixel last layer and the contiguous means give the reference's to
-    float rounding (the loss to ~1e-6 relative)."""
-    from embodied_tactile.model import LatentFilter, networks
+    frames: the sub-pixel last layer, the contiguous means and the per-frame likelihood
+    sum give the reference's (the elementwise likelihood, the transposed conv) to float
+    rounding (the loss to ~1e-6 relative)."""
+    from embodied_tactile.model import LatentFilter, latent_filter, networks
 
     torch.manual_seed(0)
     m = LatentFilter("multi_l", obs_sigma=0.1, obs_dropout=0.0, encoder={"widths": [4, 8], "hidden": 16})
@@ -216,8 +217,40 @@ def test_training_step_equals_the_reference_decoder(monkeypatch):
     loss_new, g_new, contiguous = loss_and_grads()
     assert contiguous  # the means in the observations' layout
     monkeypatch.setattr(networks.ConvDecoder, "body", _decoder_reference)
+    monkeypatch.setattr(latent_filter, "gaussian_nll_frames", lambda x, mean, ls: networks.gaussian_nll(
+        x, mean, ls.view(-1, 1, 1)).sum(dim=(-3, -2, -1)))
     loss_ref, g_ref, _ = loss_and_grads()
     assert abs(float(loss_new) - float(loss_ref)) <= 1e-6 * abs(float(loss_ref)) + 1e-4
     assert g_new.keys() == g_ref.keys() and len(g_ref) > 10
     for name, g in g_ref.items():  # relative to each gradient's largest entry (measured <= 2e-6)
         assert float((g_new[name] - g).abs().max()) <= 1e-5 * float(g.abs().max()), name
+
+
+def test_frame_likelihood_equals_the_elementwise_sum():
+    """gaussian_nll_frames: the per-frame sum of gaussian_nll, its value and gradients to
+    float rounding."""
+    from embodied_tactile.model.networks import gaussian_nll, gaussian_nll_frames
+
+    torch.manual_seed(0)
+    x = torch.rand(3, 7, 3, 28, 28)
+    mean = torch.rand(3, 7, 3, 28, 28, requires_grad=True)
+    ls = torch.tensor([-2.3, -1.0, 0.2], requires_grad=True)
+    ref = gaussian_nll(x, mean, ls.view(-1, 1, 1)).sum(dim=(-3, -2, -1))
+    new = gaussian_nll_frames(x, mean, ls)
+    assert new.shape == (3, 7)
+    torch.testing.assert_close(new, ref, rtol=1e-6, atol=1e-3)
+    g_ref = torch.autograd.grad(ref.sum(), (mean, ls))
+    g_new = torch.autograd.grad(new.sum(), (mean, ls))
+    for a, b in zip(g_new, g_ref):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-4)
+
+
+def test_the_input_check_reads_a_finite_sum_as_finite_inputs_and_still_names_bad_frames():
+    from embodied_tactile.model.module import nonfinite_inputs
+
+    big = {"obs": torch.full((2, 3, 1, 28, 28), 3e38), "actions": torch.zeros(2, 3, 6)}  # finite; the sum overflows
+    assert not torch.isfinite(big["obs"].sum()) and nonfinite_inputs(big) == []
+    bad = {"obs": torch.rand(2, 3, 1, 28, 28), "actions": torch.zeros(2, 3, 6)}
+    assert nonfinite_inputs(bad) == []
+    bad["obs"][1, 2, 0, 5, 5] = float("nan")
+    assert nonfinite_inputs(bad) == ["batch row 1 obs frame 2"]

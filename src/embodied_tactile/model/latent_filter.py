@@ -36,7 +36,7 @@ from .networks import (
     float32_region,
     fuse_gaussians,
     gaussian_entropy,
-    gaussian_nll,
+    gaussian_nll_frames,
     kl_diag_gaussians,
     small_batch_convs,
 )
@@ -335,8 +335,7 @@ class LatentFilter(nn.Module):
         obs, actions = batch["obs"], batch["actions"]
         out = self.forward(obs, actions, sample=sample)
         T = obs.shape[1]
-        log_sigma = self.obs_log_sigma().view(1, 1, -1, 1, 1)  # broadcasts over (B, T, C, 28, 28)
-        nll = gaussian_nll(obs, out["recon"], log_sigma).sum(dim=(1, 2, 3, 4)).mean()
+        nll = gaussian_nll_frames(obs, out["recon"], self.obs_log_sigma()).sum(1).mean()
         kl_z = kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"]).sum(1).mean()
         ent = gaussian_entropy(out["z_var"]).sum(1)
         if T > 1:
@@ -443,8 +442,7 @@ class LatentFilter(nn.Module):
         obs = batch["obs"]
         out = self.rollout(obs, batch["actions"], y, initial_frames, sample=sample, refilter=refilter)
         B, T = obs.shape[:2]
-        log_sigma = self.obs_log_sigma().view(1, 1, -1, 1, 1)
-        nll = gaussian_nll(obs, out["recon"], log_sigma).sum(dim=(1, 2, 3, 4)).mean()
+        nll = gaussian_nll_frames(obs, out["recon"], self.obs_log_sigma()).sum(1).mean()
         kl_z = kl_diag_gaussians(out["z_mean"], out["z_var"], out["zp_mean"], out["zp_var"]).sum(1).mean()
         py_m, py_v = self.population_marginal(B, obs.device)
         kl_y = kl_diag_gaussians(y_m, y_v, py_m, py_v).mean()

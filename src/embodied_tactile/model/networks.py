@@ -90,6 +90,20 @@ def gaussian_nll(x: Tensor, mean: Tensor, log_sigma: Tensor) -> Tensor:
         return 0.5 * r * r + ls + 0.5 * LOG_2PI
 
 
+def gaussian_nll_frames(x: Tensor, mean: Tensor, log_sigma: Tensor) -> Tensor:
+    """``gaussian_nll(x, mean, log_sigma.view(-1, 1, 1))`` summed over each frame's channels
+    and pixels, for frames x, mean (..., C, H, W) and one ``log_sigma`` per channel (C,):
+    (...,), float32. Per channel 0.5 exp(-2 log_sigma) sum (x - mean)^2 + H W (log_sigma
+    + 0.5 log 2 pi): the same sum, float rounding aside, in three passes over the frames
+    instead of about a dozen (the likelihood of a training step at the paper's shapes 0.71
+    -> 0.37 s, docs/experiments/speed_levers.md, 2026-11-27)."""
+    with float32_region(x):
+        d = x.float() - mean.float()
+        ls = log_sigma.float()
+        sq = d.square().sum(dim=(-2, -1))  # (..., C)
+        return (0.5 * sq * torch.exp(-2.0 * ls) + x.shape[-2] * x.shape[-1] * (ls + 0.5 * LOG_2PI)).sum(-1)
+
+
 #: Largest batch at which ``small_batch_convs`` switches oneDNN off. Measured with
 #: ``benchmarks/bench_small_batch_convs.py`` (torch 2.13 CPU, 1 thread, multi_l filter_step,
 #: docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md): oneDNN off is 1.32x faster at batch 1 and 1.18x at 2, even at 4,
