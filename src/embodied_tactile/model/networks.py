@@ -267,7 +267,7 @@ class ConvDecoder(_CompilableBody):
         h = h.contiguous(memory_format=torch.channels_last)  # ~2x faster transposed convs
         h = self.deconv[1](self.deconv[0](h))
         last = self.deconv[2]
-        return subpixel_conv_transpose(h, last.weight, last.bias).contiguous()
+        return subpixel_conv_transpose(h, last.weight, last.bias)
 
 
 #: ``_SUBPIXEL_TAPS[r]``: for output phase r (row or column 2m + r) of a stride-2, 4-tap,
@@ -278,8 +278,9 @@ _SUBPIXEL_TAPS = ((3, 1, 4), (4, 2, 0))
 def subpixel_conv_transpose(x: Tensor, weight: Tensor, bias: Optional[Tensor]) -> Tensor:
     """``F.conv_transpose2d(x, weight, bias, stride=2, padding=1)`` for a 4x4 kernel
     (:class:`ConvDecoder`'s layers), computed as one 3x3 convolution to the four output
-    phases (2 x 2 of each output pixel's row and column parity) and a pixel shuffle. The
-    same products and sums, float rounding aside (tests/unit/test_speed_switch.py). oneDNN's
+    phases (2 x 2 of each output pixel's row and column parity) and a pixel shuffle, the
+    result contiguous. The same products and sums, float rounding aside
+    (tests/unit/test_speed_switch.py). oneDNN's
     transposed-conv forward to 1-2 output channels runs far below its conv forward on CPU
     (docs/experiments/speed_levers.md, 2026-11-27)."""
     c_in, c_out = weight.shape[:2]
@@ -289,7 +290,9 @@ def subpixel_conv_transpose(x: Tensor, weight: Tensor, bias: Optional[Tensor]) -
     w = F.pad(weight, (0, 1, 0, 1))[:, :, idx[:, :, None, None], idx[None, None, :, :]]  # (in, out, r, a, s, b)
     w = w.permute(1, 2, 4, 0, 3, 5).reshape(4 * c_out, c_in, 3, 3)
     b = None if bias is None else bias.repeat_interleave(4)
-    return F.pixel_shuffle(F.conv2d(x, w, b, padding=1), 2)
+    y = F.conv2d(x, w, b, padding=1)  # (N, 4 c_out, H, W): channel 4 c + 2 r + s
+    n, _, h, wd = y.shape  # the pixel shuffle as one copy into the contiguous layout, whatever y's
+    return y.view(n, c_out, 2, 2, h, wd).permute(0, 1, 4, 2, 5, 3).reshape(n, c_out, 2 * h, 2 * wd)
 
 
 class TransitionNet(nn.Module):
