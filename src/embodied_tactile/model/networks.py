@@ -292,7 +292,7 @@ def subpixel_conv_transpose(x: Tensor, weight: Tensor, bias: Optional[Tensor]) -
     b = None if bias is None else bias.repeat_interleave(4)
     y = F.conv2d(x, w, b, padding=1)  # (N, 4 c_out, H, W): channel 4 c + 2 r + s
     n, _, h, wd = y.shape  # the pixel shuffle as one copy into the contiguous layout, whatever y's
-    return y.view(n, c_out, 2, 2, h, wd).permute(0, 1, 4, 2, 5, 3).reshape(n, c_out, 2 * h, 2 * wd)
+    return y.reshape(n, c_out, 2, 2, h, wd).permute(0, 1, 4, 2, 5, 3).reshape(n, c_out, 2 * h, 2 * wd)
 
 
 class TransitionNet(nn.Module):
