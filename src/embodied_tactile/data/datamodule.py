@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -25,6 +26,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from embodied_tactile.data.prepare import PreparedData, Scene, TrialRef, data_dir_lock, prepare_scene
+from embodied_tactile.options.data import LoaderOptions, SceneOptions, SplitOptions, group_options
 from embodied_tactile.data.statistics import DataStatistics
 from embodied_tactile.run.jsonio import write_json
 from embodied_tactile.data.modality import CHANNELS, fields_for_channels
@@ -100,8 +102,9 @@ class ConstantChannelError(ValueError):
     """A channel of the modality carries no signal over the training split."""
 
 
-def split_trials(trials: Sequence[TrialRef], *, by: str = "trial", test_fraction: float = 0.25,
-                 val_fraction: float = 0.125, seed: int = 0, roles: Mapping[int, str] | None = None
+def split_trials(trials: Sequence[TrialRef], *, by: str = SplitOptions.split,
+                 test_fraction: float = SplitOptions.test_fraction, val_fraction: float = SplitOptions.val_fraction,
+                 seed: int = SplitOptions.split_seed, roles: Mapping[int, str] | None = None
                  ) -> tuple[list[TrialRef], list[TrialRef], list[TrialRef]]:
     """Train / validation / test split, independent of listing order and stable for a seed.
 
@@ -346,11 +349,28 @@ class TactileSequenceDataset(Dataset):
         return item
 
 
+def _plain(value: Any) -> Any:
+    """An OmegaConf container as plain Python (Hydra hands nodes over as they are)."""
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+
+
+def _options(cls: type, given: Any) -> Any:
+    """``given`` as an options dataclass ``cls`` (a mapping: its keys over the defaults)."""
+    if isinstance(given, cls):
+        return given
+    return cls(**{k: _plain(v) for k, v in dict(given or {}).items()})
+
+
 class TactileDataModule(L.LightningDataModule):
     """Serves batches ``obs (B,T,C,28,28)``, ``actions (B,T,6)``, ``object_id``, ``factors``,
     ``action_index`` for one skin x primitive x modality scene.
 
-    Args:
+    Three groups of options (:mod:`embodied_tactile.options.data`, each a dataclass or a
+    mapping of its keys over the defaults): ``scene`` (what is prepared), ``split`` (how it is
+    split), ``loader`` (how it is served); :meth:`from_config` takes the flat keys of a data
+    config. The keys:
         source: ``"simulated"`` (raw file ``<data_dir>/raw/<skin>_<primitive>.h5``, missing
             trials simulated by the preparation stage) or ``"recorded"`` (``raw_files``, never
             generated).
@@ -388,80 +408,42 @@ class TactileDataModule(L.LightningDataModule):
             ``prepare.POPULATION_MAX_TRIALS`` trials (refused otherwise, with its estimate).
     """
 
-    def __init__(
-        self,
-        *,
-        data_dir: str = "data",
-        source: str = "simulated",
-        raw_files: Sequence[str] | None = None,
-        skin: str = "soft",
-        primitive: str = "pressing",
-        channels: Sequence[str] = ("acc", "fsr_t", "fsr_b"),
-        objects: Sequence[int] | str | None = None,
-        n_objects: int = 256,
-        n_val_objects: int = 32,
-        n_test_objects: int = 64,
-        population_seed: int = 0,
-        actions: Sequence[int] | None = None,
-        repetitions: int = 1,
-        sim_seed: int = 0,
-        sim_workers: int = 2,
-        preprocess: Mapping[str, Any] | None = None,
-        preprocess_workers: int = 2,
-        split: str = "trial",
-        test_fraction: float = 0.25,
-        val_fraction: float = 0.125,
-        split_seed: int = 0,
-        split_file: str | None = None,
-        batch_size: int = 48,
-        num_workers: int = 0,
-        seq_len: int | None = None,
-        train_window: int | None = None,
-        windows_per_trial: int | None = 1,
-        windows_per_epoch: int | None = None,
-        context: str | None = None,
-        strict: bool = False,
-        include_incomplete: bool = False,
-        allow_large_population: bool = False,
-        pin_memory: bool = False,
-    ):
+    def __init__(self, scene: SceneOptions | Mapping[str, Any] | None = None,
+                 split: SplitOptions | Mapping[str, Any] | None = None,
+                 loader: LoaderOptions | Mapping[str, Any] | None = None):
         super().__init__()
+        scene, split, loader = (_options(cls, given) for cls, given in
+                                ((SceneOptions, scene), (SplitOptions, split), (LoaderOptions, loader)))
         #: what the preparation stage prepares (validates source, skin, primitive, raw_files, channels)
-        self.scene = Scene(
-            data_dir=data_dir, source=source, raw_files=tuple(raw_files or ()), skin=skin, primitive=primitive,
-            channels=tuple(channels), objects=objects, n_objects=n_objects, n_val_objects=n_val_objects,
-            n_test_objects=n_test_objects, population_seed=population_seed, actions=actions, repetitions=repetitions,
-            sim_seed=sim_seed, sim_workers=sim_workers, preprocess=preprocess or {},
-            preprocess_workers=preprocess_workers, strict=strict, include_incomplete=include_incomplete,
-            allow_large_population=allow_large_population,
-        )
-        self.source = source
-        self.skin = skin
-        self.primitive = primitive
-        self.channels = list(channels)
+        self.scene = Scene.from_config(asdict(scene))
+        self.source = self.scene.source
+        self.skin = self.scene.skin
+        self.primitive = self.scene.primitive
+        self.channels = list(self.scene.channels)
         self.fields = self.scene.fields
-        if split not in SPLITS:
-            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-        self.split = split
-        self.test_fraction = float(test_fraction)
-        self.val_fraction = float(val_fraction)
-        self.split_seed = int(split_seed)
-        self.split_file = split_file
-        self.batch_size = int(batch_size)
-        self.num_workers = int(num_workers)
-        self.seq_len = seq_len
-        self.train_window = None if train_window is None else int(train_window)
-        if (windows_per_trial is None) == (windows_per_epoch is None):
-            raise ValueError(f"give one of windows_per_trial ({windows_per_trial}) and windows_per_epoch "
-                             f"({windows_per_epoch}), the other null")
-        if windows_per_epoch is not None and int(windows_per_epoch) < 1:
-            raise ValueError(f"windows_per_epoch must be >= 1, got {windows_per_epoch}")
-        self.windows_per_trial = 1 if windows_per_trial is None else int(windows_per_trial)
-        self.windows_per_epoch = None if windows_per_epoch is None else int(windows_per_epoch)
-        self.pin_memory = bool(pin_memory)
-        if context not in CONTEXTS:
-            raise ValueError(f"context must be one of {CONTEXTS}, got {context!r}")
-        self.context = context
+        if split.split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split.split!r}")
+        self.split = split.split  # the split's kind ('trial' | 'object')
+        self.test_fraction = float(split.test_fraction)
+        self.val_fraction = float(split.val_fraction)
+        self.split_seed = int(split.split_seed)
+        self.split_file = split.split_file
+        self.batch_size = int(loader.batch_size)
+        self.num_workers = int(loader.num_workers)
+        self.seq_len = loader.seq_len
+        self.train_window = None if loader.train_window is None else int(loader.train_window)
+        per_trial, per_epoch = loader.windows_per_trial, loader.windows_per_epoch
+        if (per_trial is None) == (per_epoch is None):
+            raise ValueError(f"give one of windows_per_trial ({per_trial}) and windows_per_epoch "
+                             f"({per_epoch}), the other null")
+        if per_epoch is not None and int(per_epoch) < 1:
+            raise ValueError(f"windows_per_epoch must be >= 1, got {per_epoch}")
+        self.windows_per_trial = 1 if per_trial is None else int(per_trial)
+        self.windows_per_epoch = None if per_epoch is None else int(per_epoch)
+        self.pin_memory = bool(loader.pin_memory)
+        if loader.context not in CONTEXTS:
+            raise ValueError(f"context must be one of {CONTEXTS}, got {loader.context!r}")
+        self.context = loader.context
         #: the preparation stage's result (prepare_data, or attach() with one prepared elsewhere)
         self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
@@ -472,6 +454,14 @@ class TactileDataModule(L.LightningDataModule):
         self.test_set: TactileSequenceDataset | None = None  # held out: evaluation only
         self.train_crops: TactileSequenceDataset | None = None  # what train_dataloader serves
         self.val_pairs: TactileSequenceDataset | None = None  # what val_dataloader serves with a context
+
+    @classmethod
+    def from_config(cls, data: Mapping[str, Any] | None = None, /, **flat: Any) -> "TactileDataModule":
+        """The DataModule of a flat data config (``configs/data/*.yaml``, a run's saved
+        ``data``, or keyword arguments; ``_target_`` ignored), sorted into its three groups
+        (:func:`embodied_tactile.options.data.group_options`)."""
+        given = {**(_plain(data) or {}), **{k: _plain(v) for k, v in flat.items()}}
+        return cls(*group_options(given))
 
     # ------------------------------------------------------------------ preparation
     @property
