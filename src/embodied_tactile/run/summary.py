@@ -22,7 +22,8 @@ from typing import Any, Mapping, Sequence
 
 from ..constants import FACTOR_NAMES
 from .jsonio import read_json
-from ..model.compat import UNSAVED_PRIOR_OPTIONS
+from ..model.compat import UNSAVED_OPTIONS, UNSAVED_PRIOR_OPTIONS
+from ..model.options import LatentFilterOptions, PriorOptions
 
 FACTOR_SHORT = {"spatial_frequency": "spatial freq.", "amplitude": "amplitude", "stiffness": "stiffness",
                 "heterogeneity": "heterogeneity"}
@@ -39,7 +40,7 @@ def recipe(cfg) -> str:
 
     labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=UNSAVED_PRIOR_OPTIONS["labels"]))
     parts = ["labels" if labels else "no labels"]
-    if labels and OmegaConf.select(cfg, "model.net.prior.learn_embedding", default=False):
+    if labels and OmegaConf.select(cfg, "model.net.prior.learn_embedding", default=PriorOptions.learn_embedding):
         parts.append("learned codes")
     y_weight = OmegaConf.select(cfg, "annealing.schedule.y_weight", default=None)
     if y_weight is not None:
@@ -47,10 +48,11 @@ def recipe(cfg) -> str:
     y_update = OmegaConf.select(cfg, "model.net.y_update", default=None)
     if y_update is not None:
         parts.append(f"y {y_update}")
-    dropout = float(OmegaConf.select(cfg, "model.net.obs_dropout", default=0.0) or 0.0)
+    # a config silent on it predates the option: those networks were trained without dropout (compat)
+    dropout = float(OmegaConf.select(cfg, "model.net.obs_dropout", default=UNSAVED_OPTIONS["obs_dropout"]) or 0.0)
     if dropout > 0:
         parts.append(f"dropout {dropout:g}")
-    if OmegaConf.select(cfg, "model.net.y_start", default="fixed") == "population":
+    if OmegaConf.select(cfg, "model.net.y_start", default=LatentFilterOptions.y_start) == "population":
         parts.append("y from the population")
     context = OmegaConf.select(cfg, "model.context", default=None)
     if context:
