@@ -44,6 +44,15 @@ def defaults_file() -> Path:
 
 
 # ----------------------------------------------------------------------------- options
+def evaluation_keys() -> list[str]:
+    """evaluate.py's option names (:class:`~embodied_tactile.options.evaluation.EvaluationOptions`)."""
+    from dataclasses import fields
+
+    from embodied_tactile.options.evaluation import EvaluationOptions
+
+    return [f.name for f in fields(EvaluationOptions)]
+
+
 def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
     """:class:`~embodied_tactile.options.evaluation.EvaluationOptions` + ``configs/evaluate.yaml``
     + ``key=value`` overrides (unknown top-level keys rejected;
@@ -93,7 +102,7 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
 def split_overrides(overrides: Sequence[str]) -> tuple[list[str], dict[str, list[str]]]:
     """-> (evaluation options: keys of configs/evaluate.yaml, run selection: every other
     ``key=value``, e.g. ``modality=multi_l skin=hard seed=[0,1] annealing.name=dvbf``)."""
-    known = set(OmegaConf.load(defaults_file()).keys())
+    known = set(evaluation_keys())
     options, selection = [], {}
     for o in overrides:
         key = o.split("=", 1)[0]
@@ -127,7 +136,7 @@ def select_runs(runs: list[Run], selection: dict[str, list[str]]) -> list[Run]:
         if all(h is None for h in have):
             raise EvaluationError(
                 f"unknown evaluation option or run selector {key!r}: not an option of configs/evaluate.yaml "
-                f"({sorted(OmegaConf.load(defaults_file()).keys())}) nor a key of the runs' config_resolved.yaml")
+                f"({sorted(evaluation_keys())}) nor a key of the runs' config_resolved.yaml")
         kept = [r for r, h in zip(runs, have) if h is not None and _matches(h, want)]
         if not kept:
             raise EvaluationError(f"no run matches {key}={','.join(want)} (the runs have {key} = "
