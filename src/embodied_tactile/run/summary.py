@@ -54,7 +54,9 @@ def recipe(cfg) -> str:
         parts.append("y from the population")
     context = OmegaConf.select(cfg, "model.context", default=None)
     if context:
+        touches = int(context.get("touches", 1) or 1)
         parts.insert(0, f"context objective ({context.get('source', 'trial')}"
+                     + (f", {touches} touches" if touches > 1 else "")
                      + (", refilter" if context.get("refilter") else "") + ")")
     return ", ".join(parts)
 
