@@ -208,7 +208,9 @@ class TactileSequenceDataset(Dataset):
     ``context_obs`` / ``context_actions`` (with ``context_trial`` and
     ``context_first_frame``): ``"trial"``, a ``window``-frame crop (the whole trial without
     ``window``) of another trial of the same object, drawn at random among its trials in
-    this set; ``"window"``, a second ``window``-frame crop of the same trial, disjoint from
+    this set (``context_touches`` > 1: that many distinct other trials, served with a leading
+    touch axis, ``context_obs`` (M, T, C, 28, 28), ``context_trial`` their names joined by
+    ``+``); ``"window"``, a second ``window``-frame crop of the same trial, disjoint from
     the target's (two disjoint crops, which one is the target drawn at random). The object
     id only picks the trials to pair; it is served as before and never used as the pairing's
     output. ``draw_seed`` makes every item's draws a function of (seed, index) (validation:
@@ -217,7 +219,7 @@ class TactileSequenceDataset(Dataset):
 
     def __init__(self, cache_files: Mapping[str, str], trials: Sequence[TrialRef], channels: Sequence[str],
                  seq_len: int | None = None, window: int | None = None, windows_per_trial: int = 1,
-                 context: str | None = None, draw_seed: int | None = None):
+                 context: str | None = None, draw_seed: int | None = None, context_touches: int = 1):
         self.cache_files = dict(cache_files)
         self.trials = list(trials)
         self.channels = list(channels)
@@ -238,16 +240,21 @@ class TactileSequenceDataset(Dataset):
             raise ValueError("context='window' needs a window: two disjoint crops of one trial")
         self.context = context
         self.draw_seed = draw_seed
+        if int(context_touches) < 1 or (int(context_touches) > 1 and context != "trial"):
+            raise ValueError(f"context_touches must be 1, or > 1 with context='trial' (other trials of the object), "
+                             f"got {context_touches} with context={context!r}")
+        self.context_touches = int(context_touches)
         #: trial name -> the other trials of its object in this set (context='trial')
         self.others: dict[str, list[TrialRef]] = {}
         if context == "trial":
             by_obj: dict[int, list[TrialRef]] = {}
             for tr in self.trials:
                 by_obj.setdefault(tr.object_id, []).append(tr)
-            alone = sorted(o for o, items in by_obj.items() if len(items) < 2)
-            if alone:
-                raise ValueError(f"context='trial' pairs trials of one object, but object(s) {alone[:5]} have a "
-                                 "single trial in this set")
+            few = sorted(o for o, items in by_obj.items() if len(items) < 1 + self.context_touches)
+            if few:
+                raise ValueError(f"context='trial' pairs each trial with {self.context_touches} other trial(s) of its "
+                                 f"object, but object(s) {few[:5]} have fewer than {1 + self.context_touches} trials "
+                                 "in this set")
             self.others = {tr.name: [t for t in by_obj[tr.object_id] if t.name != tr.name] for tr in self.trials}
         self._handles: dict[str, h5py.File] | None = None
 
@@ -326,7 +333,11 @@ class TactileSequenceDataset(Dataset):
             ctx_tr = tr
         else:
             sl = self._rows(h, tr, gen)
-        if self.context == "trial":
+        if self.context == "trial" and self.context_touches > 1:
+            others = self.others[tr.name]
+            picks = torch.randperm(len(others), generator=gen)[:self.context_touches]
+            touches = [(others[int(j)], self._rows(h, others[int(j)], gen)) for j in picks]
+        elif self.context == "trial":
             others = self.others[tr.name]
             ctx_tr = others[int(torch.randint(0, len(others), (), generator=gen))]
             ctx_sl = self._rows(h, ctx_tr, gen)
@@ -346,6 +357,12 @@ class TactileSequenceDataset(Dataset):
                         context_actions=torch.from_numpy(np.ascontiguousarray(c_actions)),
                         context_trial=ctx_tr.name,
                         context_first_frame=torch.tensor(ctx_sl.start or 0, dtype=torch.long))
+        elif self.context_touches > 1:
+            reads = [self._read(h, c_tr, c_sl) for c_tr, c_sl in touches]
+            item.update(context_obs=torch.from_numpy(np.stack([r[0] for r in reads])),
+                        context_actions=torch.from_numpy(np.stack([r[1] for r in reads])),
+                        context_trial="+".join(c_tr.name for c_tr, _ in touches),
+                        context_first_frame=torch.tensor([c_sl.start or 0 for _, c_sl in touches], dtype=torch.long))
         return item
 
 
@@ -401,6 +418,8 @@ class TactileDataModule(L.LightningDataModule):
             the same every epoch). The alignment and evaluation loaders
             (:meth:`train_eval_dataloader`, :meth:`val_eval_dataloader`,
             :meth:`test_dataloader`) serve whole trials as without it.
+        context_touches: with ``context="trial"``, how many other trials of the object make
+            up one context (``model.context.touches``).
         strict: a bad raw trial is fatal instead of skipped.
         include_incomplete: also use recordings marked ``complete=False`` (interrupted);
             by default they are left out and counted in a warning.
@@ -444,6 +463,7 @@ class TactileDataModule(L.LightningDataModule):
         if loader.context not in CONTEXTS:
             raise ValueError(f"context must be one of {CONTEXTS}, got {loader.context!r}")
         self.context = loader.context
+        self.context_touches = int(loader.context_touches)
         #: the preparation stage's result (prepare_data, or attach() with one prepared elsewhere)
         self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
@@ -554,7 +574,8 @@ class TactileDataModule(L.LightningDataModule):
                 or self.context is not None):
             self.train_crops = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len,
                                                       window=self.train_window,
-                                                      windows_per_trial=self.windows_per_trial, context=self.context)
+                                                      windows_per_trial=self.windows_per_trial, context=self.context,
+                                                      context_touches=self.context_touches)
         self.val_pairs = self.held_out_pairs(val) if self.context is not None and val else self.val_set
         log.info("data: %d train / %d validation / %d test sequences (split=%s), channels %s, skipped %d bad trial(s)",
                  len(train), len(val), len(test), self.split, self.channels, len(self.skipped))
@@ -567,7 +588,8 @@ class TactileDataModule(L.LightningDataModule):
         if self.context is None:
             raise ValueError("held_out_pairs needs a DataModule with context=trial|window")
         return TactileSequenceDataset(self.cache_files, trials, self.channels, self.seq_len,
-                                      window=self.train_window, context=self.context, draw_seed=self.split_seed)
+                                      window=self.train_window, context=self.context, draw_seed=self.split_seed,
+                                      context_touches=self.context_touches)
 
     def _load_split(self, refs: Sequence[TrialRef]) -> tuple[list[TrialRef], list[TrialRef], list[TrialRef]]:
         """Reuse a saved split (resumed runs, evaluation): the split belongs to the run.

@@ -62,6 +62,7 @@ class LoaderOptions:
     windows_per_trial: Optional[int] = 1     # random crops per training trial and epoch
     windows_per_epoch: Optional[int] = None  # instead of windows_per_trial (then null): crops per epoch
     context: Optional[str] = None            # the context objective's pairing: null | trial | window
+    context_touches: int = 1                 # context=trial: other trials of the object per context
     pin_memory: bool = False
 
 

@@ -35,7 +35,8 @@ def recipe(cfg) -> str:
     """The settings that tell the learning curve's Latent Filter recipes apart, as the run
     used them: the prior's object labels, the KL schedule's y weight, the y update and the
     observation dropout (the last three where the run's config has them); with the context
-    objective its context source and the settings that tell its rungs apart."""
+    objective its context source and the settings that tell its rungs apart; a learning-rate
+    schedule other than constant."""
     from omegaconf import OmegaConf
 
     labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=UNSAVED_PRIOR_OPTIONS["labels"]))
@@ -54,9 +55,14 @@ def recipe(cfg) -> str:
         parts.append(f"dropout {dropout:g}")
     if OmegaConf.select(cfg, "model.net.y_start", default=LatentFilterOptions.y_start) == "population":
         parts.append("y from the population")
+    schedule = OmegaConf.select(cfg, "model.lr_schedule", default="constant")
+    if schedule != "constant":
+        parts.append(f"{schedule} schedule")
     context = OmegaConf.select(cfg, "model.context", default=None)
     if context:
+        touches = int(context.get("touches", 1) or 1)
         parts.insert(0, f"context objective ({context.get('source', 'trial')}"
+                     + (f", {touches} touches" if touches > 1 else "")
                      + (", refilter" if context.get("refilter") else "") + ")")
     return ", ".join(parts)
 
