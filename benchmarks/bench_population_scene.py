@@ -42,7 +42,7 @@ def cpu_seconds() -> float:
 def prepare(data_dir: Path, n_objects: int, workers: int) -> dict:
     from embodied_tactile.data.datamodule import TactileDataModule
 
-    dm = TactileDataModule(data_dir=str(data_dir), objects="population", n_objects=n_objects, actions=[6, 14],
+    dm = TactileDataModule.from_config(data_dir=str(data_dir), objects="population", n_objects=n_objects, actions=[6, 14],
                            skin="soft", primitive="pressing", split="object", sim_workers=workers,
                            preprocess_workers=workers)
     c0, t0 = cpu_seconds(), time.perf_counter()

@@ -79,16 +79,16 @@ def held_out_pairs(run, held_out: str = "val"):
     """The held-out objects' context / target pairs (the DataModule's ``context=trial``
     pairing: validation pairs as training sees them; test pairs built the same way, draws
     seeded by the split seed) -> their trials and batches."""
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
     from torch.utils.data import DataLoader
+
+    from embodied_tactile.data.datamodule import TactileDataModule
 
     from embodied_tactile.eval.runs import data_config
 
     opts = OmegaConf.create({"data": {"batch_size": 64, "num_workers": 0}})
     data = data_config(run, opts)
     data["context"] = "trial"
-    dm = instantiate(OmegaConf.create(data), _convert_="all")
+    dm = TactileDataModule.from_config(data)
     dm.prepare_data()
     dm.setup("fit")
     if held_out == "val":
@@ -153,6 +153,7 @@ def write_untrained(run_dir: Path, out: Path) -> Path:
     from omegaconf import OmegaConf
 
     import embodied_tactile.run.config  # noqa: F401  the typed configs and resolver
+    from embodied_tactile.data.datamodule import TactileDataModule
     from embodied_tactile.eval.runs import data_config, load_run
 
     run = load_run(run_dir, "last")
@@ -163,7 +164,7 @@ def write_untrained(run_dir: Path, out: Path) -> Path:
     module = instantiate(run.cfg.model)
     if module.model.input_standardize:
         opts = OmegaConf.create({"data": {"batch_size": None, "num_workers": 0}})
-        dm = instantiate(OmegaConf.create(data_config(run, opts)), _convert_="all")
+        dm = TactileDataModule.from_config(data_config(run, opts))
         dm.prepare_data()
         dm.setup("fit")
         module.use_data_statistics(dm.statistics)
@@ -209,15 +210,13 @@ def _combined(split: dict, prior) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def split_posteriors(run_dir: Path, checkpoint: str, held_out: str = "val"):
     """A run's network and :func:`_posteriors` of its training trials and of its validation
     (or test) trials, factors encoded as the run's targets -> (run, net, train, held-out)."""
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
+    from embodied_tactile.data.datamodule import TactileDataModule
     from embodied_tactile.eval.pipeline import parse_options
     from embodied_tactile.eval.runs import data_config, load_module, load_run, trial_names
     from embodied_tactile.eval.targets import encode_split
 
     run = load_run(run_dir, checkpoint)
-    dm = instantiate(OmegaConf.create(data_config(run, parse_options([]))), _convert_="all")
+    dm = TactileDataModule.from_config(data_config(run, parse_options([])))
     dm.prepare_data()
     dm.setup("fit")
     net = load_module(run).model

@@ -76,7 +76,7 @@ def load_split(data_dir: Path, skin: str, primitive: str, seed: int, actions, si
     from embodied_tactile.data.datamodule import TactileDataModule
     from embodied_tactile.eval.targets import encode_split
 
-    dm = TactileDataModule(data_dir=str(data_dir), skin=skin, primitive=primitive, channels=ALL_CHANNELS,
+    dm = TactileDataModule.from_config(data_dir=str(data_dir), skin=skin, primitive=primitive, channels=ALL_CHANNELS,
                            actions=list(actions), sim_seed=0, sim_workers=sim_workers, preprocess=preprocess or {},
                            preprocess_workers=sim_workers,
                            split_seed=seed, split_file=None, batch_size=16,

@@ -62,7 +62,9 @@ def supervised(train, test, epochs: int, seed: int, **kwargs) -> dict[str, np.nd
     training and the held-out sequences at the last frame. It regresses 4 outputs: (w0, d)
     twice, each column standardised on its own."""
     four = lambda d: np.concatenate([_targets(d)] * 2, -1)  # noqa: E731
-    reg = GRURegressor(in_channels=1, action_dim=1, epochs=epochs, batch_size=16, seed=seed, **kwargs)
+    # whole sequences, raw inputs: the probe this page measured (GRUOptions are evaluate.py's crops)
+    reg = GRURegressor(in_channels=1, action_dim=1, epochs=epochs, batch_size=16, seed=seed, window=None,
+                       windows_per_trial=1, input_standardize=False, **kwargs)
     reg.fit(train.obs, train.actions, four(train))
     return {name: _r2(reg.predict(d.obs, d.actions)[:, -1, :2], _targets(d)) for name, d in
             (("train", train), ("held-out", test))}

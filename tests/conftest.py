@@ -43,7 +43,7 @@ def tiny_scene(data_dir: Path, channels=("acc",), **kw):
                 channels=tuple(channels), objects=TINY_OBJECTS, actions=TINY_ACTIONS, repetitions=2,
                 sim_workers=2, preprocess_workers=1)
     args.update(kw)
-    return Scene(**args)
+    return Scene.from_config(**args)
 
 
 @pytest.fixture(scope="session")
@@ -71,7 +71,7 @@ def tiny_datamodule(data_dir: Path, channels, **kw):
         batch_size=4, num_workers=0,
     )
     args.update(kw)
-    return TactileDataModule(**args)
+    return TactileDataModule.from_config(**args)
 
 
 @pytest.fixture(scope="session")

@@ -95,10 +95,61 @@ def test_trial_context_refuses_an_object_with_one_trial(tiny_data_dir, tmp_path)
     dm.prepare_data()
     dm.setup("fit")
     one = [dm.train_set.trials[0]]
-    with pytest.raises(ValueError, match="single trial"):
+    with pytest.raises(ValueError, match="fewer than 2 trials"):
         TactileSequenceDataset(dm.cache_files, one, ["acc"], context="trial")
     with pytest.raises(ValueError, match="needs a window"):
         TactileSequenceDataset(dm.cache_files, one, ["acc"], context="window")
+
+
+def test_a_context_of_several_touches_is_distinct_other_trials_of_the_object(paired, tmp_path):
+    """context_touches=3 on the tiny scene (4 trials per object): each item's context is the
+    object's three other trials, with a touch axis, each the rows of that trial; a fourth
+    touch is refused naming the objects."""
+    from embodied_tactile.data.datamodule import TactileSequenceDataset
+
+    dm = paired["trial"]
+    whole = {t.name: dm.train_set[i] for i, t in enumerate(dm.train_set.trials)}
+    ds = TactileSequenceDataset(dm.cache_files, dm.train_set.trials, ["acc"], window=40, context="trial",
+                                context_touches=3, draw_seed=0)
+    for i in range(len(ds)):
+        item, tr = ds[i], ds.trials[i % len(ds.trials)]
+        names = item["context_trial"].split("+")
+        assert item["context_obs"].shape == (3, 40, 1, 28, 28) and item["context_actions"].shape == (3, 40, 6)
+        assert len(set(names)) == 3 and tr.name not in names
+        assert {whole[n]["object_id"].item() for n in names} == {tr.object_id}
+        for k, n in enumerate(names):
+            start = int(item["context_first_frame"][k])
+            assert torch.equal(whole[n]["obs"][start:start + 40], item["context_obs"][k])
+    with pytest.raises(ValueError, match="fewer than 5 trials"):
+        TactileSequenceDataset(dm.cache_files, dm.train_set.trials, ["acc"], window=40, context="trial",
+                               context_touches=4)
+    with pytest.raises(ValueError, match="context_touches"):
+        TactileSequenceDataset(dm.cache_files, dm.train_set.trials, ["acc"], window=40, context="window",
+                               context_touches=2)
+
+
+def test_a_context_of_several_touches_combines_their_posteriors_by_the_product_rule():
+    """context_posterior over (B, M, T, ...) is combine_touches of the M touches' own
+    posteriors from touch_prior (the K-touch read-out's rule), and the module trains on it."""
+    torch.manual_seed(0)
+    net = LatentFilter("acc", y_start="population", **TINY).eval()
+    g = torch.Generator().manual_seed(3)
+    obs, actions = torch.rand(2, 3, 12, 1, 28, 28, generator=g), torch.randn(2, 3, 12, 6, generator=g)
+    with torch.no_grad():
+        m, v = net.context_posterior(obs, actions)
+        each = [net.context_posterior(obs[:, k], actions[:, k]) for k in range(3)]
+        ref_m, ref_v = combine_touches(torch.stack([e[0] for e in each]), torch.stack([e[1] for e in each]),
+                                       *net.touch_prior())
+    assert m.shape == v.shape == (2, net.n_y)
+    assert torch.allclose(m, ref_m, atol=1e-6) and torch.allclose(v, ref_v, atol=1e-7)
+    assert (v <= torch.stack([e[1] for e in each]).min(0).values + 1e-7).all()
+    module = LatentFilterModule(net, context={"source": "trial", "touches": 3})
+    batch = {**pair_batch(B=2), "context_obs": obs, "context_actions": actions}
+    loss = module.training_step(batch, 0)
+    assert torch.isfinite(loss)
+    loss.backward()
+    with pytest.raises(ValueError, match="touches"):
+        LatentFilterModule(LatentFilter("acc", **TINY), context={"source": "window", "touches": 2})
 
 
 # ------------------------------------------------------------------ the objective
@@ -159,7 +210,8 @@ def test_module_trains_on_pairs_and_refuses_batches_without_a_context(tmp_path):
     torch.manual_seed(0)
     module = LatentFilterModule(LatentFilter("acc", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
                                      context={"source": "trial", "initial_frames": 2})
-    assert module.hparams["context"] == {"source": "trial", "initial_frames": 2, "refilter": False, "filter_weight": 0.0}
+    assert module.hparams["context"] == {"source": "trial", "touches": 1, "initial_frames": 2, "refilter": False,
+                                       "filter_weight": 0.0}
     batch = pair_batch()
     opt = module.configure_optimizers()
     first = None
@@ -235,8 +287,9 @@ def test_a_checkpoint_with_the_removed_random_length_loads_at_its_off_value():
     loads; True is refused with a message that names it."""
     from embodied_tactile.model.module import check_context
 
-    assert check_context({"source": "trial", "random_length": False}) == {"source": "trial", "initial_frames": 3,
-                                                                          "refilter": False, "filter_weight": 0.0}
+    assert check_context({"source": "trial", "random_length": False}) == {"source": "trial", "touches": 1,
+                                                                          "initial_frames": 3, "refilter": False,
+                                                                          "filter_weight": 0.0}
     with pytest.raises(ValueError, match="random_length=True.*measured, rejected and removed"):
         check_context({"source": "trial", "random_length": True})
 
@@ -313,7 +366,9 @@ def test_recipe_context_sets_the_pairing_and_the_rungs(tmp_path):
     cfg = _compose(["experiment=population"], tmp_path)
     assert cfg.data.context == "trial" and cfg.model.net.obs_dropout == 0.0
     module = instantiate(cfg.model)
-    assert module.context == {"source": "trial", "initial_frames": 3, "refilter": False, "filter_weight": 0.0}
+    assert module.context == {"source": "trial", "touches": 1, "initial_frames": 3, "refilter": False,
+                              "filter_weight": 0.0}
+    assert cfg.data.context_touches == 1
     assert module.model.y_start == "population"
     a1 = _compose(["experiment=population", "model.net.y_start=fixed", "model.context.source=window"], tmp_path)
     assert a1.data.context == "window" and instantiate(a1.data).context == "window"

@@ -146,10 +146,10 @@ def test_literal_raw_path_with_glob_characters_is_found(tiny_data_dir, tmp_path)
     folder.mkdir()
     raw = folder / "rec*.h5"
     shutil.copy(tiny_data_dir / "raw" / "soft_pressing.h5", raw)
-    scene = Scene(data_dir=str(tmp_path), source="recorded", raw_files=(str(raw),), channels=("acc",))
+    scene = Scene.from_config(data_dir=str(tmp_path), source="recorded", raw_files=(str(raw),), channels=("acc",))
     assert scene.raw_paths == [raw]
     with pytest.raises(FileNotFoundError, match=r"pattern .*x \[1\]/nothing\*\.h5.* matches no file"):
-        Scene(data_dir=str(tmp_path), source="recorded", raw_files=(str(folder / "nothing*.h5"),)).raw_paths
+        Scene.from_config(data_dir=str(tmp_path), source="recorded", raw_files=(str(folder / "nothing*.h5"),)).raw_paths
 
 
 def test_large_population_needs_the_flag_and_shows_its_estimate(tmp_path):
@@ -164,9 +164,9 @@ def test_large_population_needs_the_flag_and_shows_its_estimate(tmp_path):
     kw = dict(data_dir=str(tmp_path), objects="population", n_objects=200000, actions=(6, 14), channels=("acc",))
     with pytest.raises(ValueError, match=r"400,192 trials .* more than the 10,000 allowed without "
                                          r"data.allow_large_population=true; preparing it takes about 1,737 GB"):
-        Scene(**kw)
-    Scene(**kw, allow_large_population=True)
-    Scene(**{**kw, "n_objects": 256})
+        Scene.from_config(**kw)
+    Scene.from_config(**kw, allow_large_population=True)
+    Scene.from_config(**{**kw, "n_objects": 256})
     cfg = OmegaConf.create({"data": {"objects": "population", "n_objects": 200000, "n_val_objects": 32,
                                      "n_test_objects": 64, "actions": [6, 14], "channels": ["acc"], "sim_workers": 2}})
     with pytest.raises(SettingsError, match=r"data.n_objects=200000: the population scene has 400,192 trials"):

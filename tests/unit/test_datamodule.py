@@ -260,7 +260,7 @@ def _served(dm):
 def _recorded_dm(raw_files, **kw):
     from embodied_tactile.data.datamodule import TactileDataModule
 
-    return TactileDataModule(source="recorded", raw_files=raw_files, skin="soft", primitive="pressing",
+    return TactileDataModule.from_config(source="recorded", raw_files=raw_files, skin="soft", primitive="pressing",
                              channels=["acc"], **kw)
 
 

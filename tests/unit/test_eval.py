@@ -13,6 +13,10 @@ import pytest
 from conftest import stable_seed
 
 
+#: the GRU baseline on whole sequences and raw inputs (GRUOptions: evaluate.py's crops, standardised)
+WHOLE = {"window": None, "windows_per_trial": 1, "input_standardize": False}
+
+
 def _stable_seed(*parts) -> int:
     return stable_seed(repr(parts))
 
@@ -252,13 +256,13 @@ def test_gru_baseline_tiny_run():
     from embodied_tactile.eval.baselines import GRURegressor, evaluate_gru
 
     tr, te = _obs_split(12, t=8, seed=3), _obs_split(6, t=8, seed=4, offset=1000)
-    res = evaluate_gru(tr, te, gru={"epochs": 2, "hidden": 8, "feat": 8, "batch_size": 4})
+    res = evaluate_gru(tr, te, gru={"epochs": 2, "hidden": 8, "feat": 8, "batch_size": 4, **WHOLE})
     assert res.pred.shape == (6, 8, 4) and np.isfinite(res.pred).all()
     assert len(res.params["loss_history"]) == 2
     # loader API (iterable of batch dicts) with a batch cap
     batches = [{"obs": torch.as_tensor(tr["obs"][i:i + 4]), "actions": torch.as_tensor(tr["actions"][i:i + 4]),
                 "factors": torch.as_tensor(tr["factors"][i:i + 4])} for i in range(0, 12, 4)]
-    m = GRURegressor(in_channels=3, hidden=8, feat=8, epochs=1, max_batches_per_epoch=2).fit(batches)
+    m = GRURegressor(in_channels=3, hidden=8, feat=8, epochs=1, max_batches_per_epoch=2, **WHOLE).fit(batches)
     assert m.predict(batches).shape == (12, 8, 4)
     # training windows: 3 crops of 5 frames per sequence and epoch -> 3x the optimiser steps
     # of whole sequences; prediction still covers every frame
@@ -297,7 +301,8 @@ def test_standardised_gru_reads_a_small_level_on_a_large_offset():
                                         for n, seed in ((48, 0), (24, 1)))
     nmse = {}
     for std in (False, True):
-        m = GRURegressor(in_channels=1, hidden=8, feat=8, epochs=15, batch_size=8, lr=3e-3, input_standardize=std)
+        m = GRURegressor(in_channels=1, hidden=8, feat=8, epochs=15, batch_size=8, lr=3e-3, window=None,
+                         windows_per_trial=1, input_standardize=std)
         p = m.fit(otr, atr, ftr).predict(ote, ate)
         nmse[std] = ((p[:, -1, 0] - fte[:, 0]) ** 2).mean() / fte[:, 0].var()
     assert nmse[True] < 0.2 and nmse[False] > 0.5, nmse
@@ -316,7 +321,7 @@ def test_supervised_latent_filter_arch_reads_a_level_through_its_y_pathway():
 
     (otr, atr, ftr), (ote, ate, fte) = (_level_split(n, seed, offset=0.3, step=0.2, frames=6)
                                         for n, seed in ((48, 0), (24, 1)))
-    lf = dict(arch="latent_filter", modality="fsr_t", epochs=12, batch_size=8, lr=3e-3,
+    lf = dict(arch="latent_filter", modality="fsr_t", epochs=12, batch_size=8, lr=3e-3, **WHOLE,
               latent_filter={"n_z": 4, "n_y": 4, "encoder": {"widths": [4, 8], "hidden": 16},
                              "transition_hidden": 16, "lstm_hidden": 16})
     m = GRURegressor(in_channels=1, **lf)
@@ -353,7 +358,7 @@ def test_code_regression_recognises_objects_by_a_random_code_and_refuses_other_a
                 "action_index": ids % 4, "seq_id": ids}
 
     tr, te = split(48, 0, 0), split(24, 1, 1000)
-    lf = dict(arch="latent_filter", modality="fsr_t", epochs=12, batch_size=8, lr=3e-3, seed=0,
+    lf = dict(arch="latent_filter", modality="fsr_t", epochs=12, batch_size=8, lr=3e-3, **WHOLE, seed=0,
               latent_filter={"n_z": 4, "n_y": 4, "encoder": {"widths": [4, 8], "hidden": 16},
                              "transition_hidden": 16, "lstm_hidden": 16})
     res = evaluate_code_regression(tr, te, gru=lf, alignment={"cv": 2, "alphas": (1e-2,), "gammas": (0.3, 1.0)},

@@ -12,7 +12,8 @@ from embodied_tactile.eval import generalisation as G
 from embodied_tactile.run.summary import recipe
 
 
-def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None, held_out=None):
+def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None, held_out=None, readout=None,
+         curve=None):
     d = root / f"n{n}_s{seed}_{labels}"
     (d / "evaluation").mkdir(parents=True)
     cfg = {"seed": seed, "modality": {"name": "multi_l"}, "model": {"net": {"prior": {"labels": labels}}},
@@ -21,16 +22,18 @@ def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None, hel
     (d / "provenance.json").write_text(json.dumps({"git_commit": "abcdef0123"}))
     runs = [{"method": m, "nmse_trajectory": {f: v for f in FACTOR_NAMES}, "nmse_trajectory_overall": v,
              "nmse_last_step": {f: v / 2 for f in FACTOR_NAMES}, "nmse_last_step_overall": v / 2,
-             "targets": "physical"} for m, v in (("latent_filter", lf), ("gru", 0.5), ("mean", 1.0))]
+             "targets": "physical"} for m, v in (("latent_filter", lf), ("untrained", 1.05), ("gru", 0.5),
+                                                  ("mean", 1.0))]
+    if curve is not None:  # evaluate.py's NMSE per frame, mean over factors
+        for r, c in zip(runs, curve):
+            r["nmse_curve_overall"] = c
     if gru_std is not None:  # evaluate.py's results carry the GRU's settings
-        runs[1]["params"] = {"gru": {"input_standardize": gru_std}}
+        runs[2]["params"] = {"gru": {"input_standardize": gru_std}}
     if held_out is not None:  # evaluate.py's held_out option, as its results carry it
         runs[0]["params"] = {"held_out": held_out}
+    if readout is not None:  # the run's alignment, as evaluate.py's results carry it
+        runs[0].setdefault("params", {})["alignment"] = {"readout": readout}
     (d / "evaluation" / "results.json").write_text(json.dumps({"runs": runs}))
-    initial = {"epoch": -1, "step": 0, "initial": True, "nmse": {f: 1.05 for f in FACTOR_NAMES}, "nmse_overall": 1.05,
-               "nmse_last": {f: 1.1 for f in FACTOR_NAMES}, "nmse_last_overall": 1.1}
-    later = dict(initial, epoch=0, step=30, initial=False, nmse_overall=0.2)
-    (d / "krr_history.jsonl").write_text(json.dumps(initial) + "\n" + json.dumps(later) + "\n")
 
 
 def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
@@ -60,7 +63,7 @@ def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
     assert agg["Latent Filter multi_l (labels), untrained"][24]["mean"] == pytest.approx(1.05)
     last = G.aggregate(rows, "overall", "last_step")
     assert last["Latent Filter multi_l (labels)"][24]["mean"] == pytest.approx(0.45)
-    assert last["Latent Filter multi_l (labels), untrained"][24]["mean"] == pytest.approx(1.1)
+    assert last["Latent Filter multi_l (labels), untrained"][24]["mean"] == pytest.approx(0.525)
     page = G.write_page(rows, tmp_path / "docs", command="test")
     text = page.read_text()
     assert "0.900 [" in text and "0.450 [" in text and "not run" in text and "abcdef0" in text
@@ -89,6 +92,10 @@ def test_recipe_names_the_settings_that_tell_recipes_apart():
                                       "context": {"source": "trial", "refilter": False}},
                             "annealing": {"schedule": {"y_weight": 1.0}}})
     assert recipe(ctx) == "context objective (trial), no labels, y_weight 1, y evidence, y from the population"
+    ctx.model.lr_schedule = "cosine"
+    ctx.model.context.touches = 3
+    assert recipe(ctx) == ("context objective (trial, 3 touches), no labels, y_weight 1, y evidence, "
+                           "y from the population, cosine schedule")
 
 
 def test_parts_merge_through_the_scores_file_and_a_later_root_replaces_a_score(tmp_path):
@@ -122,3 +129,31 @@ def test_validation_side_scores_are_refused_with_the_file_named(tmp_path, capsys
         G.main([str(tmp_path / "val"), "--out", str(tmp_path / "docs")])
     err = capsys.readouterr().err
     assert "n24_s1_True/evaluation/results.json: latent_filter scored on the validation side" in err
+
+
+def test_curves_over_time_are_tabled_and_drawn_and_read_outs_do_not_mix(tmp_path):
+    """Rows carry evaluate.py's per-frame curve: the page tables frame 1, the highest frame
+    and the first frame at or below 0.5 per seed, and draws the curves; a root evaluated with
+    another alignment.readout is refused, naming both."""
+    import numpy as np
+
+    root = tmp_path / "runs"
+    frames = np.arange(1, 301)
+    for seed in (0, 1):
+        lf = list(np.minimum(1.0, 1.0 - 0.6 * (frames - 1) / 299 * (1 + 0.1 * seed)))
+        flat = [1.0] * 300
+        _run(root, 256, seed, 0.6, readout="per_time", curve=[lf, [1.02] * 300, flat, flat])
+    rows = G.collect([root])
+    assert {r["readout"] for r in rows} == {"per_time"}
+    cells = G.over_time(rows)
+    lf = cells["Latent Filter multi_l (labels)"][256]
+    assert lf["seeds"] == 2 and lf["first"][0] == pytest.approx(1.0) and lf["peak"][0] == pytest.approx(1.0)
+    assert lf["below_half"] == [251, 228]  # 1 - 0.6 (f - 1) / 299 (1 + 0.1 s) <= 0.5
+    assert cells["Latent Filter multi_l (labels), untrained"][256]["below_half"] == [None, None]
+    text = G.write_page(rows, tmp_path / "docs", command="test").read_text()
+    assert "## Over interaction time" in text and "| 251, 228 |" in text and "never, never" in text
+    assert "alignment.readout=per_time" in text
+    assert (tmp_path / "docs" / "figures" / "generalisation_over_time.png").stat().st_size > 1000
+    _run(tmp_path / "old", 24, 0, 0.8)  # results from before alignment.readout: the paper's final tenth
+    with pytest.raises(ValueError, match="mix read-outs.*final_segment.*per_time"):
+        G.collect([root, tmp_path / "old"])

@@ -804,5 +804,7 @@ def test_saved_targets_compare_in_todays_spelling():
         "embodied_tactile.model.module.LatentFilterModule"
     assert current_target("embodied_tactile.models.annealing.LinearKLWarmup") == "embodied_tactile.model.annealing.LinearKLWarmup"
     assert current_target("embodied_tactile.runtime.ResumableCSVLogger") == "embodied_tactile.run.runtime.ResumableCSVLogger"
-    assert current_target("embodied_tactile.data.datamodule.TactileDataModule") == "embodied_tactile.data.datamodule.TactileDataModule"
+    # the DataModule is built from a data config's flat keys by from_config (its constructor takes groups)
+    assert current_target("embodied_tactile.data.datamodule.TactileDataModule") == \
+        "embodied_tactile.data.datamodule.TactileDataModule.from_config"
     assert current_target("torch.optim.Adam") == "torch.optim.Adam"

@@ -142,7 +142,7 @@ def test_object_split_keeps_train_val_and_test_objects_disjoint():
 def test_population_scene_end_to_end(tmp_path):
     """A tiny population scene: simulated, cached, split by the population's roles, each
     trial carrying its own object's factors."""
-    dm = TactileDataModule(data_dir=str(tmp_path / "data"), objects="population", n_objects=3, n_val_objects=1,
+    dm = TactileDataModule.from_config(data_dir=str(tmp_path / "data"), objects="population", n_objects=3, n_val_objects=1,
                            n_test_objects=2, population_seed=7, actions=[6], channels=("fsr_t",), split="object",
                            split_file=str(tmp_path / "split.json"), sim_workers=1, preprocess_workers=1, batch_size=4)
     dm.prepare_data()

@@ -133,8 +133,8 @@ def test_each_simulator_seed_has_its_own_raw_file(tmp_path):
     seed 0 keeping the plain name (trial names do not hold the seed)."""
     from embodied_tactile.data.prepare import Scene
 
-    assert Scene(data_dir=str(tmp_path)).raw_paths == [tmp_path / "raw" / "soft_pressing.h5"]
-    assert Scene(data_dir=str(tmp_path), skin="hard", primitive="sliding", sim_seed=2).raw_paths == [
+    assert Scene.from_config(data_dir=str(tmp_path)).raw_paths == [tmp_path / "raw" / "soft_pressing.h5"]
+    assert Scene.from_config(data_dir=str(tmp_path), skin="hard", primitive="sliding", sim_seed=2).raw_paths == [
         tmp_path / "raw" / "hard_sliding_sim2.h5"]
 
 

@@ -1,6 +1,6 @@
 """Recorded trials flow through the same validation, preprocessing, DataModule and training
 as simulated ones: emulator (serving simulated trials) -> recorder over a real pty -> raw
-HDF5 -> TactileDataModule(source="recorded") -> a Latent Filter training step."""
+HDF5 -> TactileDataModule.from_config(source="recorded") -> a Latent Filter training step."""
 
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def test_recorded_trials_validate(recorded_file):
 
 
 def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
-    dm = TactileDataModule(
+    dm = TactileDataModule.from_config(
         data_dir=str(tmp_path / "data"), source="recorded", raw_files=[str(recorded_file)], skin="soft",
         primitive="pressing", channels=["acc", "fsr_t", "fsr_b"], preprocess={"n_frames": 30},
         preprocess_workers=1, batch_size=2, split_file=str(tmp_path / "split.json"),

@@ -35,7 +35,7 @@ def names(tiny_data_dir):
 
 
 def _recorded(tmp_path, files, channels=("acc", "fsr_t"), **kw):
-    return TactileDataModule(
+    return TactileDataModule.from_config(
         data_dir=str(tmp_path / "data"), source="recorded", raw_files=[str(f) for f in files], skin="soft",
         primitive="pressing", channels=list(channels), preprocess=FAST, preprocess_workers=1, batch_size=2, **kw,
     )

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -25,6 +26,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from embodied_tactile.data.prepare import PreparedData, Scene, TrialRef, data_dir_lock, prepare_scene
+from embodied_tactile.options.data import LoaderOptions, SceneOptions, SplitOptions, group_options
 from embodied_tactile.data.statistics import DataStatistics
 from embodied_tactile.run.jsonio import write_json
 from embodied_tactile.data.modality import CHANNELS, fields_for_channels
@@ -100,8 +102,9 @@ class ConstantChannelError(ValueError):
     """A channel of the modality carries no signal over the training split."""
 
 
-def split_trials(trials: Sequence[TrialRef], *, by: str = "trial", test_fraction: float = 0.25,
-                 val_fraction: float = 0.125, seed: int = 0, roles: Mapping[int, str] | None = None
+def split_trials(trials: Sequence[TrialRef], *, by: str = SplitOptions.split,
+                 test_fraction: float = SplitOptions.test_fraction, val_fraction: float = SplitOptions.val_fraction,
+                 seed: int = SplitOptions.split_seed, roles: Mapping[int, str] | None = None
                  ) -> tuple[list[TrialRef], list[TrialRef], list[TrialRef]]:
     """Train / validation / test split, independent of listing order and stable for a seed.
 
@@ -205,7 +208,9 @@ class TactileSequenceDataset(Dataset):
     ``context_obs`` / ``context_actions`` (with ``context_trial`` and
     ``context_first_frame``): ``"trial"``, a ``window``-frame crop (the whole trial without
     ``window``) of another trial of the same object, drawn at random among its trials in
-    this set; ``"window"``, a second ``window``-frame crop of the same trial, disjoint from
+    this set (``context_touches`` > 1: that many distinct other trials, served with a leading
+    touch axis, ``context_obs`` (M, T, C, 28, 28), ``context_trial`` their names joined by
+    ``+``); ``"window"``, a second ``window``-frame crop of the same trial, disjoint from
     the target's (two disjoint crops, which one is the target drawn at random). The object
     id only picks the trials to pair; it is served as before and never used as the pairing's
     output. ``draw_seed`` makes every item's draws a function of (seed, index) (validation:
@@ -214,7 +219,7 @@ class TactileSequenceDataset(Dataset):
 
     def __init__(self, cache_files: Mapping[str, str], trials: Sequence[TrialRef], channels: Sequence[str],
                  seq_len: int | None = None, window: int | None = None, windows_per_trial: int = 1,
-                 context: str | None = None, draw_seed: int | None = None):
+                 context: str | None = None, draw_seed: int | None = None, context_touches: int = 1):
         self.cache_files = dict(cache_files)
         self.trials = list(trials)
         self.channels = list(channels)
@@ -235,16 +240,21 @@ class TactileSequenceDataset(Dataset):
             raise ValueError("context='window' needs a window: two disjoint crops of one trial")
         self.context = context
         self.draw_seed = draw_seed
+        if int(context_touches) < 1 or (int(context_touches) > 1 and context != "trial"):
+            raise ValueError(f"context_touches must be 1, or > 1 with context='trial' (other trials of the object), "
+                             f"got {context_touches} with context={context!r}")
+        self.context_touches = int(context_touches)
         #: trial name -> the other trials of its object in this set (context='trial')
         self.others: dict[str, list[TrialRef]] = {}
         if context == "trial":
             by_obj: dict[int, list[TrialRef]] = {}
             for tr in self.trials:
                 by_obj.setdefault(tr.object_id, []).append(tr)
-            alone = sorted(o for o, items in by_obj.items() if len(items) < 2)
-            if alone:
-                raise ValueError(f"context='trial' pairs trials of one object, but object(s) {alone[:5]} have a "
-                                 "single trial in this set")
+            few = sorted(o for o, items in by_obj.items() if len(items) < 1 + self.context_touches)
+            if few:
+                raise ValueError(f"context='trial' pairs each trial with {self.context_touches} other trial(s) of its "
+                                 f"object, but object(s) {few[:5]} have fewer than {1 + self.context_touches} trials "
+                                 "in this set")
             self.others = {tr.name: [t for t in by_obj[tr.object_id] if t.name != tr.name] for tr in self.trials}
         self._handles: dict[str, h5py.File] | None = None
 
@@ -323,7 +333,11 @@ class TactileSequenceDataset(Dataset):
             ctx_tr = tr
         else:
             sl = self._rows(h, tr, gen)
-        if self.context == "trial":
+        if self.context == "trial" and self.context_touches > 1:
+            others = self.others[tr.name]
+            picks = torch.randperm(len(others), generator=gen)[:self.context_touches]
+            touches = [(others[int(j)], self._rows(h, others[int(j)], gen)) for j in picks]
+        elif self.context == "trial":
             others = self.others[tr.name]
             ctx_tr = others[int(torch.randint(0, len(others), (), generator=gen))]
             ctx_sl = self._rows(h, ctx_tr, gen)
@@ -343,14 +357,37 @@ class TactileSequenceDataset(Dataset):
                         context_actions=torch.from_numpy(np.ascontiguousarray(c_actions)),
                         context_trial=ctx_tr.name,
                         context_first_frame=torch.tensor(ctx_sl.start or 0, dtype=torch.long))
+        elif self.context_touches > 1:
+            reads = [self._read(h, c_tr, c_sl) for c_tr, c_sl in touches]
+            item.update(context_obs=torch.from_numpy(np.stack([r[0] for r in reads])),
+                        context_actions=torch.from_numpy(np.stack([r[1] for r in reads])),
+                        context_trial="+".join(c_tr.name for c_tr, _ in touches),
+                        context_first_frame=torch.tensor([c_sl.start or 0 for _, c_sl in touches], dtype=torch.long))
         return item
+
+
+def _plain(value: Any) -> Any:
+    """An OmegaConf container as plain Python (Hydra hands nodes over as they are)."""
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+
+
+def _options(cls: type, given: Any) -> Any:
+    """``given`` as an options dataclass ``cls`` (a mapping: its keys over the defaults)."""
+    if isinstance(given, cls):
+        return given
+    return cls(**{k: _plain(v) for k, v in dict(given or {}).items()})
 
 
 class TactileDataModule(L.LightningDataModule):
     """Serves batches ``obs (B,T,C,28,28)``, ``actions (B,T,6)``, ``object_id``, ``factors``,
     ``action_index`` for one skin x primitive x modality scene.
 
-    Args:
+    Three groups of options (:mod:`embodied_tactile.options.data`, each a dataclass or a
+    mapping of its keys over the defaults): ``scene`` (what is prepared), ``split`` (how it is
+    split), ``loader`` (how it is served); :meth:`from_config` takes the flat keys of a data
+    config. The keys:
         source: ``"simulated"`` (raw file ``<data_dir>/raw/<skin>_<primitive>.h5``, missing
             trials simulated by the preparation stage) or ``"recorded"`` (``raw_files``, never
             generated).
@@ -381,6 +418,8 @@ class TactileDataModule(L.LightningDataModule):
             the same every epoch). The alignment and evaluation loaders
             (:meth:`train_eval_dataloader`, :meth:`val_eval_dataloader`,
             :meth:`test_dataloader`) serve whole trials as without it.
+        context_touches: with ``context="trial"``, how many other trials of the object make
+            up one context (``model.context.touches``).
         strict: a bad raw trial is fatal instead of skipped.
         include_incomplete: also use recordings marked ``complete=False`` (interrupted);
             by default they are left out and counted in a warning.
@@ -388,80 +427,43 @@ class TactileDataModule(L.LightningDataModule):
             ``prepare.POPULATION_MAX_TRIALS`` trials (refused otherwise, with its estimate).
     """
 
-    def __init__(
-        self,
-        *,
-        data_dir: str = "data",
-        source: str = "simulated",
-        raw_files: Sequence[str] | None = None,
-        skin: str = "soft",
-        primitive: str = "pressing",
-        channels: Sequence[str] = ("acc", "fsr_t", "fsr_b"),
-        objects: Sequence[int] | str | None = None,
-        n_objects: int = 256,
-        n_val_objects: int = 32,
-        n_test_objects: int = 64,
-        population_seed: int = 0,
-        actions: Sequence[int] | None = None,
-        repetitions: int = 1,
-        sim_seed: int = 0,
-        sim_workers: int = 2,
-        preprocess: Mapping[str, Any] | None = None,
-        preprocess_workers: int = 2,
-        split: str = "trial",
-        test_fraction: float = 0.25,
-        val_fraction: float = 0.125,
-        split_seed: int = 0,
-        split_file: str | None = None,
-        batch_size: int = 48,
-        num_workers: int = 0,
-        seq_len: int | None = None,
-        train_window: int | None = None,
-        windows_per_trial: int | None = 1,
-        windows_per_epoch: int | None = None,
-        context: str | None = None,
-        strict: bool = False,
-        include_incomplete: bool = False,
-        allow_large_population: bool = False,
-        pin_memory: bool = False,
-    ):
+    def __init__(self, scene: SceneOptions | Mapping[str, Any] | None = None,
+                 split: SplitOptions | Mapping[str, Any] | None = None,
+                 loader: LoaderOptions | Mapping[str, Any] | None = None):
         super().__init__()
+        scene, split, loader = (_options(cls, given) for cls, given in
+                                ((SceneOptions, scene), (SplitOptions, split), (LoaderOptions, loader)))
         #: what the preparation stage prepares (validates source, skin, primitive, raw_files, channels)
-        self.scene = Scene(
-            data_dir=data_dir, source=source, raw_files=tuple(raw_files or ()), skin=skin, primitive=primitive,
-            channels=tuple(channels), objects=objects, n_objects=n_objects, n_val_objects=n_val_objects,
-            n_test_objects=n_test_objects, population_seed=population_seed, actions=actions, repetitions=repetitions,
-            sim_seed=sim_seed, sim_workers=sim_workers, preprocess=preprocess or {},
-            preprocess_workers=preprocess_workers, strict=strict, include_incomplete=include_incomplete,
-            allow_large_population=allow_large_population,
-        )
-        self.source = source
-        self.skin = skin
-        self.primitive = primitive
-        self.channels = list(channels)
+        self.scene = Scene.from_config(asdict(scene))
+        self.source = self.scene.source
+        self.skin = self.scene.skin
+        self.primitive = self.scene.primitive
+        self.channels = list(self.scene.channels)
         self.fields = self.scene.fields
-        if split not in SPLITS:
-            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-        self.split = split
-        self.test_fraction = float(test_fraction)
-        self.val_fraction = float(val_fraction)
-        self.split_seed = int(split_seed)
-        self.split_file = split_file
-        self.batch_size = int(batch_size)
-        self.num_workers = int(num_workers)
-        self.seq_len = seq_len
-        self.train_window = None if train_window is None else int(train_window)
-        if (windows_per_trial is None) == (windows_per_epoch is None):
-            raise ValueError(f"give one of windows_per_trial ({windows_per_trial}) and windows_per_epoch "
-                             f"({windows_per_epoch}), the other null")
-        if windows_per_epoch is not None and int(windows_per_epoch) < 1:
-            raise ValueError(f"windows_per_epoch must be >= 1, got {windows_per_epoch}")
-        self.windows_per_trial = 1 if windows_per_trial is None else int(windows_per_trial)
-        self.windows_per_epoch = None if windows_per_epoch is None else int(windows_per_epoch)
-        self.pin_memory = bool(pin_memory)
-        if context not in CONTEXTS:
-            raise ValueError(f"context must be one of {CONTEXTS}, got {context!r}")
-        self.context = context
+        if split.split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split.split!r}")
+        self.split = split.split  # the split's kind ('trial' | 'object')
+        self.test_fraction = float(split.test_fraction)
+        self.val_fraction = float(split.val_fraction)
+        self.split_seed = int(split.split_seed)
+        self.split_file = split.split_file
+        self.batch_size = int(loader.batch_size)
+        self.num_workers = int(loader.num_workers)
+        self.seq_len = loader.seq_len
+        self.train_window = None if loader.train_window is None else int(loader.train_window)
+        per_trial, per_epoch = loader.windows_per_trial, loader.windows_per_epoch
+        if (per_trial is None) == (per_epoch is None):
+            raise ValueError(f"give one of windows_per_trial ({per_trial}) and windows_per_epoch "
+                             f"({per_epoch}), the other null")
+        if per_epoch is not None and int(per_epoch) < 1:
+            raise ValueError(f"windows_per_epoch must be >= 1, got {per_epoch}")
+        self.windows_per_trial = 1 if per_trial is None else int(per_trial)
+        self.windows_per_epoch = None if per_epoch is None else int(per_epoch)
+        self.pin_memory = bool(loader.pin_memory)
+        if loader.context not in CONTEXTS:
+            raise ValueError(f"context must be one of {CONTEXTS}, got {loader.context!r}")
+        self.context = loader.context
+        self.context_touches = int(loader.context_touches)
         #: the preparation stage's result (prepare_data, or attach() with one prepared elsewhere)
         self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
@@ -472,6 +474,14 @@ class TactileDataModule(L.LightningDataModule):
         self.test_set: TactileSequenceDataset | None = None  # held out: evaluation only
         self.train_crops: TactileSequenceDataset | None = None  # what train_dataloader serves
         self.val_pairs: TactileSequenceDataset | None = None  # what val_dataloader serves with a context
+
+    @classmethod
+    def from_config(cls, data: Mapping[str, Any] | None = None, /, **flat: Any) -> "TactileDataModule":
+        """The DataModule of a flat data config (``configs/data/*.yaml``, a run's saved
+        ``data``, or keyword arguments; ``_target_`` ignored), sorted into its three groups
+        (:func:`embodied_tactile.options.data.group_options`)."""
+        given = {**(_plain(data) or {}), **{k: _plain(v) for k, v in flat.items()}}
+        return cls(*group_options(given))
 
     # ------------------------------------------------------------------ preparation
     @property
@@ -564,7 +574,8 @@ class TactileDataModule(L.LightningDataModule):
                 or self.context is not None):
             self.train_crops = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len,
                                                       window=self.train_window,
-                                                      windows_per_trial=self.windows_per_trial, context=self.context)
+                                                      windows_per_trial=self.windows_per_trial, context=self.context,
+                                                      context_touches=self.context_touches)
         self.val_pairs = self.held_out_pairs(val) if self.context is not None and val else self.val_set
         log.info("data: %d train / %d validation / %d test sequences (split=%s), channels %s, skipped %d bad trial(s)",
                  len(train), len(val), len(test), self.split, self.channels, len(self.skipped))
@@ -577,7 +588,8 @@ class TactileDataModule(L.LightningDataModule):
         if self.context is None:
             raise ValueError("held_out_pairs needs a DataModule with context=trial|window")
         return TactileSequenceDataset(self.cache_files, trials, self.channels, self.seq_len,
-                                      window=self.train_window, context=self.context, draw_seed=self.split_seed)
+                                      window=self.train_window, context=self.context, draw_seed=self.split_seed,
+                                      context_touches=self.context_touches)
 
     def _load_split(self, refs: Sequence[TrialRef]) -> tuple[list[TrialRef], list[TrialRef], list[TrialRef]]:
         """Reuse a saved split (resumed runs, evaluation): the split belongs to the run.

@@ -34,6 +34,7 @@ import h5py
 from embodied_tactile import constants as C
 from embodied_tactile.data.rawformat import unique_paths
 from embodied_tactile.data.modality import fields_for_channels
+from embodied_tactile.options.data import scene_defaults
 
 log = logging.getLogger(__name__)
 
@@ -167,26 +168,26 @@ class Scene:
     marked ``complete=False``.
     """
 
-    data_dir: str = "data"
-    source: str = "simulated"
-    raw_files: tuple[str, ...] = ()
-    skin: str = "soft"
-    primitive: str = "pressing"
-    channels: tuple[str, ...] = ("acc", "fsr_t", "fsr_b")
-    objects: tuple[int, ...] | str | None = None
-    n_objects: int = 256
-    n_val_objects: int = 32
-    n_test_objects: int = 64
-    population_seed: int = 0
-    actions: tuple[int, ...] | None = None
-    repetitions: int = 1
-    sim_seed: int = 0
-    sim_workers: int = field(default=2, compare=False)  # how, not what: scenes equal whatever the workers
-    preprocess: Mapping[str, Any] = field(default_factory=dict)
-    preprocess_workers: int = field(default=2, compare=False)
-    strict: bool = False
-    include_incomplete: bool = False
-    allow_large_population: bool = field(default=False, compare=False)
+    data_dir: str
+    source: str
+    raw_files: tuple[str, ...]
+    skin: str
+    primitive: str
+    channels: tuple[str, ...]
+    objects: tuple[int, ...] | str | None
+    n_objects: int
+    n_val_objects: int
+    n_test_objects: int
+    population_seed: int
+    actions: tuple[int, ...] | None
+    repetitions: int
+    sim_seed: int
+    sim_workers: int = field(compare=False)  # how, not what: scenes equal whatever the workers
+    preprocess: Mapping[str, Any]
+    preprocess_workers: int = field(compare=False)
+    strict: bool
+    include_incomplete: bool
+    allow_large_population: bool = field(compare=False)
 
     def __post_init__(self) -> None:
         if self.source not in C.SOURCES:
@@ -227,11 +228,12 @@ class Scene:
         fields_for_channels(self.channels)  # unknown channels fail here, naming them
 
     @classmethod
-    def from_config(cls, data: Mapping[str, Any]) -> "Scene":
-        """The scene of a data config (``cfg.data``): its preparation keys; the split and
-        loader keys are the DataModule's and are ignored here."""
-        keys = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: data[k] for k in keys if k in data and data[k] is not None})
+    def from_config(cls, data: Mapping[str, Any] | None = None, /, **kw: Any) -> "Scene":
+        """The scene of a data config (``cfg.data``, or keyword arguments): its preparation
+        keys, the defaults of :class:`~embodied_tactile.options.data.SceneOptions` where it is
+        silent or null; the split and loader keys are the DataModule's and are ignored here."""
+        given = {**(data or {}), **kw}
+        return cls(**{k: (given[k] if given.get(k) is not None else v) for k, v in scene_defaults().items()})
 
     @property
     def is_population(self) -> bool:

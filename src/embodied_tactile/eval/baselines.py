@@ -45,6 +45,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from ..options.evaluation import GRUOptions
 from ..model.options import LatentFilterOptions
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment
 from .results import Results, evaluate_latents
@@ -235,7 +236,8 @@ class GRURegressor:
     ``fit(obs, actions, factors)`` with arrays (obs (n, T, C, H, W), actions (n, T, 6),
     factors (n, 4)), or ``fit(loader)`` with an iterable of batch dicts (``obs``,
     ``actions``, ``factors``; re-iterated every epoch). ``predict`` returns (n, T, 4) in
-    original units. ``max_batches_per_epoch`` / small ``epochs`` make a tiny test run.
+    original units. Defaults: :class:`~embodied_tactile.options.evaluation.GRUOptions` (what
+    evaluate.py trains). ``max_batches_per_epoch`` / small ``epochs`` make a tiny test run.
     ``window`` / ``windows_per_trial`` (array input only): train on that many random
     ``window``-frame crops of every sequence per epoch, as the Latent Filter's CPU budget
     does (same frames per epoch, more optimiser steps); prediction always runs over whole
@@ -253,11 +255,13 @@ class GRURegressor:
     dimensional object codes instead, any (n, n_out) target works).
     """
 
-    def __init__(self, in_channels: int, action_dim: int = 6, hidden: int = 64, feat: int = 64,
-                 epochs: int = 30, lr: float = 1e-3, batch_size: int = 16, weight_decay: float = 0.0,
-                 max_batches_per_epoch: int | None = None, window: int | None = None,
-                 windows_per_trial: int = 1, seed: int = 0, device: str = "cpu", input_standardize: bool = False,
-                 arch: str = "gru", modality: Any = None, latent_filter: Mapping[str, Any] | None = None,
+    def __init__(self, in_channels: int, action_dim: int = 6, hidden: int = GRUOptions.hidden,
+                 feat: int = GRUOptions.feat, epochs: int = GRUOptions.epochs, lr: float = GRUOptions.lr,
+                 batch_size: int = GRUOptions.batch_size, weight_decay: float = GRUOptions.weight_decay,
+                 max_batches_per_epoch: int | None = GRUOptions.max_batches_per_epoch,
+                 window: int | None = GRUOptions.window, windows_per_trial: int = GRUOptions.windows_per_trial,
+                 seed: int = 0, device: str = "cpu", input_standardize: bool = GRUOptions.input_standardize,
+                 arch: str = GRUOptions.arch, modality: Any = None, latent_filter: Mapping[str, Any] | None = None,
                  n_out: int = 4):
         import torch
         from torch import nn

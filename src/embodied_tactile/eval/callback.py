@@ -67,6 +67,8 @@ LATENT_KEYS = {"y": ("y_mean",), "z": ("z_mean",), "both": ("z_mean", "y_mean")}
 #: the batch keys the callback keeps between checks (what ``infer_latents`` and
 #: :func:`collect_latents` read)
 CACHED_KEYS = ("obs", "actions", "factors", "object_id", "action_index", "seq_id")
+#: sequences per inference batch of :func:`collect_split_latents` (the callback's ``infer_batch_size``)
+INFER_BATCH_SIZE = 128
 
 
 def check_epochs(max_epochs: int, points: int, final: bool = True) -> list[int]:
@@ -174,6 +176,26 @@ def collect_latents(pl_module, loader, *, latent: str = "y", max_sequences: int 
     return res
 
 
+def collect_split_latents(pl_module, train, held, *, latent: str = "y", batch_size: int = INFER_BATCH_SIZE
+                          ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """:func:`collect_latents` of the training and the held-out batches inferred together,
+    merged (:func:`rebatch`) into batches of up to ``batch_size`` sequences, training
+    sequences first -> (training split, held-out split). The training's read-outs and
+    evaluate.py read latents through this one function: a sequence's float32 latents depend
+    on the batch it is filtered in (~1e-7), which the KRR fit magnifies to 1e-5 - 1e-4 NMSE,
+    so the two infer the same batches to reproduce one number."""
+    train, held = list(train), list(held)
+    return _split_at(collect_latents(pl_module, rebatch(train + held, batch_size), latent=latent), _count(train))
+
+
+def _count(batches) -> int:
+    return sum(len(b["factors"]) for b in batches)
+
+
+def _split_at(joint: dict[str, np.ndarray], n: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    return {k: v[:n] for k, v in joint.items()}, {k: v[n:] for k, v in joint.items()}
+
+
 class KRRAlignmentCallback(Callback):
     """See module docstring. Defaults aim at <= 10 % of training time: a check at t = 0
     (``initial``) and ``points`` checks over the run (``every_n_epochs=None``; an int
@@ -190,7 +212,8 @@ class KRRAlignmentCallback(Callback):
                  max_val_sequences: int | None = None, val_frame_stride: int = 2,
                  alignment: Mapping[str, Any] | None = None, checks: Mapping[str, Any] | None = None,
                  run_on_train_end: bool = True, history_name: str = "krr_history.jsonl",
-                 targets: str = DEFAULT_TARGETS, points: int = 8, initial: bool = True, infer_batch_size: int = 128):
+                 targets: str = DEFAULT_TARGETS, points: int = 8, initial: bool = True,
+                 infer_batch_size: int = INFER_BATCH_SIZE):
         if latent not in LATENT_KEYS:
             raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
         if targets not in TARGET_ENCODINGS:
@@ -295,19 +318,20 @@ class KRRAlignmentCallback(Callback):
         and the merge is not redone per check. Sequences are filtered independently (eval
         mode, no sampling): a sequence's latents do not depend on its batch-mates (tested).
         The final alignment of a run whose cache holds only part of a split reads both
-        splits whole from their loaders."""
+        splits whole from their loaders and merges them the same way
+        (:func:`collect_split_latents`, as evaluate.py does)."""
         loaders = self._loaders(trainer)
         if self._inputs is None:
             train, train_whole = cache_batches(loaders[0], self.max_train_sequences)
             held, held_whole = cache_batches(loaders[1], self.max_val_sequences)
-            n_train = sum(len(b["factors"]) for b in train)
-            self._inputs = (rebatch(train + held, self.infer_batch_size), n_train, train_whole and held_whole)
+            self._inputs = (rebatch(train + held, self.infer_batch_size), _count(train), train_whole and held_whole)
         batches, n_train, whole = self._inputs
-        if final and not whole:
-            return (collect_latents(pl_module, loaders[0], latent=self.latent),
-                    collect_latents(pl_module, loaders[1], latent=self.latent))
-        joint = collect_latents(pl_module, batches, latent=self.latent)
-        return {k: v[:n_train] for k, v in joint.items()}, {k: v[n_train:] for k, v in joint.items()}
+        if final and not whole:  # both splits whole, inferred as evaluate.py infers them
+            return collect_split_latents(pl_module, cache_batches(loaders[0], None)[0],
+                                         cache_batches(loaders[1], None)[0], latent=self.latent,
+                                         batch_size=self.infer_batch_size)
+        # the same batches collect_split_latents would merge, merged once per fit
+        return _split_at(collect_latents(pl_module, batches, latent=self.latent), n_train)
 
     def _evaluate(self, trainer, pl_module, final: bool = False, initial: bool = False) -> dict[str, float]:
         t0 = time.perf_counter()

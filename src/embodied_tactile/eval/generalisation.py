@@ -6,14 +6,18 @@
 evaluated by ``evaluate.py`` (``<run>/evaluation/results.json``), or a scores file written by
 an earlier report (``generalisation_scores.json``): parts run apart merge, a later root's
 score replacing an earlier one's for the same method, size and seed. Every method of every run
-becomes a point: the Latent Filter of the run's modality and recipe (:func:`recipe`) and the baselines evaluate.py scored on the same split (hand-crafted
-features + KRR, the supervised conv + GRU, the mean predictor), and the same filter untrained
-(the training's KRR check at step 0, ``krr_history.jsonl``: the read-out's floor). A baseline scored by two runs
-with the same modality, size and seed is counted once. Cells are averaged over seeds with a
-95 % t interval; a cell with one seed has no interval.
+becomes a point: the Latent Filter of the run's modality and recipe (:func:`recipe`), the same
+filter untrained (evaluate.py's ``untrained`` reader: the same architecture and seed at step 0,
+the same read-out: the floor) and the baselines evaluate.py scored on the same split
+(hand-crafted features + KRR, the supervised conv + GRU, the mean predictor). A baseline scored
+by two runs with the same modality, size and seed is counted once. Cells are averaged over
+seeds with a 95 % t interval; a cell with one seed has no interval. Scores of different
+read-outs (``alignment.readout``) are refused in one page.
 
 Writes ``<out>/generalisation.md``, ``<out>/generalisation_scores.json`` (every score, for the
-next merge) and ``<out>/figures/generalisation_curve.png`` (log x axis): generated, never edited.
+next merge), ``<out>/figures/generalisation_curve.png`` (log x axis) and
+``<out>/figures/generalisation_over_time.png`` (each reader's NMSE over interaction time):
+generated, never edited.
 """
 
 from __future__ import annotations
@@ -40,6 +44,8 @@ def _method_label(method: str, modality: str, recipe_: str, params: Mapping[str,
     (``params["gru"]["input_standardize"]``, as evaluate.py's results carry it)."""
     if method == "latent_filter":
         return f"Latent Filter {modality} ({recipe_})"
+    if method == "untrained":
+        return f"Latent Filter {modality} ({recipe_}){UNTRAINED}"
     if method == "mean":
         return "mean predictor"
     if method == "gru":
@@ -49,17 +55,8 @@ def _method_label(method: str, modality: str, recipe_: str, params: Mapping[str,
 
 
 UNTRAINED = ", untrained"
-
-
-def _untrained(run_dir: Path) -> dict[str, Any] | None:
-    """The training's KRR check at step 0 (the randomly initialised filter's y): the floor
-    of the Latent Filter's read-out; None when the run has no such row."""
-    from .figures import read_history
-
-    path = run_dir / "krr_history.jsonl"
-    if not path.exists():
-        return None
-    return next((h for h in read_history(path) if h.get("initial") and h.get("nmse")), None)
+#: the read-out of results written before ``alignment.readout`` existed
+PAPER_READOUT = "final_segment"
 
 
 def collect(roots: Iterable[str | Path]) -> list[dict[str, Any]]:
@@ -70,6 +67,10 @@ def collect(roots: Iterable[str | Path]) -> list[dict[str, Any]]:
     rows: dict[tuple, dict[str, Any]] = {}
     for root in roots:
         rows.update(_collect_root(Path(root)))
+    kinds = {r.get("readout", PAPER_READOUT): r["run_dir"] for r in rows.values()}
+    if len(kinds) > 1:
+        raise ValueError("the scores mix read-outs (" + ", ".join(f"{k}: {v}" for k, v in sorted(kinds.items()))
+                         + "): evaluate every run with one alignment.readout")
     return sorted(rows.values(), key=lambda r: (r["method"], r["n_objects"], r["seed"]))
 
 
@@ -103,20 +104,17 @@ def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
         if val:
             raise ValueError(f"{res_path}: {', '.join(val)} scored on the validation side (evaluate.py held_out=val); "
                              "the learning curve reads the test objects only")
-        scores = [(_method_label(r["method"], modality, recipe_, r.get("params")), r) for r in runs]
-        floor = _untrained(run_dir)
-        if floor is not None:
-            scores.append((_method_label("latent_filter", modality, recipe_) + UNTRAINED,
-                           {"nmse_trajectory": floor["nmse"], "nmse_trajectory_overall": floor["nmse_overall"],
-                            "nmse_last_step": floor["nmse_last"], "nmse_last_step_overall": floor["nmse_last_overall"],
-                            "targets": floor.get("targets")}))
-        for label, r in scores:
-            key = (label, n, seed)
+        readout = next((((r.get("params") or {}).get("alignment") or {}).get("readout") for r in runs
+                        if r["method"] == "latent_filter"), None) or PAPER_READOUT
+        for r in runs:
+            key = (_method_label(r["method"], modality, recipe_, r.get("params")), n, seed)
             if key not in rows:
-                rows[key] = {"method": label, "n_objects": n, "seed": seed, "run_dir": str(run_dir),
-                             "commit": commit, "targets": r.get("targets"),
+                rows[key] = {"method": key[0], "n_objects": n, "seed": seed, "run_dir": str(run_dir),
+                             "commit": commit, "targets": r.get("targets"), "readout": readout,
                              "trajectory": {**r["nmse_trajectory"], "overall": float(r["nmse_trajectory_overall"])},
                              "last_step": {**r["nmse_last_step"], "overall": float(r["nmse_last_step_overall"])}}
+                if r.get("nmse_curve_overall"):
+                    rows[key]["curve"] = [float(v) for v in r["nmse_curve_overall"]]
     return rows
 
 
@@ -173,6 +171,72 @@ def _method_order(m: str) -> tuple[int, str]:
 READOUTS = (("trajectory", "whole trajectory"), ("last_step", "last step"))
 
 
+def over_time(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[int, dict[str, Any]]]:
+    """method -> n_objects -> the NMSE over interaction time (mean over factors) of the rows
+    that carry a curve: ``curve`` the mean over seeds per frame; ``first`` (frame 1) and
+    ``peak`` (its highest frame) as (mean, lower, upper) over seeds; ``below_half`` per seed
+    the first frame (1-based) at or below 0.5, None where none is; ``seeds``."""
+    cells: dict[str, dict[int, list[np.ndarray]]] = {}
+    for r in rows:
+        if r.get("curve"):
+            cells.setdefault(r["method"], {}).setdefault(r["n_objects"], []).append(np.asarray(r["curve"], float))
+    out: dict[str, dict[int, dict[str, Any]]] = {}
+    for m, by_n in cells.items():
+        for n, curves in by_n.items():
+            stack = np.stack([c[:min(len(c) for c in curves)] for c in curves])
+            below = [int(np.flatnonzero(c <= 0.5)[0]) + 1 if (c <= 0.5).any() else None for c in stack]
+            out.setdefault(m, {})[n] = {"curve": stack.mean(0), "first": mean_interval(stack[:, 0]),
+                                       "peak": mean_interval(stack.max(1)), "below_half": below,
+                                       "seeds": len(stack)}
+    return out
+
+
+def _interval(mli: tuple[float, float, float]) -> str:
+    m, lo, hi = mli
+    return f"{m:.3f}" + (f" [{lo:.3f}, {hi:.3f}]" if math.isfinite(lo) else "")
+
+
+def time_table(curves: Mapping[str, Mapping[int, Mapping[str, Any]]]) -> list[str]:
+    lines = ["| method | training objects | seeds | frame 1 | highest frame | first frame <= 0.5, per seed |",
+             "|---|---|---|---|---|---|"]
+    for m in sorted(curves, key=_method_order):
+        for n in sorted(curves[m]):
+            c = curves[m][n]
+            below = ", ".join("never" if b is None else str(b) for b in c["below_half"])
+            lines.append(f"| {m} | {n} | {c['seeds']} | {_interval(c['first'])} | {_interval(c['peak'])} | {below} |")
+    return lines
+
+
+def _style(m: str) -> str:
+    return "--" if m == "mean predictor" else ":" if m.endswith(UNTRAINED) else "-"
+
+
+def time_figure(curves: Mapping[str, Mapping[int, Mapping[str, Any]]], path: Path) -> None:
+    """Each reader's NMSE over interaction time (mean over seeds), one panel per size."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sizes = sorted({n for by_n in curves.values() for n in by_n})
+    fig, axes = plt.subplots(1, len(sizes), figsize=(4.2 * len(sizes), 4.0), sharey=True, squeeze=False)
+    for ax, n in zip(axes[0], sizes):
+        for m in sorted(curves, key=_method_order):
+            if n in curves[m]:
+                c = curves[m][n]["curve"]
+                ax.plot(np.arange(1, len(c) + 1), c, _style(m), lw=1.2, label=m)
+        ax.axhline(1.0, color="0.6", lw=0.8)
+        ax.set_title(f"{n} training objects", fontsize=9)
+        ax.set_xlabel("frame (interaction time)")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("NMSE, held-out objects (mean over factors)")
+    axes[0][-1].legend(fontsize=6)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def figure(rows: Sequence[Mapping[str, Any]], path: Path, sizes: Sequence[int]) -> None:
     """Mean over factors against training objects (log x), one panel per read-out."""
     import matplotlib
@@ -189,8 +253,7 @@ def figure(rows: Sequence[Mapping[str, Any]], path: Path, sizes: Sequence[int]) 
             mean = np.array([agg[m][n]["mean"] for n in ns])
             lo = np.array([agg[m][n]["lo"] for n in ns])
             hi = np.array([agg[m][n]["hi"] for n in ns])
-            style = "--" if m == "mean predictor" else ":" if m.endswith(UNTRAINED) else "-"
-            line, = ax.plot(ns, mean, style, marker="o", label=m)
+            line, = ax.plot(ns, mean, _style(m), marker="o", label=m)
             ok = np.isfinite(lo)
             if ok.any():
                 ax.fill_between(np.array(ns)[ok], lo[ok], hi[ok], color=line.get_color(), alpha=0.15)
@@ -213,6 +276,16 @@ def figure(rows: Sequence[Mapping[str, Any]], path: Path, sizes: Sequence[int]) 
     plt.close(fig)
 
 
+def _readout_sentence(rows: Sequence[Mapping[str, Any]]) -> str:
+    kind = next((r.get("readout", PAPER_READOUT) for r in rows), PAPER_READOUT)
+    if kind == "per_time":
+        return ("Read-out (`alignment.readout=per_time`, docs/reference/evaluation.md): one probe per span of "
+                "interaction time, fitted on the training objects' frames of that span, its hyper-parameters "
+                "cross-validated by object on every frame of the span.")
+    return ("Read-out (`alignment.readout=final_segment`, the paper's protocol, docs/reference/evaluation.md): one "
+            "alignment fitted on the final tenth of every training trial, applied to every frame.")
+
+
 def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: str,
                sizes: Sequence[int] = (24, 64, 128, 256, 512)) -> Path:
     """docs page + figure from ``collect`` rows. Returns the page's path."""
@@ -231,28 +304,35 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         "64 test objects and picks checkpoints on the same 32 validation objects; the population and "
         "the simulated noise are those of population_seed 0 and sim_seed 0, the seeds vary the model's "
         "initialisation and training windows. Targets: physical units (1/m, mm, log10 Pa, 0/1), "
-        "standardised by the alignment. Two read-outs: over the whole trajectory (every frame, the "
-        "project's main NMSE; frames before the first contact count) and at the last frame (the estimate after "
-        "the whole trial). Each cell: mean over seeds [95 % t interval] (number of seeds); "
-        "'not run' cells were not run. The baselines train on the same training split at the Latent "
-        "Filter's optimiser-step budget (480 steps of 16 windows). 'untrained' rows: the same filter at step 0 "
-        "(its random initialisation), read by the training's KRR check (alignment on the first 256 training "
-        "sequences in split order, 128 objects, where the trained rows align on all): the floor a trained "
-        "filter's read-out is to be compared with.",
+        "standardised by the alignment. " + _readout_sentence(rows) + " Two numbers per reader: over the "
+        "whole trajectory (every frame, the project's main NMSE; frames before the first contact count) and "
+        "at the last frame (the estimate after the whole trial); the curve between them is in \"Over "
+        "interaction time\". Each cell: mean over seeds [95 % t interval] (number of seeds); 'not run' cells "
+        "were not run. The baselines train on the same training split at the Latent Filter's optimiser-step "
+        "budget (480 steps of 16 windows). 'untrained' rows: the same filter at step 0 (its random "
+        "initialisation, the run's seed), read by the same read-out: the floor a trained filter's read-out is "
+        "to be compared with.",
         "",
         "What the signals allow on the same population (a kernel reader on physical summary features): "
         "docs/experiments/signal_content.md. The paper's 32 objects under the object split: "
-        "docs/experiments/study_held_out_objects.md. The runs: `python train.py -m experiment=population "
-        "sweep=generalisation [recipe=elbo|recognition]` (configs/recipe/), then `python evaluate.py <run> baselines=[handcrafted,gru,mean] "
-        "gru.epochs=16 gru.max_batches_per_epoch=30` per run (configs/sweep/generalisation.yaml). The GRU rows say whether "
-        "its inputs were standardised per channel (evaluate.py's default since 2026-11-25, as the Latent Filter's encoder "
-        "sees them) or raw; the GRU at other budgets: docs/experiments/population_readers.md.",
+        "docs/experiments/study_held_out_objects.md. The runs: `python train.py experiment=population "
+        "data.n_objects=N seed=S threads=1` (or the sweep, configs/sweep/generalisation.yaml), then `python "
+        "evaluate.py <run> baselines=[handcrafted,untrained,mean]` per run (`gru` adds the supervised conv + "
+        "GRU: `gru.epochs=16 gru.max_batches_per_epoch=30`). The GRU at other budgets: "
+        "docs/experiments/population_readers.md.",
         "",
         "![learning curve](figures/generalisation_curve.png)",
         "",
     ]
     for readout, title in READOUTS:
         lines += [f"## Mean over factors, {title}", "", *table(aggregate(rows, readout=readout), sizes), ""]
+    curves = over_time(rows)
+    if curves:
+        time_figure(curves, out / "figures" / "generalisation_over_time.png")
+        lines += ["## Over interaction time", "",
+                  "NMSE (mean over factors) frame by frame, each reader with its own read-out over the whole "
+                  "trial. Frame 1 is before any evidence: a reader that knows nothing of the object reads 1 there.",
+                  "", "![over interaction time](figures/generalisation_over_time.png)", "", *time_table(curves), ""]
     for f in FACTOR_NAMES:
         for readout, title in READOUTS:
             lines += [f"## {f}, {title}", "", *table(aggregate(rows, f, readout), sizes), ""]

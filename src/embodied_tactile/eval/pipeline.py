@@ -21,10 +21,10 @@ from pathlib import Path
 from typing import Sequence
 
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import ConfigKeyError
+from omegaconf.errors import ConfigKeyError, ValidationError
 
 from embodied_tactile.constants import FACTOR_NAMES
-from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect_split, data_config, discover,
+from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect_splits, data_config, discover,
                                         load_module, run_split, run_state, trial_names, trial_objects,
                                         untrained_module)
 from embodied_tactile.eval.results import SPLIT_KINDS
@@ -44,11 +44,23 @@ def defaults_file() -> Path:
 
 
 # ----------------------------------------------------------------------------- options
+def evaluation_keys() -> list[str]:
+    """evaluate.py's option names (:class:`~embodied_tactile.options.evaluation.EvaluationOptions`)."""
+    from dataclasses import fields
+
+    from embodied_tactile.options.evaluation import EvaluationOptions
+
+    return [f.name for f in fields(EvaluationOptions)]
+
+
 def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
-    """``configs/evaluate.yaml`` + ``key=value`` overrides (unknown top-level keys rejected;
+    """:class:`~embodied_tactile.options.evaluation.EvaluationOptions` + ``configs/evaluate.yaml``
+    + ``key=value`` overrides (unknown top-level keys rejected;
     ``alignment.*`` takes the keys of :class:`~embodied_tactile.options.alignment.AlignmentOptions`,
     ``gru.*`` any keyword of GRURegressor)."""
-    base = OmegaConf.load(defaults_file())
+    from embodied_tactile.options.evaluation import EvaluationOptions
+
+    base = OmegaConf.merge(OmegaConf.structured(EvaluationOptions), OmegaConf.load(defaults_file()))
     OmegaConf.set_struct(base, True)
     for open_key in ("alignment", "gru"):
         OmegaConf.set_struct(base[open_key], False)
@@ -60,6 +72,9 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
     except ConfigKeyError as err:
         raise EvaluationError(f"unknown evaluation option: {err}. Known: {sorted(base.keys())}. "
                               "(The scene and model come from the run's own config and cannot be overridden.)") from err
+    except ValidationError as err:  # a value of the wrong type: one line naming the key
+        raise EvaluationError(f"{err.full_key}={err.msg.split(chr(39))[1] if chr(39) in err.msg else '?'}: "
+                              f"{err.msg.splitlines()[0]}") from None
     if opts.checkpoint not in ("best", "last"):
         raise EvaluationError(f"checkpoint must be 'best' or 'last', got {opts.checkpoint!r}")
     if opts.latent not in ("y", "z", "both"):
@@ -87,7 +102,7 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
 def split_overrides(overrides: Sequence[str]) -> tuple[list[str], dict[str, list[str]]]:
     """-> (evaluation options: keys of configs/evaluate.yaml, run selection: every other
     ``key=value``, e.g. ``modality=multi_l skin=hard seed=[0,1] annealing.name=dvbf``)."""
-    known = set(OmegaConf.load(defaults_file()).keys())
+    known = set(evaluation_keys())
     options, selection = [], {}
     for o in overrides:
         key = o.split("=", 1)[0]
@@ -121,7 +136,7 @@ def select_runs(runs: list[Run], selection: dict[str, list[str]]) -> list[Run]:
         if all(h is None for h in have):
             raise EvaluationError(
                 f"unknown evaluation option or run selector {key!r}: not an option of configs/evaluate.yaml "
-                f"({sorted(OmegaConf.load(defaults_file()).keys())}) nor a key of the runs' config_resolved.yaml")
+                f"({sorted(evaluation_keys())}) nor a key of the runs' config_resolved.yaml")
         kept = [r for r, h in zip(runs, have) if h is not None and _matches(h, want)]
         if not kept:
             raise EvaluationError(f"no run matches {key}={','.join(want)} (the runs have {key} = "
@@ -165,6 +180,7 @@ def run_alignment(cfg: DictConfig, opts: DictConfig) -> dict:
 
 def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequence[str]) -> tuple[list, list[dict], dict]:
     """-> (Results of every method, krr history rows, info dict)."""
+    from embodied_tactile.eval.callback import INFER_BATCH_SIZE
     from embodied_tactile.eval.results import evaluate_latents
     from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
     from embodied_tactile.data.modality import Modality
@@ -201,9 +217,11 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     t_data = time.perf_counter()
 
     model = load_module(run)
-    tr, _ = collect_split(model, cache.batches(key, dm, "train"), trial_names(dm, "train"), opts.latent)
-    te, infer_s = collect_split(model, cache.batches(key, dm, opts.held_out), trial_names(dm, opts.held_out),
-                                opts.latent)
+    sides = ((cache.batches(key, dm, "train"), trial_names(dm, "train")),
+             (cache.batches(key, dm, opts.held_out), trial_names(dm, opts.held_out)))
+    infer_batch = int(OmegaConf.select(cfg, "callbacks.krr_alignment.infer_batch_size", default=None)
+                      or INFER_BATCH_SIZE)  # the training's final read-out's batches: the same latents
+    tr, te, infer_s = collect_splits(model, *sides, opts.latent, infer_batch)
     te["factors_physical"] = te["factors"]  # the trials' own factors, for figure legends
     targets = run_targets(cfg, opts)
     tr, te = encode_split(tr, targets), encode_split(te, targets)  # every method: one encoding
@@ -232,9 +250,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
         t0 = time.perf_counter()
         if b == "untrained":  # the same network and read-out at step 0: the floor
             floor = untrained_module(run, model)
-            tr0, _ = collect_split(floor, cache.batches(key, dm, "train"), trial_names(dm, "train"), opts.latent)
-            te0, _ = collect_split(floor, cache.batches(key, dm, opts.held_out),
-                                   trial_names(dm, opts.held_out), opts.latent)
+            tr0, te0, _ = collect_splits(floor, *sides, opts.latent, infer_batch)
             del floor
             tr0, te0 = encode_split(tr0, targets), encode_split(te0, targets)
             results.append(evaluate_latents(tr0, te0, latent=opts.latent, method="untrained", alignment=align,

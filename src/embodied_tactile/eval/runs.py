@@ -314,7 +314,7 @@ class DataCache:
         """``(key, DataModule)``; ``check(dm)``, when given, runs after the preparation stage
         and before the saved split is loaded (it sees the caches, e.g. to compare the data
         with the training's), also on a reused DataModule."""
-        from hydra.utils import instantiate
+        from embodied_tactile.data.datamodule import TactileDataModule
 
         k = self.key(data)
         if k in self._dms:
@@ -323,7 +323,7 @@ class DataCache:
                 check(self._dms[k])
             return k, self._dms[k]
         self.clear()  # free the previous scene before loading the next one
-        dm = instantiate(OmegaConf.create(data), _convert_="all")
+        dm = TactileDataModule.from_config(data)  # a saved config of any version (its _target_ ignored)
         dm.prepare_data()
         if check is not None:
             check(dm)
@@ -365,20 +365,42 @@ def trial_objects(dm) -> dict[str, int]:
 def collect_split(model, batches: list, names: list[str], latent: str) -> tuple[dict, float]:
     """collect_latents over pre-loaded batches (so the timing is inference only) + the
     observations / actions the baselines need + trial names as seq_id."""
-    import numpy as np
-    import torch
-
     from embodied_tactile.eval.callback import collect_latents
 
     t0 = time.perf_counter()
     split = collect_latents(model, batches, latent=latent)
+    return _with_inputs(split, batches, names), time.perf_counter() - t0
+
+
+def collect_splits(model, train: tuple[list, list[str]], held: tuple[list, list[str]], latent: str,
+                   batch_size: int) -> tuple[dict, dict, float]:
+    """:func:`collect_split` of the training and the held-out side (each ``(batches,
+    names)``), inferred together as the training's final read-out infers them
+    (:func:`~embodied_tactile.eval.callback.collect_split_latents`, ``batch_size`` sequences a
+    batch: the run's ``callbacks.krr_alignment.infer_batch_size``), so evaluate.py reads the
+    same latents to the bit -> (training split, held-out split, inference seconds per held-out
+    share of the sequences)."""
+    from embodied_tactile.eval.callback import collect_split_latents
+
+    t0 = time.perf_counter()
+    tr, te = collect_split_latents(model, train[0], held[0], latent=latent, batch_size=batch_size)
     dt = time.perf_counter() - t0
+    n_tr, n_te = len(tr["factors"]), len(te["factors"])
+    return (_with_inputs(tr, *train), _with_inputs(te, *held), dt * n_te / max(1, n_tr + n_te))
+
+
+def _with_inputs(split: dict, batches: list, names: list[str]) -> dict:
+    """A split's latents with the observations / actions the baselines need and the trial
+    names as seq_id."""
+    import numpy as np
+    import torch
+
     split["obs"] = torch.cat([b["obs"] for b in batches]).numpy()
     split["actions"] = torch.cat([b["actions"] for b in batches]).numpy()
     if len(names) != len(split["factors"]):
         raise EvaluationError(f"{len(names)} trial names but {len(split['factors'])} sequences served")
     split["seq_id"] = np.asarray(names)
-    return split, dt
+    return split
 
 
 def run_split(run: Run, split_file: str, objects: Mapping[str, int]) -> dict:

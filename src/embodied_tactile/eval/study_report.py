@@ -38,6 +38,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from ..options.data import SceneOptions, SplitOptions
 from ..constants import FACTOR_NAMES, OBJECT_GROUPS, PRIMITIVES
 from .metrics import SCALED_MSE_DEFINITION, reference_variance, scaled_mse_from_nmse
 from .results import scored_on_validation
@@ -92,7 +93,8 @@ def _latent_runs(runs: Sequence[Mapping], modality: str | None = None) -> list[M
 
 
 def held_out_variance(targets: str = DEFAULT_TARGETS, *, actions: Sequence[int] | None = None,
-                      repetitions: int = 1, test_fraction: float = 0.25, seed: int = 0) -> tuple[np.ndarray, int]:
+                      repetitions: int = SceneOptions.repetitions, test_fraction: float = SplitOptions.test_fraction,
+                      seed: int = 0) -> tuple[np.ndarray, int]:
     """(per-factor variance, number) of the held-out test targets of the catalogue's trial
     split, rebuilt with the data module's own :func:`~embodied_tactile.data.datamodule.split_trials`
     over the 32 wave objects x ``actions`` (None: all 16) x ``repetitions``: the reference
@@ -108,8 +110,8 @@ def held_out_variance(targets: str = DEFAULT_TARGETS, *, actions: Sequence[int] 
 
 
 def _scene(data: Mapping) -> dict:
-    return {"actions": data.get("actions"), "repetitions": data.get("repetitions", 1),
-            "test_fraction": data.get("test_fraction", 0.25)}
+    return {"actions": data.get("actions"), "repetitions": data.get("repetitions", SceneOptions.repetitions),
+            "test_fraction": data.get("test_fraction", SplitOptions.test_fraction)}
 
 
 def _default_scene() -> dict:
@@ -299,7 +301,8 @@ def page_scene(text: str) -> tuple[dict, int, str]:
     targets = re.search(r"Targets: (\w+) \(", text)
     if not (acts and split and targets):
         raise StudyReportError("the page names no single budget (action indices), held-out count or targets")
-    return ({"actions": [int(a) for a in acts.group(1).split(",")], "repetitions": 1, "test_fraction": 0.25},
+    return ({"actions": [int(a) for a in acts.group(1).split(",")], "repetitions": SceneOptions.repetitions,
+             "test_fraction": SplitOptions.test_fraction},
             int(split.group(2)), targets.group(1))
 
 

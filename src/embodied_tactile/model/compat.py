@@ -96,10 +96,22 @@ def moved_to(name: str) -> str | None:
 DROPPED_CONFIG_KEYS = ("modality.module", "model.net.modality.module")
 
 
+#: config keys that today's configs write and earlier saved configs lack, with the value
+#: those runs had (the typed data options made ``pin_memory`` a key of ``data``)
+ADDED_CONFIG_KEYS = {"data.pin_memory": False}
+
+#: ``_target_`` strings that saved configs hold -> today's (the DataModule is built from its
+#: flat config keys by ``from_config``, its constructor taking the grouped options)
+RETARGETED = {"embodied_tactile.data.datamodule.TactileDataModule":
+              "embodied_tactile.data.datamodule.TactileDataModule.from_config"}
+
+
 def current_target(target: str) -> str:
     """Today's spelling of a saved ``_target_`` (``embodied_tactile.models.module.
     LateFusionLatentFilter`` -> ``embodied_tactile.model.module.LatentFilterModule``); any
     other string unchanged. For comparing a saved config with today's."""
+    if target in RETARGETED:
+        return RETARGETED[target]
     module, _, name = target.rpartition(".")
     new = moved_to(module)
     if new is None:

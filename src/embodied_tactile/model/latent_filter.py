@@ -384,7 +384,16 @@ class LatentFilter(nn.Module):
         """q(y | context): the inference path (encoder, filter, y posterior with its evidence
         accumulation) run over context frames obs (B, T, C, 28, 28) and their actions, every
         frame observed; the posterior at the last frame, mean and var (B, n_y). Gradients
-        flow (the context objective trains this path); ``sample`` draws the filter's z."""
+        flow (the context objective trains this path); ``sample`` draws the filter's z.
+        A context of M touches, obs (B, M, T, C, 28, 28) and actions (B, M, T, n_a): each
+        touch's posterior, combined by :func:`combine_touches` (the K-touch read-out's rule)
+        from :meth:`touch_prior`."""
+        if obs.dim() == 6:
+            B, M = obs.shape[:2]
+            m, v = self.context_posterior(obs.flatten(0, 1), actions.flatten(0, 1), sample=sample)
+            prior_m, prior_v = self.touch_prior(obs.device)
+            return combine_touches(m.view(B, M, -1).transpose(0, 1), v.view(B, M, -1).transpose(0, 1),
+                                   prior_m, prior_v)
         observed = torch.ones(obs.shape[:2], dtype=torch.bool, device=obs.device)
         out = self.forward(obs, actions, sample=sample, observed=observed, decode=False)
         return out["y_mean"][:, -1], out["y_var"][:, -1]

@@ -94,6 +94,9 @@ def check_context(context: Optional[Mapping[str, Any]]) -> Optional[dict[str, An
         raise ValueError(f"context.source must be one of {CONTEXT_SOURCES}, got {out['source']!r}")
     if int(out["initial_frames"]) < 1:
         raise ValueError(f"context.initial_frames must be >= 1, got {out['initial_frames']}")
+    if int(out["touches"]) < 1 or (int(out["touches"]) > 1 and out["source"] != "trial"):
+        raise ValueError(f"context.touches must be 1, or > 1 with source=trial, got {out['touches']} "
+                         f"with source={out['source']!r}")
     if not float(out["filter_weight"]) >= 0.0:
         raise ValueError(f"context.filter_weight must be >= 0, got {out['filter_weight']}")
     return out

@@ -13,6 +13,8 @@ module first:
   options (:class:`~embodied_tactile.model.options.ContextOptions`, null unless a recipe
   sets them). configs/model/latent_filter.yaml composes it and names only what depends on
   the scene.
+* ``data: schema`` (:class:`DataNode`): the data's scene, split and loader options
+  (:mod:`embodied_tactile.options.data`), flat; configs/data/*.yaml compose it.
 * ``alignment: schema`` (:class:`~embodied_tactile.options.alignment.AlignmentOptions`): the
   latent -> factor read-out, shared by the training's final alignment and evaluate.py.
 * ``${prior_rows:objects,n_test,n_val,n_train}``: rows of the prior's object-code table.
@@ -25,6 +27,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
 from embodied_tactile.options.alignment import AlignmentOptions
+from embodied_tactile.options.data import DataOptions
 from embodied_tactile.model.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
 from embodied_tactile.run.paths import config_dir
 
@@ -55,6 +58,14 @@ class ModelNode(ModuleOptions):
     annealing: Any = MISSING
     optimizer: OptimizerNode = field(default_factory=OptimizerNode)
     context: Optional[ContextOptions] = None
+
+
+@dataclass
+class DataNode(DataOptions):
+    """``data``: what Hydra instantiates into a :class:`~embodied_tactile.data.datamodule.TactileDataModule`
+    (its flat keys sorted into scene, split and loader by ``from_config``)."""
+
+    _target_: str = "embodied_tactile.data.datamodule.TactileDataModule.from_config"
 
 
 def prior_rows(objects: Any, n_test: int, n_val: int, n_train: int) -> int:
@@ -95,6 +106,7 @@ def register() -> None:
     cs = ConfigStore.instance()
     cs.store(group="model", name="schema", node=ModelNode)
     cs.store(group="alignment", name="schema", node=AlignmentOptions)
+    cs.store(group="data", name="schema", node=DataNode)
     if not OmegaConf.has_resolver("prior_rows"):
         OmegaConf.register_new_resolver("prior_rows", prior_rows)
     if not OmegaConf.has_resolver("folder_name"):
@@ -103,4 +115,4 @@ def register() -> None:
 
 register()
 
-__all__ = ["LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]
+__all__ = ["DataNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]

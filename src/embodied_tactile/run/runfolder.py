@@ -178,11 +178,11 @@ def _may_change(key: str) -> bool:
 def config_changes(saved: Mapping[str, Any], new: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:
     """``{dotted key: (saved value, new value)}`` of the keys outside :data:`MAY_CHANGE`
     whose values differ (a key present on one side only counts, with ``<absent>``)."""
-    from embodied_tactile.model.compat import DROPPED_CONFIG_KEYS, current_target
+    from embodied_tactile.model.compat import ADDED_CONFIG_KEYS, DROPPED_CONFIG_KEYS, current_target
 
-    def today(flat: dict) -> dict:  # a config saved before a module moved reads as today's
+    def today(flat: dict) -> dict:  # a config saved before a module moved or a key was added reads as today's
         return {k: current_target(v) if k.endswith("_target_") and isinstance(v, str) else v
-                for k, v in flat.items() if k not in DROPPED_CONFIG_KEYS}
+                for k, v in {**ADDED_CONFIG_KEYS, **flat}.items() if k not in DROPPED_CONFIG_KEYS}
 
     a, b = today(_flatten(saved)), today(_flatten(new))
     missing = "<absent>"

@@ -22,7 +22,8 @@ from typing import Any, Mapping, Sequence
 
 from ..constants import FACTOR_NAMES
 from .jsonio import read_json
-from ..model.compat import UNSAVED_PRIOR_OPTIONS
+from ..model.compat import UNSAVED_OPTIONS, UNSAVED_PRIOR_OPTIONS
+from ..model.options import LatentFilterOptions, PriorOptions
 
 FACTOR_SHORT = {"spatial_frequency": "spatial freq.", "amplitude": "amplitude", "stiffness": "stiffness",
                 "heterogeneity": "heterogeneity"}
@@ -34,12 +35,13 @@ def recipe(cfg) -> str:
     """The settings that tell the learning curve's Latent Filter recipes apart, as the run
     used them: the prior's object labels, the KL schedule's y weight, the y update and the
     observation dropout (the last three where the run's config has them); with the context
-    objective its context source and the settings that tell its rungs apart."""
+    objective its context source and the settings that tell its rungs apart; a learning-rate
+    schedule other than constant."""
     from omegaconf import OmegaConf
 
     labels = bool(OmegaConf.select(cfg, "model.net.prior.labels", default=UNSAVED_PRIOR_OPTIONS["labels"]))
     parts = ["labels" if labels else "no labels"]
-    if labels and OmegaConf.select(cfg, "model.net.prior.learn_embedding", default=False):
+    if labels and OmegaConf.select(cfg, "model.net.prior.learn_embedding", default=PriorOptions.learn_embedding):
         parts.append("learned codes")
     y_weight = OmegaConf.select(cfg, "annealing.schedule.y_weight", default=None)
     if y_weight is not None:
@@ -47,14 +49,20 @@ def recipe(cfg) -> str:
     y_update = OmegaConf.select(cfg, "model.net.y_update", default=None)
     if y_update is not None:
         parts.append(f"y {y_update}")
-    dropout = float(OmegaConf.select(cfg, "model.net.obs_dropout", default=0.0) or 0.0)
+    # a config silent on it predates the option: those networks were trained without dropout (compat)
+    dropout = float(OmegaConf.select(cfg, "model.net.obs_dropout", default=UNSAVED_OPTIONS["obs_dropout"]) or 0.0)
     if dropout > 0:
         parts.append(f"dropout {dropout:g}")
-    if OmegaConf.select(cfg, "model.net.y_start", default="fixed") == "population":
+    if OmegaConf.select(cfg, "model.net.y_start", default=LatentFilterOptions.y_start) == "population":
         parts.append("y from the population")
+    schedule = OmegaConf.select(cfg, "model.lr_schedule", default="constant")
+    if schedule != "constant":
+        parts.append(f"{schedule} schedule")
     context = OmegaConf.select(cfg, "model.context", default=None)
     if context:
+        touches = int(context.get("touches", 1) or 1)
         parts.insert(0, f"context objective ({context.get('source', 'trial')}"
+                     + (f", {touches} touches" if touches > 1 else "")
                      + (", refilter" if context.get("refilter") else "") + ")")
     return ", ".join(parts)
 

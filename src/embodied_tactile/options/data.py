@@ -1,0 +1,93 @@
+"""The data's options, typed, with their one default each (no heavy imports, so the typed
+configs can register them): what scene is prepared, how it is split, how it is served.
+
+``configs/data/*.yaml`` keeps them flat (``data.batch_size``, ``data.split``, ``data.skin``):
+:class:`DataOptions` is the three groups in one node, which
+:meth:`TactileDataModule.from_config <embodied_tactile.data.datamodule.TactileDataModule.from_config>`
+sorts back into the groups :class:`~embodied_tactile.data.datamodule.TactileDataModule` takes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Dict, List, Mapping, Optional
+
+
+@dataclass
+class SceneOptions:
+    """What to prepare (:class:`embodied_tactile.data.prepare.Scene`): the keys that decide
+    which trials exist and how they are preprocessed."""
+
+    data_dir: str = "data"
+    source: str = "simulated"             # simulated (the built-in simulator) | recorded (raw_files)
+    raw_files: Optional[List[str]] = None  # recorded: paths or glob patterns
+    skin: str = "soft"
+    primitive: str = "pressing"
+    channels: List[str] = field(default_factory=lambda: ["acc", "fsr_t", "fsr_b"])
+    objects: Any = None                   # null = all 32 wave objects; a list of ids; population (docs/reference/simulator.md)
+    n_objects: int = 256                  # population: training objects (validation and test objects come on top)
+    n_val_objects: int = 32               # population: validation objects (checkpoint selection)
+    n_test_objects: int = 64              # population: test objects (evaluation only)
+    population_seed: int = 0              # population: which objects are drawn
+    actions: Optional[List[int]] = None   # null = all 16 parameter sets
+    repetitions: int = 1
+    sim_seed: int = 0
+    sim_workers: int = 2
+    preprocess: Dict[str, Any] = field(default_factory=dict)  # PreprocessConfig overrides (docs/reference/preprocessing.md)
+    preprocess_workers: int = 2
+    strict: bool = False                  # true: a bad raw trial is fatal instead of skipped
+    include_incomplete: bool = False      # true: also use interrupted recordings (complete=False)
+    allow_large_population: bool = False  # true: prepare a population of more than 10,000 trials
+
+
+@dataclass
+class SplitOptions:
+    """How the prepared trials are split (:func:`embodied_tactile.data.datamodule.split_trials`)."""
+
+    split: str = "trial"          # trial: the paper's split (recognition) | object: train / validation / test objects disjoint
+    test_fraction: float = 0.25   # held-out test share (of trials; of objects for split=object): evaluation only
+    val_fraction: float = 0.125   # validation share (from training objects; of objects for split=object)
+    split_seed: int = 0
+    split_file: Optional[str] = None  # where the split is saved (JSON); reused if it exists and matches
+
+
+@dataclass
+class LoaderOptions:
+    """How the split is served."""
+
+    batch_size: int = 48
+    num_workers: int = 0
+    seq_len: Optional[int] = None            # null = the full trial
+    train_window: Optional[int] = None       # training crops of this many frames (null = whole trials)
+    windows_per_trial: Optional[int] = 1     # random crops per training trial and epoch
+    windows_per_epoch: Optional[int] = None  # instead of windows_per_trial (then null): crops per epoch
+    context: Optional[str] = None            # the context objective's pairing: null | trial | window
+    context_touches: int = 1                 # context=trial: other trials of the object per context
+    pin_memory: bool = False
+
+
+@dataclass
+class DataOptions(LoaderOptions, SplitOptions, SceneOptions):
+    """``data``: the three groups flat, as ``configs/data/*.yaml`` and saved run configs hold them."""
+
+
+GROUPS = (SceneOptions, SplitOptions, LoaderOptions)
+
+
+def group_options(flat: Mapping[str, Any]) -> tuple[SceneOptions, SplitOptions, LoaderOptions]:
+    """Flat data keys (a ``data`` config; ``_target_`` ignored) -> the three groups, each
+    key's default where ``flat`` is silent; TypeError naming an unknown key."""
+    given = {k: v for k, v in flat.items() if k != "_target_"}
+    names = [{f.name for f in fields(cls)} for cls in GROUPS]
+    unknown = sorted(set(given) - set().union(*names))
+    if unknown:
+        raise TypeError(f"unknown data option(s) {unknown}")
+    return tuple(cls(**{k: v for k, v in given.items() if k in n}) for cls, n in zip(GROUPS, names))  # type: ignore[return-value]
+
+
+def scene_defaults() -> dict[str, Any]:
+    """:class:`SceneOptions`'s defaults as a dict."""
+    return asdict(SceneOptions())
+
+
+__all__ = ["DataOptions", "GROUPS", "LoaderOptions", "SceneOptions", "SplitOptions", "group_options", "scene_defaults"]

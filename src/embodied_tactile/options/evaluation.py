@@ -1,0 +1,65 @@
+"""evaluate.py's options and the baselines', typed, with their one default each (no heavy
+imports). ``configs/evaluate.yaml`` names none of them again: it documents them and holds
+what a user changes; :func:`embodied_tactile.eval.pipeline.parse_options` merges it over
+:class:`EvaluationOptions`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional
+
+
+@dataclass
+class GRUOptions:
+    """``gru``: the supervised GRU baseline (:class:`~embodied_tactile.eval.baselines.GRURegressor`):
+    6 random 50-frame crops per sequence and epoch, like the default training (whole
+    sequences: 0.83 / 0.79 NMSE instead of 0.16 / 0.16), inputs standardised per channel by
+    the training set's mean / std as the Latent Filter's encoder sees them (raw inputs: 0.87
+    instead of 0.60 at 256 population objects, docs/experiments/population_readers.md; 1.0
+    instead of 0.26 for acc, modality_bounds.md)."""
+
+    epochs: int = 20
+    window: Optional[int] = 50
+    windows_per_trial: int = 6
+    max_batches_per_epoch: Optional[int] = None
+    batch_size: int = 16
+    hidden: int = 64
+    feat: int = 64
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    seed: Optional[int] = None    # null = the run's seed (evaluate.py); 0 for a GRURegressor built directly
+    input_standardize: bool = True
+    arch: str = "gru"             # gru: conv + GRU | latent_filter: the Latent Filter's inference path + a head on y
+
+
+@dataclass
+class EvaluationLoaderOptions:
+    """``data``: evaluate.py's loader settings (never the scene)."""
+
+    batch_size: Optional[int] = None  # null = the run's batch size
+    num_workers: int = 0
+
+
+@dataclass
+class EvaluationOptions:
+    """evaluate.py's options (``configs/evaluate.yaml`` documents each)."""
+
+    checkpoint: str = "last"
+    held_out: str = "test"
+    latent: str = "y"
+    allow_changed_data: bool = False
+    allow_running: bool = False
+    targets: Optional[str] = None
+    baselines: Optional[List[str]] = None
+    out: Optional[str] = None
+    figures: bool = True
+    umap: bool = True
+    distance_mode: str = "pairwise"
+    print_tables: bool = False
+    alignment: Dict[str, Any] = field(default_factory=dict)
+    gru: GRUOptions = field(default_factory=GRUOptions)
+    data: EvaluationLoaderOptions = field(default_factory=EvaluationLoaderOptions)
+    torch_threads: Optional[int] = 1
+
+
+__all__ = ["EvaluationLoaderOptions", "EvaluationOptions", "GRUOptions"]
