@@ -14,7 +14,7 @@ needs. So the path is an argparse positional and the options are an OmegaConf do
 merged over ``configs/evaluate.yaml`` (the same ``key=value`` syntax as train.py; unknown
 keys are an error; any other ``key=value`` selects runs by their config).
 
-The recipe, per run (docs/evaluation.md):
+The recipe, per run (docs/reference/evaluation.md):
 
 1. reload the run's OWN config, saved split and checkpoint (best by default)
    (:mod:`embodied_tactile.eval.runs`): a run trained with ``modality=fsr_tb`` evaluates as

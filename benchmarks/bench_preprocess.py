@@ -18,6 +18,7 @@ import multiprocessing as mp
 import os
 import resource
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -31,8 +32,11 @@ import hdf5plugin
 import scipy.signal
 
 from embodied_tactile.data import preprocess as P
-from embodied_tactile.data.preprocess import PreprocessConfig, acc_logmel, acc_logmel_naive, preprocess_trials
+from embodied_tactile.data.preprocess import PreprocessConfig, acc_logmel, preprocess_trials
 from embodied_tactile.data.rawformat import RawTrial, make_attrs, read_trial, write_trial
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from helpers import acc_logmel_naive  # noqa: E402  the tests' reference loop (tests/helpers.py)
 
 CODECS = {
     "gzip-1 + shuffle (old default)": {"compression": "gzip", "compression_opts": 1, "shuffle": True},

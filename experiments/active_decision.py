@@ -1,4 +1,4 @@
-"""Latency of one active-palpation decision (docs/active.md): does choosing the next touch fit
+"""Latency of one active-palpation decision (docs/reference/active.md): does choosing the next touch fit
 between two touches?
 
 One decision = imagined rollouts of every candidate action from the current filter state

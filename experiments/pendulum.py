@@ -1,4 +1,4 @@
-"""Pendulum benchmark for the Latent Filter (docs/model.md, "Pendulum benchmark"; results in docs/experiments/pendulum.md).
+"""Pendulum benchmark for the Latent Filter (docs/reference/model.md, "Pendulum benchmark"; results in docs/experiments/pendulum.md).
 
 The driven, damped pendulum of Deep Variational Bayes Filters (Karl et al. 2017): 8
 objects (natural frequency {2, 3, 4, 5} rad/s x damping {0.1, 0.6} 1/s), random

@@ -26,7 +26,7 @@ COMMANDS = {
     "record": ("embodied_tactile.hardware.record", "record e-Skin trials from a serial port (Hydra key=value over configs/record.yaml)"),
     "emulate": ("embodied_tactile.hardware.emulate", "fake e-Skin on a pseudo-terminal, for the recorder (flags)"),
     "palpate": ("embodied_tactile.active.palpate", "closed-loop active palpation with a trained run (Hydra key=value over configs/palpate.yaml)"),
-    "report": ("embodied_tactile.eval.study_report", "write docs/results.md from an evaluated study (flags)"),
+    "report": ("embodied_tactile.eval.pages", "regenerate every page under docs/generated/, or one: results, generalisation, active (flags)"),
 }
 
 

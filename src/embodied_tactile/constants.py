@@ -4,7 +4,7 @@ Pure Python + NumPy. Every other module (simulator, recorder, preprocessing, mod
 configs, evaluation tables) takes these facts from here, so the object catalogue and the
 paper's action table exist exactly once.
 
-Object index convention (documented in docs/data_format.md)::
+Object index convention (documented in docs/reference/data_format.md)::
 
     object_id = 9 * frequency_index + 3 * material_index + amplitude_index   (0..26)
     object_id in 27..31: heterogeneous (thin stiff top layer over soft bulk)
@@ -135,7 +135,7 @@ class WaveObject:
 
     def description(self) -> dict[str, float]:
         """The object's physical description beyond the factors (stored as trial attributes,
-        docs/data_format.md): the bulk's and the top layer's material parameters and the
+        docs/reference/data_format.md): the bulk's and the top layer's material parameters and the
         top layer's thickness (0 and NaN moduli for a homogeneous object)."""
         out: dict[str, float] = {"top_thickness_mm": float(self.top_thickness_mm if self.heterogeneous else 0.0)}
         for prefix, mat in (("bulk", self.bulk_material), ("top", self.top_material)):

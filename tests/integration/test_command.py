@@ -13,7 +13,7 @@ from embodied_tactile.__main__ import COMMANDS
 #: a line of each entry point's own help
 OWN_HELP = {"train": "train is powered by Hydra", "evaluate": "usage: evaluate.py", "simulate": "Simulate raw e-Skin trials",
             "prepare": "Prepare a scene's data", "record": "powered by Hydra", "emulate": "--trial-file",
-            "palpate": "powered by Hydra", "report": "--paper-units"}
+            "palpate": "powered by Hydra", "report": "report results --help"}
 
 
 def command(*args: str) -> subprocess.CompletedProcess:
@@ -32,8 +32,21 @@ def test_unknown_or_missing_subcommand_exits_2():
     assert command().returncode == 2
 
 
+@pytest.fixture(scope="module")
+def helps() -> dict[str, subprocess.CompletedProcess]:
+    """``embodied-tactile NAME --help`` of every subcommand, the subprocesses started at once so
+    that they share the cores instead of queueing."""
+    procs = {name: subprocess.Popen([sys.executable, "-m", "embodied_tactile", name, "--help"],
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for name in COMMANDS}
+    done = {}
+    for name, proc in procs.items():
+        out, err = proc.communicate(timeout=300)
+        done[name] = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    return done
+
+
 @pytest.mark.parametrize("name", list(COMMANDS))
-def test_subcommand_help(name):
-    res = command(name, "--help")
+def test_subcommand_help(name, helps):
+    res = helps[name]
     assert res.returncode == 0, res.stderr[-2000:]
     assert OWN_HELP[name] in res.stdout, res.stdout[:2000]

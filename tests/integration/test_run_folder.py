@@ -97,14 +97,38 @@ def test_bad_setting_in_a_finished_run_folder_keeps_its_metrics(finished_run, fa
 
 
 # ----------------------------------------------------------------------------- lock
-def _hold_lock(run: Path) -> subprocess.Popen:
-    """Another process holding the run folder's lock (as a running training does)."""
-    code = ("import sys, time; from embodied_tactile.run import runfolder; runfolder.lock(sys.argv[1]); "
-            "print('held', flush=True); time.sleep(120)")
-    proc = subprocess.Popen([sys.executable, "-c", code, str(run)], env={**ENV, "PYTHONPATH": str(REPO / "src")},
-                            stdout=subprocess.PIPE, text=True)
-    assert proc.stdout.readline().strip() == "held"
-    return proc
+class _LockHolder:
+    """Another process holding the run folder's lock (as a running training does): a fork of
+    this one, which has runfolder imported already (a fresh interpreter spends seconds
+    importing lightning first)."""
+
+    def __init__(self, run: Path):
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("fork")
+        ready = ctx.Event()
+        self.proc = ctx.Process(target=self._hold, args=(str(run), ready), daemon=True)
+        self.proc.start()
+        assert ready.wait(60), "the lock holder did not take the lock"
+        self.pid = self.proc.pid
+
+    @staticmethod
+    def _hold(run: str, ready) -> None:
+        from embodied_tactile.run import runfolder
+
+        runfolder.lock(run)
+        ready.set()
+        time.sleep(120)
+
+    def kill(self) -> None:
+        self.proc.kill()
+
+    def wait(self) -> None:
+        self.proc.join()
+
+
+def _hold_lock(run: Path) -> _LockHolder:
+    return _LockHolder(run)
 
 
 def test_lock_refuses_a_second_holder_and_frees_on_exit(tmp_path):

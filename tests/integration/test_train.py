@@ -355,40 +355,6 @@ def test_nonfinite_loss_stops_and_keeps_last_checkpoint(data_dir, tmp_path):
     assert metrics["status"] == "failed" and "non-finite" in metrics["error"]
 
 
-def test_ablation_sweep_composes_all_24_jobs(tmp_path):
-    """What `python train.py -m sweep=ablation trainer.fast_dev_run=true` launches: 24 jobs,
-    each composing and instantiating its data module, model and trainer."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.utils import instantiate
-    from omegaconf import open_dict
-
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        root = compose(config_name="train", overrides=["sweep=ablation"], return_hydra_config=True)
-        params = root.hydra.sweeper.params
-        jobs = [(c, p) for c in params.combo.split(",") for p in params.primitive.split(",")]
-        assert len(jobs) == 24
-        seen = set()
-        for combo, prim in jobs:
-            cfg = compose(config_name="train", overrides=[f"combo={combo}", f"primitive={prim}", "trainer.fast_dev_run=true",
-                                                          f"paths.data_dir={tmp_path}"], return_hydra_config=True)
-            with open_dict(cfg):
-                cfg.hydra.runtime.output_dir = str(tmp_path / f"{combo}_{prim}")
-            HydraConfig.instance().set_config(cfg)
-            with open_dict(cfg):
-                del cfg["hydra"]
-            dm = instantiate(cfg.data)
-            model = instantiate(cfg.model)
-            trainer = instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
-            assert trainer.fast_dev_run
-            assert dm.primitive == prim and dm.skin == combo.rsplit("_", 1)[1]
-            assert model.hparams.net["modality"]["name"] == combo.rsplit("_", 1)[0]
-            seen.add((cfg.modality.name, cfg.skin.name, prim))
-        assert len(seen) == 24
-
-
 @pytest.mark.slow  # train.py -m with the joblib launcher
 def test_joblib_launcher_parallel_jobs_share_a_fresh_data_dir(tmp_path):
     """Two sweep jobs in parallel (joblib) on an empty data folder: both prepare the same raw

@@ -1,4 +1,4 @@
-"""Active palpation (docs/active.md): the selection on a constructed model whose most
+"""Active palpation (docs/reference/active.md): the selection on a constructed model whose most
 informative action is known, determinism of an episode under a seed, the online posterior
 across touches against the batched one, and the CLI (errors; one episode on a tiny run)."""
 

@@ -83,16 +83,44 @@ def test_paper_experiment_settings(tmp_path):
     assert cfg.annealing.name == "dvbf"
 
 
-def test_ablation_sweep_lists_24_jobs(tmp_path):
-    cfg = _compose(["sweep=ablation"], tmp_path)
-    params = cfg.hydra.sweeper.params
-    combos = params.combo.split(",")
-    prims = params.primitive.split(",")
-    assert len(combos) == 8 and len(prims) == 3 and len(combos) * len(prims) == 24
-    for combo in combos:
-        c = _compose_job([f"combo={combo}"], tmp_path)
-        mod, skin = combo.rsplit("_", 1)
-        assert c.modality.name == mod and c.skin.name == skin
+def test_ablation_sweep_composes_all_24_jobs(tmp_path):
+    """What `python train.py -m sweep=ablation trainer.fast_dev_run=true` launches: 8 modality x
+    skin combos x 3 primitives = 24 jobs, each composing its scene and instantiating its data
+    module, model and trainer (a config that several jobs share is instantiated once)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    params = _compose(["sweep=ablation"], tmp_path).hydra.sweeper.params
+    combos, prims = params.combo.split(","), params.primitive.split(",")
+    assert len(combos) == 8 and len(prims) == 3
+    GlobalHydra.instance().clear()
+    built: dict[str, object] = {}
+
+    def build(node, **kw):
+        key = OmegaConf.to_yaml(node)
+        if key not in built:
+            built[key] = instantiate(node, **kw)
+        return built[key]
+
+    seen = set()
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        for combo in combos:
+            for prim in prims:
+                cfg = compose(config_name="train", overrides=[f"combo={combo}", f"primitive={prim}", "trainer.fast_dev_run=true",
+                                                              f"paths.data_dir={tmp_path}"], return_hydra_config=True)
+                with open_dict(cfg):
+                    cfg.hydra.runtime.output_dir = str(tmp_path / f"{combo}_{prim}")
+                HydraConfig.instance().set_config(cfg)
+                with open_dict(cfg):
+                    del cfg["hydra"]
+                OmegaConf.resolve(cfg)
+                mod, skin = combo.rsplit("_", 1)
+                assert cfg.modality.name == mod and cfg.skin.name == skin and cfg.primitive.name == prim
+                dm = build(cfg.data)
+                assert dm.primitive == prim and dm.skin == skin
+                assert build(cfg.model).hparams.net["modality"]["name"] == mod
+                assert build(cfg.trainer, logger=False, enable_checkpointing=False).fast_dev_run
+                seen.add((mod, skin, prim))
+    assert len(seen) == 24
 
 
 def _sweep_jobs(name: str, tmp_path) -> list[dict]:

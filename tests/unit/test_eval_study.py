@@ -256,7 +256,7 @@ def test_design_rank_accepts_float32_factors():
     np.testing.assert_allclose(encode_factors(f)[:, 2], [0, 1, 2], atol=1e-5)
 
 
-# ------------------------------------------------------------------ docs/results.md generator
+# ------------------------------------------------------------------ docs/generated/results.md generator
 def test_group_summary_uses_the_runs_total_variance():
     r = _run("multi_l", "soft", "pressing", 0, 0.3)
     g = r.summary()["nmse_trajectory_by_group"]
@@ -298,7 +298,7 @@ def test_study_report_table2_intervals_verdicts_and_what_was_not_run(tmp_path):
     assert main([str(tmp_path / "evaluation"), "--out", str(out)]) == 0
     assert out.read_text() == render(load(tmp_path / "evaluation"), out_path=str(out))
     assert f"--out {out}` from that folder's" in out.read_text()  # the header names where it was written
-    assert out.read_text().replace(f"--out {out}`", "--out docs/results.md`") == text
+    assert out.read_text().replace(f"--out {out}`", "--out docs/generated/results.md`") == text
     assert main([str(tmp_path / "evaluation"), "--out", str(out), "--note", "parts ran on two commits"]) == 0
     assert "- Note: parts ran on two commits" in out.read_text()
 

@@ -97,7 +97,7 @@ def _model(**kw):
 
 
 def test_one_step_ahead_separates_frequency_but_not_damping_beyond_one_frames_precision():
-    """The damping diagnosis of docs/model.md: the Cramer-Rao angle precision of one frame matches
+    """The damping diagnosis of docs/reference/model.md: the Cramer-Rao angle precision of one frame matches
     the analytic bound for a Gaussian blob (position sigma_noise sqrt(2/pi) / peak, over the
     10 px radius); one step ahead the two damping levels move the angle less than that, the
     adjacent frequencies 3 / 4 rad/s more; four steps ahead both are well above it."""
@@ -116,7 +116,7 @@ def test_one_step_ahead_separates_frequency_but_not_damping_beyond_one_frames_pr
 
 
 def test_least_squares_reader_told_the_equation_recovers_both_parameters():
-    """The physics reader of docs/model.md: on noiseless angles the per-sequence least squares
+    """The physics reader of docs/reference/model.md: on noiseless angles the per-sequence least squares
     recovers w0 and d to the finite differences' error (also across the angle's wrap at
     +-pi); with the per-frame Cramer-Rao noise the two damping levels stay apart on average
     and their spread grows; a trajectory too short for central differences is refused."""
@@ -216,7 +216,7 @@ def test_short_training_learns_the_angle(short_run):
 
 @pytest.fixture(scope="module")
 def remedy_run():
-    """The short run with the remedies that make the filter filter (docs/model.md, "Pendulum
+    """The short run with the remedies that make the filter filter (docs/reference/model.md, "Pendulum
     benchmark"): observation dropout 0.5 and the evidence y update."""
     from embodied_tactile.bench.pendulum_run import run
 
@@ -252,7 +252,7 @@ def test_remedies_put_the_velocity_into_z(remedy_run, plain_run):
 
 @pytest.mark.slow  # remedy_run: trains the Latent Filter 300 steps
 @pytest.mark.xfail(strict=True, reason="targets of docs/experiments/pendulum.md: at 300 steps on 64 sequences y does not yet identify the "
-                   "pendulum's frequency / damping (2500 steps: docs/model.md); flips when it does")
+                   "pendulum's frequency / damping (2500 steps: docs/reference/model.md); flips when it does")
 def test_short_training_meets_the_pendulum_targets(remedy_run):
     r, u = remedy_run["readouts"], remedy_run["readouts_unseen"]
     assert r["z_velocity"][1] >= 0.9, r

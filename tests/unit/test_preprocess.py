@@ -17,24 +17,8 @@ from embodied_tactile.data.cache import build_cache, cache_info, list_cached, lo
 from embodied_tactile.data.preprocess import PreprocessConfig, preprocess_trial, preprocess_trials
 from embodied_tactile.data import rawformat
 from embodied_tactile.data.rawformat import RawTrial, TrialFormatError, make_attrs, write_trial
+from helpers import acc_logmel_naive, fingerprint_file  # tests/helpers.py
 
-
-def fingerprint_file(path, names, fields) -> dict[str, str]:
-    """``{field: digest}`` of one raw file computed serially (trial names, attrs and the stored
-    bytes of the datasets each field reads): the reference for the digests ``build_cache``
-    computes chunk by chunk on its worker pool."""
-    fields = list(fields)
-    dpaths = cache_mod._fields_datasets(fields)
-    attrs_json: dict[str, str] = {}
-    digests: dict[str, dict[str, str]] = {}
-    with rawformat.open_raw(path) as f, open(path, "rb") as fh:
-        for name in names:
-            try:
-                attrs_json[name] = cache_mod._attrs_json(rawformat.read_attrs(f["trials"][name]))
-            except (OSError, KeyError, RuntimeError) as exc:
-                attrs_json[name] = f"unreadable: {exc}"
-            digests[name] = cache_mod._trial_digests(f, fh, name, dpaths)
-    return cache_mod._combine_fingerprint(names, attrs_json, digests, fields)
 
 T = 300
 
@@ -176,7 +160,7 @@ def test_lateral_vibration_reaches_the_acc_image():
 
 
 def test_vectorised_equals_naive_loop(trial, cfg, processed):
-    np.testing.assert_allclose(processed["acc"], P.acc_logmel_naive(trial.acc, cfg), atol=1e-5, rtol=0)
+    np.testing.assert_allclose(processed["acc"], acc_logmel_naive(trial.acc, cfg), atol=1e-5, rtol=0)
 
 
 def test_tile_layout_places_sensor_bins():
@@ -406,7 +390,7 @@ def test_process_pool_build_equals_in_process(raw_file, tmp_path, cfg):
 
 
 def test_duplicate_trial_names_across_files_are_an_error(raw_file, tmp_path, cfg):
-    """A trial name in two raw files is an error naming both (docs/data_format.md, trial
+    """A trial name in two raw files is an error naming both (docs/reference/data_format.md, trial
     identity), never one copy cached and the other skipped; the same file twice is read once."""
     other = tmp_path / "other.h5"
     write_trial(other, make_trial(0))  # same canonical name as raw_file's first trial

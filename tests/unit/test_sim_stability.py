@@ -57,7 +57,7 @@ def test_extreme_grid_finite_and_in_range():
     assert saturated >= 6  # the force_scale=1e6 cases really saturate
 
 
-#: The ends of the allowed ranges (sim/validation.py, docs/simulator.md), combined so that the
+#: The ends of the allowed ranges (sim/validation.py, docs/reference/simulator.md), combined so that the
 #: largest forces (stiffest object, deepest surface, largest scale) meet.
 EDGES = [
     PhysicsOverrides(youngs_modulus=V.YOUNGS_MODULUS_RANGE_PA[0], amplitude_mm=V.MAX_AMPLITUDE_MM, relaxation_time=1e-300),

@@ -1,4 +1,4 @@
-"""The models' one speed switch (networks.small_batch_convs, docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md): oneDNN
+"""The models' one speed switch (networks.small_batch_convs, docs/reference/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md): oneDNN
 off only where it was measured to pay, through the public flag, restored on exit."""
 
 from __future__ import annotations

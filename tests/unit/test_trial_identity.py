@@ -1,4 +1,4 @@
-"""Trial identity across raw files (docs/data_format.md, "Trial identity"): a trial is one
+"""Trial identity across raw files (docs/reference/data_format.md, "Trial identity"): a trial is one
 group of one file, all its fields come from that group, and nothing is mixed or dropped
 without a stated reason."""
 

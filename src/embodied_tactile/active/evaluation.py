@@ -1,5 +1,5 @@
 """Evaluation of action selection: NMSE against the number of touches for the active policy
-and the baselines, over held-out objects and several episode seeds (docs/active.md).
+and the baselines, over held-out objects and several episode seeds (docs/reference/active.md).
 
 * The fixed order is fitted on the training side: greedy over calibration episodes on the
   run's training objects under the calibration seed stream (never an evaluation seed).
@@ -77,7 +77,7 @@ def fit_fixed_order(model: PalpationModel, objects: Sequence[int], n_touches: in
 
 def fit_error_score(model: PalpationModel, objects: Sequence[int], *, cache: Optional[TouchCache] = None,
                     cv: int = 5) -> dict[int, Any]:
-    """The learned score of the active policy (docs/active.md, eq. 6), from calibration
+    """The learned score of the active policy (docs/reference/active.md, eq. 6), from calibration
     episodes on ``objects`` (the run's training objects): for every first touch a1 and next
     touch a2, the posterior mean y after a1 (features) and the normalised squared factor
     error after a2, e = mean_k (f_hat_k - f_k)^2 / var_ref_k (target). One KRR per a2
@@ -200,18 +200,43 @@ def plot_curves(summary: dict[str, Any], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def write_outputs(out_dir: Path, summary: dict[str, Any], result: dict[str, Any], meta: dict[str, Any],
-                  caption: str) -> dict[str, str]:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    from embodied_tactile.run.jsonio import write_json
+#: the files of one evaluation's table and figure, beside its record ``<stem>.json``
+TABLE_FILES = ("md", "csv", "tex", "png")
 
+
+def write_tables(out_dir: Path, stem: str, summary: dict[str, Any], caption: str, title: str) -> dict[str, Path]:
+    """The NMSE-against-touches table (``<stem>.md`` / ``.csv`` / ``.tex``) and its figure
+    (``<stem>.png``) of one evaluation's summary."""
     tab = curve_table(summary, caption)
-    paths = {"md": out_dir / "active_nmse.md", "csv": out_dir / "active_nmse.csv", "tex": out_dir / "active_nmse.tex",
-             "png": out_dir / "active_nmse.png", "json": out_dir / "active_nmse.json"}
+    paths = {ext: out_dir / f"{stem}.{ext}" for ext in TABLE_FILES}
     paths["md"].write_text(tab.to_markdown())
     paths["csv"].write_text(tab.to_csv())
     paths["tex"].write_text(tab.to_latex())
-    plot_curves(summary, paths["png"], meta.get("title", "active palpation"))
+    plot_curves(summary, paths["png"], title)
+    return paths
+
+
+def rewrite_tables(record: Path) -> dict[str, Path]:
+    """The table and figure of a saved evaluation (its record ``<stem>.json``, written by
+    :func:`write_outputs`) written again beside it, from the record alone."""
+    meta = json.loads(Path(record).read_text())["meta"]
+    if "caption" not in meta:
+        raise ValueError(f"{record}: no meta.caption (not a record written by active.evaluation.write_outputs)")
+    summary = json.loads(Path(record).read_text())["summary"]
+    return write_tables(Path(record).parent, Path(record).stem, summary, meta["caption"],
+                        meta.get("title", "active palpation"))
+
+
+def write_outputs(out_dir: Path, summary: dict[str, Any], result: dict[str, Any], meta: dict[str, Any],
+                  caption: str) -> dict[str, str]:
+    """``active_nmse.{md,csv,tex,png}`` and the record ``active_nmse.json`` (meta with the
+    caption, summary, curves, actions) from which :func:`rewrite_tables` rewrites the others."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    from embodied_tactile.run.jsonio import write_json
+
+    meta = {**meta, "caption": caption}
+    paths = write_tables(out_dir, "active_nmse", summary, caption, meta.get("title", "active palpation"))
+    paths["json"] = out_dir / "active_nmse.json"
     write_json(paths["json"], {"meta": meta, "summary": summary,
                                "curves": {p: c.tolist() for p, c in result["curves"].items()},
                                "actions": result["actions"], "decision_s": result["decision_s"],

@@ -97,7 +97,7 @@ class PalpationModel:
 
     def normalised_variance(self, var: np.ndarray) -> np.ndarray:
         """Sum over factors of var_k / ref_var_k: (..., 4) -> (...). The quantity the active
-        policy minimises (docs/active.md, eq. 3)."""
+        policy minimises (docs/reference/active.md, eq. 3)."""
         return (np.asarray(var) / self.ref_var).sum(axis=-1)
 
     # ------------------------------------------------------------------ torch helpers

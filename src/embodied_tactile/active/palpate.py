@@ -1,4 +1,4 @@
-"""Closed-loop active palpation with a trained Latent Filter (docs/active.md).
+"""Closed-loop active palpation with a trained Latent Filter (docs/reference/active.md).
 
     embodied-tactile palpate run=logs/train/runs/<run> object=7 budget=4
     embodied-tactile palpate run=<run> object=7 budget=6 policy=random seed=1

@@ -1,5 +1,5 @@
 """Action selection: the active policy (expected posterior factor variance from imagined
-rollouts, docs/active.md) and the baselines (random order, fixed order, single action).
+rollouts, docs/reference/active.md) and the baselines (random order, fixed order, single action).
 
 Every policy answers ``choose(k, history, state, model, rng) -> (B,) action indices`` for
 touch ``k`` (0-based) of B episodes run in lockstep; ``history`` (B, k) holds the actions
@@ -93,7 +93,7 @@ def expected_variance_reduction(model: PalpationModel, state: dict, candidates: 
                                 seed: int = 0, criterion: str = "variance") -> np.ndarray:
     """The expected reduction of the normalised factor variance by one more touch with
     action a, for every episode row and candidate, (B, len(candidates)); larger = better.
-    docs/active.md, eqs. 3-5:
+    docs/reference/active.md, eqs. 3-5:
 
     * ``"variance"``: -E_m[ sum_k Var(f_k(y) | future m) / var_ref_k ] (the current variance
       is the same for every candidate and left out): the imagined posterior's own variance,
@@ -131,7 +131,7 @@ def expected_variance_reduction(model: PalpationModel, state: dict, candidates: 
 
 
 def predicted_error(error_score: dict, y_mean: np.ndarray, candidates: Sequence[int]) -> np.ndarray:
-    """The learned score (docs/active.md, eq. 6): predicted normalised squared factor error
+    """The learned score (docs/reference/active.md, eq. 6): predicted normalised squared factor error
     after one more touch with each candidate, from the current posterior mean y (B, n_y);
     ``error_score[a]`` is a KRR alignment y -> error fitted on calibration episodes. -> (B, A)."""
     missing = [a for a in candidates if a not in error_score]

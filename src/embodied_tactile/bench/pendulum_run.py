@@ -1,5 +1,5 @@
 """Train the project's :class:`~embodied_tactile.model.LatentFilter` on the pendulum
-benchmark (:mod:`embodied_tactile.data.pendulum`) and read it out (docs/model.md,
+benchmark (:mod:`embodied_tactile.data.pendulum`) and read it out (docs/reference/model.md,
 "Pendulum benchmark"). Used by ``experiments/pendulum.py`` and tests/unit/test_pendulum.py.
 
 Read-outs on held-out sequences, each fitted on the training sequences only, linear
@@ -91,7 +91,7 @@ LR = 1e-3
 class PendulumSequences(Dataset):
     """One pendulum sequence per item: ``obs`` (T, 1, 28, 28), ``actions`` (T, 1), ``object_id``.
 
-    ``context=True`` (the context objective, docs/model.md "The context objective") adds
+    ``context=True`` (the context objective, docs/reference/model.md "The context objective") adds
     ``context_obs`` / ``context_actions``: another sequence of the same system, drawn by a
     generator seeded with ``seed`` (the loader reads items in one process, in order, so the
     draws repeat with the seed). The system id pairs the sequences and reaches the model

@@ -1,5 +1,5 @@
 """``--remedy NAME=VALUE`` options of the pendulum benchmarks: parsed to LatentFilter keywords
-(docs/model.md, "Options"); ``prior.X`` names go into the ``prior`` mapping."""
+(docs/reference/model.md, "Options"); ``prior.X`` names go into the ``prior`` mapping."""
 
 from __future__ import annotations
 

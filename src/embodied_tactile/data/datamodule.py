@@ -204,7 +204,7 @@ class TactileSequenceDataset(Dataset):
     served whole.
 
     ``context`` pairs every item (the target) with context frames of the same object for
-    the context objective (docs/model.md, "The context objective"), served as
+    the context objective (docs/reference/model.md, "The context objective"), served as
     ``context_obs`` / ``context_actions`` (with ``context_trial`` and
     ``context_first_frame``): ``"trial"``, a ``window``-frame crop (the whole trial without
     ``window``) of another trial of the same object, drawn at random among its trials in

@@ -1,5 +1,5 @@
 """Driven, damped pendulum benchmark (Karl et al. 2017, Deep Variational Bayes Filters),
-NumPy only (no torch): the data side of ``experiments/pendulum.py`` (docs/model.md,
+NumPy only (no torch): the data side of ``experiments/pendulum.py`` (docs/reference/model.md,
 "Pendulum benchmark").
 
 Dynamics of the angle theta (rad, 0 = bob straight down), with natural frequency w0
@@ -175,7 +175,7 @@ def parameter_separation(data: PendulumData, parameter: str, values: tuple[float
 def least_squares_parameters(theta: np.ndarray, actions: np.ndarray, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
     """Per-sequence least-squares estimate of (w0, d) from an angle trajectory, told the
     equation of motion (not the labels): a reader with the true model structure, the
-    reference an unsupervised filter's y is compared with (docs/model.md, "Readers of the
+    reference an unsupervised filter's y is compared with (docs/reference/model.md, "Readers of the
     true angle").
 
     theta (N, T) angles at the start of each frame (rad, may wrap), actions (N, T) or

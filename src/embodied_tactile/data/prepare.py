@@ -43,9 +43,9 @@ POPULATION = "population"
 
 #: A population scene with more trials than this ((training + validation + test objects) x
 #: actions x repetitions) is refused unless ``allow_large_population`` is set: its
-#: estimate is printed first (docs/simulator.md, "Object population").
+#: estimate is printed first (docs/reference/simulator.md, "Object population").
 POPULATION_MAX_TRIALS = 10_000
-#: Estimates per trial (docs/experiments/population_scene_cost.md; docs/data_format.md):
+#: Estimates per trial (docs/experiments/population_scene_cost.md; docs/reference/data_format.md):
 #: raw file 3.4 MB, each cached field (acc, fsr) 0.94 MB, 0.41 CPU s of simulation and
 #: preprocessing.
 RAW_MB_PER_TRIAL = 3.4

@@ -12,7 +12,7 @@ centre ``t0 + (k + 0.5)/30`` is the frame's time stamp for every field:
             positions in mm / 10, angles in degrees / 10
 
 Every choice the paper leaves open is a :class:`PreprocessConfig` field and is
-documented in ``docs/preprocessing.md``. :func:`preprocess_trials` is the fast path: it
+documented in ``docs/reference/preprocessing.md``. :func:`preprocess_trials` is the fast path: it
 stacks the trials and runs each stage once over all channels of all trials.
 """
 
@@ -68,7 +68,7 @@ RAW_FIELDS: dict[str, tuple[str, ...]] = {
 @dataclass
 class PreprocessConfig:
     """All preprocessing knobs. Defaults reproduce the paper where it is unambiguous and
-    resolve its contradictions as documented in ``docs/preprocessing.md``."""
+    resolve its contradictions as documented in ``docs/reference/preprocessing.md``."""
 
     # -- common frame grid
     n_frames: int = 300  # T
@@ -345,7 +345,7 @@ def _logmel_from_resampled(y: np.ndarray, cfg: PreprocessConfig, sum_axis: int |
     window librosa uses), ``|X|^2`` summed over ``sum_axis`` *before* the mel product (the
     filterbank is linear: one third of the mel work for three axes), librosa's mel
     filterbank. Equal to ``librosa.feature.melspectrogram(center=False)`` per channel to
-    float32 precision (tests: ``acc_logmel_naive``, a hand-written librosa reference)."""
+    float32 precision (tests/helpers.py: ``acc_logmel_naive``, a hand-written librosa reference)."""
     left, right = stft_padding(cfg, y.shape[-1])
     yp = pad_last(np.asarray(y, dtype=np.float32), left, right)
     frames = np.lib.stride_tricks.sliding_window_view(yp, cfg.n_fft, axis=-1)[..., : cfg.hop_length * cfg.n_frames : cfg.hop_length, :]
@@ -423,37 +423,6 @@ def acc_logmel(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float = C.FS_
     mel = mel.reshape(b, C.ACC_GRID[0], C.ACC_GRID[1], cfg.n_mels, cfg.n_frames)
     mel = np.moveaxis(mel, (1, 2, 4), (3, 4, 1))  # (B, T, n_mels, 4, 4)
     return tile_layout(mel, cfg.tile_shape).astype(np.float32, copy=False)
-
-
-def acc_logmel_naive(acc: np.ndarray, cfg: PreprocessConfig, fs_tactile: float = C.FS_TACTILE) -> np.ndarray:
-    """Reference loop: per sensor and signal (axis, or |a|), its own resample_poly and
-    librosa melspectrogram; powers summed per sensor, one power_to_db call. (N, 4, 4, 3) -> (T, 28, 28) float32. Benchmark and
-    test use only."""
-    import librosa
-
-    a = np.asarray(acc, dtype=np.float64)
-    up, down = _resample_ratio(fs_tactile, cfg.fs_resample)
-    out = np.zeros((cfg.n_frames, cfg.n_mels, *C.ACC_GRID))
-    for i in range(C.ACC_GRID[0]):
-        for j in range(C.ACC_GRID[1]):
-            if cfg.acc_combine == "magnitude":
-                sigs = [np.sqrt((a[:, i, j, :] ** 2).sum(axis=-1))]
-            else:
-                sigs = [a[:, i, j, k] for k in range(a.shape[-1])]
-            s = 0.0
-            for sig in sigs:  # mel powers summed over the signals (axes)
-                if cfg.acc_remove_mean:
-                    sig = sig - sig.mean()
-                y = scipy.signal.resample_poly(sig / cfg.acc_scale_g, up, down)
-                left, right = stft_padding(cfg, len(y))
-                s = s + librosa.feature.melspectrogram(
-                    y=pad_last(y, left, right), sr=cfg.fs_resample, n_fft=cfg.n_fft, hop_length=cfg.hop_length,
-                    win_length=cfg.win_length, window=cfg.window, center=False, n_mels=cfg.n_mels, fmin=cfg.fmin,
-                    fmax=cfg.fmax_hz, htk=cfg.mel_htk, norm=cfg.mel_norm,
-                )[:, : cfg.n_frames]
-            db = librosa.power_to_db(s, ref=1.0, amin=cfg.db_amin, top_db=None)
-            out[:, :, i, j] = ((db - cfg.db_min) / (cfg.db_max - cfg.db_min)).T
-    return tile_layout(out, cfg.tile_shape).astype(np.float32)
 
 
 # ============================================================================ FSR

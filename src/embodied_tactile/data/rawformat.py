@@ -2,7 +2,7 @@
 
 This is the single reader/writer/validator of raw e-Skin trials; the simulator, the
 serial recorder, preprocessing and the DataModule all go through it. Layout (see
-``docs/data_format.md``)::
+``docs/reference/data_format.md``)::
 
     /                       attrs: format="embodied-tactile-raw", format_version=1
     /trials/<name>/         attrs: see REQUIRED_ATTRS / OPTIONAL_ATTRS
@@ -242,7 +242,7 @@ def make_attrs(
 
 # --------------------------------------------------------------------------- writing
 #: Blosc LZ4 with bit shuffle for new files: about gzip-1 + shuffle's size (3.4 vs 3.3 MB per
-#: simulated trial) at a fifth of its decode time (5 vs 28 CPU ms per trial; docs/preprocessing.md,
+#: simulated trial) at a fifth of its decode time (5 vs 28 CPU ms per trial; docs/reference/preprocessing.md,
 #: benchmarks/bench_preprocess.py). Files written with gzip earlier read unchanged: the filter
 #: is a property of each stored dataset.
 _COMPRESSION = dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.BITSHUFFLE))
@@ -408,7 +408,7 @@ def _check_attrs(file: str, name: str, attrs: Mapping[str, Any]) -> None:
             continue  # unknown: allowed
         if not lo <= v <= hi:
             raise TrialFormatError(file, name, f"attrs/{key}", f"{v!r} outside the documented range [{lo:g}, {hi:g}] "
-                                   "(NaN if unknown; docs/data_format.md)")
+                                   "(NaN if unknown; docs/reference/data_format.md)")
         if key == "heterogeneity" and v not in (0.0, 1.0):
             raise TrialFormatError(file, name, f"attrs/{key}", f"{v!r}: must be 0 or 1 (NaN if unknown)")
 
@@ -656,7 +656,7 @@ def unique_paths(paths: Iterable[str | os.PathLike]) -> list[str]:
 def check_unique_names(files_by_name: Mapping[str, Sequence[str]]) -> None:
     """A trial is one group of one file, and its group name identifies it (in caches and
     splits): a name held by two files of one dataset is an error naming both files, whatever
-    the state of either copy. Rename one group to keep both (``docs/data_format.md``)."""
+    the state of either copy. Rename one group to keep both (``docs/reference/data_format.md``)."""
     dups = {n: fs for n, fs in files_by_name.items() if len(fs) > 1}
     if not dups:
         return

@@ -6,7 +6,7 @@ Works on arrays only (no files, no model internals). The recipe for evaluate.py:
     res, align = evaluate_latents(train, test, latent="y", modality=..., skin=..., primitive=...)
     write_report([res, ...], out_dir, source="simulated")
 
-See docs/evaluation.md.
+See docs/reference/evaluation.md.
 """
 
 from .krr import Alignment, LeakageError, assert_disjoint, final_segment_rows, fit_alignment

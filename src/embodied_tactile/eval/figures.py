@@ -35,7 +35,7 @@ from .metrics import overall  # noqa: E402
 from .results import POPULATION_GROUP, Results, object_group  # noqa: E402
 from .tables import FACTOR_LABELS, pooled_nmse  # noqa: E402
 
-FRAME_RATE_HZ = 30.0  # preprocessed frames per second (docs/architecture.md)
+FRAME_RATE_HZ = 30.0  # preprocessed frames per second (docs/reference/architecture.md)
 NMSE_AXIS = "held-out NMSE (log scale)"
 METHOD_LABELS = {"latent_filter": "Latent Filter", "handcrafted_krr": "Hand-crafted + KRR", "gru": "GRU (supervised)",
                  "mean": "Mean predictor"}

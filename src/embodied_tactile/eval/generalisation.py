@@ -1,6 +1,6 @@
 """The learning curve of generalisation: held-out-object NMSE against the number of training objects.
 
-    python -m embodied_tactile.eval.generalisation <root> [<root> ...] --out docs
+    python -m embodied_tactile.eval.generalisation <root> [<root> ...] --out docs/generated
 
 ``<root>``: folders holding population runs (``experiment=population``, any depth), each
 evaluated by ``evaluate.py`` (``<run>/evaluation/results.json``), or a scores file written by
@@ -279,10 +279,10 @@ def figure(rows: Sequence[Mapping[str, Any]], path: Path, sizes: Sequence[int]) 
 def _readout_sentence(rows: Sequence[Mapping[str, Any]]) -> str:
     kind = next((r.get("readout", PAPER_READOUT) for r in rows), PAPER_READOUT)
     if kind == "per_time":
-        return ("Read-out (`alignment.readout=per_time`, docs/evaluation.md): one probe per span of "
+        return ("Read-out (`alignment.readout=per_time`, docs/reference/evaluation.md): one probe per span of "
                 "interaction time, fitted on the training objects' frames of that span, its hyper-parameters "
                 "cross-validated by object on every frame of the span.")
-    return ("Read-out (`alignment.readout=final_segment`, the paper's protocol, docs/evaluation.md): one "
+    return ("Read-out (`alignment.readout=final_segment`, the paper's protocol, docs/reference/evaluation.md): one "
             "alignment fitted on the final tenth of every training trial, applied to every frame.")
 
 
@@ -299,7 +299,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         f"(runs at commit(s) {', '.join(commits) or 'none'}). Do not edit: regenerate.",
         "",
         "Held-out-object NMSE (0 = perfect, 1 = the training mean) of the population "
-        "scene (`experiment=population`: soft e-Skin, pressing at 4 and 8 mm, 0.6 Hz; docs/simulator.md, "
+        "scene (`experiment=population`: soft e-Skin, pressing at 4 and 8 mm, 0.6 Hz; docs/reference/simulator.md, "
         "\"Object population\") against the number of training objects. Every size is scored on the same "
         "64 test objects and picks checkpoints on the same 32 validation objects; the population and "
         "the simulated noise are those of population_seed 0 and sim_seed 0, the seeds vary the model's "
@@ -352,7 +352,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m embodied_tactile.eval.generalisation", description=__doc__.splitlines()[0])
     ap.add_argument("roots", nargs="+", help="folders of evaluated population runs")
-    ap.add_argument("--out", default="docs", help="where generalisation.md and figures/ go")
+    ap.add_argument("--out", default="docs/generated", help="where generalisation.md, its scores and figures/ go")
     args = ap.parse_args(argv)
     try:
         rows = collect(args.roots)

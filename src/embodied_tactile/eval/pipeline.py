@@ -2,7 +2,7 @@
 KRR alignment beside the baselines on the same split), the agreement with the training's
 final alignment, the report and the terminal summary.
 
-Per run (docs/evaluation.md): the run's own config and saved split (:mod:`.runs`), latents
+Per run (docs/reference/evaluation.md): the run's own config and saved split (:mod:`.runs`), latents
 over the training split (fit) and the held-out test split (scored), :func:`evaluate_latents`
 and the baselines, :func:`write_report` into ``<run>/evaluation`` (a multirun's or study's
 folder: every job, aggregated). The terminal gets what was measured: per run the NMSE per
@@ -521,7 +521,7 @@ def terminal_summary(results: Sequence, infos: Sequence[dict], skipped: Sequence
     for r in results:
         by_run.setdefault(str(r.params.get("run_dir")), {})[r.method] = r.summary()
     lines = ["Held-out NMSE (0 = perfect, 1 = the mean predictor's level), per factor over the whole trajectory; "
-             "the read-out: the run's alignment (docs/evaluation.md, \"The read-out over time\"):"]
+             "the read-out: the run's alignment (docs/reference/evaluation.md, \"The read-out over time\"):"]
     if len(infos) == 1:
         i = infos[0]
         s = by_run[i["run_dir"]]

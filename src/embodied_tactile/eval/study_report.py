@@ -1,9 +1,9 @@
-"""``docs/results.md`` from an evaluated study, generated, never typed by hand.
+"""``docs/generated/results.md`` from an evaluated study, generated, never typed by hand.
 
     python train.py -m sweep=study_min hydra.sweeper.params.seed=0 hydra.sweep.dir=logs/train/study/seed0
     ...                                                              # further parts: seed1, seed2, ...
     python evaluate.py logs/train/study                             # merges the parts -> logs/train/study/evaluation
-    python -m embodied_tactile.eval.study_report logs/train/study/evaluation --out docs/results.md
+    python -m embodied_tactile.eval.study_report logs/train/study/evaluation --out docs/generated/results.md
 
 Reads ``results.json`` (written by :func:`~embodied_tactile.eval.report.write_report`) and, when
 present, ``evaluation.json`` and each evaluated run's ``config_resolved.yaml`` /
@@ -336,7 +336,7 @@ def convert_page_table(t: Table, var: np.ndarray, rng: np.ndarray) -> Table:
     return Table(t.name + "_code_convention", cap, t.columns, rows)
 
 
-def add_paper_units(text: str, page: str = "docs/results.md") -> str:
+def add_paper_units(text: str, page: str = "docs/generated/results.md") -> str:
     """A results page with its Table 2 analogues also in the code's convention (a section
     after them, replacing an earlier one), converted from the page's own NMSE tables with the
     held-out variance of the trial split it states (:func:`page_scene`): for a page whose
@@ -525,7 +525,7 @@ def extra_section(blob: Mapping, title: str, text: str = "") -> list[str]:
 
 
 def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: Mapping | None = None,
-           extras: Sequence[tuple[str, Mapping]] = (), out_path: str | None = "docs/results.md") -> str:
+           extras: Sequence[tuple[str, Mapping]] = (), out_path: str | None = "docs/generated/results.md") -> str:
     """The results page; ``out_path`` is the ``--out`` its header names (None: printed)."""
     runs = blob["runs"]
     files = _run_files(blob)
@@ -578,7 +578,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--paper-units", default=None, metavar="PAGE",
                     help="rewrite PAGE (a results page whose evaluation folder is gone) with its Table 2 analogues "
                          "also in the convention of the authors' public code")
-    ap.add_argument("--out", default=None, help="write here (e.g. docs/results.md); default: print")
+    ap.add_argument("--out", default=None, help="write here (e.g. docs/generated/results.md); default: print")
     ap.add_argument("--objects", default=None,
                     help="an evaluation folder of held-out-object runs (data.split=object): adds their section")
     ap.add_argument("--extra", action="append", default=[], metavar="TITLE=FOLDER",

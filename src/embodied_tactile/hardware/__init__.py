@@ -1,6 +1,6 @@
 """Real e-Skin acquisition: serial protocol, recorder, pty emulator, pose sources.
 
-Pure Python + NumPy + pyserial (no torch). See docs/acquisition.md.
+Pure Python + NumPy + pyserial (no torch). See docs/reference/acquisition.md.
 """
 
 from embodied_tactile.hardware.protocol import (

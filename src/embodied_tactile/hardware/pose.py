@@ -7,7 +7,7 @@ since the start of the trial, ``time.perf_counter`` based). The recorder calls
 Built in: :class:`StaticPoseSource` (no robot connected: a fixed pose at ``fs`` Hz) and
 :class:`ReplayPoseSource` (a pose log file, CSV or ``.npy``, columns
 ``t, x, y, z, roll, pitch, yaw`` [, extras]). A live robot interface subclasses
-:class:`PoseSource` (see ``docs/acquisition.md``).
+:class:`PoseSource` (see ``docs/reference/acquisition.md``).
 """
 
 from __future__ import annotations

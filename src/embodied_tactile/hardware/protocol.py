@@ -1,6 +1,6 @@
 """The modular e-Skin wire protocol: one request byte, one 1128-byte packet back.
 
-Pure NumPy (no torch). See ``docs/acquisition.md`` for the full description::
+Pure NumPy (no torch). See ``docs/reference/acquisition.md`` for the full description::
 
     request  : 1 byte  = (0b11 << 6) | 16 = 0xD0
     response : 1128 bytes, little-endian

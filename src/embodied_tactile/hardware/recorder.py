@@ -5,7 +5,7 @@ Every packet is stamped on receipt with the host's monotonic clock
 (``time.perf_counter``; ``t = 0`` at the start of the trial, baseline samples have
 ``t < 0``; the wall-clock time of ``t = 0`` is stored as attr ``t0_wall``).
 
-Packet handling (see ``docs/acquisition.md``):
+Packet handling (see ``docs/reference/acquisition.md``):
 
 * write ``0xD0``, read exactly 1128 bytes; a short read (timeout) is a *lost* packet,
   never data, and is followed by a drain of ``late_guard_s`` so a late answer cannot

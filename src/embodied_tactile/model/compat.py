@@ -12,7 +12,7 @@ import importlib.util
 import sys
 from typing import Any, Mapping
 
-#: options that were measured, rejected and removed (docs/model.md, "Removed options"),
+#: options that were measured, rejected and removed (docs/reference/model.md, "Removed options"),
 #: with the value that meant "off": a saved config holding the off value still loads
 REMOVED_OPTIONS = {"obs_dropout_span": 1, "elbo_samples": 1, "overshoot": 1, "overshoot_weight": None,
                    "free_bits_z": 0.0, "free_bits_y": 0.0, "y_input": "sample", "y_static": False,
@@ -35,7 +35,7 @@ def upgrade_net_config(config: Mapping[str, Any]) -> dict[str, Any]:
     networks were trained with before it was saved (:data:`UNSAVED_OPTIONS`), not today's
     default."""
     config = {**UNSAVED_OPTIONS, **config, "prior": {**UNSAVED_PRIOR_OPTIONS, **(config.get("prior") or {})}}
-    return _drop_removed(config, REMOVED_OPTIONS, "docs/model.md, 'Removed options'")
+    return _drop_removed(config, REMOVED_OPTIONS, "docs/reference/model.md, 'Removed options'")
 
 
 def upgrade_context_config(context: Mapping[str, Any]) -> dict[str, Any]:

@@ -115,7 +115,7 @@ class LatentFilter(nn.Module):
             ``evidence`` only).
         obs_dropout: in training mode each frame t >= 2 is hidden from the filter with this
             probability (default 0.5), so q_filt(z_t) is the transition prior alone there and
-            the likelihood of that frame trains the transition (docs/model.md, "The default
+            the likelihood of that frame trains the transition (docs/reference/model.md, "The default
             recipe"). 0 = off.
         input_standardize: the encoders see each channel shifted and scaled by its
             training-set mean and standard deviation (buffers ``input_shift`` /
@@ -433,7 +433,7 @@ class LatentFilter(nn.Module):
     def context_terms(self, batch: Mapping[str, Tensor], initial_frames: int = ContextOptions.initial_frames,
                       refilter: bool = ContextOptions.refilter,
                       sample: bool = True) -> dict[str, Tensor]:
-        """The context objective (docs/model.md, "The context objective"): per-sequence
+        """The context objective (docs/reference/model.md, "The context objective"): per-sequence
         terms of the negative ELBO of a model in which one y is shared by every trial of an
         object, averaged over the batch (float32 scalars, the keys of :meth:`elbo_terms`).
 

@@ -106,7 +106,7 @@ class LatentFilterModule(L.LightningModule):
     """Latent Filter training module for any modality (``fusion`` single|early|late): the
     network builds the observation model (:mod:`.fusion`) from its modality.
 
-    Args (Hydra-instantiable; see docs/model.md and configs/model/latent_filter.yaml):
+    Args (Hydra-instantiable; see docs/reference/model.md and configs/model/latent_filter.yaml):
         net: the :class:`~.latent_filter.LatentFilter` (Hydra builds it from ``model.net``
             and injects it), or its ``config()`` mapping (how ``load_from_checkpoint``
             rebuilds it). Its constructor arguments are defined there only and stored here
@@ -121,13 +121,13 @@ class LatentFilterModule(L.LightningModule):
             validation / test steps.
         lr_schedule: ``"constant"`` (the optimizer's lr throughout) or ``"cosine"`` (the lr
             falls from its value to 0 along a half cosine over the run's optimiser steps,
-            ``trainer.estimated_stepping_batches``; docs/model.md, "Learning-rate schedule").
+            ``trainer.estimated_stepping_batches``; docs/reference/model.md, "Learning-rate schedule").
         code_lr_scale: the prior's object codes (``prior.embedding``) train in a parameter
             group of their own at this multiple of the optimizer's lr (1 = one group, the
-            default; docs/model.md, "Fixed object codes").
+            default; docs/reference/model.md, "Fixed object codes").
         context: None (default: the filtering ELBO, :meth:`LatentFilter.elbo_terms`) or
             ``{source, initial_frames, refilter}``: the context objective
-            (:meth:`LatentFilter.context_terms`, ``recipe=context``, docs/model.md "The
+            (:meth:`LatentFilter.context_terms`, ``recipe=context``, docs/reference/model.md "The
             context objective"). ``source`` (``trial`` | ``window``) names the DataModule's
             pairing (configs/data reads it from here); ``initial_frames`` target frames are
             filtered before the open-loop rollout; ``refilter`` filters every target frame.

@@ -106,7 +106,7 @@ def gaussian_nll_frames(x: Tensor, mean: Tensor, log_sigma: Tensor) -> Tensor:
 
 #: Largest batch at which ``small_batch_convs`` switches oneDNN off. Measured with
 #: ``benchmarks/bench_small_batch_convs.py`` (torch 2.13 CPU, 1 thread, multi_l filter_step,
-#: docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md): oneDNN off is 1.32x faster at batch 1 and 1.18x at 2, even at 4,
+#: docs/reference/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md): oneDNN off is 1.32x faster at batch 1 and 1.18x at 2, even at 4,
 #: and 0.81x (slower) at 8.
 SMALL_BATCH_ONEDNN_OFF = 2
 
@@ -133,7 +133,7 @@ def small_batch_convs(n: int, threshold: int = SMALL_BATCH_ONEDNN_OFF) -> Iterat
 # --------------------------------------------------------------------------- networks
 
 #: Batches of at least this many frames run the conv encoders / decoders in channels_last
-#: on CPU (oneDNN's fast layout; docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md).
+#: on CPU (oneDNN's fast layout; docs/reference/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md).
 CHANNELS_LAST_MIN_FRAMES = 64
 
 #: The conv encoders / decoders take batches of more frames than this in chunks of this
@@ -144,7 +144,7 @@ CHANNELS_LAST_MIN_FRAMES = 64
 #: 9.1 -> 5.9 s, where one call over all 14400 frames was slower than the naive per-frame
 #: loop (6.7 s). The default budget's 800-frame batches are one chunk; smaller chunks
 #: were slower there (0.28 s a step unchunked, 0.31 s in chunks of 400, 0.33 s of 200).
-#: ``benchmarks/bench_step_levers.py``, docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md.
+#: ``benchmarks/bench_step_levers.py``, docs/reference/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md.
 CONV_CHUNK_FRAMES = 1024
 
 
@@ -167,7 +167,7 @@ def _run(net: nn.Module, x: Tensor) -> Tensor:
 
 def compile_convs(model: nn.Module, enabled: bool = True) -> int:
     """The speed switch of the training step (train.py's ``compile_convs``, default on;
-    docs/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md): ``torch.compile`` (inductor) of the body of every
+    docs/reference/model.md "Speed and the CPU budget", docs/experiments/speed_levers.md): ``torch.compile`` (inductor) of the body of every
     :class:`ConvEncoder` and :class:`ConvDecoder` in ``model``, used for training steps on
     CPU only; the time loop stays eager. The same weights and the same function, float
     rounding aside (fused elementwise kernels). Returns the number of networks switched."""
@@ -401,7 +401,7 @@ class YPosterior(nn.Module):
 
 
 class HierarchicalPrior(nn.Module):
-    """Hierarchical prior over the indirectly observable latent y (docs/model.md):
+    """Hierarchical prior over the indirectly observable latent y (docs/reference/model.md):
 
     * population:  e_n ~ N(mu_0, diag tau^2)            (learned mu_0, tau^2 = softplus + floor)
     * object n:    p(y_t | a_t, n) = N(e_n + W a_t, diag sigma^2)
@@ -431,7 +431,7 @@ class HierarchicalPrior(nn.Module):
     ``learn_embedding=False`` (default) keeps the object codes e_n at their initial draws from
     N(0, pop_sigma_init^2) (a fixed random projection of the one-hot label): the codes cannot
     follow q(y) to one shared point, so KL_y is small only where q(y) tells the training
-    objects apart (docs/model.md, "Fixed object codes"). mu_0 and tau are still fitted to
+    objects apart (docs/reference/model.md, "Fixed object codes"). mu_0 and tau are still fitted to
     the codes, so a new object keeps its population marginal.
     """
 

@@ -23,7 +23,7 @@ class EncoderOptions:
 
 @dataclass
 class PriorOptions:
-    """The hierarchical prior over y (:class:`~.networks.HierarchicalPrior`, docs/model.md):
+    """The hierarchical prior over y (:class:`~.networks.HierarchicalPrior`, docs/reference/model.md):
     object-level sigma at ``sigma_init`` (fixed unless ``learn_sigma``), variance floor,
     action term, the population's initial sigma, the population term's weight (None: 1 / the
     training sequences, set at the start of fit), object labels (``labels``: the paper's
@@ -67,7 +67,7 @@ class LatentFilterOptions:
 
 @dataclass
 class ContextOptions:
-    """The context objective (docs/model.md, "The context objective"): where y's context
+    """The context objective (docs/reference/model.md, "The context objective"): where y's context
     comes from (``trial``: another trial of the same object; ``window``: a disjoint window
     of the same trial), how many target frames are filtered before the open-loop rollout,
     whether every target frame is filtered (``refilter``, a leak control), the weight of
@@ -85,7 +85,7 @@ class ContextOptions:
 
 @dataclass
 class OptimizerOptions:
-    """Adam and its learning rate: the CPU budget's 2e-3 (docs/model.md, "CPU budget");
+    """Adam and its learning rate: the CPU budget's 2e-3 (docs/reference/model.md, "CPU budget");
     ``experiment=paper`` sets the paper's 1e-5."""
 
     name: str = "Adam"

@@ -6,7 +6,7 @@ The training's final alignment (``configs/train.yaml`` ``alignment``, handed to
 (which reads the run's own ``alignment`` from its config_resolved.yaml, then applies
 ``alignment.*`` overrides) use these options, so the two numbers are one measurement.
 
-Read-outs (``readout``; docs/evaluation.md, "The read-out over time"):
+Read-outs (``readout``; docs/reference/evaluation.md, "The read-out over time"):
 
 * ``per_time`` -- a probe per interaction time: the trial is cut into spans
   (:func:`~embodied_tactile.eval.krr.time_spans`: frame 0 alone, edges growing geometrically

@@ -24,7 +24,7 @@ class SceneOptions:
     skin: str = "soft"
     primitive: str = "pressing"
     channels: List[str] = field(default_factory=lambda: ["acc", "fsr_t", "fsr_b"])
-    objects: Any = None                   # null = all 32 wave objects; a list of ids; population (docs/simulator.md)
+    objects: Any = None                   # null = all 32 wave objects; a list of ids; population (docs/reference/simulator.md)
     n_objects: int = 256                  # population: training objects (validation and test objects come on top)
     n_val_objects: int = 32               # population: validation objects (checkpoint selection)
     n_test_objects: int = 64              # population: test objects (evaluation only)
@@ -33,7 +33,7 @@ class SceneOptions:
     repetitions: int = 1
     sim_seed: int = 0
     sim_workers: int = 2
-    preprocess: Dict[str, Any] = field(default_factory=dict)  # PreprocessConfig overrides (docs/preprocessing.md)
+    preprocess: Dict[str, Any] = field(default_factory=dict)  # PreprocessConfig overrides (docs/reference/preprocessing.md)
     preprocess_workers: int = 2
     strict: bool = False                  # true: a bad raw trial is fatal instead of skipped
     include_incomplete: bool = False      # true: also use interrupted recordings (complete=False)

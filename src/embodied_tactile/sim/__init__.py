@@ -1,4 +1,4 @@
-"""Physically grounded palpation simulator (NumPy/SciPy only; see docs/simulator.md)."""
+"""Physically grounded palpation simulator (NumPy/SciPy only; see docs/reference/simulator.md)."""
 
 from embodied_tactile.sim.dataset import OutputFileError, generate_dataset
 from embodied_tactile.sim.physics import Mechanics, PhysicsOverrides, contact_pressure, mechanics, qlv_relax

@@ -1,6 +1,6 @@
 """Generate many simulated trials into one raw HDF5 file (resumable, never deleting data).
 
-Ownership rules (docs/data_format.md, "What is never deleted"): the simulator writes only
+Ownership rules (docs/reference/data_format.md, "What is never deleted"): the simulator writes only
 into a new file or a file whose every trial is marked ``source="simulated"``; it adds only
 the trials that are missing; the one group it may remove is its own interrupted write,
 which it names in the file's ``simulator_writing`` attribute before creating the group.

@@ -1,4 +1,4 @@
-"""Consecutive touches on one object (active palpation episodes, docs/active.md).
+"""Consecutive touches on one object (active palpation episodes, docs/reference/active.md).
 
 A touch is one simulated trial (:func:`~embodied_tactile.sim.trial.simulate_trial`): approach
 to the preload, 10 s of the primitive, then lift-off. Between two touches the skin leaves the

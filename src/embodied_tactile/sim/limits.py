@@ -1,7 +1,7 @@
 """Limits of the simulator's physical inputs and their checks. No simulator imports, so
 :mod:`.physics` (``PhysicsOverrides`` checks itself on construction) and :mod:`.validation`
 (every entry point's arguments) both build on it without importing each other in a loop.
-Ranges in docs/simulator.md."""
+Ranges in docs/reference/simulator.md."""
 
 from __future__ import annotations
 

@@ -136,7 +136,7 @@ class PhysicsOverrides:
     through the contact weight of texture and stick-slip.
 
     Every field is checked on construction (:func:`embodied_tactile.sim.limits.check_physics`;
-    ranges in docs/simulator.md): an invalid value raises ``SimParameterError``.
+    ranges in docs/reference/simulator.md): an invalid value raises ``SimParameterError``.
     """
 
     youngs_modulus: float | None = None

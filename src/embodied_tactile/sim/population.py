@@ -1,4 +1,4 @@
-"""A population of simulated objects with continuous properties (docs/simulator.md, "Object population").
+"""A population of simulated objects with continuous properties (docs/reference/simulator.md, "Object population").
 
 Object ``k`` of population ``seed`` has id ``POPULATION_ID_BASE + k`` and is drawn from its
 own stream ``SeedSequence([entropy, seed, k])``: it is the same object whatever the size

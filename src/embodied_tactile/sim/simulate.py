@@ -5,7 +5,7 @@
 
 Every field of :class:`SimulateConfig` can be overridden with ``key=value`` (OmegaConf
 dotlist syntax); ``objects`` / ``actions`` default to the whole catalogue / action table.
-An invalid value (ranges in docs/simulator.md) or an output file the simulator may not
+An invalid value (ranges in docs/reference/simulator.md) or an output file the simulator may not
 write into exits with status 2 and a one-line message on stderr; nothing is written.
 """
 

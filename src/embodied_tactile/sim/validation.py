@@ -1,4 +1,4 @@
-"""The one place where simulator inputs are checked (ranges in docs/simulator.md).
+"""The one place where simulator inputs are checked (ranges in docs/reference/simulator.md).
 
 Every public entry point (``PhysicsOverrides``, ``simulate_trial``, ``force_indentation``,
 ``generate_dataset``, the ``simulate`` CLI) goes through these functions before any
@@ -73,7 +73,7 @@ def check_trial(object_id: Any, skin: Any, primitive: Any, action_index: Any, re
 
 def check_object(obj: Any) -> None:
     """A catalogue id, or a ``WaveObject`` whose geometry and materials the simulator accepts
-    (the ranges of docs/simulator.md; the same modulus range as the overrides)."""
+    (the ranges of docs/reference/simulator.md; the same modulus range as the overrides)."""
     if not isinstance(obj, C.WaveObject):
         check_int("object_id", obj, 0, C.N_OBJECTS - 1)
         return
