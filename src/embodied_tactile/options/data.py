@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, ClassVar, Dict, List, Mapping, Optional
 
 from .checks import Rule, at_least, bounds
+from .simulation import SimulationOptions
 
 
 @dataclass
@@ -33,9 +34,9 @@ class SceneOptions:
     n_test_objects: int = field(default=64, metadata=at_least(1))  # population: test objects (evaluation only)
     population_seed: int = field(default=0, metadata=at_least(0))  # population: which objects are drawn
     actions: Optional[List[int]] = None   # null = all 16 parameter sets
-    repetitions: int = field(default=1, metadata=at_least(1))
-    sim_seed: int = 0
-    sim_workers: int = field(default=2, metadata=at_least(1))
+    repetitions: int = field(default=SimulationOptions.repetitions, metadata=at_least(1))
+    sim_seed: int = SimulationOptions.seed
+    sim_workers: int = field(default=SimulationOptions.workers, metadata=at_least(1))
     preprocess: Dict[str, Any] = field(default_factory=dict)  # PreprocessConfig overrides (docs/preprocessing.md)
     preprocess_workers: int = field(default=2, metadata=at_least(1))
     strict: bool = False                  # true: a bad raw trial is fatal instead of skipped
