@@ -1,5 +1,6 @@
 """The Latent Filter's and its training module's options, typed, with their defaults: the
-one place each default is written.
+one place each default is written, with its bounds (field metadata and ``RULES``, which
+:func:`embodied_tactile.options.checks.check_options` reads at train.py's entry).
 
 :class:`~.latent_filter.LatentFilter`, :class:`~.networks.HierarchicalPrior` and
 :class:`~.module.LatentFilterModule` read their defaults from here; Hydra composes the same
