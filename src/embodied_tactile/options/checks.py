@@ -81,6 +81,7 @@ class Spec:
 
 
 _KINDS = {int: "int", float: "float", bool: "bool", str: "str", list: "list", tuple: "list"}
+_ORDER = ("int", "float", "bool", "str", "list")
 
 
 def _types(hint: Any) -> tuple[list[Any], bool]:
@@ -100,7 +101,9 @@ def field_spec(hint: Any, metadata: Mapping[str, Any]) -> Spec | None:
             return None
         kinds.append(kind)
     lo, hi, lo_open, hi_open = metadata.get("bounds", (None, None, False, False))
-    return Spec(tuple(dict.fromkeys(kinds)), lo=lo, hi=hi, nullable=nullable, lo_open=lo_open, hi_open=hi_open)
+    # one order whatever the Union's (typing caches Union[int, float] and Union[float, int] as one)
+    kinds = sorted(set(kinds), key=_ORDER.index)
+    return Spec(tuple(kinds), lo=lo, hi=hi, nullable=nullable, lo_open=lo_open, hi_open=hi_open)
 
 
 def _option_group(hint: Any) -> type | None:
