@@ -18,9 +18,9 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from embodied_tactile.options.checks import field_spec
 from embodied_tactile.run.config import config_dir
-from embodied_tactile.run.settings import (EXIT_BAD_SETTINGS, SettingsError, Spec, check_paths, check_train_config,
-                                       config_value)
+from embodied_tactile.run.settings import EXIT_BAD_SETTINGS, SettingsError, check_paths, check_train_config, config_value
 
 
 def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
@@ -72,53 +72,61 @@ def fail(err: SettingsError, prog: str = "train.py") -> None:
     raise Exit(EXIT_BAD_SETTINGS, str(err))
 
 
-#: a dataclass field's Python type -> the kind :class:`~embodied_tactile.run.settings.Spec` describes
-_KINDS = {int: "int", float: "float", bool: "bool", str: "str"}
-
-
 def _declared(cls: type, path: Sequence[str]) -> tuple[Any, bool]:
-    """(declared type, None allowed) of a field of a (nested) dataclass."""
+    """(declared type, known) of a field of a (nested) dataclass."""
     hint: Any = cls
     for i, part in enumerate(path):
-        hint = typing.get_type_hints(hint).get(part, Any)
+        hints = typing.get_type_hints(hint)
+        if part not in hints:
+            return Any, False
+        hint = hints[part]
         inner = [a for a in typing.get_args(hint) if a is not type(None)]
         if i < len(path) - 1 and len(inner) == 1 and dataclasses.is_dataclass(inner[0]):
             hint = inner[0]  # an optional group (Optional[ContextOptions]): its fields' types
         if not dataclasses.is_dataclass(hint):
             break
-    args = typing.get_args(hint)
-    nullable = type(None) in args
-    return (next((a for a in args if a is not type(None)), Any) if args else hint), nullable
+    return hint, True
+
+
+def _typed_nodes() -> dict[str, Any]:
+    """Config node -> an instance of its typed options (``model``'s optional context group
+    present, so that its keys are typed too)."""
+    from embodied_tactile.model.options import ContextOptions
+    from embodied_tactile.options.alignment import AlignmentOptions
+    from embodied_tactile.run.config import DataNode, ModelNode
+
+    return {"model": ModelNode(context=ContextOptions()), "data": DataNode(), "alignment": AlignmentOptions()}
 
 
 def check_typed_overrides(args: Sequence[str]) -> None:
-    """Command-line values of the typed model options (``model.*``,
-    :class:`~embodied_tactile.run.config.ModelNode`) checked against their dataclass types before
-    Hydra merges them, every value of a sweep included: one line naming key, value and the
-    type, exit 2 (Hydra's own merge error is several lines, exit 1)."""
+    """Command-line values of the typed options (``model.*``, ``data.*``, ``alignment.*``,
+    :mod:`embodied_tactile.run.config`) checked against their dataclass types before Hydra
+    merges them, every value of a sweep included: one line naming key, value and the type,
+    exit 2 (Hydra's own merge error is several lines, exit 1). A key the options do not
+    declare is left to Hydra."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
-
-    from embodied_tactile.run.config import ModelNode
-    from embodied_tactile.model.options import ContextOptions
 
     try:
         overrides = OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
     except Exception:  # a malformed override: Hydra names it itself
         return
+    nodes = _typed_nodes()
     for o in overrides:
-        if not o.key_or_group.startswith("model.") or o.is_delete():
+        root, _, rest = o.key_or_group.partition(".")
+        if root not in nodes or not rest or o.is_delete():
             continue
-        path = o.key_or_group.split(".")[1:]
+        path = rest.split(".")
+        hint, known = _declared(type(nodes[root]), path)
+        if not known:
+            continue
         for value in (list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]):
-            try:  # the optional group (context, None unless a recipe sets it) present, so its keys are typed too
-                OmegaConf.update(OmegaConf.structured(ModelNode(context=ContextOptions())), ".".join(path), value,
-                                 merge=True)
+            try:
+                OmegaConf.update(OmegaConf.structured(nodes[root]), rest, value, merge=True)
             except OmegaConfBaseException:
-                kind, nullable = _declared(ModelNode, path)
-                expected = (Spec((_KINDS[kind],), nullable=nullable).describe() if kind in _KINDS
-                            else getattr(kind, "__name__", str(kind)) + (" or null" if nullable else ""))
+                spec = field_spec(hint, {})
+                expected = spec.describe() if spec is not None else str(hint).replace("typing.", "")
                 fail(SettingsError(f"{o.key_or_group}={value!r} ({type(value).__name__}): expected {expected}"))
 
 

@@ -129,7 +129,8 @@ def test_failed_run_is_marked_failed(tmp_path):
 def test_settings_spec_unit():
     from omegaconf import OmegaConf
 
-    from embodied_tactile.run.settings import SettingsError, Spec, check_train_config
+    from embodied_tactile.options.checks import Spec
+    from embodied_tactile.run.settings import SettingsError, check_train_config
 
     assert not Spec(("int",)).accepts(True)  # a bool is not an epoch count
     assert Spec(("float",), lo=0).accepts(3) and not Spec(("float",)).accepts(float("nan"))
@@ -147,6 +148,31 @@ def test_settings_spec_unit():
         with pytest.raises(SettingsError, match=match):
             check_train_config(OmegaConf.create(bad))
     check_train_config(OmegaConf.create({"data": {"test_fraction": 0.25, "val_fraction": 0.125, "train_window": 2}}))
+    # the alignment's and the KRR callback's bounds are their options' too
+    for bad, match in [({"alignment": {"time_bins": 0}}, r"alignment.time_bins=0 \(int\): expected an integer >= 1"),
+                       ({"callbacks": {"krr_alignment": {"points": 0}}}, r"callbacks.krr_alignment.points=0 .* >= 1"),
+                       ({"callbacks": {"krr_alignment": {"every_n_epochs": "x"}}}, "an integer >= 0 or null"),
+                       ({"seed": 1.5}, r"seed=1.5 \(float\): expected an integer")]:
+        with pytest.raises(SettingsError, match=match):
+            check_train_config(OmegaConf.create(bad))
+
+
+def test_wrongly_typed_data_override_is_one_line(capsys):
+    """data.* and alignment.* overrides are checked by their options' types as model.* are:
+    one line, exit 2, before Hydra merges them; keys the options do not declare are Hydra's."""
+    from embodied_tactile.cli import check_typed_overrides
+
+    check_typed_overrides(["data=recorded", "data.raw_files=[a.h5]", "data.seq_len=null", "+data.extra=1",
+                           "alignment.readout=final_segment"])
+    for arg, line in [("data.batch_size=many", "data.batch_size='many' (str): expected an integer"),
+                      ("data.seq_len=x", "data.seq_len='x' (str): expected an integer or null"),
+                      ("data.batch_size=4,x", "data.batch_size='x' (str): expected an integer"),
+                      ("alignment.cv=x", "alignment.cv='x' (str): expected an integer")]:
+        with pytest.raises(SystemExit) as info:
+            check_typed_overrides([arg])
+        assert info.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert err == f"train.py: error: {line}", err
 
 
 # ----------------------------------------------------------------------------- quiet.py

@@ -60,6 +60,7 @@ from embodied_tactile.data import rawformat
 from embodied_tactile.run.jsonio import to_jsonable
 from embodied_tactile.data.rawformat import FIELDS as RAW_PATHS
 from embodied_tactile.data.rawformat import TrialFormatError
+from embodied_tactile.options.data import SceneOptions
 
 log = logging.getLogger(__name__)
 
@@ -423,7 +424,7 @@ def build_cache(
     cfg: PreprocessConfig | None = None,
     fields: Iterable[str] = FIELDS,
     *,
-    workers: int = 2,
+    workers: int = SceneOptions.preprocess_workers,
     strict: bool = False,
     chunk_size: int = 8,
     compression: str | None = None,

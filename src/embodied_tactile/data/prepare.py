@@ -34,7 +34,7 @@ import h5py
 from embodied_tactile import constants as C
 from embodied_tactile.data.rawformat import unique_paths
 from embodied_tactile.data.modality import fields_for_channels
-from embodied_tactile.options.data import scene_defaults
+from embodied_tactile.options.data import SceneOptions, scene_defaults
 
 log = logging.getLogger(__name__)
 
@@ -139,8 +139,8 @@ class TrialRef:
     factors: tuple[float, float, float, float]
 
 
-def catalogue_trials(actions: Sequence[int] | None = None, repetitions: int = 1, skin: str = "soft",
-                     primitive: str = "pressing") -> list[TrialRef]:
+def catalogue_trials(actions: Sequence[int] | None = None, repetitions: int = SceneOptions.repetitions,
+                     skin: str = SceneOptions.skin, primitive: str = SceneOptions.primitive) -> list[TrialRef]:
     """The trials a simulated scene of the 32 wave objects lists (objects x ``actions``, None:
     all 16, x ``repetitions``), named as the raw file names them, without simulating: for
     split arithmetic (which trials are held out, how many batches an epoch has)."""

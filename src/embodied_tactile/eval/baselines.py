@@ -45,7 +45,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from ..options.evaluation import GRUOptions
+from ..options.evaluation import GRUOptions, HandcraftedOptions
 from ..model.options import LatentFilterOptions
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment
 from .results import Results, evaluate_latents
@@ -91,12 +91,15 @@ def _acc_bins(acc: np.ndarray, tile=(7, 7), grid=(4, 4)) -> np.ndarray:
     return x.reshape(n, t, grid[0] * grid[1], tile[0] * tile[1])
 
 
-def handcrafted_features(obs, actions, channels: Sequence[str]) -> tuple[np.ndarray, list[str]]:
+def handcrafted_features(obs, actions, channels: Sequence[str],
+                         options: HandcraftedOptions | Mapping[str, Any] | None = None) -> tuple[np.ndarray, list[str]]:
     """Causal hand-crafted features at every frame: -> (features (n, T, k), names).
 
     ``obs`` (n, T, C, 28, 28) with ``channels`` naming the C axis ('acc', 'fsr_t', 'fsr_b');
-    ``actions`` (n, T, 6). Float64 internally; NaN-free output.
+    ``actions`` (n, T, 6); ``options``: the thresholds (:class:`HandcraftedOptions`, its
+    defaults where None or silent). Float64 internally; NaN-free output.
     """
+    opt = options if isinstance(options, HandcraftedOptions) else HandcraftedOptions(**dict(options or {}))
     obs = np.asarray(obs, dtype=np.float32)
     act = np.asarray(actions, dtype=np.float64)
     channels = list(channels)
@@ -117,7 +120,7 @@ def handcrafted_features(obs, actions, channels: Sequence[str]) -> tuple[np.ndar
         layers = obs[:, :, fsr_idx].astype(np.float64)  # (n, T, L, H, W)
         force = layers.mean((-3, -2, -1))  # (n, T)
         runmax = np.maximum.accumulate(force, axis=1)
-        contact = (force > 0.5 * runmax) & (runmax > _EPS)
+        contact = (force > opt.contact_fraction * runmax) & (runmax > _EPS)
         add("peak_force", runmax)
         add("mean_force", _cummean(force))
         for nm, drv in (("slope_force_depth", depth), ("slope_force_drive", s)):
@@ -129,10 +132,10 @@ def handcrafted_features(obs, actions, channels: Sequence[str]) -> tuple[np.ndar
         absl = np.cumsum(np.abs(force * ds), axis=1)
         add("hysteresis", loop / (absl + _EPS))
         dforce = np.diff(force, axis=1, prepend=force[:, :1]) / (np.abs(force) + _EPS)
-        still = (np.abs(ds) < 0.1 * np.maximum.accumulate(np.abs(ds), axis=1)) & contact
+        still = (np.abs(ds) < opt.still_fraction * np.maximum.accumulate(np.abs(ds), axis=1)) & contact
         add("relaxation", _cummean(np.clip(dforce, -1, 1), still.astype(float)))
         img = layers[:, :, 0]
-        thr = 0.1 * img.max((-2, -1), keepdims=True)
+        thr = opt.area_fraction * img.max((-2, -1), keepdims=True)
         area = ((img > thr) & (thr > 0)).mean((-2, -1))
         add("contact_area", _cummean(area, contact.astype(float)))
         add("spatial_freq_centroid", _cummean(_spatial_centroid(img), contact.astype(float)))
@@ -162,17 +165,19 @@ def handcrafted_features(obs, actions, channels: Sequence[str]) -> tuple[np.ndar
 
 
 def evaluate_handcrafted(train: Mapping[str, Any], test: Mapping[str, Any], channels: Sequence[str], *,
-                         alignment: Mapping[str, Any] | None = None, split: str = "trial", **meta) -> Results:
+                         alignment: Mapping[str, Any] | None = None, split: str = "trial",
+                         handcrafted: HandcraftedOptions | Mapping[str, Any] | None = None, **meta) -> Results:
     """Hand-crafted features -> the same KRR alignment -> Results (method 'handcrafted_krr').
-    ``alignment`` and ``split``: as :func:`~embodied_tactile.eval.results.evaluate_latents`.
+    ``alignment`` and ``split``: as :func:`~embodied_tactile.eval.results.evaluate_latents`;
+    ``handcrafted``: the features' thresholds (:func:`handcrafted_features`).
 
     ``train`` / ``test``: dicts with ``obs``, ``actions``, ``factors``, ``object_id``,
     ``action_index`` (and optional ``seq_id``). ``meta``: modality / skin / primitive / source.
     """
     assert_disjoint(train.get("seq_id"), test.get("seq_id"))
     t0 = time.perf_counter()
-    f_tr, names = handcrafted_features(train["obs"], train["actions"], channels)
-    f_te, _ = handcrafted_features(test["obs"], test["actions"], channels)
+    f_tr, names = handcrafted_features(train["obs"], train["actions"], channels, handcrafted)
+    f_te, _ = handcrafted_features(test["obs"], test["actions"], channels, handcrafted)
     t1 = time.perf_counter()
     align = fit_alignment(f_tr, train["factors"], ids=train.get("seq_id"),
                           **alignment_kwargs(alignment, split, train.get("object_id")))

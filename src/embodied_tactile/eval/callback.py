@@ -50,7 +50,7 @@ import numpy as np
 
 from ..constants import FACTOR_NAMES
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment, resolve_cv_grouping
-from ..options.alignment import alignment_options
+from ..options.alignment import AlignmentCheckOptions, alignment_options
 from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
 from .metrics import nmse_over_time, nmse_trajectory, overall
 from .results import select_latents
@@ -68,7 +68,8 @@ LATENT_KEYS = {"y": ("y_mean",), "z": ("z_mean",), "both": ("z_mean", "y_mean")}
 #: :func:`collect_latents` read)
 CACHED_KEYS = ("obs", "actions", "factors", "object_id", "action_index", "seq_id")
 #: sequences per inference batch of :func:`collect_split_latents` (the callback's ``infer_batch_size``)
-INFER_BATCH_SIZE = 128
+INFER_BATCH_SIZE = AlignmentCheckOptions.infer_batch_size
+_OPTIONS = AlignmentCheckOptions  # the callback's defaults
 
 
 def check_epochs(max_epochs: int, points: int, final: bool = True) -> list[int]:
@@ -208,12 +209,13 @@ class KRRAlignmentCallback(Callback):
     CHECK_DEFAULTS = {"frames_per_sequence": 2, "cv": 3, "nystroem_threshold": 1024, "n_components": 256,
                       "alphas": [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0], "gammas": [0.3, 1.0, 3.0]}
 
-    def __init__(self, every_n_epochs: int | None = None, latent: str = "y", max_train_sequences: int | None = 512,
-                 max_val_sequences: int | None = None, val_frame_stride: int = 2,
-                 alignment: Mapping[str, Any] | None = None, checks: Mapping[str, Any] | None = None,
+    def __init__(self, every_n_epochs: int | None = _OPTIONS.every_n_epochs, latent: str = _OPTIONS.latent,
+                 max_train_sequences: int | None = _OPTIONS.max_train_sequences,
+                 max_val_sequences: int | None = None, val_frame_stride: int = _OPTIONS.val_frame_stride,
+                 alignment: Mapping[str, Any] | None = None, checks: Mapping[str, Any] | None = _OPTIONS.checks,
                  run_on_train_end: bool = True, history_name: str = "krr_history.jsonl",
-                 targets: str = DEFAULT_TARGETS, points: int = 8, initial: bool = True,
-                 infer_batch_size: int = INFER_BATCH_SIZE):
+                 targets: str = DEFAULT_TARGETS, points: int = _OPTIONS.points, initial: bool = _OPTIONS.initial,
+                 infer_batch_size: int = _OPTIONS.infer_batch_size):
         if latent not in LATENT_KEYS:
             raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
         if targets not in TARGET_ENCODINGS:

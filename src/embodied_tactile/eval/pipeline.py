@@ -256,7 +256,9 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
             results.append(evaluate_latents(tr0, te0, latent=opts.latent, method="untrained", alignment=align,
                                             split=split["kind"], **meta)[0])
         elif b == "handcrafted":
-            results.append(evaluate_handcrafted(tr, te, channels, alignment=align, split=split["kind"], **meta))
+            results.append(evaluate_handcrafted(tr, te, channels, alignment=align, split=split["kind"],
+                                                handcrafted=OmegaConf.to_container(opts.handcrafted)
+                                                if opts.get("handcrafted") is not None else None, **meta))
         elif b == "gru":
             gru = OmegaConf.to_container(opts.gru, resolve=True)
             if gru.get("seed") is None:  # the run's seed: a baseline's spread over seeds is measured, not assumed 0

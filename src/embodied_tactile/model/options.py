@@ -1,5 +1,6 @@
 """The Latent Filter's and its training module's options, typed, with their defaults: the
-one place each default is written.
+one place each default is written, with its bounds (field metadata and ``RULES``, which
+:func:`embodied_tactile.options.checks.check_options` reads at train.py's entry).
 
 :class:`~.latent_filter.LatentFilter`, :class:`~.networks.HierarchicalPrior` and
 :class:`~.module.LatentFilterModule` read their defaults from here; Hydra composes the same
@@ -10,7 +11,9 @@ Plain dataclasses: no torch, no Hydra.
 """
 
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, List, Mapping, Optional
+from typing import Any, ClassVar, List, Mapping, Optional
+
+from embodied_tactile.options.checks import Rule, at_least, bounds
 
 
 @dataclass
@@ -44,25 +47,28 @@ class LatentFilterOptions:
     """The network's options (:class:`~.latent_filter.LatentFilter`'s docstring says what
     each does); ``modality`` is not an option but the network's input, given beside them."""
 
-    n_z: int = 16
-    n_y: int = 16
+    n_z: int = field(default=16, metadata=at_least(1))
+    n_y: int = field(default=16, metadata=at_least(1))
     n_a: int = 6
     n_objects: int = 32
     encoder: EncoderOptions = field(default_factory=EncoderOptions)
     transition_hidden: int = 128
     lstm_hidden: int = 128
     min_var: float = 1e-3
-    obs_sigma: float = 0.1
+    obs_sigma: float = field(default=0.1, metadata=bounds(0, lo_open=True))
     learn_obs_sigma: bool = True
-    obs_sigma_min: float = 1e-2
+    obs_sigma_min: float = field(default=1e-2, metadata=at_least(0))
     prior: PriorOptions = field(default_factory=PriorOptions)
     y_update: str = "evidence"
     y_prior_precision: float = 1.0
     y_start: str = "fixed"
     y_evidence_max: Optional[float] = 1.0
     y_evidence_range: Optional[float] = 2.0
-    obs_dropout: float = 0.5
+    obs_dropout: float = field(default=0.5, metadata=bounds(0, 1, hi_open=True))
     input_standardize: bool = True
+
+    RULES: ClassVar[tuple[Rule, ...]] = (
+        ("obs_sigma", "obs_sigma_min", lambda s, m: s > m, "obs_sigma > obs_sigma_min"),)
 
 
 @dataclass
@@ -78,7 +84,7 @@ class ContextOptions:
 
     source: str = "trial"
     touches: int = 1
-    initial_frames: int = 3
+    initial_frames: int = field(default=3, metadata=at_least(1))
     refilter: bool = False
     filter_weight: float = 0.0
 
@@ -89,7 +95,7 @@ class OptimizerOptions:
     ``experiment=paper`` sets the paper's 1e-5."""
 
     name: str = "Adam"
-    lr: float = 2e-3
+    lr: float = field(default=2e-3, metadata=at_least(0))
 
 
 @dataclass
@@ -98,7 +104,7 @@ class ModuleOptions:
 
     check_finite: bool = True
     lr_schedule: str = "constant"
-    code_lr_scale: float = 1.0
+    code_lr_scale: float = field(default=1.0, metadata=bounds(0, lo_open=True))
 
 
 def build(cls: type, given: Optional[Mapping[str, Any]], owner: str) -> Any:

@@ -27,7 +27,9 @@ Read-outs (``readout``; docs/reference/evaluation.md, "The read-out over time"):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import Any, Dict, List, Optional
+
+from .checks import at_least
 
 #: ``alpha`` grid: reaches 100, where the fit on standardised targets is close to their mean
 DEFAULT_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
@@ -42,7 +44,7 @@ class AlignmentOptions:
     """``alignment``: the latent -> factor read-out (RBF kernel ridge regression)."""
 
     readout: str = "per_time"         # per_time | final_segment (the paper's protocol)
-    time_bins: int = 10               # per_time: no span longer than 1/time_bins of the trial (eval.krr.time_spans)
+    time_bins: int = field(default=10, metadata=at_least(1))  # per_time: no span longer than 1/time_bins of the trial (eval.krr.time_spans)
     final_segment: float = 0.1        # final_segment: the fitted tail (fraction of T, or frames if > 1)
     frames_per_sequence: int = 4      # rows per training sequence (per span for per_time)
     cv: int = 5                       # grouped folds of the grid search
@@ -53,6 +55,27 @@ class AlignmentOptions:
     n_components: int = 500
     seed: int = 0
     n_threads: Optional[int] = 1      # BLAS threads of the fit (1: much faster on a loaded small machine)
+
+
+@dataclass
+class AlignmentCheckOptions:
+    """``callbacks.krr_alignment``: the KRR callback's own settings
+    (:class:`~embodied_tactile.eval.callback.KRRAlignmentCallback`): when it checks the
+    alignment during training and how cheaply. A row at t = 0 (``initial``), then ``points``
+    checks spread over ``max_epochs`` (the final alignment is the last: the run's
+    ``alignment`` as it is, on every sequence and frame, as evaluate.py reads it), or one every
+    ``every_n_epochs`` epochs; the periodic checks change only what ``checks`` names
+    (``KRRAlignmentCallback.CHECK_DEFAULTS`` when null), on at most ``max_train_sequences``
+    training sequences and every ``val_frame_stride``-th held-out frame."""
+
+    every_n_epochs: Optional[int] = field(default=None, metadata=at_least(0))  # an int checks every N epochs instead of `points`
+    points: int = field(default=8, metadata=at_least(1))
+    initial: bool = True
+    infer_batch_size: int = field(default=128, metadata=at_least(1))  # sequences per latent-inference batch
+    latent: str = "y"                       # y | z | both
+    max_train_sequences: Optional[int] = 512
+    val_frame_stride: int = 2
+    checks: Optional[Dict[str, Any]] = None  # alignment options of the periodic checks
 
 
 def alignment_options(*layers) -> dict:
@@ -77,3 +100,7 @@ def alignment_options(*layers) -> dict:
         raise ValueError(f"alignment.time_bins must be >= 1, got {out['time_bins']}")
     out["alphas"], out["gammas"] = [float(a) for a in out["alphas"]], [float(g) for g in out["gammas"]]
     return out
+
+
+__all__ = ["AlignmentCheckOptions", "AlignmentOptions", "CV_GROUPINGS", "DEFAULT_ALPHAS", "DEFAULT_GAMMAS", "READOUTS",
+           "alignment_options"]

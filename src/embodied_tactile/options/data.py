@@ -10,13 +10,17 @@ sorts back into the groups :class:`~embodied_tactile.data.datamodule.TactileData
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Dict, List, Mapping, Optional
+from typing import Any, ClassVar, Dict, List, Mapping, Optional
+
+from .checks import Rule, at_least, bounds
+from .simulation import SimulationOptions
 
 
 @dataclass
 class SceneOptions:
     """What to prepare (:class:`embodied_tactile.data.prepare.Scene`): the keys that decide
-    which trials exist and how they are preprocessed."""
+    which trials exist and how they are preprocessed (bounds: the fields' metadata,
+    :mod:`embodied_tactile.options.checks`)."""
 
     data_dir: str = "data"
     source: str = "simulated"             # simulated (the built-in simulator) | recorded (raw_files)
@@ -25,16 +29,16 @@ class SceneOptions:
     primitive: str = "pressing"
     channels: List[str] = field(default_factory=lambda: ["acc", "fsr_t", "fsr_b"])
     objects: Any = None                   # null = all 32 wave objects; a list of ids; population (docs/reference/simulator.md)
-    n_objects: int = 256                  # population: training objects (validation and test objects come on top)
-    n_val_objects: int = 32               # population: validation objects (checkpoint selection)
-    n_test_objects: int = 64              # population: test objects (evaluation only)
-    population_seed: int = 0              # population: which objects are drawn
+    n_objects: int = field(default=256, metadata=at_least(1))  # population: training objects (validation and test objects come on top)
+    n_val_objects: int = field(default=32, metadata=at_least(1))  # population: validation objects (checkpoint selection)
+    n_test_objects: int = field(default=64, metadata=at_least(1))  # population: test objects (evaluation only)
+    population_seed: int = field(default=0, metadata=at_least(0))  # population: which objects are drawn
     actions: Optional[List[int]] = None   # null = all 16 parameter sets
-    repetitions: int = 1
-    sim_seed: int = 0
-    sim_workers: int = 2
+    repetitions: int = field(default=SimulationOptions.repetitions, metadata=at_least(1))
+    sim_seed: int = SimulationOptions.seed
+    sim_workers: int = field(default=SimulationOptions.workers, metadata=at_least(1))
     preprocess: Dict[str, Any] = field(default_factory=dict)  # PreprocessConfig overrides (docs/reference/preprocessing.md)
-    preprocess_workers: int = 2
+    preprocess_workers: int = field(default=2, metadata=at_least(1))
     strict: bool = False                  # true: a bad raw trial is fatal instead of skipped
     include_incomplete: bool = False      # true: also use interrupted recordings (complete=False)
     allow_large_population: bool = False  # true: prepare a population of more than 10,000 trials
@@ -45,22 +49,25 @@ class SplitOptions:
     """How the prepared trials are split (:func:`embodied_tactile.data.datamodule.split_trials`)."""
 
     split: str = "trial"          # trial: the paper's split (recognition) | object: train / validation / test objects disjoint
-    test_fraction: float = 0.25   # held-out test share (of trials; of objects for split=object): evaluation only
-    val_fraction: float = 0.125   # validation share (from training objects; of objects for split=object)
+    test_fraction: float = field(default=0.25, metadata=bounds(0, 1, lo_open=True, hi_open=True))  # held-out test share (of trials; of objects for split=object): evaluation only
+    val_fraction: float = field(default=0.125, metadata=bounds(0, 1, hi_open=True))  # validation share (from training objects; of objects for split=object)
     split_seed: int = 0
     split_file: Optional[str] = None  # where the split is saved (JSON); reused if it exists and matches
+
+    RULES: ClassVar[tuple[Rule, ...]] = (
+        ("test_fraction", "val_fraction", lambda t, v: t + v < 1, "test_fraction + val_fraction < 1"),)
 
 
 @dataclass
 class LoaderOptions:
     """How the split is served."""
 
-    batch_size: int = 48
-    num_workers: int = 0
-    seq_len: Optional[int] = None            # null = the full trial
-    train_window: Optional[int] = None       # training crops of this many frames (null = whole trials)
-    windows_per_trial: Optional[int] = 1     # random crops per training trial and epoch
-    windows_per_epoch: Optional[int] = None  # instead of windows_per_trial (then null): crops per epoch
+    batch_size: int = field(default=48, metadata=at_least(1))
+    num_workers: int = field(default=0, metadata=at_least(0))
+    seq_len: Optional[int] = field(default=None, metadata=at_least(1))  # null = the full trial
+    train_window: Optional[int] = field(default=None, metadata=at_least(2))  # training crops of this many frames (null = whole trials; >= 2: the recursion needs a transition)
+    windows_per_trial: Optional[int] = field(default=1, metadata=at_least(1))  # random crops per training trial and epoch
+    windows_per_epoch: Optional[int] = field(default=None, metadata=at_least(1))  # instead of windows_per_trial (then null): crops per epoch
     context: Optional[str] = None            # the context objective's pairing: null | trial | window
     context_touches: int = 1                 # context=trial: other trials of the object per context
     pin_memory: bool = False

@@ -33,6 +33,17 @@ class GRUOptions:
 
 
 @dataclass
+class HandcraftedOptions:
+    """``handcrafted``: the thresholds of the hand-crafted features
+    (:func:`~embodied_tactile.eval.baselines.handcrafted_features`), each a share of a running
+    or per-frame maximum."""
+
+    contact_fraction: float = 0.5  # a frame is in contact when its force exceeds this share of its running peak
+    still_fraction: float = 0.1    # the action is still when its step |ds| is below this share of its running max
+    area_fraction: float = 0.1     # a taxel is in the contact area above this share of the frame's maximum
+
+
+@dataclass
 class EvaluationLoaderOptions:
     """``data``: evaluate.py's loader settings (never the scene)."""
 
@@ -58,8 +69,9 @@ class EvaluationOptions:
     print_tables: bool = False
     alignment: Dict[str, Any] = field(default_factory=dict)
     gru: GRUOptions = field(default_factory=GRUOptions)
+    handcrafted: HandcraftedOptions = field(default_factory=HandcraftedOptions)
     data: EvaluationLoaderOptions = field(default_factory=EvaluationLoaderOptions)
     torch_threads: Optional[int] = 1
 
 
-__all__ = ["EvaluationLoaderOptions", "EvaluationOptions", "GRUOptions"]
+__all__ = ["EvaluationLoaderOptions", "EvaluationOptions", "GRUOptions", "HandcraftedOptions"]

@@ -17,16 +17,19 @@ module first:
   (:mod:`embodied_tactile.options.data`), flat; configs/data/*.yaml compose it.
 * ``alignment: schema`` (:class:`~embodied_tactile.options.alignment.AlignmentOptions`): the
   latent -> factor read-out, shared by the training's final alignment and evaluate.py.
+* ``callbacks/krr_alignment: schema`` (:class:`AlignmentCallbackNode`): the KRR callback's
+  own settings (:class:`~embodied_tactile.options.alignment.AlignmentCheckOptions`);
+  configs/callbacks/default.yaml composes it.
 * ``${prior_rows:objects,n_test,n_val,n_train}``: rows of the prior's object-code table.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
-from embodied_tactile.options.alignment import AlignmentOptions
+from embodied_tactile.options.alignment import AlignmentCheckOptions, AlignmentOptions
 from embodied_tactile.options.data import DataOptions
 from embodied_tactile.model.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
 from embodied_tactile.run.paths import config_dir
@@ -46,7 +49,8 @@ class OptimizerNode:
 
     _target_: str = f"torch.optim.{OptimizerOptions.name}"
     _partial_: bool = True
-    lr: float = OptimizerOptions.lr
+    lr: float = field(default=OptimizerOptions.lr,
+                      metadata=next(f.metadata for f in fields(OptimizerOptions) if f.name == "lr"))
 
 
 @dataclass
@@ -66,6 +70,17 @@ class DataNode(DataOptions):
     (its flat keys sorted into scene, split and loader by ``from_config``)."""
 
     _target_: str = "embodied_tactile.data.datamodule.TactileDataModule.from_config"
+
+
+@dataclass
+class AlignmentCallbackNode(AlignmentCheckOptions):
+    """``callbacks.krr_alignment``: what Hydra instantiates into a
+    :class:`~embodied_tactile.eval.callback.KRRAlignmentCallback`, with the run's ``alignment``
+    (its final alignment is the run's number) and ``targets``."""
+
+    _target_: str = "embodied_tactile.eval.callback.KRRAlignmentCallback"
+    alignment: Any = "${alignment}"
+    targets: str = "${targets}"
 
 
 def prior_rows(objects: Any, n_test: int, n_val: int, n_train: int) -> int:
@@ -107,6 +122,7 @@ def register() -> None:
     cs.store(group="model", name="schema", node=ModelNode)
     cs.store(group="alignment", name="schema", node=AlignmentOptions)
     cs.store(group="data", name="schema", node=DataNode)
+    cs.store(group="callbacks/krr_alignment", name="schema", node=AlignmentCallbackNode)
     if not OmegaConf.has_resolver("prior_rows"):
         OmegaConf.register_new_resolver("prior_rows", prior_rows)
     if not OmegaConf.has_resolver("folder_name"):
@@ -115,4 +131,4 @@ def register() -> None:
 
 register()
 
-__all__ = ["DataNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]
+__all__ = ["AlignmentCallbackNode", "DataNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]

@@ -19,6 +19,7 @@ import h5py
 
 from embodied_tactile import constants as C
 from embodied_tactile.data.rawformat import trial_name, write_trial
+from embodied_tactile.options.simulation import SimulationOptions
 from embodied_tactile.sim import objects as O
 from embodied_tactile.sim.physics import PHYSICS_VERSION, VERSION_ATTR, PhysicsOverrides
 from embodied_tactile.sim.trial import simulate_trial
@@ -144,11 +145,11 @@ def generate_dataset(
     primitive: str,
     objects: Iterable[int | C.WaveObject] = range(C.N_OBJECTS),
     actions: Iterable[int] = range(C.N_ACTIONS),
-    repetitions: int = 1,
-    seed: int = 0,
-    workers: int = 2,
+    repetitions: int = SimulationOptions.repetitions,
+    seed: int = SimulationOptions.seed,
+    workers: int = SimulationOptions.workers,
     overwrite: bool = False,
-    duration: float = C.TRIAL_DURATION,
+    duration: float = SimulationOptions.duration,
     physics: PhysicsOverrides | None = None,
 ) -> Path:
     """Simulate objects x actions x repetitions trials of one skin and primitive into ``path``.

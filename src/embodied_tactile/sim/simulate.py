@@ -3,7 +3,7 @@
     embodied-tactile simulate skin=soft primitive=sliding \
         out=data/raw/soft_sliding.h5 objects=[0,1] actions=[0,5] repetitions=1 seed=0 workers=2
 
-Every field of :class:`SimulateConfig` can be overridden with ``key=value`` (OmegaConf
+Every field of :class:`~embodied_tactile.options.simulation.SimulateOptions` can be overridden with ``key=value`` (OmegaConf
 dotlist syntax); ``objects`` / ``actions`` default to the whole catalogue / action table.
 An invalid value (ranges in docs/reference/simulator.md) or an output file the simulator may not
 write into exits with status 2 and a one-line message on stderr; nothing is written.
@@ -14,34 +14,15 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from dataclasses import dataclass, field
-from typing import Optional
 
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from embodied_tactile import constants as C
+from embodied_tactile.options.simulation import SimulateOptions
 
 
-@dataclass
-class SimulateConfig:
-    skin: str = "soft"
-    primitive: str = "sliding"
-    out: str = "data/raw/${skin}_${primitive}.h5"
-    objects: list = field(default_factory=lambda: list(range(C.N_OBJECTS)))
-    actions: list = field(default_factory=lambda: list(range(C.N_ACTIONS)))
-    repetitions: int = 1
-    seed: int = 0
-    workers: int = 2
-    overwrite: bool = False
-    duration: float = C.TRIAL_DURATION
-    log_level: str = "INFO"
-    #: optional physics overrides (stress tests), e.g. physics.force_scale=10
-    physics: Optional[dict] = None
-
-
-def parse(argv: list[str]) -> SimulateConfig:
-    base = OmegaConf.structured(SimulateConfig)
+def parse(argv: list[str]) -> SimulateOptions:
+    base = OmegaConf.structured(SimulateOptions)
     cfg = OmegaConf.merge(base, OmegaConf.from_dotlist(list(argv)))
     return cfg  # type: ignore[return-value]
 
@@ -50,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if any(a in ("-h", "--help") for a in argv):
         print(__doc__)
-        print(OmegaConf.to_yaml(OmegaConf.structured(SimulateConfig)))
+        print(OmegaConf.to_yaml(OmegaConf.structured(SimulateOptions)))
         return 0
     from embodied_tactile.sim import OutputFileError, SimParameterError, generate_dataset
     from embodied_tactile.sim.validation import physics_overrides
