@@ -23,9 +23,10 @@ REMOVED_OPTIONS = {"obs_dropout_span": 1, "elbo_samples": 1, "overshoot": 1, "ov
 UNSAVED_OPTIONS = {"input_standardize": False, "y_update": "direct", "y_evidence_max": None,
                    "y_evidence_range": None, "obs_dropout": 0.0}
 UNSAVED_PRIOR_OPTIONS = {"labels": True}
-#: context-objective options that were measured, rejected and removed
-#: (docs/experiments/context_objective.md), with their off value
-REMOVED_CONTEXT_OPTIONS = {"random_length": False}
+#: context-objective options that were measured, rejected and removed, with their off value
+#: (random_length: docs/experiments/context_objective.md; filter_weight:
+#: docs/experiments/population_budget.md)
+REMOVED_CONTEXT_OPTIONS = {"random_length": False, "filter_weight": 0.0}
 
 
 def upgrade_net_config(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -42,7 +43,8 @@ def upgrade_context_config(context: Mapping[str, Any]) -> dict[str, Any]:
     """A saved context-objective config (a checkpoint's ``context``) as today's options: a
     removed option (:data:`REMOVED_CONTEXT_OPTIONS`) at its off value is dropped, any other
     value of it is a ValueError that names it."""
-    return _drop_removed(dict(context), REMOVED_CONTEXT_OPTIONS, "docs/experiments/context_objective.md")
+    return _drop_removed(dict(context), REMOVED_CONTEXT_OPTIONS,
+                         "docs/experiments/context_objective.md, docs/experiments/population_budget.md")
 
 
 def _drop_removed(config: dict[str, Any], removed: Mapping[str, Any], where: str) -> dict[str, Any]:
@@ -93,7 +95,7 @@ def moved_to(name: str) -> str | None:
 
 #: config keys that saved configs hold and today's configs no longer write (the modality
 #: named its LightningModule before one class served every modality)
-DROPPED_CONFIG_KEYS = ("modality.module", "model.net.modality.module")
+DROPPED_CONFIG_KEYS = ("modality.module", "model.net.modality.module", "model.context.filter_weight")
 
 
 #: config keys that today's configs write and earlier saved configs lack, with the value

@@ -97,8 +97,6 @@ def check_context(context: Optional[Mapping[str, Any]]) -> Optional[dict[str, An
     if int(out["touches"]) < 1 or (int(out["touches"]) > 1 and out["source"] != "trial"):
         raise ValueError(f"context.touches must be 1, or > 1 with source=trial, got {out['touches']} "
                          f"with source={out['source']!r}")
-    if not float(out["filter_weight"]) >= 0.0:
-        raise ValueError(f"context.filter_weight must be >= 0, got {out['filter_weight']}")
     return out
 
 
@@ -189,11 +187,6 @@ class LatentFilterModule(L.LightningModule):
         else:
             terms = self.model.context_terms(batch, self.context["initial_frames"], self.context["refilter"],
                                              sample=True)
-            w = float(self.context["filter_weight"])
-            if w > 0.0:  # plus the target window's own filtering ELBO, weighted
-                filt = self.model.elbo_terms(batch, sample=True)
-                for k in ("nll", "kl_z", "kl_y", "pop", "entropy"):
-                    terms[k] = terms[k] + w * filt[k]
         terms.pop("out")
         return terms
 

@@ -76,17 +76,14 @@ class ContextOptions:
     """The context objective (docs/reference/model.md, "The context objective"): where y's context
     comes from (``trial``: another trial of the same object; ``window``: a disjoint window
     of the same trial), how many target frames are filtered before the open-loop rollout,
-    whether every target frame is filtered (``refilter``, a leak control), the weight of
-    the target window's filtering ELBO added to the objective (``filter_weight``; 0: the
-    context objective alone), and how many other touches (trials) of the object make up one
+    whether every target frame is filtered (``refilter``, a leak control), and how many other touches (trials) of the object make up one
     context (``touches``; with ``source=trial``): their posteriors q(y | touch) are combined
     by the product rule of :func:`~.latent_filter.combine_touches`, the read-out of K touches."""
 
     source: str = "trial"
-    touches: int = 1
+    touches: int = field(default=1, metadata=at_least(1))
     initial_frames: int = field(default=3, metadata=at_least(1))
     refilter: bool = False
-    filter_weight: float = 0.0
 
 
 @dataclass
