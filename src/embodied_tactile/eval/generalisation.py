@@ -212,26 +212,31 @@ def _style(m: str) -> str:
 
 
 def time_figure(curves: Mapping[str, Mapping[int, Mapping[str, Any]]], path: Path) -> None:
-    """Each reader's NMSE over interaction time (mean over seeds), one panel per size."""
+    """Each reader's NMSE over interaction time (mean over seeds), one panel per size, one
+    colour per reader across panels, the legend below."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    methods = sorted(curves, key=_method_order)
+    colour = {m: f"C{i % 10}" for i, m in enumerate(methods)}
     sizes = sorted({n for by_n in curves.values() for n in by_n})
-    fig, axes = plt.subplots(1, len(sizes), figsize=(4.2 * len(sizes), 4.0), sharey=True, squeeze=False)
+    fig, axes = plt.subplots(1, len(sizes), figsize=(4.6 * len(sizes), 4.0 + 0.22 * len(methods)), sharey=True,
+                             squeeze=False)
     for ax, n in zip(axes[0], sizes):
-        for m in sorted(curves, key=_method_order):
+        for m in methods:
             if n in curves[m]:
                 c = curves[m][n]["curve"]
-                ax.plot(np.arange(1, len(c) + 1), c, _style(m), lw=1.2, label=m)
+                ax.plot(np.arange(1, len(c) + 1), c, _style(m), lw=1.2, color=colour[m], label=m)
         ax.axhline(1.0, color="0.6", lw=0.8)
         ax.set_title(f"{n} training objects", fontsize=9)
         ax.set_xlabel("frame (interaction time)")
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("NMSE, held-out objects (mean over factors)")
-    axes[0][-1].legend(fontsize=6)
-    fig.tight_layout()
+    handles = [plt.Line2D([], [], linestyle=_style(m), color=colour[m]) for m in methods]
+    fig.legend(handles, methods, loc="lower center", fontsize=6, ncol=1, frameon=False)
+    fig.tight_layout(rect=(0, 0.05 * len(methods) / 2, 1, 1))
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -331,7 +336,8 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         time_figure(curves, out / "figures" / "generalisation_over_time.png")
         lines += ["## Over interaction time", "",
                   "NMSE (mean over factors) frame by frame, each reader with its own read-out over the whole "
-                  "trial. Frame 1 is before any evidence: a reader that knows nothing of the object reads 1 there.",
+                  "trial. Frame 1 is one observation, taken at the press's deepest point (docs/reference/simulator.md, "
+                  "\"Primitives\"): a reader that takes no evidence from it reads 1 there.",
                   "", "![over interaction time](figures/generalisation_over_time.png)", "", *time_table(curves), ""]
     for f in FACTOR_NAMES:
         for readout, title in READOUTS:
