@@ -39,7 +39,8 @@ def fake_run(d: Path, *, ckpt=True, rows=((6, 0.5, (0.4, 0.5, 0.6, 0.5)), (12, 0
         (d / "checkpoints" / "last.ckpt").write_bytes(b"x")
     (d / "krr_history.jsonl").write_text("".join(json.dumps(_row(*r)) + "\n" for r in rows))
     m = {"status": "finished", "train_wall_s": 221.4, "data_prepare_s": 12.0,
-         "best_checkpoint": str(d / "checkpoints" / "best-epoch011.ckpt") if ckpt else None}
+         "best_checkpoint": str(d / "checkpoints" / "best-epoch011.ckpt") if ckpt else None,
+         "last_checkpoint": str(d / "checkpoints" / "last.ckpt") if ckpt else None}
     (d / "metrics.json").write_text(json.dumps(m))
     return d
 
@@ -54,7 +55,8 @@ def test_run_summary_lines(tmp_path):
     assert "overall 0.1223" in text and "step 12" in text and "8 held-out sequences" in text
     assert "spatial freq. 0.1  amplitude 0.2  stiffness 0.0892  heterogeneity 0.1" in text
     assert "training time: 3 min 41 s (data preparation 12.0 s on top)" in text
-    assert f"checkpoint:    {rel}/checkpoints/best-epoch011.ckpt" in text
+    # the final weights (the read-out printed above, evaluate.py's default), the best named beside them
+    assert f"checkpoint:    {rel}/checkpoints/last.ckpt (lowest validation loss: best-epoch011.ckpt)" in text
     assert f"{rel}/{{metrics.json,krr_history.jsonl}}" in text
     assert f"{rel}/evaluation/" in text
     assert lines[-2] == f"next:          python evaluate.py {rel}"

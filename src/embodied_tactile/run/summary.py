@@ -225,10 +225,12 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     if m.get("data_prepare_s") is not None:
         t += f" (data preparation {duration(m.get('data_prepare_s'))} on top)"
     lines.append(t)
-    ckpt = m.get("best_checkpoint") or m.get("last_checkpoint")
+    # the final weights: the read-out above and evaluate.py's default (checkpoint=last)
+    ckpt, best = m.get("last_checkpoint") or m.get("best_checkpoint"), m.get("best_checkpoint")
     ck_dir = run / "checkpoints"
     if ckpt:  # relative to the run folder (metrics.json of before: absolute)
-        lines.append(f"checkpoint:    {show_path(run / ckpt, cwd)}")
+        also = f" (lowest validation loss: {Path(best).name})" if best and best != ckpt else ""
+        lines.append(f"checkpoint:    {show_path(run / ckpt, cwd)}{also}")
     elif ck_dir.is_dir() and any(ck_dir.glob("*.ckpt")):
         lines.append(f"checkpoints:   {show_path(ck_dir, cwd)}/")
     else:
