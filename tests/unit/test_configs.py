@@ -148,7 +148,11 @@ def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
     assert len(small) == 10 * 3
     minimum = cells(small)
     assert minimum == {c for c in full if c[2] == "pressing"} | {("multi_l", "soft", p) for p in ("precession", "sliding")}
-    assert _compose_job(["sweep=study"], tmp_path).trainer.max_epochs == 16  # the CPU budget (experiment=cpu_budget)
+    # the study runs at the budget its results were measured at; the default scene at the
+    # one chosen on its validation trials; the population at its own
+    assert _compose_job(["sweep=study"], tmp_path).trainer.max_epochs == 16
+    assert _compose_job([], tmp_path).trainer.max_epochs == 32
+    assert _compose_job(["experiment=population"], tmp_path).trainer.max_epochs == 16
 
 
 def test_the_class_built_with_no_options_is_the_configured_filter_recipe(tmp_path):
