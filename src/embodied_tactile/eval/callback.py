@@ -336,6 +336,8 @@ class KRRAlignmentCallback(Callback):
         return _split_at(collect_latents(pl_module, batches, latent=self.latent), n_train)
 
     def _evaluate(self, trainer, pl_module, final: bool = False, initial: bool = False) -> dict[str, float]:
+        import torch
+
         t0 = time.perf_counter()
         if self._t_start is None:
             self._t_start = t0
@@ -386,6 +388,7 @@ class KRRAlignmentCallback(Callback):
             "nmse_mean_predictor_overall": _fin(overall(per_factor_mean)),
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])), "latent": self.latent,
             "val_frame_stride": stride, "final": bool(final), "initial": bool(initial), "targets": self.targets,
+            "torch_threads": int(torch.get_num_threads()),  # float32 inference depends on it: evaluate.py reuses it
             "alignment": {k: align.params.get(k) for k in ("readout", "time_bins", "method", "alpha", "gamma",
                                                            "n_train_rows", "fit_time_s", "final_segment",
                                                            "frames_per_sequence", "cv_folds", "seed")},

@@ -406,18 +406,27 @@ def cell(run: Run) -> tuple:
     return (str(c.modality.name), str(c.skin.name), str(c.primitive.name))
 
 
+def final_readout_threads(run_dir: Path) -> int:
+    """The torch threads of a run's final read-out (its metrics.json ``krr_final``), 1 where
+    the run does not say: float32 inference differs in its last bits between thread counts."""
+    try:
+        final = json.loads((Path(run_dir) / "metrics.json").read_text()).get("krr_final") or {}
+    except (OSError, ValueError):
+        return 1
+    return int(final.get("torch_threads") or 1)
+
+
 def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     """Evaluate a run / checkpoint / multirun / study folder; return {"out": folder, "runs":
     [info...], "skipped": [...], "written": write_report's dict}. Prints the measured summary
     (:func:`terminal_summary`). Raises EvaluationError."""
     overrides, selection = split_overrides(overrides)
     opts = parse_options(overrides)
-    if opts.torch_threads:
-        from embodied_tactile.run.runtime import set_threads
-
-        set_threads(int(opts.torch_threads))
     target = Path(target)
     kind, runs, skipped = discover(target, opts.checkpoint)
+    from embodied_tactile.run.runtime import set_threads
+
+    set_threads(int(opts.torch_threads or (final_readout_threads(runs[0].run_dir) if len(runs) == 1 else 1)))
     runs = select_runs(runs, selection)
     baselines = list(opts.baselines) if opts.baselines is not None else list(
         BASELINES if kind == "run" else MULTIRUN_BASELINES)

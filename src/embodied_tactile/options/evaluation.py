@@ -71,7 +71,9 @@ class EvaluationOptions:
     gru: GRUOptions = field(default_factory=GRUOptions)
     handcrafted: HandcraftedOptions = field(default_factory=HandcraftedOptions)
     data: EvaluationLoaderOptions = field(default_factory=EvaluationLoaderOptions)
-    torch_threads: Optional[int] = 1
+    # null: the threads of the run's final read-out (metrics.json krr_final.torch_threads), so that
+    # one run's latents, and its number, come out as the training printed them; 1 otherwise
+    torch_threads: Optional[int] = None
 
 
 __all__ = ["EvaluationLoaderOptions", "EvaluationOptions", "GRUOptions", "HandcraftedOptions"]
