@@ -186,7 +186,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     from embodied_tactile.data.modality import Modality
     from embodied_tactile.eval.figures import read_history
     from embodied_tactile.eval.targets import encode_split
-    from embodied_tactile.run.runtime import data_changes, data_identity, trial_digests
+    from embodied_tactile.run.runtime import data_changes, data_identity, set_threads, trial_digests
 
     t_run = time.perf_counter()
     cfg = run.cfg
@@ -216,6 +216,9 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
         raise EvaluationError(f"{run.run_dir}: cannot prepare its data: {first}") from None
     t_data = time.perf_counter()
 
+    metrics = read_json(run.run_dir / "metrics.json")
+    if not opts.torch_threads:  # float32 latents differ in their last bits between thread counts
+        set_threads(int((metrics.get("krr_final") or {}).get("torch_threads") or 1))
     model = load_module(run)
     sides = ((cache.batches(key, dm, "train"), trial_names(dm, "train")),
              (cache.batches(key, dm, opts.held_out), trial_names(dm, opts.held_out)))
@@ -228,7 +231,6 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     t_inf = time.perf_counter()
     split = run_split(run, data["split_file"], trial_objects(dm))
 
-    metrics = read_json(run.run_dir / "metrics.json")
     hist_path = run.run_dir / "krr_history.jsonl"
     history = read_history(hist_path) if hist_path.exists() else []
     # one time base for every method: training wall time without data preparation and without
@@ -406,27 +408,18 @@ def cell(run: Run) -> tuple:
     return (str(c.modality.name), str(c.skin.name), str(c.primitive.name))
 
 
-def final_readout_threads(run_dir: Path) -> int:
-    """The torch threads of a run's final read-out (its metrics.json ``krr_final``), 1 where
-    the run does not say: float32 inference differs in its last bits between thread counts."""
-    try:
-        final = json.loads((Path(run_dir) / "metrics.json").read_text()).get("krr_final") or {}
-    except (OSError, ValueError):
-        return 1
-    return int(final.get("torch_threads") or 1)
-
-
 def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     """Evaluate a run / checkpoint / multirun / study folder; return {"out": folder, "runs":
     [info...], "skipped": [...], "written": write_report's dict}. Prints the measured summary
     (:func:`terminal_summary`). Raises EvaluationError."""
     overrides, selection = split_overrides(overrides)
     opts = parse_options(overrides)
+    if opts.torch_threads:  # else each run's own (evaluate_run)
+        from embodied_tactile.run.runtime import set_threads
+
+        set_threads(int(opts.torch_threads))
     target = Path(target)
     kind, runs, skipped = discover(target, opts.checkpoint)
-    from embodied_tactile.run.runtime import set_threads
-
-    set_threads(int(opts.torch_threads or (final_readout_threads(runs[0].run_dir) if len(runs) == 1 else 1)))
     runs = select_runs(runs, selection)
     baselines = list(opts.baselines) if opts.baselines is not None else list(
         BASELINES if kind == "run" else MULTIRUN_BASELINES)

@@ -71,8 +71,8 @@ class EvaluationOptions:
     gru: GRUOptions = field(default_factory=GRUOptions)
     handcrafted: HandcraftedOptions = field(default_factory=HandcraftedOptions)
     data: EvaluationLoaderOptions = field(default_factory=EvaluationLoaderOptions)
-    # null: the threads of the run's final read-out (metrics.json krr_final.torch_threads), so that
-    # one run's latents, and its number, come out as the training printed them; 1 otherwise
+    # null: per run, the threads of its final read-out (metrics.json krr_final.torch_threads), so
+    # that its latents, and its number, come out as the training printed them; 1 where it does not say
     torch_threads: Optional[int] = None
 
 
