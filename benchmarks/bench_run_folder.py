@@ -5,7 +5,7 @@ Checkpoints: the default model's (``python train.py``: MULTI-L) state dict plus 
 state of the same size, saved ``--repeats`` times by Lightning's ``TorchCheckpointIO`` and
 by ``runfolder.AtomicCheckpointIO`` (temporary file, fsync, rename) into ``--work``; the
 median of each and the difference times the main job's checkpoint count (two per epoch,
-``trainer.max_epochs`` of configs/trainer/cpu.yaml).
+``trainer.max_epochs`` of the composed default: configs/experiment/cpu_budget.yaml).
 
 Cache: ``data.cache.verify_cache`` over every ``*.h5`` in ``<data-dir>/cache`` (the main
 job's data folder once prepared), seconds and MB/s.

@@ -152,7 +152,9 @@ def test_settings_spec_unit():
     for bad, match in [({"alignment": {"time_bins": 0}}, r"alignment.time_bins=0 \(int\): expected an integer >= 1"),
                        ({"callbacks": {"krr_alignment": {"points": 0}}}, r"callbacks.krr_alignment.points=0 .* >= 1"),
                        ({"callbacks": {"krr_alignment": {"every_n_epochs": "x"}}}, "an integer >= 0 or null"),
-                       ({"seed": 1.5}, r"seed=1.5 \(float\): expected an integer")]:
+                       ({"seed": 1.5}, r"seed=1.5 \(float\): expected an integer"),
+                       # the budget is the experiment's: trainer groups leave it ??? (~experiment)
+                       ({"trainer": {"max_epochs": "???"}}, r"trainer.max_epochs has no value \(\?\?\? in its config\)")]:
         with pytest.raises(SettingsError, match=match):
             check_train_config(OmegaConf.create(bad))
 

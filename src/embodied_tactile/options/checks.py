@@ -111,12 +111,18 @@ def _option_group(hint: Any) -> type | None:
     return types[0] if len(types) == 1 and dataclasses.is_dataclass(types[0]) else None
 
 
+#: what :func:`_get` returns for a mandatory value not given (``???`` in the config)
+MISSING_VALUE = object()
+
+
 def _get(node: Any, name: str) -> tuple[bool, Any]:
     """(present, value) of ``node[name]``, interpolations resolved where they can be (a value
     that resolves only inside a Hydra job, e.g. ``${hydra:...}``, is reported absent)."""
     from omegaconf import DictConfig, OmegaConf
 
     if isinstance(node, DictConfig):
+        if name in node.keys() and OmegaConf.is_missing(node, name):  # `in node` is False for ???
+            return True, MISSING_VALUE
         if name not in node:
             return False, None
         try:
@@ -145,6 +151,9 @@ def check_options(cls: type, node: Any, prefix: str) -> None:
         if not present or f.name.startswith("_"):
             continue
         key = f"{prefix}.{f.name}" if prefix else f.name
+        if v is MISSING_VALUE:
+            raise SettingsError(f"{key} has no value (??? in its config): give one on the command line "
+                                f"({key}=...) or choose a group that sets it")
         group = _option_group(hints[f.name])
         if group is not None and v is not None and not isinstance(v, (str, int, float, bool, list)):
             check_options(group, v, key)
