@@ -45,6 +45,7 @@ def helps() -> dict[str, subprocess.CompletedProcess]:
     return done
 
 
+@pytest.mark.slow  # eight interpreters importing torch and Lightning: ~10 s on 2 quiet cores
 @pytest.mark.parametrize("name", list(COMMANDS))
 def test_subcommand_help(name, helps):
     res = helps[name]
