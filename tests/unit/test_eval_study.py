@@ -324,7 +324,7 @@ def test_study_report_objects_section_takes_object_split_runs_only(tmp_path):
     assert main([str(tmp_path / "study"), "--objects", str(tmp_path / "objects"), "--out", str(out)]) == 0
     written = out.read_text()  # the same page, its head naming the whole command
     assert written.split("## What was run", 1)[1] == text.split("## What was run", 1)[1]
-    assert f"study_report {tmp_path / 'study'} --objects {tmp_path / 'objects'} --out {out}`" in written
+    assert f"report results {tmp_path / 'study'} --objects {tmp_path / 'objects'} --out {out}`" in written
     assert main([str(tmp_path / "study"), "--extra", f"Prior ablation={tmp_path / 'objects'}", "--out", str(out)]) == 0
     assert "## Prior ablation" in out.read_text() and f"{np.mean(vals):.4f}" in out.read_text()
     assert main([str(tmp_path / "study"), "--extra", "no-title", "--out", str(out)]) == 2

@@ -1,6 +1,6 @@
 """The learning curve of generalisation: held-out-object NMSE against the number of training objects.
 
-    python -m embodied_tactile.eval.generalisation <root> [<root> ...] --out docs/generated
+    embodied-tactile report generalisation <root> [<root> ...] --out docs/generated
 
 ``<root>``: folders holding population runs (``experiment=population``, any depth), each
 evaluated by ``evaluate.py`` (``<run>/evaluation/results.json``), or a scores file written by
@@ -356,7 +356,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m embodied_tactile.eval.generalisation", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="embodied-tactile report generalisation", description=__doc__.splitlines()[0])
     ap.add_argument("roots", nargs="+", help="folders of evaluated population runs")
     ap.add_argument("--out", default="docs/generated", help="where generalisation.md, its scores and figures/ go")
     args = ap.parse_args(argv)
@@ -366,11 +366,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         ap.error(str(e))
     if not rows:
         ap.error(f"no evaluated population runs (evaluation/results.json of experiment=population) under {args.roots}")
-    page = write_page(rows, args.out, command="python -m embodied_tactile.eval.generalisation "
+    page = write_page(rows, args.out, command="embodied-tactile report generalisation "
                       + " ".join(args.roots) + f" --out {args.out}")
     print(f"{len(rows)} scores -> {page}")
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())
