@@ -20,7 +20,8 @@ from omegaconf import DictConfig
 
 from embodied_tactile.options.checks import field_spec
 from embodied_tactile.run.config import config_dir
-from embodied_tactile.run.settings import EXIT_BAD_SETTINGS, SettingsError, check_paths, check_train_config, config_value
+from embodied_tactile.run.settings import (EXIT_BAD_SETTINGS, SettingsError, check_paths, check_train_config,
+                                           config_value, fail)
 
 
 def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
@@ -56,20 +57,6 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
 def _info_only() -> bool:
     return any(a in ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i") or a.startswith("--cfg=")
                for a in sys.argv[1:])
-
-
-class Exit(SystemExit):
-    """SystemExit carrying its one-line message (a multirun job records it as its reason)."""
-
-    def __init__(self, code: int, message: str = "") -> None:
-        super().__init__(code)
-        self.message = message
-
-
-def fail(err: SettingsError, prog: str = "train.py") -> None:
-    """The one line and exit status 2."""
-    print(f"{prog}: error: {err}", file=sys.stderr)
-    raise Exit(EXIT_BAD_SETTINGS, str(err))
 
 
 def _declared(cls: type, path: Sequence[str]) -> tuple[Any, bool]:
@@ -174,4 +161,4 @@ class EntryCallback(Callback):
             fail(err)
 
 
-__all__ = ["EntryCallback", "Exit", "check_typed_overrides", "fail", "hydra_command"]
+__all__ = ["EntryCallback", "check_typed_overrides", "hydra_command"]

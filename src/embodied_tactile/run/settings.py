@@ -13,6 +13,7 @@ runs them before Hydra creates the run folder and exits with status :data:`EXIT_
 
 from __future__ import annotations
 
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,20 @@ SECTIONS: tuple[tuple[str, type], ...] = (
     ("alignment", AlignmentOptions),
     ("callbacks.krr_alignment", AlignmentCallbackNode),
 )
+
+
+class Exit(SystemExit):
+    """SystemExit carrying its one-line message (a multirun job records it as its reason)."""
+
+    def __init__(self, code: int, message: str = "") -> None:
+        super().__init__(code)
+        self.message = message
+
+
+def fail(err: Exception, prog: str = "train.py") -> None:
+    """The one line ``<prog>: error: <err>`` and exit status :data:`EXIT_BAD_SETTINGS`."""
+    print(f"{prog}: error: {err}", file=sys.stderr)
+    raise Exit(EXIT_BAD_SETTINGS, str(err))
 
 
 def config_value(cfg: DictConfig, key: str) -> tuple[bool, Any]:
@@ -120,4 +135,4 @@ def check_paths(cfg: DictConfig, *, run_dir_key: str | None = None) -> None:
             check_writable_dir(run_dir_key, Path(str(v)).parent)
 
 
-__all__ = ["EXIT_BAD_SETTINGS", "SECTIONS", "SettingsError", "check_train_config", "check_paths", "check_writable_dir"]
+__all__ = ["EXIT_BAD_SETTINGS", "Exit", "SECTIONS", "fail", "SettingsError", "check_train_config", "check_paths", "check_writable_dir"]

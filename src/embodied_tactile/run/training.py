@@ -16,7 +16,6 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from embodied_tactile import cli
 from embodied_tactile.data.datamodule import ConstantChannelError
 from embodied_tactile.run import quiet, runfolder, runtime, settings, summary
 from embodied_tactile.run.jsonio import read_json, write_json
@@ -67,7 +66,7 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
     try:  # one training per folder; a restart continues the same model and data (done at entry for single runs)
         runfolder.claim(cfg, run_dir)
     except runfolder.RunFolderError as err:
-        cli.fail(err)
+        settings.fail(err)
     except runfolder.RunFinished as done:  # a multirun job (a single run stops at entry): nothing to train
         log.info("%s", done)
         print(f"train.py: {done}", flush=True)
@@ -77,7 +76,7 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
     except settings.SettingsError as err:
         if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
             write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}"})
-        cli.fail(err)
+        settings.fail(err)
     # SIGTERM / SIGINT: last.ckpt after the step under way (no validation nor KRR check after it), "interrupted", exit 143 / 130
     stop = runfolder.StopSignals(last_path=f"{run_dir}/checkpoints/last.ckpt").install()
     resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
@@ -153,11 +152,11 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     except runfolder.RunFolderError as err:  # refused before anything of the run was rewritten
-        cli.fail(err)
+        settings.fail(err)
     except ConstantChannelError as err:  # bad data, found before training: one line naming channel, layer, files
         if not resuming:
             write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": str(err)})
-        cli.fail(err)
+        settings.fail(err)
     except BaseException as err:  # any failure: the folder must not look like a finished run
         status = "interrupted" if stop.received is not None else "failed"
         metrics.update(status=status, error=str(err) or type(err).__name__, error_type=type(err).__name__,
@@ -179,7 +178,7 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
             raise SystemExit(stop.exit_code()) from None
         if isinstance(err, runfolder.CheckpointWriteError):  # disk full: one line, the previous file kept
             print(f"train.py: error: {err}", file=sys.stderr)
-            raise cli.Exit(runfolder.EXIT_CHECKPOINT_WRITE, str(err)) from None
+            raise settings.Exit(runfolder.EXIT_CHECKPOINT_WRITE, str(err)) from None
         raise
     metrics["train_wall_s"] = time.perf_counter() - t0
     stop.defer()
