@@ -27,9 +27,9 @@ from embodied_tactile.data import rawformat as R
 
 ROWS = {
     "paced": ("paced 700/s, no faults", []),
-    "grid": ("paced 700/s on a fixed grid (no backlog), no faults", ["--pacing", "grid"]),
-    "unpaced": ("as fast as requested, no faults", ["--rate", "0"]),
-    "faults": ("paced 700/s, 0.2% drop/delay/truncate/garbage each", ["--drop", "0.002", "--delay", "0.002", "--truncate", "0.002", "--garbage", "0.002"]),
+    "grid": ("paced 700/s on a fixed grid (no backlog), no faults", ["pacing=grid"]),
+    "unpaced": ("as fast as requested, no faults", ["rate=0"]),
+    "faults": ("paced 700/s, 0.2% drop/delay/truncate/garbage each", ["faults.drop=0.002", "faults.delay=0.002", "faults.truncate=0.002", "faults.garbage=0.002"]),
 }
 
 
@@ -41,7 +41,7 @@ def _cpu() -> float:
 def run_row(key: str, duration: float, tmp: Path) -> dict:
     label, extra = ROWS[key]
     emu = subprocess.Popen(
-        [sys.executable, "-m", "embodied_tactile.hardware.emulate", "--synthetic", "3", "--seed", "7", *extra],
+        [sys.executable, "-m", "embodied_tactile", "emulate", "synthetic=3", "faults.seed=7", *extra],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     port = emu.stdout.readline().strip()

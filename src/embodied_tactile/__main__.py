@@ -1,8 +1,7 @@
 """``embodied-tactile COMMAND [ARGS...]``: the project's one command (also ``python -m embodied_tactile``).
 
-Each subcommand hands its arguments unchanged to the entry point it names, so it takes what
-that entry point takes: Hydra ``key=value`` overrides over ``configs/`` (train, evaluate's
-``key=value`` after the run, simulate, prepare, record, palpate) or flags (emulate, report).
+Each subcommand hands its arguments unchanged to the entry point it names; every one takes
+Hydra ``key=value`` overrides over ``configs/`` (evaluate's after the run folders).
 ``embodied-tactile COMMAND --help`` prints that entry point's own help.
 """
 
@@ -24,9 +23,9 @@ COMMANDS = {
     "simulate": ("embodied_tactile.sim.simulate", "simulate raw e-Skin trials into one HDF5 file (key=value)"),
     "prepare": ("embodied_tactile.data.prepare_cli", "prepare a scene's data: simulate missing trials, build the caches (train's key=value)"),
     "record": ("embodied_tactile.hardware.record", "record e-Skin trials from a serial port (Hydra key=value over configs/record.yaml)"),
-    "emulate": ("embodied_tactile.hardware.emulate", "fake e-Skin on a pseudo-terminal, for the recorder (flags)"),
+    "emulate": ("embodied_tactile.hardware.emulate", "fake e-Skin on a pseudo-terminal, for the recorder (Hydra key=value over configs/emulate.yaml)"),
     "palpate": ("embodied_tactile.active.palpate", "closed-loop active palpation with a trained run (Hydra key=value over configs/palpate.yaml)"),
-    "report": ("embodied_tactile.eval.pages", "regenerate every page under docs/generated/, or one: results, generalisation, active (flags)"),
+    "report": ("embodied_tactile.eval.pages", "regenerate the pages under docs/generated/, page=all|results|generalisation|active (Hydra key=value over configs/report.yaml)"),
 }
 
 

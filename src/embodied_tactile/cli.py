@@ -18,40 +18,100 @@ import hydra
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from embodied_tactile.options.checks import field_spec
+from embodied_tactile.options.checks import check_options, field_spec
 from embodied_tactile.run.config import config_dir
 from embodied_tactile.run.settings import (EXIT_BAD_SETTINGS, SettingsError, check_paths, check_train_config,
                                            config_value, fail)
 
 
 def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
-                  errors: tuple[type[Exception], ...] = ()) -> Callable[[], None]:
-    """``main()`` of a Hydra command (``python -m embodied_tactile.hardware.record`` / ``.palpate``)
-    whose ``run(cfg)`` returns the exit status. An exception of ``errors`` prints
-    ``<prog>: error: <message>`` and exits 2; so does a config composition error (Hydra's
-    own exit 1); ``--help`` / ``--cfg`` exit 0."""
+                  errors: tuple[type[Exception], ...] = (), options: type | None = None
+                  ) -> Callable[[Sequence[str] | None], None]:
+    """``main(argv=None)`` of a Hydra command (``embodied-tactile record`` / ``emulate`` /
+    ``palpate`` / ``report``) whose ``run(cfg)`` returns the exit status; ``argv`` (default
+    ``sys.argv[1:]``) are its ``key=value`` overrides. With ``options`` (the dataclass the
+    config composes), the overrides are checked before Hydra composes (:func:`check_overrides`)
+    and the composed config after (:func:`~embodied_tactile.options.checks.check_options`).
+    A bad option or an exception of ``errors`` prints ``<prog>: error: <message>`` and exits
+    2; so does a config composition error (Hydra's own exit 1); ``--help`` / ``--cfg`` exit 0."""
     code: list[int | None] = [None]
 
     @hydra.main(version_base="1.3", config_path=config_dir(), config_name=config_name)
     def app(cfg: DictConfig) -> None:
         try:
+            if options is not None:
+                check_options(options, cfg, "")
             code[0] = run(cfg)
-        except errors as err:
+        except (SettingsError, *errors) as err:
             print(f"{prog}: error: {err}", file=sys.stderr)
             code[0] = EXIT_BAD_SETTINGS
 
-    def main() -> None:
+    def main(argv: Sequence[str] | None = None) -> None:
         code[0] = None
+        saved = sys.argv
+        if argv is not None:
+            sys.argv = [saved[0] if saved else prog, *argv]
         try:
+            if options is not None:
+                check_overrides(options, sys.argv[1:], prog)
             app()
         except SystemExit as exc:
             if code[0] is None and exc.code not in (0, None):
                 sys.exit(EXIT_BAD_SETTINGS)
             raise
+        finally:
+            sys.argv = saved
         # Hydra returned without running the app (--help, --cfg): nothing failed
         sys.exit(0 if code[0] is None and _info_only() else (EXIT_BAD_SETTINGS if code[0] is None else code[0]))
 
     return main
+
+
+def check_overrides(options: type, args: Sequence[str], prog: str) -> None:
+    """The ``key=value`` overrides of a command whose config is the dataclass ``options``,
+    checked before Hydra composes: a key the options do not declare, a value of the wrong type
+    or out of its bounds prints one line naming the key and exits 2 (Hydra's own error is
+    several lines). ``hydra.*`` keys are left to Hydra."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        overrides = OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
+    except Exception:  # a malformed override: Hydra names it itself
+        return
+    for o in overrides:
+        key = o.key_or_group
+        if key == "hydra" or key.startswith(("hydra.", "hydra/")) or o.is_delete():
+            continue
+        path = key.split(".")
+        hint, known = _declared(options, path)
+        if not known or o.package is not None:
+            fail(SettingsError(f"{key}: no such option (embodied-tactile {prog} --help lists them)"), prog)
+        for value in (list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]):
+            node = OmegaConf.structured(options)
+            try:
+                OmegaConf.update(node, key, value, merge=True)
+            except OmegaConfBaseException:
+                spec = field_spec(hint, _metadata(options, path))
+                expected = spec.describe() if spec is not None else str(hint).replace("typing.", "")
+                fail(SettingsError(f"{key}={value!r} ({type(value).__name__}): expected {expected}"), prog)
+            try:
+                check_options(options, node, "")
+            except SettingsError as err:
+                fail(err, prog)
+
+
+def _metadata(cls: type, path: Sequence[str]) -> Any:
+    """The field metadata of a (nested) dataclass's key (empty when not a field)."""
+    for i, part in enumerate(path):
+        fields = {f.name: f for f in dataclasses.fields(cls)} if dataclasses.is_dataclass(cls) else {}
+        if part not in fields:
+            return {}
+        if i == len(path) - 1:
+            return fields[part].metadata
+        cls = typing.get_type_hints(cls)[part]
+    return {}
 
 
 def _info_only() -> bool:
@@ -161,4 +221,4 @@ class EntryCallback(Callback):
             fail(err)
 
 
-__all__ = ["EntryCallback", "check_typed_overrides", "hydra_command"]
+__all__ = ["EntryCallback", "check_overrides", "check_typed_overrides", "hydra_command"]

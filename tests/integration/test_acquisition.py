@@ -328,8 +328,8 @@ def test_cli_sigkill_leaves_readable_file(tmp_path, trial3s):
 def test_emulate_cli_serves_packets(tmp_path):
     import serial
 
-    proc = subprocess.Popen([sys.executable, "-m", "embodied_tactile.hardware.emulate", "--synthetic", "1", "--max-seconds", "20", "--rate", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "embodied_tactile", "emulate", "synthetic=1", "max_seconds=20", "rate=0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     try:
         port = proc.stdout.readline().strip()
         assert port.startswith("/dev/")
@@ -347,6 +347,7 @@ def test_emulate_cli_serves_packets(tmp_path):
         proc.terminate()
         _, err = proc.communicate(timeout=10)
     assert proc.returncode == 0 and '"sent": 3' in err
+    assert not list(tmp_path.iterdir())  # Hydra made no output folder or log file
 
 
 @pytest.mark.slow  # recorder CLI subprocess
@@ -501,8 +502,19 @@ def test_record_main_in_process_config_port_and_unplugged(tmp_path, trial3s, mon
     _check_genuine(trial3s, rec)
 
 
-def test_emulate_main_in_process_serves_packets_until_stopped(tmp_path, monkeypatch, capsys):
-    """``emulate.main`` in a thread: its pty (through ``--link``) answers requests with the
+def _emulate(*argv: str) -> int | None:
+    """``emulate.main(argv)``'s exit status."""
+    from embodied_tactile.hardware import emulate
+
+    try:
+        emulate.main(list(argv))
+    except SystemExit as exc:
+        return exc.code
+    return None
+
+
+def test_emulate_main_in_process_serves_packets_until_stopped(tmp_path, monkeypatch, capsys, restore_logging):
+    """``emulate.main`` in a thread: its pty (through ``link``) answers requests with the
     synthetic trial's packets; its SIGTERM handler stops it, exit 0 with the count sent;
     an unreadable trial file is exit 2."""
     import threading
@@ -513,10 +525,10 @@ def test_emulate_main_in_process_serves_packets_until_stopped(tmp_path, monkeypa
 
     handlers = {}
     monkeypatch.setattr(emulate.signal, "signal", lambda sig, handler: handlers.__setitem__(sig, handler))
+    monkeypatch.chdir(tmp_path)
     link = tmp_path / "eskin"
     code = []
-    th = threading.Thread(target=lambda: code.append(emulate.main(
-        ["--synthetic", "1", "--max-seconds", "60", "--rate", "0", "--link", str(link)])))
+    th = threading.Thread(target=lambda: code.append(_emulate("synthetic=1", "max_seconds=60", "rate=0", f"link={link}")))
     th.start()
     try:
         deadline = time.monotonic() + 30
@@ -536,5 +548,19 @@ def test_emulate_main_in_process_serves_packets_until_stopped(tmp_path, monkeypa
     assert code == [0] and not th.is_alive()
     out, err = capsys.readouterr()
     assert out.splitlines()[0].startswith("/dev/") and '"sent": 3' in err, (out, err)
-    assert emulate.main(["--trial-file", str(tmp_path / "missing.h5")]) == 2
+    assert not list(tmp_path.iterdir())  # the link went with the pty; Hydra made no output folder or log file
+    assert _emulate(f"trial_file={tmp_path / 'missing.h5'}") == 2
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"emulate: {tmp_path / 'missing.h5'}")
+
+
+@pytest.mark.parametrize("override, named", [
+    ("faults.drop=1.5", "emulate: error: faults.drop=1.5 (float): expected a number in [0, 1]"),
+    ("skin=medium", "emulate: error: skin='medium' (str): expected one of soft, hard"),
+    ("pacing=burst", "emulate: error: pacing='burst' (str): expected one of fifo, grid"),
+    ("rate=fast", "emulate: error: rate='fast' (str): expected a number >= 0 or null"),
+    ("no_loop=true", "emulate: error: no_loop: no such option"),
+])
+def test_emulate_refuses_a_bad_option_with_one_line_naming_it(override, named, capsys):
+    assert _emulate("synthetic=1", override) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.strip().splitlines()) == 1 and err.startswith(named), err

@@ -135,6 +135,8 @@ def test_settings_spec_unit():
     assert not Spec(("int",)).accepts(True)  # a bool is not an epoch count
     assert Spec(("float",), lo=0).accepts(3) and not Spec(("float",)).accepts(float("nan"))
     assert Spec(("int",), nullable=True).accepts(None) and not Spec(("int",)).accepts(None)
+    pacing = Spec(("str",), choices=("fifo", "grid"))  # a closed set (options.checks.one_of)
+    assert pacing.accepts("grid") and not pacing.accepts("burst") and pacing.describe() == "one of fifo, grid"
     check_train_config(OmegaConf.create({"trainer": {"max_epochs": 3}, "callbacks": None}))
     with pytest.raises(SettingsError, match=r"trainer.limit_val_batches=-1 \(int\): expected an integer or a number >= 0"):
         check_train_config(OmegaConf.create({"trainer": {"limit_val_batches": -1}}))

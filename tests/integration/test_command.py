@@ -12,8 +12,8 @@ from embodied_tactile.__main__ import COMMANDS
 
 #: a line of each entry point's own help
 OWN_HELP = {"train": "train is powered by Hydra", "evaluate": "usage: evaluate.py", "simulate": "Simulate raw e-Skin trials",
-            "prepare": "Prepare a scene's data", "record": "powered by Hydra", "emulate": "--trial-file",
-            "palpate": "powered by Hydra", "report": "report results --help"}
+            "prepare": "Prepare a scene's data", "record": "powered by Hydra", "emulate": "faults.disconnect_after_*",
+            "palpate": "powered by Hydra", "report": "paper_units: null"}
 
 
 def command(*args: str) -> subprocess.CompletedProcess:

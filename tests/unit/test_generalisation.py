@@ -72,11 +72,19 @@ def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
     assert 64 not in {r["n_objects"] for r in rows}
 
 
-def test_cli_refuses_a_folder_without_population_runs(tmp_path, capsys):
+def _report(tmp_path, monkeypatch, root) -> int:
+    """``embodied-tactile report page=generalisation roots=[root] out=<tmp>/docs``'s exit status."""
+    from embodied_tactile.eval import pages
+
+    monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as info:
-        G.main([str(tmp_path), "--out", str(tmp_path / "docs")])
-    assert info.value.code == 2
-    assert "no evaluated population runs" in capsys.readouterr().err
+        pages.main(["page=generalisation", f"roots=[{root}]", f"out={tmp_path / 'docs'}"])
+    return info.value.code
+
+
+def test_cli_refuses_a_folder_without_population_runs(tmp_path, capsys, monkeypatch, restore_logging):
+    assert _report(tmp_path, monkeypatch, tmp_path) == 2
+    assert capsys.readouterr().err.startswith("report: error: no evaluated population runs")
 
 
 def test_recipe_names_the_settings_that_tell_recipes_apart():
@@ -113,20 +121,18 @@ def test_parts_merge_through_the_scores_file_and_a_later_root_replaces_a_score(t
     assert G.collect([scores]) == G.collect([first])  # the file holds every score as collected
 
 
-def test_a_file_that_is_not_a_scores_file_is_named(tmp_path, capsys):
+def test_a_file_that_is_not_a_scores_file_is_named(tmp_path, capsys, monkeypatch, restore_logging):
     bad = tmp_path / "results.json"
     bad.write_text(json.dumps({"runs": []}))
-    with pytest.raises(SystemExit):
-        G.main([str(bad), "--out", str(tmp_path / "docs")])
+    assert _report(tmp_path, monkeypatch, bad) == 2
     assert "results.json: not a scores file" in capsys.readouterr().err
 
 
-def test_validation_side_scores_are_refused_with_the_file_named(tmp_path, capsys):
+def test_validation_side_scores_are_refused_with_the_file_named(tmp_path, capsys, monkeypatch, restore_logging):
     _run(tmp_path / "runs", 24, 0, 0.8, held_out="test")
     assert len(G.collect([tmp_path / "runs"])) == 4
     _run(tmp_path / "val", 24, 1, 0.8, held_out="val")
-    with pytest.raises(SystemExit):
-        G.main([str(tmp_path / "val"), "--out", str(tmp_path / "docs")])
+    assert _report(tmp_path, monkeypatch, tmp_path / "val") == 2
     err = capsys.readouterr().err
     assert "n24_s1_True/evaluation/results.json: latent_filter scored on the validation side" in err
 

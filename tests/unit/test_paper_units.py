@@ -104,8 +104,14 @@ def test_runs_without_a_rebuildable_variance_are_not_converted(tmp_path):
     assert "## Table 2 in the convention" not in text and "**table2_multi_l_soft.**" in text
 
 
-def test_a_page_without_its_evaluation_folder_is_converted_from_its_own_tables(tmp_path):
-    from embodied_tactile.eval.study_report import PAPER_UNITS_HEADING, add_paper_units, main
+def test_a_page_without_its_evaluation_folder_is_converted_from_its_own_tables(tmp_path, restore_logging):
+    from embodied_tactile.eval.pages import main
+    from embodied_tactile.eval.study_report import PAPER_UNITS_HEADING, add_paper_units
+
+    def report(page) -> int:  # `embodied-tactile report page=results paper_units=PAGE`'s exit status
+        with pytest.raises(SystemExit) as exc:
+            main(["page=results", f"paper_units={page}"])
+        return exc.value.code
 
     runs = [_trial_run(s, 0.3 + 0.1 * s) for s in range(3)]
     rendered = _page(tmp_path, runs)
@@ -125,8 +131,8 @@ def test_a_page_without_its_evaluation_folder_is_converted_from_its_own_tables(t
     assert float(a[2]) == pytest.approx(float(b[2]), rel=2e-3) and a[3] == "\u2013"  # no per-seed values: no interval
     path = tmp_path / "results.md"
     path.write_text(page)
-    assert main(["--paper-units", str(path)]) == 0 and path.read_text() == add_paper_units(page, str(path))
+    assert report(path) == 0 and path.read_text() == add_paper_units(page, str(path))
     path.write_text(re.sub(r"action indices \[[0-9, ]+\]", "action indices [2, 6]", page))  # 64 trials: 32 held out
-    assert main(["--paper-units", str(path)]) == 0
+    assert report(path) == 0
     path.write_text(page.replace("80 / 32 in every run", "80 / 31 in every run"))
-    assert main(["--paper-units", str(path)]) == 2  # the stated split does not match the rebuilt one
+    assert report(path) == 2  # the stated split does not match the rebuilt one

@@ -1,6 +1,6 @@
 """The learning curve of generalisation: held-out-object NMSE against the number of training objects.
 
-    embodied-tactile report generalisation <root> [<root> ...] --out docs/generated
+    embodied-tactile report page=generalisation 'roots=[<root>,...]' out=docs/generated
 
 ``<root>``: folders holding population runs (``experiment=population``, any depth), each
 evaluated by ``evaluate.py`` (``<run>/evaluation/results.json``), or a scores file written by
@@ -22,7 +22,6 @@ generated, never edited.
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import json
 import math
@@ -85,7 +84,7 @@ def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
             for r in json.loads(root.read_text()):
                 rows[(r["method"], int(r["n_objects"]), int(r["seed"]))] = r
         except (ValueError, TypeError, KeyError) as e:
-            raise ValueError(f"{root}: not a scores file written by eval.generalisation ({type(e).__name__}: {e})") from None
+            raise ValueError(f"{root}: not a scores file written by the generalisation report ({type(e).__name__}: {e})") from None
         return rows
     for res_path in sorted(root.rglob("evaluation/results.json")):
         run_dir = res_path.parent.parent
@@ -353,21 +352,3 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
     page.write_text("\n".join(lines) + "\n")
     write_json(out / "generalisation_scores.json", list(rows), indent=1)
     return page
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="embodied-tactile report generalisation", description=__doc__.splitlines()[0])
-    ap.add_argument("roots", nargs="+", help="folders of evaluated population runs")
-    ap.add_argument("--out", default="docs/generated", help="where generalisation.md, its scores and figures/ go")
-    args = ap.parse_args(argv)
-    try:
-        rows = collect(args.roots)
-    except ValueError as e:
-        ap.error(str(e))
-    if not rows:
-        ap.error(f"no evaluated population runs (evaluation/results.json of experiment=population) under {args.roots}")
-    page = write_page(rows, args.out, command="embodied-tactile report generalisation "
-                      + " ".join(args.roots) + f" --out {args.out}")
-    print(f"{len(rows)} scores -> {page}")
-    return 0
-

@@ -3,7 +3,7 @@
     python train.py -m sweep=study_min hydra.sweeper.params.seed=0 hydra.sweep.dir=logs/train/study/seed0
     ...                                                              # further parts: seed1, seed2, ...
     python evaluate.py logs/train/study                             # merges the parts -> logs/train/study/evaluation
-    embodied-tactile report results logs/train/study/evaluation --out docs/generated/results.md
+    embodied-tactile report page=results evaluation=logs/train/study/evaluation out=docs/generated/results.md
 
 Reads ``results.json`` (written by :func:`~embodied_tactile.eval.report.write_report`) and, when
 present, ``evaluation.json`` and each evaluated run's ``config_resolved.yaml`` /
@@ -19,19 +19,17 @@ present, ``evaluation.json`` and each evaluated run's ``config_resolved.yaml`` /
   (:func:`held_out_variance`), and one sentence comparing both with the paper;
 * the per-cell statistics over seeds for every modality (the ``aggregate`` table);
 * the paper's findings with their verdicts and every comparison behind them;
-* with ``--objects <evaluation folder>``: the held-out-object runs' statistics over seeds;
-  with ``--extra TITLE=<evaluation folder>`` (repeatable): any further evaluation (an ablation);
+* with ``objects=<evaluation folder>``: the held-out-object runs' statistics over seeds;
+  with ``extra={TITLE: <evaluation folder>}`` (one or more): any further evaluation (an ablation);
 * what was not run: every cell of the paper's 24 (8 modality x e-Skin combinations x 3
   primitives) with fewer than the protocol's 3 seeds.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import shlex
-import sys
 from collections import defaultdict
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -351,7 +349,7 @@ def add_paper_units(text: str, page: str = "docs/generated/results.md") -> str:
     code_tables = [convert_page_table(t, var, design_range(targets)) for t in nmse_tables]
     section = paper_units_section(
         nmse_tables, code_tables, var, targets,
-        f"from this page's NMSE tables by `embodied-tactile report results --paper-units {page}` "
+        f"from this page's NMSE tables by `embodied-tactile report page=results paper_units={page}` "
         "(the evaluation folder's results.json was not at hand)")
     head, sep, rest = text.partition(PAPER_UNITS_HEADING)
     if sep:  # replace the earlier section: up to the next '## ' heading
@@ -524,14 +522,50 @@ def extra_section(blob: Mapping, title: str, text: str = "") -> list[str]:
     return out
 
 
-def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: Mapping | None = None,
+def override(key: str, value: Any) -> str:
+    """``key=value`` as a shell word of a Hydra command line (a string quoted unless plain)."""
+    def text(v: Any) -> str:
+        if isinstance(v, (list, tuple)):
+            return "[" + ",".join(map(text, v)) + "]"
+        if v is None:
+            return "null"
+        if re.fullmatch(r"[\w/.:@%+-]+", str(v)) and not re.fullmatch(r"[-+0-9.e]+|true|false|null", str(v)):
+            return str(v)
+        return '"' + str(v).replace('"', '\\"') + '"'
+    return shlex.quote(f"{key}={text(value)}")
+
+
+def results_command(evaluation: str, objects: str | None = None, extras: Sequence[tuple[str, str]] = (),
+                    out: str | None = None) -> str:
+    """The command that writes a results page (its header names it, :func:`render`)."""
+    words = ["embodied-tactile report page=results", override("evaluation", str(evaluation))]
+    words += [override("objects", str(objects))] if objects else []
+    words += [override("extra", [f"{t}={f}" for t, f in extras])] if extras else []
+    return " ".join(words + ([override("out", str(out))] if out else []))
+
+
+def write_results(evaluation: str, objects: str | None = None, extras: Sequence[tuple[str, str]] = (),
+                  notes: Sequence[str] = (), out: str | None = None) -> str:
+    """The results page of the evaluation folder ``evaluation`` (with the held-out-object runs
+    of ``objects`` and each (title, folder) of ``extras`` as sections, ``notes`` under "What
+    was run"), written to ``out`` when given; returns the page. :class:`StudyReportError`
+    names a folder that cannot be read."""
+    text = render(load(evaluation), command=results_command(evaluation, objects, extras, out), notes=notes,
+                  objects=load(objects) if objects else None,
+                  extras=[(title, load(folder)) for title, folder in extras], out_path=out)
+    if out:
+        Path(out).write_text(text)
+    return text
+
+
+def render(blob: Mapping, command: str = "", notes: Sequence[str] = (), objects: Mapping | None = None,
            extras: Sequence[tuple[str, Mapping]] = (), out_path: str | None = "docs/generated/results.md") -> str:
-    """The results page; ``out_path`` is the ``--out`` its header names (None: printed)."""
+    """The results page; its header names ``command`` (default: the command that writes the
+    page of ``blob`` alone to ``out_path``; None: printed)."""
     runs = blob["runs"]
     files = _run_files(blob)
     out = ["# Simulated study: results", "",
-           "Generated by `embodied-tactile report results "
-           f"{source or blob.get('_dir', '<evaluation folder>')}{f' --out {out_path}' if out_path else ''}` from that folder's "
+           f"Generated by `{command or results_command(blob.get('_dir', '<evaluation folder>'), out=out_path)}` from that folder's "
            "`results.json` (evaluate.py's numbers); not edited by hand. Data: the project's simulator, "
            "not the paper's recordings: these numbers test the pipeline and the simulated physics, they do "
            "not re-measure the paper's robot.", "", "## What was run", ""]
@@ -570,51 +604,3 @@ def render(blob: Mapping, source: str = "", notes: Sequence[str] = (), objects: 
     out += [Table("not_run", "modality, e-Skin, primitive, seeds run.", ["modality", "skin", "primitive", "n seeds", "seeds"],
                   missing).to_markdown()] if missing else ["None: every cell has at least 3 seeds.", ""]
     return "\n".join(out).rstrip() + "\n"
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="embodied-tactile report results", description="Write the study's results page (Markdown) from evaluate.py's output.")
-    ap.add_argument("evaluation", nargs="?", help="the evaluation folder evaluate.py wrote for the study (holds results.json)")
-    ap.add_argument("--paper-units", default=None, metavar="PAGE",
-                    help="rewrite PAGE (a results page whose evaluation folder is gone) with its Table 2 analogues "
-                         "also in the convention of the authors' public code")
-    ap.add_argument("--out", default=None, help="write here (e.g. docs/generated/results.md); default: print")
-    ap.add_argument("--objects", default=None,
-                    help="an evaluation folder of held-out-object runs (data.split=object): adds their section")
-    ap.add_argument("--extra", action="append", default=[], metavar="TITLE=FOLDER",
-                    help="a further evaluation folder (e.g. an ablation) as a section titled TITLE; repeatable")
-    ap.add_argument("--note", action="append", default=[],
-                    help="a line for 'What was run' (e.g. how the parts were run); repeatable")
-    args = ap.parse_args(argv)
-    if args.paper_units:
-        try:
-            page = Path(args.paper_units)
-            page.write_text(add_paper_units(page.read_text(), args.paper_units))
-        except (OSError, StudyReportError) as err:
-            print(f"embodied-tactile report results: error: {err}", file=sys.stderr)
-            return 2
-        print(f"wrote {page}")
-        return 0
-    if not args.evaluation:
-        ap.error("the evaluation folder is required (or --paper-units PAGE)")
-    try:
-        extras = []
-        for item in args.extra:
-            title, sep, folder = item.rpartition("=")
-            if not sep or not title or not folder:
-                raise StudyReportError(f"--extra {item!r}: expected TITLE=FOLDER")
-            extras.append((title, load(folder)))
-        source = " ".join([args.evaluation] + ([f"--objects {args.objects}"] if args.objects else [])
-                          + [f"--extra {shlex.quote(e)}" for e in args.extra])
-        text = render(load(args.evaluation), source=source, notes=args.note,
-                      objects=load(args.objects) if args.objects else None, extras=extras, out_path=args.out)
-    except StudyReportError as err:
-        print(f"embodied-tactile report results: error: {err}", file=sys.stderr)
-        return 2
-    if args.out:
-        Path(args.out).write_text(text)
-        print(f"wrote {args.out}")
-    else:
-        print(text)
-    return 0
-

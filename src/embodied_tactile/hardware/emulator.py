@@ -13,6 +13,7 @@ Pure NumPy + os/pty; no torch, no pyserial needed on this side.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import logging
 import os
@@ -28,6 +29,8 @@ import numpy as np
 from embodied_tactile import constants as C
 from embodied_tactile.hardware.protocol import COMMAND, PACKET_SIZE, DeviceMap, encode_packets
 from embodied_tactile.data import rawformat as R
+from embodied_tactile.options.checks import check_options
+from embodied_tactile.options.emulation import FaultOptions
 
 log = logging.getLogger(__name__)
 
@@ -88,26 +91,12 @@ def simulated_trial(object_id: int, skin: str, primitive: str, action_index: int
 
 # --------------------------------------------------------------------------- faults
 @dataclass
-class Faults:
-    """Per-request fault probabilities (checked in this order) and the disconnect trigger."""
-
-    drop: float = 0.0
-    delay: float = 0.0
-    delay_s: float = 0.15  # must exceed the recorder's timeout to be a fault
-    truncate: float = 0.0
-    garbage: float = 0.0
-    garbage_mode: str = "mixed"  # random | shift | long | mixed
-    disconnect_after_packets: int | None = None
-    disconnect_after_s: float | None = None
-    seed: int = 0
+class Faults(FaultOptions):
+    """Per-request fault probabilities (checked in this order) and the disconnect trigger
+    (:class:`~embodied_tactile.options.emulation.FaultOptions`, checked on construction)."""
 
     def __post_init__(self) -> None:
-        for k in ("drop", "delay", "truncate", "garbage"):
-            p = getattr(self, k)
-            if not 0.0 <= p <= 1.0:
-                raise ValueError(f"fault probability {k}={p} not in [0, 1]")
-        if self.garbage_mode not in ("random", "shift", "long", "mixed"):
-            raise ValueError(f"garbage_mode must be random|shift|long|mixed, got {self.garbage_mode!r}")
+        check_options(FaultOptions, dataclasses.asdict(self), "faults")
 
 
 @dataclass

@@ -1,7 +1,8 @@
 """The bounds of typed options and the one checker that reads them (no heavy imports).
 
 An option's bounds are its dataclass field's metadata (:func:`bounds`: ``field(default=1,
-metadata=at_least(1))``); a bound between two fields is the class's ``RULES``.
+metadata=at_least(1))``, :func:`one_of` for a closed set); a bound between two fields is the
+class's ``RULES``.
 :func:`check_options` checks a config node against a dataclass: each present field's value
 by the field's type (``Optional`` allows null, a ``Union`` any of its types, ``Any`` / a
 dict anything) and bounds, nested option groups included, then the ``RULES``; the first
@@ -34,6 +35,11 @@ def at_least(lo: float) -> dict[str, Any]:
     return bounds(lo)
 
 
+def one_of(*values: Any) -> dict[str, Any]:
+    """Field metadata: the value is one of ``values``."""
+    return {"choices": tuple(values)}
+
+
 #: a bound between two fields: (field a, field b, test of (a, b), what is allowed)
 Rule = tuple[str, str, Callable[[Any, Any], bool], str]
 
@@ -42,7 +48,7 @@ Rule = tuple[str, str, Callable[[Any, Any], bool], str]
 class Spec:
     """Allowed values of one key: ``kinds`` among 'int', 'float', 'bool', 'str', 'list'
     (an int is accepted where a float is), optional bounds (inclusive unless ``lo_open`` /
-    ``hi_open``), None allowed or not."""
+    ``hi_open``) or ``choices``, None allowed or not."""
 
     kinds: tuple[str, ...]
     lo: float | None = None
@@ -50,9 +56,12 @@ class Spec:
     nullable: bool = False
     lo_open: bool = False
     hi_open: bool = False
+    choices: tuple[Any, ...] | None = None
 
     def describe(self) -> str:
         names = {"int": "an integer", "float": "a number", "bool": "true/false", "str": "a string", "list": "a list"}
+        if self.choices is not None:
+            return "one of " + ", ".join(map(str, self.choices)) + (" or null" if self.nullable else "")
         s = " or ".join(names[k] for k in self.kinds)
         if self.lo is not None and self.hi is not None:
             s += f" in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
@@ -63,6 +72,8 @@ class Spec:
     def accepts(self, v: Any) -> bool:
         if v is None:
             return self.nullable
+        if self.choices is not None:
+            return v in self.choices and type(v) in {type(c) for c in self.choices}
         if isinstance(v, bool):
             return "bool" in self.kinds
         if isinstance(v, int):
@@ -103,7 +114,9 @@ def field_spec(hint: Any, metadata: Mapping[str, Any]) -> Spec | None:
     lo, hi, lo_open, hi_open = metadata.get("bounds", (None, None, False, False))
     # one order whatever the Union's (typing caches Union[int, float] and Union[float, int] as one)
     kinds = sorted(set(kinds), key=_ORDER.index)
-    return Spec(tuple(kinds), lo=lo, hi=hi, nullable=nullable, lo_open=lo_open, hi_open=hi_open)
+    choices = metadata.get("choices")
+    return Spec(tuple(kinds), lo=lo, hi=hi, nullable=nullable, lo_open=lo_open, hi_open=hi_open,
+                choices=None if choices is None else tuple(choices))
 
 
 def _option_group(hint: Any) -> type | None:
@@ -169,4 +182,4 @@ def check_options(cls: type, node: Any, prefix: str) -> None:
             raise SettingsError(f"{pa}={va!r} and {pb}={vb!r}: expected {rule}")
 
 
-__all__ = ["Rule", "SettingsError", "Spec", "at_least", "bounds", "check_options", "field_spec"]
+__all__ = ["Rule", "SettingsError", "Spec", "at_least", "bounds", "check_options", "field_spec", "one_of"]

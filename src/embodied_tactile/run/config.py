@@ -20,6 +20,10 @@ module first:
 * ``callbacks/krr_alignment: schema`` (:class:`AlignmentCallbackNode`): the KRR callback's
   own settings (:class:`~embodied_tactile.options.alignment.AlignmentCheckOptions`);
   configs/callbacks/default.yaml composes it.
+* ``emulate_schema`` / ``report_schema``: the whole config of ``embodied-tactile emulate``
+  (:class:`~embodied_tactile.options.emulation.EmulationOptions`) and ``report``
+  (:class:`~embodied_tactile.options.report.ReportOptions`); configs/emulate.yaml and
+  configs/report.yaml compose them.
 * ``${prior_rows:objects,n_test,n_val,n_train}``: rows of the prior's object-code table.
 """
 
@@ -31,6 +35,8 @@ from omegaconf import MISSING, OmegaConf
 
 from embodied_tactile.options.alignment import AlignmentCheckOptions, AlignmentOptions
 from embodied_tactile.options.data import DataOptions
+from embodied_tactile.options.emulation import EmulationOptions
+from embodied_tactile.options.report import ReportOptions
 from embodied_tactile.model.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
 from embodied_tactile.run.paths import config_dir
 
@@ -123,6 +129,8 @@ def register() -> None:
     cs.store(group="alignment", name="schema", node=AlignmentOptions)
     cs.store(group="data", name="schema", node=DataNode)
     cs.store(group="callbacks/krr_alignment", name="schema", node=AlignmentCallbackNode)
+    cs.store(name="emulate_schema", node=EmulationOptions)
+    cs.store(name="report_schema", node=ReportOptions)
     if not OmegaConf.has_resolver("prior_rows"):
         OmegaConf.register_new_resolver("prior_rows", prior_rows)
     if not OmegaConf.has_resolver("folder_name"):
