@@ -72,34 +72,51 @@ def check_overrides(options: type, args: Sequence[str], prog: str) -> None:
     checked before Hydra composes: a key the options do not declare, a value of the wrong type
     or out of its bounds prints one line naming the key and exits 2 (Hydra's own error is
     several lines). ``hydra.*`` keys are left to Hydra."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
-    try:
-        overrides = OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
-    except Exception:  # a malformed override: Hydra names it itself
-        return
-    for o in overrides:
+    for o in _parse_overrides(args):
         key = o.key_or_group
         if key == "hydra" or key.startswith(("hydra.", "hydra/")) or o.is_delete():
             continue
-        path = key.split(".")
-        hint, known = _declared(options, path)
-        if not known or o.package is not None:
+        if not _declared(options, key.split("."))[1] or o.package is not None:
             fail(SettingsError(f"{key}: no such option (embodied-tactile {prog} --help lists them)"), prog)
-        for value in (list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]):
-            node = OmegaConf.structured(options)
-            try:
-                OmegaConf.update(node, key, value, merge=True)
-            except OmegaConfBaseException:
-                spec = field_spec(hint, _metadata(options, path))
-                expected = spec.describe() if spec is not None else str(hint).replace("typing.", "")
-                fail(SettingsError(f"{key}={value!r} ({type(value).__name__}): expected {expected}"), prog)
+        for value in _values(o):
+            node = _typed_value(options, key, key, value, prog)
             try:
                 check_options(options, node, "")
             except SettingsError as err:
                 fail(err, prog)
+
+
+def _parse_overrides(args: Sequence[str]) -> list:
+    """Hydra's parse of the ``key=value`` arguments ([] for a malformed one: Hydra names it itself)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        return OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
+    except Exception:
+        return []
+
+
+def _values(override: Any) -> list:
+    """An override's value, or every value of a sweep."""
+    return list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+
+
+def _typed_value(options: Any, path: str, shown: str, value: Any, prog: str) -> DictConfig:
+    """``options`` (a dataclass or an instance) as a structured config with ``path`` set to
+    ``value``; a value its type refuses is one line naming ``shown`` and exit 2."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    node = OmegaConf.structured(options)
+    try:
+        OmegaConf.update(node, path, value, merge=True)
+    except OmegaConfBaseException:
+        cls = options if isinstance(options, type) else type(options)
+        hint, _ = _declared(cls, path.split("."))
+        spec = field_spec(hint, _metadata(cls, path.split(".")))
+        expected = spec.describe() if spec is not None else str(hint).replace("typing.", "")
+        fail(SettingsError(f"{shown}={value!r} ({type(value).__name__}): expected {expected}"), prog)
+    return node
 
 
 def _metadata(cls: type, path: Sequence[str]) -> Any:
@@ -151,30 +168,13 @@ def check_typed_overrides(args: Sequence[str]) -> None:
     merges them, every value of a sweep included: one line naming key, value and the type,
     exit 2 (Hydra's own merge error is several lines, exit 1). A key the options do not
     declare is left to Hydra."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
-    try:
-        overrides = OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
-    except Exception:  # a malformed override: Hydra names it itself
-        return
     nodes = _typed_nodes()
-    for o in overrides:
+    for o in _parse_overrides(args):
         root, _, rest = o.key_or_group.partition(".")
-        if root not in nodes or not rest or o.is_delete():
+        if root not in nodes or not rest or o.is_delete() or not _declared(type(nodes[root]), rest.split("."))[1]:
             continue
-        path = rest.split(".")
-        hint, known = _declared(type(nodes[root]), path)
-        if not known:
-            continue
-        for value in (list(o.sweep_string_iterator()) if o.is_sweep_override() else [o.value()]):
-            try:
-                OmegaConf.update(OmegaConf.structured(nodes[root]), rest, value, merge=True)
-            except OmegaConfBaseException:
-                spec = field_spec(hint, {})
-                expected = spec.describe() if spec is not None else str(hint).replace("typing.", "")
-                fail(SettingsError(f"{o.key_or_group}={value!r} ({type(value).__name__}): expected {expected}"))
+        for value in _values(o):
+            _typed_value(nodes[root], rest, o.key_or_group, value, "train.py")
 
 
 class EntryCallback(Callback):

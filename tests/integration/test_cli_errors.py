@@ -168,9 +168,9 @@ def test_wrongly_typed_data_override_is_one_line(capsys):
 
     check_typed_overrides(["data=recorded", "data.raw_files=[a.h5]", "data.seq_len=null", "+data.extra=1",
                            "alignment.readout=final_segment"])
-    for arg, line in [("data.batch_size=many", "data.batch_size='many' (str): expected an integer"),
-                      ("data.seq_len=x", "data.seq_len='x' (str): expected an integer or null"),
-                      ("data.batch_size=4,x", "data.batch_size='x' (str): expected an integer"),
+    for arg, line in [("data.batch_size=many", "data.batch_size='many' (str): expected an integer >= 1"),
+                      ("data.seq_len=x", "data.seq_len='x' (str): expected an integer >= 1 or null"),
+                      ("data.batch_size=4,x", "data.batch_size='x' (str): expected an integer >= 1"),
                       ("alignment.cv=x", "alignment.cv='x' (str): expected an integer")]:
         with pytest.raises(SystemExit) as info:
             check_typed_overrides([arg])
