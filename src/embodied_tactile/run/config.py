@@ -15,6 +15,8 @@ module first:
   the scene.
 * ``data: schema`` (:class:`DataNode`): the data's scene, split and loader options
   (:mod:`embodied_tactile.options.data`), flat; configs/data/*.yaml compose it.
+* ``data: pendulum_schema`` (:class:`PendulumNode`): the pendulum scene's data
+  (:class:`~embodied_tactile.options.data.PendulumOptions`); configs/data/pendulum.yaml composes it.
 * ``alignment: schema`` (:class:`~embodied_tactile.options.alignment.AlignmentOptions`): the
   latent -> factor read-out, shared by the training's final alignment and evaluate.py.
 * ``callbacks/krr_alignment: schema`` (:class:`AlignmentCallbackNode`): the KRR callback's
@@ -30,7 +32,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
 from embodied_tactile.options.alignment import AlignmentCheckOptions, AlignmentOptions
-from embodied_tactile.options.data import DataOptions
+from embodied_tactile.options.data import DataOptions, PendulumOptions
 from embodied_tactile.model.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
 from embodied_tactile.run.paths import config_dir
 
@@ -70,6 +72,14 @@ class DataNode(DataOptions):
     (its flat keys sorted into scene, split and loader by ``from_config``)."""
 
     _target_: str = "embodied_tactile.data.datamodule.TactileDataModule.from_config"
+
+
+@dataclass
+class PendulumNode(PendulumOptions):
+    """``data`` of the pendulum scene (configs/data/pendulum.yaml): what Hydra instantiates
+    into a :class:`~embodied_tactile.data.pendulum_module.PendulumDataModule`."""
+
+    _target_: str = "embodied_tactile.data.pendulum_module.PendulumDataModule"
 
 
 @dataclass
@@ -122,6 +132,7 @@ def register() -> None:
     cs.store(group="model", name="schema", node=ModelNode)
     cs.store(group="alignment", name="schema", node=AlignmentOptions)
     cs.store(group="data", name="schema", node=DataNode)
+    cs.store(group="data", name="pendulum_schema", node=PendulumNode)
     cs.store(group="callbacks/krr_alignment", name="schema", node=AlignmentCallbackNode)
     if not OmegaConf.has_resolver("prior_rows"):
         OmegaConf.register_new_resolver("prior_rows", prior_rows)
@@ -131,4 +142,4 @@ def register() -> None:
 
 register()
 
-__all__ = ["AlignmentCallbackNode", "DataNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]
+__all__ = ["AlignmentCallbackNode", "DataNode", "PendulumNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]
