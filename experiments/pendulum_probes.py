@@ -15,8 +15,9 @@ all from the benchmark's data, by readers that are TOLD them?
   (``least_squares_parameters``: per-sequence least squares TOLD the equation of motion,
   not the labels; no training). The two say what the data allow a learned reader of this
   size and a reader with the true model structure;
-* with ``--load`` (a model saved by ``experiments/pendulum.py --save``): a small LSTM trained on
-  that frozen model's filtered trajectories, ``z_trajectory`` (q_filt means z_1..z_t plus
+* with ``--load`` (a pendulum run folder: ``experiments/pendulum.py`` or ``train.py
+  experiment=pendulum``): a small LSTM trained on that frozen model's filtered trajectories
+  (its last checkpoint), ``z_trajectory`` (q_filt means z_1..z_t plus
   the actions) and ``y_trajectory`` (q(y_t) means plus the actions): whether the filter's
   z carries the parameters over time even where its y does not hold them.
 
@@ -29,8 +30,8 @@ regressor fitted on the same training sequences, can be expected to show.
     python experiments/pendulum_probes.py --seed 0 --n-train 128 --gru-epochs 25
     python experiments/pendulum_probes.py --seed 0 --no-frames --state
     python experiments/pendulum_probes.py --seed 0 --no-frames --lf-path --lf-option y_update=evidence
-    python experiments/pendulum.py --seed 0 --remedy ... --save /tmp/m.pt
-    python experiments/pendulum_probes.py --seed 0 --load /tmp/m.pt --no-frames
+    python experiments/pendulum.py --seed 0 --n-train 32 --run-dir /tmp/run model.net.NAME=VALUE ...
+    python experiments/pendulum_probes.py --seed 0 --load /tmp/run --no-frames
 """
 
 from __future__ import annotations
@@ -42,10 +43,12 @@ import numpy as np
 import torch
 from torch import nn
 
+import yaml
+
+from embodied_tactile.data.modality import load_modality
 from embodied_tactile.data.pendulum import N_OBJECTS, angle_precision, generate, least_squares_parameters
-from embodied_tactile.bench.pendulum_run import MODALITY, latents
 from embodied_tactile.eval.baselines import GRURegressor
-from embodied_tactile.model import LatentFilter
+from embodied_tactile.run.jsonio import read_json
 from embodied_tactile.run.runtime import set_threads
 
 
@@ -74,7 +77,23 @@ def lf_path_kwargs(options: dict) -> dict:
     """GRURegressor arguments for the Latent Filter's inference path with the benchmark's
     network (n_z 8, n_y 4, 8 objects) and the y ``options``."""
     net = {"n_z": 8, "n_y": 4, "n_objects": N_OBJECTS, "obs_sigma": 0.1, **options}
-    return {"arch": "latent_filter", "modality": MODALITY, "latent_filter": net}
+    return {"arch": "latent_filter", "modality": load_modality("pendulum").to_config(), "latent_filter": net}
+
+
+def lf_options(texts) -> dict:
+    """``NAME=VALUE`` texts (values read as YAML) -> LatentFilter keywords; ``prior.X`` names go
+    into the ``prior`` mapping (as ``model.net.prior.X`` in a config)."""
+    kwargs: dict = {}
+    for text in texts:
+        name, sep, value = text.partition("=")
+        if not sep or not name:
+            raise SystemExit(f"--lf-option {text!r}: expected NAME=VALUE")
+        head, _, key = name.partition(".")
+        if key:
+            kwargs.setdefault(head, {})[key] = yaml.safe_load(value)
+        else:
+            kwargs[name] = yaml.safe_load(value)
+    return kwargs
 
 
 def trajectory_lstm(x_tr: np.ndarray, t_tr: np.ndarray, x_te: np.ndarray, t_te: np.ndarray, epochs: int,
@@ -110,7 +129,7 @@ def main(argv=None) -> None:
                    help="LatentFilter y option for lf_path, e.g. y_update=evidence y_evidence_max=1 (repeatable)")
     p.add_argument("--state", action="store_true",
                    help="also the readers of the true angle + per-frame CRB noise: state_lstm and physics_ls")
-    p.add_argument("--load", metavar="PATH", help="a model saved by experiments/pendulum.py --save: probe its z and y")
+    p.add_argument("--load", metavar="RUN", help="a pendulum run folder (experiments/pendulum.py): probe its z and y")
     p.add_argument("--probe-epochs", type=int, default=300)
     p.add_argument("--probe-seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--threads", type=int, default=1)
@@ -123,9 +142,7 @@ def main(argv=None) -> None:
         rows.append(("frames_gru", f"seed {a.seed}, {a.gru_epochs} epochs", supervised(train, test, a.gru_epochs, a.seed),
                      time.perf_counter() - t0))
     if a.lf_path:
-        from embodied_tactile.bench.remedies import parse_remedy, remedy_kwargs  # as experiments/pendulum.py --remedy
-
-        opts = remedy_kwargs(parse_remedy(o) for o in a.lf_option)
+        opts = lf_options(a.lf_option)
         t0 = time.perf_counter()
         rows.append(("lf_path", f"seed {a.seed}, {a.gru_epochs} epochs, {opts or 'defaults'}",
                      supervised(train, test, a.gru_epochs, a.seed, **lf_path_kwargs(opts)), time.perf_counter() - t0))
@@ -146,25 +163,34 @@ def main(argv=None) -> None:
         rows.append(("physics_ls", f"angle + N(0, {sigma:.4f}^2), told the equation, no training", r,
                      time.perf_counter() - t0))
     if a.load:
-        ck = torch.load(a.load, weights_only=False)
-        if int(ck["seed"]) != a.seed:
-            raise SystemExit(f"{a.load}: the model was trained on seed {ck['seed']} data, --seed is {a.seed}")
-        if int(ck.get("n_train", 32)) != a.n_train:
-            raise SystemExit(f"{a.load}: the model was trained on {ck.get('n_train', 32)} sequences per object, "
-                             f"--n-train is {a.n_train}")
-        model = LatentFilter.from_config(ck["config"])
-        model.load_state_dict(ck["state_dict"])
-        model.eval()
-        lat = {n: latents(model, d) for n, d in (("train", train), ("held-out", test))}
-        for key in ("z_mean", "y_mean"):
+        from pathlib import Path
+
+        from hydra.utils import instantiate
+
+        from embodied_tactile.eval.pendulum import split_latents
+        from embodied_tactile.eval.runs import load_module, load_run
+
+        run = load_run(Path(a.load), "last")
+        data_cfg = run.cfg.data
+        if int(data_cfg.seed) != a.seed or int(data_cfg.n_train) != a.n_train:
+            raise SystemExit(f"{a.load}: the model was trained on seed {data_cfg.seed} data, {data_cfg.n_train} sequences "
+                             f"per object; --seed is {a.seed}, --n-train {a.n_train}")
+        dm = instantiate(data_cfg)
+        dm.setup("fit")
+        if not (np.array_equal(dm.data["train"].obs, train.obs) and np.array_equal(dm.data["test"].obs, test.obs)):
+            raise SystemExit(f"{a.load}: the run's training / held-out sequences are not this script's "
+                             f"(generate({a.n_train}, {a.seed}) / generate(8, {a.seed + 1000}))")
+        lat = dict(zip(("train", "held-out"), split_latents(load_module(run), dm, "test")))
+        steps = (read_json(Path(a.load) / "metrics.json").get("krr_final") or {}).get("step", "?")
+        for key in ("z", "y"):
             x = {n: np.concatenate([lat[n][key], d.actions], -1) for n, d in (("train", train), ("held-out", test))}
             for s in a.probe_seeds:
                 t0 = time.perf_counter()
                 r = trajectory_lstm(x["train"], _targets(train), x["held-out"], _targets(test), a.probe_epochs, s)
-                rows.append((f"{key[0]}_trajectory", f"probe seed {s}, {a.probe_epochs} epochs", r,
+                rows.append((f"{key}_trajectory", f"probe seed {s}, {a.probe_epochs} epochs", r,
                              time.perf_counter() - t0))
     print(f"pendulum probes: data seed {a.seed}, {a.n_train} training / 8 held-out sequences per object"
-          + (f", model {a.load} ({ck['steps']} steps)" if a.load else ""))
+          + (f", model {a.load} ({steps} steps)" if a.load else ""))
     print("| reader | run | w0 train / held-out R^2 | d train / held-out R^2 | s |\n|---|---|---|---|---|")
     for name, run, r, dt in rows:
         print(f"| {name} | {run} | {r['train'][0]:.2f} / **{r['held-out'][0]:.2f}** | "

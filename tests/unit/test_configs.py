@@ -47,7 +47,8 @@ def _compose_job(overrides: list[str], tmp_path: Path):
 
 @pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in options(g)])
 def test_every_option_composes_and_instantiates(group, option, tmp_path):
-    extra = ["data.raw_files=[x.h5]"] if (group, option) == ("data", "recorded") else []
+    extra = {("data", "recorded"): ["data.raw_files=[x.h5]"],
+             ("data", "pendulum"): ["experiment=pendulum"]}.get((group, option), [])  # the pendulum scene's entry
     cfg = _compose_job([f"{group}={option}", *extra], tmp_path)
     OmegaConf.resolve(cfg)
     dm = instantiate(cfg.data)

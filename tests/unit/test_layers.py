@@ -29,7 +29,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("data.datamodule",),  # torch data over the caches
     ("run",),  # run folder, provenance, settings checks, training
     ("eval", "cli"),  # latents, alignment, baselines, tables; the Hydra entry checks
-    ("active", "hardware", "bench"),  # palpation and acquisition: commands over a trained run / a port
+    ("active", "hardware"),  # palpation and acquisition: commands over a trained run / a port
     ("eval.pages",),  # `embodied-tactile report`: every generated page, the active tables included
     ("__main__", ""),  # the one command and the package's face
 )

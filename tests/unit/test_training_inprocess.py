@@ -78,3 +78,32 @@ def test_a_bad_setting_stops_train_before_the_data(composed, capsys):
     assert info.value.code == 2
     assert capsys.readouterr().err.strip() == "train.py: error: data.batch_size=0 (int): expected an integer >= 1"
     assert json.loads((run / "metrics.json").read_text())["status"] == "failed"
+
+
+def test_train_in_process_on_the_pendulum_scene(tmp_path):
+    """experiment=pendulum (configs/data/pendulum.yaml) through train(cfg) with tiny shapes: the
+    run finishes, its final KRR read-out of the systems' (w0, d) is a finite NMSE in metrics.json,
+    and its checkpoints are there."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from embodied_tactile.run.training import compose, train
+
+    run = tmp_path / "run"
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        cfg = compose(["experiment=pendulum", "threads=1", "seed=0", "plain_progress=true", "logger=none",
+                       "data.n_train=2", "data.n_test=1", "data.n_steps=12", "data.batch_size=4", "trainer.max_epochs=2",
+                       "model.net.encoder.widths=[2,2]", "model.net.encoder.hidden=8", "model.net.transition_hidden=8",
+                       "model.net.lstm_hidden=8", "callbacks.krr_alignment.points=1",
+                       f"paths.log_dir={tmp_path / 'logs'}", f"paths.data_dir={tmp_path / 'data'}"], str(run))
+        train(cfg, str(run))
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        HydraConfig.instance().cfg = None
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "finished" and metrics["final_readout"]
+    final = metrics["krr_final"]
+    assert set(final["nmse"]) == {"natural_frequency", "damping"} and final["n_test"] == 8
+    assert math.isfinite(final["nmse_overall"]) and final["targets"] == "physical"
+    assert metrics["data"]["scene"] == "pendulum" and (run / "checkpoints" / "last.ckpt").is_file()

@@ -72,6 +72,12 @@ INFER_BATCH_SIZE = AlignmentCheckOptions.infer_batch_size
 _OPTIONS = AlignmentCheckOptions  # the callback's defaults
 
 
+def factor_names(datamodule) -> tuple[str, ...]:
+    """The names of the ``factors`` columns a DataModule serves: its ``factor_names`` (the
+    pendulum's natural frequency and damping), else the catalogue's four (FACTOR_NAMES)."""
+    return tuple(getattr(datamodule, "factor_names", FACTOR_NAMES))
+
+
 def check_epochs(max_epochs: int, points: int, final: bool = True) -> list[int]:
     """0-based epochs after which a run of ``max_epochs`` epochs runs a periodic check so
     that its ``points`` checks are spread evenly: epoch counts ``round(k * max_epochs /
@@ -347,6 +353,7 @@ class KRRAlignmentCallback(Callback):
         tr, te = self._latents(trainer, pl_module, final)
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
         tr, te = encode_split(tr, self.targets), encode_split(te, self.targets)
+        names = factor_names(trainer.datamodule)
         t_inf = time.perf_counter()
         split = str(getattr(trainer.datamodule, "split", "trial"))
         align_kw = alignment_kwargs(base_kw, split, tr.get("object_id"))
@@ -354,18 +361,18 @@ class KRRAlignmentCallback(Callback):
         # every frame is read (a per-time read-out reads a frame by its place in the trial); the
         # periodic checks score every stride-th frame, the last one kept
         pred = align.predict(select_latents(te, self.latent), ids=te.get("seq_id"))[:, ::-1][:, ::stride][:, ::-1]
-        curve = nmse_over_time(te["factors"], pred)  # (T', 4)
+        curve = nmse_over_time(te["factors"], pred)  # (T', K)
         per_factor = nmse_trajectory(te["factors"], pred)  # == mean of the curve over frames
         # the mean predictor: the training targets' mean at every frame (the same at every frame,
         # so its whole-trajectory and last-frame NMSE are one number)
         with np.errstate(invalid="ignore"):
             train_mean = np.nanmean(np.asarray(tr["factors"], dtype=np.float64), axis=0)
-        per_factor_mean = nmse_trajectory(te["factors"], np.broadcast_to(train_mean, (len(te["factors"]), 1, 4)))
+        per_factor_mean = nmse_trajectory(te["factors"], np.broadcast_to(train_mean, (len(te["factors"]), 1, len(names))))
         cb = time.perf_counter() - t0
         self._cb_time += cb
         cb_total = self._cb_before + self._cb_time
         total = self._elapsed_before + time.perf_counter() - self._t_start
-        metrics = {f"krr/nmse_{f}": float(v) for f, v in zip(FACTOR_NAMES, per_factor)}
+        metrics = {f"krr/nmse_{f}": float(v) for f, v in zip(names, per_factor)}
         metrics.update({
             "krr/nmse_overall": overall(per_factor),
             "krr/nmse_last_overall": overall(curve[-1]),
@@ -381,10 +388,10 @@ class KRRAlignmentCallback(Callback):
             "train_wall_time_s": float(train_wall), "callback_time_s": float(cb),
             "callback_infer_s": float(t_inf - t0), "callback_krr_s": float(cb - (t_inf - t0)),
             "callback_time_total_s": float(cb_total), "callback_fraction": metrics["krr/callback_fraction"],
-            "nmse": {f: _fin(v) for f, v in zip(FACTOR_NAMES, per_factor)},
-            "nmse_overall": _fin(metrics["krr/nmse_overall"]), "nmse_last": {f: _fin(v) for f, v in zip(FACTOR_NAMES, curve[-1])},
+            "nmse": {f: _fin(v) for f, v in zip(names, per_factor)},
+            "nmse_overall": _fin(metrics["krr/nmse_overall"]), "nmse_last": {f: _fin(v) for f, v in zip(names, curve[-1])},
             "nmse_last_overall": _fin(metrics["krr/nmse_last_overall"]),
-            "nmse_mean_predictor": {f: _fin(v) for f, v in zip(FACTOR_NAMES, per_factor_mean)},
+            "nmse_mean_predictor": {f: _fin(v) for f, v in zip(names, per_factor_mean)},
             "nmse_mean_predictor_overall": _fin(overall(per_factor_mean)),
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])), "latent": self.latent,
             "val_frame_stride": stride, "final": bool(final), "initial": bool(initial), "targets": self.targets,

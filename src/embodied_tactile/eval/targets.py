@@ -69,16 +69,17 @@ def describe_targets(encoding: str) -> str:
 
 
 def encode_factors(factors, encoding: str = DEFAULT_TARGETS) -> np.ndarray:
-    """(n, 4) catalogue factors (physical units, NaN = unknown) -> (n, 4) targets of ``encoding``.
+    """(n, 4) catalogue factors (physical units, NaN = unknown) -> (n, 4) targets of ``encoding``;
+    ``physical`` also takes a scene's own (n, K) factors (the pendulum's) unchanged.
 
     Raises ValueError naming the factor, the value and the allowed range when a finite value
     lies outside the design levels (``design_rank``)."""
     _check(encoding)
     f = np.array(factors, dtype=np.float64, copy=True)
+    if encoding == "physical" and f.ndim == 2:  # any scene's own factors (the pendulum's w0, d) as they are
+        return f
     if f.ndim != 2 or f.shape[1] != len(FACTOR_NAMES):
         raise ValueError(f"factors must be (n, {len(FACTOR_NAMES)}), got shape {f.shape}")
-    if encoding == "physical":
-        return f
     for k, name in enumerate(FACTOR_NAMES):
         levels = DESIGN_LEVELS.get(name)
         if levels is None:

@@ -78,6 +78,26 @@ class DataOptions(LoaderOptions, SplitOptions, SceneOptions):
     """``data``: the three groups flat, as ``configs/data/*.yaml`` and saved run configs hold them."""
 
 
+@dataclass
+class PendulumOptions:
+    """``data`` of the pendulum scene (``data=pendulum``,
+    :class:`~embodied_tactile.data.pendulum_module.PendulumDataModule`): the sequences
+    :func:`embodied_tactile.data.pendulum.generate` draws for it. Training: ``n_train``
+    sequences per system of the 8 training systems (data seed ``seed``); validation (the
+    checkpoints' ELBO): ``n_val`` per system (``seed + 3000``); test (the KRR read-out):
+    ``n_test`` per system (``seed + 1000``); unseen systems (``UNSEEN_SYSTEMS``, a second
+    held-out set): ``n_test`` per system (``seed + 2000``)."""
+
+    seed: int = field(default=0, metadata=at_least(0))
+    channels: List[str] = field(default_factory=lambda: ["fsr_t"])  # the modality's one image channel (a label)
+    n_train: int = field(default=128, metadata=at_least(1))  # training sequences per system
+    n_val: int = field(default=2, metadata=at_least(1))      # validation sequences per system
+    n_test: int = field(default=8, metadata=at_least(1))     # held-out sequences per system (and per unseen system)
+    n_steps: int = field(default=60, metadata=at_least(2))   # frames per sequence (50 ms each)
+    batch_size: int = field(default=16, metadata=at_least(1))
+    context: Optional[str] = None  # the context objective's pairing: null | trial (another sequence of the system)
+
+
 GROUPS = (SceneOptions, SplitOptions, LoaderOptions)
 
 
@@ -97,4 +117,4 @@ def scene_defaults() -> dict[str, Any]:
     return asdict(SceneOptions())
 
 
-__all__ = ["DataOptions", "GROUPS", "LoaderOptions", "SceneOptions", "SplitOptions", "group_options", "scene_defaults"]
+__all__ = ["DataOptions", "GROUPS", "LoaderOptions", "PendulumOptions", "SceneOptions", "SplitOptions", "group_options", "scene_defaults"]

@@ -15,6 +15,8 @@ module first:
   the scene.
 * ``data: schema`` (:class:`DataNode`): the data's scene, split and loader options
   (:mod:`embodied_tactile.options.data`), flat; configs/data/*.yaml compose it.
+* ``data: pendulum_schema`` (:class:`PendulumNode`): the pendulum scene's data
+  (:class:`~embodied_tactile.options.data.PendulumOptions`); configs/data/pendulum.yaml composes it.
 * ``alignment: schema`` (:class:`~embodied_tactile.options.alignment.AlignmentOptions`): the
   latent -> factor read-out, shared by the training's final alignment and evaluate.py.
 * ``callbacks/krr_alignment: schema`` (:class:`AlignmentCallbackNode`): the KRR callback's
@@ -34,7 +36,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
 from embodied_tactile.options.alignment import AlignmentCheckOptions, AlignmentOptions
-from embodied_tactile.options.data import DataOptions
+from embodied_tactile.options.data import DataOptions, PendulumOptions
 from embodied_tactile.options.emulation import EmulationOptions
 from embodied_tactile.options.report import ReportOptions
 from embodied_tactile.model.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
@@ -76,6 +78,14 @@ class DataNode(DataOptions):
     (its flat keys sorted into scene, split and loader by ``from_config``)."""
 
     _target_: str = "embodied_tactile.data.datamodule.TactileDataModule.from_config"
+
+
+@dataclass
+class PendulumNode(PendulumOptions):
+    """``data`` of the pendulum scene (configs/data/pendulum.yaml): what Hydra instantiates
+    into a :class:`~embodied_tactile.data.pendulum_module.PendulumDataModule`."""
+
+    _target_: str = "embodied_tactile.data.pendulum_module.PendulumDataModule"
 
 
 @dataclass
@@ -128,6 +138,7 @@ def register() -> None:
     cs.store(group="model", name="schema", node=ModelNode)
     cs.store(group="alignment", name="schema", node=AlignmentOptions)
     cs.store(group="data", name="schema", node=DataNode)
+    cs.store(group="data", name="pendulum_schema", node=PendulumNode)
     cs.store(group="callbacks/krr_alignment", name="schema", node=AlignmentCallbackNode)
     cs.store(name="emulate_schema", node=EmulationOptions)
     cs.store(name="report_schema", node=ReportOptions)
@@ -139,4 +150,4 @@ def register() -> None:
 
 register()
 
-__all__ = ["AlignmentCallbackNode", "DataNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]
+__all__ = ["AlignmentCallbackNode", "DataNode", "PendulumNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]

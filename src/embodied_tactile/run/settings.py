@@ -22,9 +22,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile.options.alignment import AlignmentOptions
 from embodied_tactile.options.checks import SettingsError, check_options
-from embodied_tactile.options.data import DataOptions, scene_defaults
+from embodied_tactile.options.data import DataOptions, PendulumOptions, scene_defaults
 from embodied_tactile.options.run import RunKeys, TrainerKeys
-from embodied_tactile.run.config import AlignmentCallbackNode, ModelNode
+from embodied_tactile.run.config import AlignmentCallbackNode, ModelNode, PendulumNode
 
 EXIT_BAD_SETTINGS = 2
 
@@ -76,6 +76,8 @@ def check_train_config(cfg: DictConfig) -> None:
     range (or that breaks a bound between two options), then for a population too large."""
     for key, options in SECTIONS:
         node = OmegaConf.select(cfg, key, default=None, throw_on_resolution_failure=False) if key else cfg
+        if key == "data" and isinstance(node, DictConfig) and node.get("_target_") == PendulumNode._target_:
+            options = PendulumOptions  # the pendulum scene's data (experiment=pendulum)
         if isinstance(node, DictConfig):
             check_options(options, node, key)
     _check_population(cfg)

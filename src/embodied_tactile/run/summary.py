@@ -123,7 +123,7 @@ def nmse_lines(row: Mapping | None) -> list[str]:
         return ["held-out NMSE: no KRR alignment in this run (callbacks.krr_alignment off); "
                 "evaluate.py computes it"]
     per = row.get("nmse") or {}
-    parts = "  ".join(f"{FACTOR_SHORT[f]} {_fmt(per.get(f))}" for f in FACTOR_NAMES)
+    parts = "  ".join(f"{FACTOR_SHORT.get(f, f)} {_fmt(per.get(f))}" for f in (per or FACTOR_NAMES))
     where = [f"step {row['step']}"] if "step" in row else []
     if row.get("train_wall_time_s") is not None:
         where.append(f"{duration(row['train_wall_time_s'])} into training")

@@ -1,6 +1,7 @@
-"""train.py's recipe as functions that tests and notebooks call in-process: :func:`train`
-(one training in a run folder) and :func:`run_job` (train.py's Hydra job: a multirun job's
-failure is recorded in its folder and the sweep goes on). train.py's docstring says what a
+"""train.py's recipe as functions that tests, notebooks and experiment scripts call
+in-process: :func:`compose` (train.py's config with overrides, for a given run folder),
+:func:`train` (one training in a run folder) and :func:`run_job` (train.py's Hydra job: a
+multirun job's failure is recorded in its folder and the sweep goes on). train.py's docstring says what a
 run folder holds and what each exit status means."""
 
 from __future__ import annotations
@@ -56,6 +57,29 @@ def run_job(cfg: DictConfig) -> float | None:
     status = read_json(f"{run_dir}/metrics.json").get("status", "unknown")
     summary.record_outcome(run_dir, status, "" if status == "finished" else read_json(f"{run_dir}/metrics.json").get("error", ""))
     return result
+
+
+def compose(overrides: list[str], run_dir: str) -> DictConfig:
+    """configs/train.yaml composed with ``overrides`` as train.py would for a run in
+    ``run_dir`` (``${hydra:runtime.output_dir}`` resolves to it: this process's Hydra state
+    is set to the job's), without the ``hydra`` node: :func:`train`'s ``cfg``."""
+    from hydra import compose as hydra_compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import open_dict
+
+    import embodied_tactile.run.config  # noqa: F401  registers the typed configs
+    from embodied_tactile.run.paths import config_dir
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        cfg = hydra_compose(config_name="train", return_hydra_config=True,
+                            overrides=[*overrides, f"hydra.run.dir={run_dir}"])
+    with open_dict(cfg):
+        cfg.hydra.runtime.output_dir = str(run_dir)
+    HydraConfig.instance().set_config(cfg)
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg
 
 
 def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
@@ -234,4 +258,4 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
     return metrics.get("final_val", {}).get("val/elbo")
 
 
-__all__ = ["run_job", "train"]
+__all__ = ["compose", "run_job", "train"]
