@@ -162,14 +162,25 @@ def _typed_nodes() -> dict[str, Any]:
     return {"model": ModelNode(context=ContextOptions()), "data": DataNode(), "alignment": AlignmentOptions()}
 
 
+#: data groups that only a scene of their own name composes (configs/experiment/<name>.yaml)
+SCENE_DATA = ("pendulum",)
+
+
 def check_typed_overrides(args: Sequence[str]) -> None:
     """Command-line values of the typed options (``model.*``, ``data.*``, ``alignment.*``,
     :mod:`embodied_tactile.run.config`) checked against their dataclass types before Hydra
     merges them, every value of a sweep included: one line naming key, value and the type,
     exit 2 (Hydra's own merge error is several lines, exit 1). A key the options do not
-    declare is left to Hydra."""
+    declare is left to Hydra. A scene's data group chosen without its scene (``data=pendulum``
+    without ``experiment=pendulum``) is one line naming the scene."""
     nodes = _typed_nodes()
-    for o in _parse_overrides(args):
+    overrides = _parse_overrides(args)
+    groups = {o.key_or_group: o.value() for o in overrides if not o.is_sweep_override()}
+    for scene in SCENE_DATA:
+        if groups.get("data") == scene and groups.get("experiment") != scene:
+            fail(SettingsError(f"data={scene} is the data of a scene that also sets the modality and the model: "
+                               f"python train.py experiment={scene}"))
+    for o in overrides:
         root, _, rest = o.key_or_group.partition(".")
         if root not in nodes or not rest or o.is_delete() or not _declared(type(nodes[root]), rest.split("."))[1]:
             continue
