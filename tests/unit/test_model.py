@@ -30,7 +30,7 @@ torch.set_num_threads(2)
 # small networks; input_standardize off: these networks are fitted without a TactileDataModule
 # (the default needs its training-set channel statistics)
 TINY = dict(encoder={"widths": [4, 8], "hidden": 32}, transition_hidden=32, lstm_hidden=32, input_standardize=False)
-N_CH = {"acc": 1, "fsr_t": 1, "fsr_b": 1, "fsr_tb": 2, "multi_e": 3, "multi_l": 3}
+N_CH = {"acc": 1, "fsr_t": 1, "fsr_b": 1, "fsr_tb": 2, "multi_e": 3, "multi_l": 3, "pendulum": 1}
 
 
 def make_batch(C, B=4, T=8, seed=0, n_objects=32):
