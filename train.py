@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import sys
 
-import embodied_tactile.run.threadenv  # noqa: F401  OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP
+import embodied_tactile.run.threadenv  # noqa: F401  OpenMP's spin count before torch loads it
 import hydra
 from omegaconf import DictConfig
 

@@ -54,9 +54,9 @@ def train_command(run_dir: Path, data_dir: Path, extra: list[str]) -> list[str]:
 
 def environment(wait_policy: str | None) -> dict[str, str]:
     """The caller's environment without thread counts (the policy sets them); OMP_WAIT_POLICY
-    as asked (None: train.py's own default)."""
+    as asked (None: train.py's own default, threadenv's GOMP_SPINCOUNT)."""
     env = {k: v for k, v in os.environ.items()
-           if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_WAIT_POLICY")}
+           if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
     env["WANDB_MODE"] = "disabled"
     if wait_policy:
         env["OMP_WAIT_POLICY"] = wait_policy
@@ -90,7 +90,7 @@ def main() -> None:
     ap.add_argument("--data-dir", type=Path, default=None, help="the scene's data (default: <work>/data)")
     ap.add_argument("--threads", default=None, help="threads=<n> for every training (a ceiling); default: auto")
     ap.add_argument("--omp-wait-policy", default=None, choices=["PASSIVE", "ACTIVE"],
-                    help="OMP_WAIT_POLICY for every training (default: train.py's, PASSIVE)")
+                    help="OMP_WAIT_POLICY for every training (default: train.py's short spin, threadenv.SPIN_COUNT)")
     ap.add_argument("overrides", nargs="*", help="train.py overrides for every training (after --)")
     args = ap.parse_args()
     data_dir = args.data_dir or args.work / "data"

@@ -38,6 +38,7 @@ import platform
 import statistics
 import time
 
+import embodied_tactile.run.threadenv  # noqa: F401  train.py's OpenMP spin count, set before torch loads OpenMP
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 

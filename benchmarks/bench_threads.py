@@ -3,8 +3,8 @@ concurrent ones, each process with the threads ``runtime`` gives it.
 
 Each job is a subprocess that applies the policy exactly as ``train.py`` does
 (``runtime.thread_budget("auto", runtime.concurrent_jobs(n_jobs))`` -> ``runtime.set_threads``:
-``auto`` = available cores / concurrent jobs; OMP_WAIT_POLICY as train.py's, ``threadenv``:
-PASSIVE unless set in the environment), builds a Latent Filter and times training steps
+``auto`` = available cores / concurrent jobs; OpenMP's spin count as train.py's, ``threadenv``:
+GOMP_SPINCOUNT=1000 unless it or OMP_WAIT_POLICY is set in the environment), builds a Latent Filter and times training steps
 (``bench_step_ceiling.step``: ELBO, backward, Adam) after one warm-up step. Concurrent jobs
 wait for each other after the warm-up (a file barrier), so their timed steps overlap.
 Printed: every step time per job, the median, the ratio of each concurrent job's median to

@@ -123,15 +123,19 @@ def test_thread_share_takes_its_share_and_gives_cores_up_at_the_next_epoch(tmp_p
         torch.set_num_threads(before)
 
 
-def test_passive_wait_policy_is_set_before_torch_loads(tmp_path):
-    code = "import os, sys, embodied_tactile.run.threadenv; print('torch' in sys.modules, os.environ['OMP_WAIT_POLICY'])"
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+def test_openmp_spin_count_is_set_before_torch_loads(tmp_path):
+    code = ("import os, sys, embodied_tactile.run.threadenv; "
+            "print('torch' in sys.modules, os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
     env["PYTHONPATH"] = str(REPO / "src")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
-    assert out.split() == ["False", threadenv.OMP_WAIT_POLICY]
-    out = subprocess.run([sys.executable, "-c", code], env={**env, "OMP_WAIT_POLICY": "ACTIVE"},
-                         capture_output=True, text=True, check=True).stdout
-    assert out.split() == ["False", "ACTIVE"]  # the user's setting is kept
+
+    def run(**extra: str) -> list[str]:
+        return subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
+                              check=True).stdout.split()
+
+    assert run() == ["False", threadenv.SPIN_COUNT, "None"]
+    assert run(OMP_WAIT_POLICY="PASSIVE") == ["False", "None", "PASSIVE"]  # the user's settings are kept
+    assert run(GOMP_SPINCOUNT="0") == ["False", "0", "None"]
     # train.py imports it before anything that loads torch (hydra, lightning, torch, the package's modules)
     imports = [n for n in ast.parse((REPO / "train.py").read_text()).body if isinstance(n, (ast.Import, ast.ImportFrom))]
     names = [a.name if isinstance(n, ast.Import) else n.module for n in imports for a in n.names]

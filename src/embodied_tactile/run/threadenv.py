@@ -1,13 +1,19 @@
-"""The thread environment of a training, importing nothing heavy: OpenMP's wait policy, set
-before torch loads OpenMP, and the registry of the trainings running on this machine
-(``runtime.ThreadShare`` divides the cores among them).
+"""The thread environment of a training, importing nothing heavy: how long OpenMP's threads
+spin at a barrier, set before torch loads OpenMP, and the registry of the trainings running
+on this machine (``runtime.ThreadShare`` divides the cores among them).
 
-torch's intra-op pool (ATen parallel backend: OpenMP) keeps its threads spinning at every
-barrier for a while by default (OMP_WAIT_POLICY=ACTIVE behaviour). When two trainings share
-the cores, each one's spinning threads take the time the other's working threads need.
-``PASSIVE`` makes waiting threads sleep instead. The OpenMP runtime reads the variable
-once, when the library is loaded (``import torch``), so this module imports nothing heavy
-and is imported by ``train.py`` before torch. A value the user set is kept.
+torch's intra-op pool (ATen parallel backend: OpenMP; the pip wheels bundle GNU libgomp)
+keeps a waiting thread spinning for about 3 ms by default (300,000 spins). When two
+trainings oversubscribe the cores, each one's spinning threads take the time the other's
+working threads need; ``OMP_WAIT_POLICY=PASSIVE`` (no spinning) cured that but made every
+one of a step's thousands of small parallel regions pay a sleep and a wake-up: a lone
+training's 2-thread step took 0.31 s instead of 0.16 s (docs/experiments/speed_levers.md,
+2026-11-27). ``GOMP_SPINCOUNT=1000`` (about 10 µs of spinning) keeps the lone step at 0.18 s
+and two oversubscribed trainings at 0.49 s a step each (0.37 s under PASSIVE); with the
+thread share (one thread each) nothing oversubscribes. libgomp reads the variable once, when
+torch loads it, so this module imports nothing heavy and train.py imports it before torch.
+A ``GOMP_SPINCOUNT`` or ``OMP_WAIT_POLICY`` the user set is kept (libgomp lets
+``GOMP_SPINCOUNT`` win over the policy); other OpenMP runtimes ignore the variable.
 """
 
 from __future__ import annotations
@@ -17,14 +23,16 @@ import sys
 import time
 from pathlib import Path
 
-#: the wait policy of every training unless OMP_WAIT_POLICY is already set
-OMP_WAIT_POLICY = "PASSIVE"
+#: libgomp's spins at a barrier before a thread sleeps (about 10 µs), unless the user set
+#: GOMP_SPINCOUNT or OMP_WAIT_POLICY
+SPIN_COUNT = "1000"
 
 
-def wait_passively() -> bool:
-    """Set ``OMP_WAIT_POLICY`` (unless set) and say whether it can still take effect (torch
-    not imported yet in this process)."""
-    os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
+def spin_briefly() -> bool:
+    """Set ``GOMP_SPINCOUNT`` (unless it or ``OMP_WAIT_POLICY`` is set) and say whether it can
+    still take effect (torch not imported yet in this process)."""
+    if "OMP_WAIT_POLICY" not in os.environ:
+        os.environ.setdefault("GOMP_SPINCOUNT", SPIN_COUNT)
     return "torch" not in sys.modules
 
 
@@ -121,4 +129,4 @@ class TrainingRegistry:
         return max(live, 1 if self.registered else 0)
 
 
-wait_passively()
+spin_briefly()
