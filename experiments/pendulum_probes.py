@@ -120,8 +120,10 @@ def trajectory_lstm(x_tr: np.ndarray, t_tr: np.ndarray, x_te: np.ndarray, t_te: 
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--seed", type=int, default=0, help="data seed (train seed, held-out seed + 1000) and init seed")
-    p.add_argument("--n-train", type=int, default=32, help="training sequences per object (pendulum: 32)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="data seed (train seed, held-out seed + 1000) and init seed (default: --load's, else 0)")
+    p.add_argument("--n-train", type=int, default=None,
+                   help="training sequences per object (default: --load's, else 32)")
     p.add_argument("--gru-epochs", type=int, default=100, help="frames_gru epochs (100 x 256 / 16 = 1600 steps)")
     p.add_argument("--no-frames", action="store_true", help="skip frames_gru")
     p.add_argument("--lf-path", action="store_true", help="also train lf_path (the Latent Filter's inference path)")
@@ -134,6 +136,14 @@ def main(argv=None) -> None:
     p.add_argument("--probe-seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)
+    if a.load:  # the run's own data unless told otherwise (then checked against the run below)
+        from omegaconf import OmegaConf
+
+        saved = OmegaConf.load(f"{a.load}/config_resolved.yaml").data
+        a.seed = int(saved.seed) if a.seed is None else a.seed
+        a.n_train = int(saved.n_train) if a.n_train is None else a.n_train
+    a.seed = 0 if a.seed is None else a.seed
+    a.n_train = 32 if a.n_train is None else a.n_train
     set_threads(a.threads)
     train, test = generate(a.n_train, seed=a.seed), generate(8, seed=a.seed + 1000)
     rows = []

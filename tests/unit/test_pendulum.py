@@ -312,6 +312,16 @@ def test_the_scene_trains_and_reads_out_every_part_after_a_few_steps(tmp_path):
     assert all(np.isfinite(v) and v > 0 for v in res["gradient_snr"].values())
     assert 0.0 <= res["diagnostics"]["transition_weight"] <= 1.0
     assert res["open_loop"]["model"].shape == (6,)
+    # the run's closing block and evaluate.py name the pendulum's own reader, not evaluate.py's tactile one
+    from embodied_tactile.eval.runs import EvaluationError, data_config, load_run
+    from embodied_tactile.run.summary import run_summary_lines
+
+    run = tmp_path / "run"
+    text = "\n".join(run_summary_lines(run))
+    assert f"pendulum_probes.py --load {run} --no-frames" in text and "evaluate.py" not in text
+    assert "held-out sequences of the 8 training systems" in text and "Objects never touched" not in text
+    with pytest.raises(EvaluationError, match="is a pendulum run.*pendulum_probes.py --load"):
+        data_config(load_run(run, "last"), None)
 
 
 def test_remedies_are_config_switches(tmp_path):

@@ -262,6 +262,12 @@ def _resolve_path(value: str, train_cwd: Path | None) -> str:
 
 def data_config(run: Run, opts: DictConfig) -> dict:
     """The run's cfg.data with the saved split, loader options and resolved paths."""
+    from embodied_tactile.run.summary import OWN_READERS
+
+    modality = OmegaConf.select(run.cfg, "modality.name", default=None)
+    if modality in OWN_READERS:
+        raise EvaluationError(f"{run.run_dir} is a {modality} run, which evaluate.py does not score (its baselines are "
+                              f"the tactile scenes'): {OWN_READERS[modality][2].format(run=run.run_dir)}")
     data = OmegaConf.to_container(run.cfg.data, resolve=True)
     split = run.run_dir / "split.json"
     if not split.exists():

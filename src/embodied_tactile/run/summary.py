@@ -142,6 +142,14 @@ SPLIT_MEANING = {
     "object": ("trials of objects never touched in training (data.split=object)",
                "This split measures generalisation to objects never touched in training."),
 }
+#: scenes read by a reader of their own, not by evaluate.py: modality name -> (what the held-out
+#: sequences are, what they measure, the command that reads the run (``{run}``: its folder))
+OWN_READERS = {
+    "pendulum": ("held-out sequences of the 8 training systems",
+                 "This measures recognition of the training systems; systems never seen, the z read-outs and "
+                 "open-loop prediction: experiments/pendulum_probes.py, experiments/pendulum.py.",
+                 "python experiments/pendulum_probes.py --load {run} --no-frames"),
+}
 POPULATION_COMMAND = "python train.py experiment=population"
 POPULATION_PAGE = "docs/experiments/population_budget.md"
 #: the population scene's measured rows (experiments/population_budget.py --json), each marked
@@ -182,8 +190,11 @@ def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
         cfg = OmegaConf.create({})
     split = str(OmegaConf.select(cfg, "data.split", default="trial"))
     where, meaning = SPLIT_MEANING.get(split, (f"data.split={split}", ""))
-
     modality = OmegaConf.select(cfg, "modality.name", default="?")
+    own = OWN_READERS.get(modality)
+    if own is not None:
+        where, meaning = own[:2]
+
     label = f"Latent Filter {modality} ({recipe(cfg)})"
     initial = next((r for r in rows if r.get("initial")), None)
     table = [("this run", final.get("nmse_overall"), final.get("nmse_last_overall"))]
@@ -197,6 +208,8 @@ def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
     lines += [f"  {name:30}  {_fmt(w):>16}  {_fmt(l):>10}" for name, w, l in table]
     if meaning:
         lines.append(meaning)
+    if own is not None:  # a scene of its own: the tactile population says nothing about it
+        return lines
     pop = population_scores()
     if "latent_filter" in pop:
         w, last, n = pop["latent_filter"]
@@ -208,6 +221,16 @@ def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
         measured = "the population default: not yet measured"
     lines.append(f"Objects never touched: {POPULATION_COMMAND}; measured: {measured}; {POPULATION_PAGE}")
     return lines
+
+
+def _modality(run_dir: Path) -> str | None:
+    """The run's modality name (``config_resolved.yaml``), None when it cannot be read."""
+    from omegaconf import OmegaConf
+
+    try:
+        return OmegaConf.select(OmegaConf.load(run_dir / "config_resolved.yaml"), "modality.name", default=None)
+    except OSError:
+        return None
 
 
 def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None, *,
@@ -238,8 +261,12 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     have = [n for n in ("metrics.json", HISTORY, "csv/metrics.csv") if (run / n).exists()]
     lines.append(f"metrics:       {show_path(run, cwd)}/{{{','.join(have)}}}" if len(have) > 1 else
                  f"metrics:       {show_path(run / have[0], cwd) if have else 'none written'}")
-    lines.append(f"figures:       {show_path(run / 'evaluation', cwd)}/ (tables, figures/), written by:")
-    lines.append(f"next:          {evaluate_command(run, cwd)}")
+    own = OWN_READERS.get(_modality(run))
+    if own is None:
+        lines.append(f"figures:       {show_path(run / 'evaluation', cwd)}/ (tables, figures/), written by:")
+        lines.append(f"next:          {evaluate_command(run, cwd)}")
+    else:
+        lines.append(f"next:          {own[2].format(run=show_path(run, cwd))}")
     lines.append(RULE)
     protocol = protocol_lines(run)
     if protocol:
