@@ -10,7 +10,6 @@ import signal
 
 import pytest
 
-from conftest import REPO
 
 
 @pytest.fixture()
@@ -18,23 +17,15 @@ def composed(tmp_path, fast_data_dir):
     """A job config of the tiny scene (debug=fast, acc only, one thread), its
     ``${hydra:runtime.output_dir}`` the run folder in tmp_path; Hydra's and the signal
     handlers' state put back afterwards."""
-    from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.hydra_config import HydraConfig
-    from omegaconf import open_dict
+
+    from embodied_tactile.run.training import compose
 
     run = tmp_path / "run"
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
-        cfg = compose(config_name="train", return_hydra_config=True, overrides=[
-            "debug=fast", "modality=acc", "threads=1", "seed=0", "plain_progress=true", "logger=csv",
-            "callbacks.krr_alignment.points=1", f"paths.data_dir={fast_data_dir}", f"paths.log_dir={tmp_path / 'logs'}",
-            f"hydra.run.dir={run}"])
-    with open_dict(cfg):
-        cfg.hydra.runtime.output_dir = str(run)
-    HydraConfig.instance().set_config(cfg)
-    with open_dict(cfg):
-        del cfg["hydra"]
+    cfg = compose(["debug=fast", "modality=acc", "threads=1", "seed=0", "plain_progress=true", "logger=csv",
+                   "callbacks.krr_alignment.points=1", f"paths.data_dir={fast_data_dir}",
+                   f"paths.log_dir={tmp_path / 'logs'}"], str(run))
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     yield cfg, run
     for s, h in handlers.items():

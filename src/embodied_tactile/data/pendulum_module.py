@@ -1,4 +1,4 @@
-"""The pendulum as a scene of train.py (``python train.py data=pendulum``): the sequences of
+"""The pendulum as a scene of train.py (``python train.py experiment=pendulum``): the sequences of
 :mod:`embodied_tactile.data.pendulum` (numpy, no torch) served as the tactile DataModule
 serves trials (docs/reference/model.md, "Pendulum benchmark").
 
