@@ -11,7 +11,6 @@ import signal
 import pytest
 
 
-
 @pytest.fixture()
 def composed(tmp_path, fast_data_dir):
     """A job config of the tiny scene (debug=fast, acc only, one thread), its
