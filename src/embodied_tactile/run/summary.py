@@ -173,21 +173,29 @@ def population_scores(path: str | os.PathLike | None = None) -> dict[str, tuple[
     return out
 
 
-def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
+def run_config(run_dir: str | os.PathLike):
+    """The run's ``config_resolved.yaml`` (an empty config when it cannot be read)."""
+    from omegaconf import OmegaConf
+
+    try:
+        return OmegaConf.load(Path(run_dir) / "config_resolved.yaml")
+    except OSError:
+        return OmegaConf.create({})
+
+
+def protocol_lines(run_dir: str | os.PathLike, cfg=None) -> list[str]:
     """What the run's held-out number means: the final alignment beside the same read-out of
     the untrained network (the step-0 check) and the mean predictor, whole trajectory and last
     frame; what the split measures (the run's ``config_resolved.yaml``); and the command,
-    number and page for objects never touched."""
+    number and page for objects never touched. ``cfg``: the run's config when the caller has
+    read it (:func:`run_config`)."""
     from omegaconf import OmegaConf
 
     rows = krr_history(run_dir)
     final = next((r for r in reversed(rows) if r.get("final")), None)
     if final is None:
         return []
-    try:
-        cfg = OmegaConf.load(Path(run_dir) / "config_resolved.yaml")
-    except OSError:
-        cfg = OmegaConf.create({})
+    cfg = run_config(run_dir) if cfg is None else cfg
     split = str(OmegaConf.select(cfg, "data.split", default="trial"))
     where, meaning = SPLIT_MEANING.get(split, (f"data.split={split}", ""))
     modality = OmegaConf.select(cfg, "modality.name", default="?")
@@ -223,16 +231,6 @@ def protocol_lines(run_dir: str | os.PathLike) -> list[str]:
     return lines
 
 
-def _modality(run_dir: Path) -> str | None:
-    """The run's modality name (``config_resolved.yaml``), None when it cannot be read."""
-    from omegaconf import OmegaConf
-
-    try:
-        return OmegaConf.select(OmegaConf.load(run_dir / "config_resolved.yaml"), "modality.name", default=None)
-    except OSError:
-        return None
-
-
 def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None, *,
                       cwd: str | os.PathLike | None = None) -> list[str]:
     """The closing block of one run (``metrics``: the dict train.py writes to metrics.json;
@@ -261,14 +259,17 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     have = [n for n in ("metrics.json", HISTORY, "csv/metrics.csv") if (run / n).exists()]
     lines.append(f"metrics:       {show_path(run, cwd)}/{{{','.join(have)}}}" if len(have) > 1 else
                  f"metrics:       {show_path(run / have[0], cwd) if have else 'none written'}")
-    own = OWN_READERS.get(_modality(run))
+    from omegaconf import OmegaConf
+
+    cfg = run_config(run)
+    own = OWN_READERS.get(OmegaConf.select(cfg, "modality.name", default=None))
     if own is None:
         lines.append(f"figures:       {show_path(run / 'evaluation', cwd)}/ (tables, figures/), written by:")
         lines.append(f"next:          {evaluate_command(run, cwd)}")
     else:
         lines.append(f"next:          {own[2].format(run=show_path(run, cwd))}")
     lines.append(RULE)
-    protocol = protocol_lines(run)
+    protocol = protocol_lines(run, cfg)
     if protocol:
         lines += protocol + [RULE]
     return lines
