@@ -182,10 +182,10 @@ def test_wall_time_continues_across_a_resume(tmp_path):
 def test_check_epochs_spread_points_over_the_run():
     from embodied_tactile.eval.callback import check_epochs
 
-    assert check_epochs(16, 8) == [1, 3, 5, 7, 9, 11, 13]  # + the final alignment after epoch 16
-    assert check_epochs(16, 8, final=False) == [1, 3, 5, 7, 9, 11, 13, 15]
-    assert check_epochs(500, 8)[:2] == [61, 124] and len(check_epochs(500, 8)) == 7
-    assert check_epochs(3, 8) == [0, 1]  # fewer epochs than points: every epoch
+    # the last check reads the final weights (then the final alignment reads them again)
+    assert check_epochs(16, 8) == [1, 3, 5, 7, 9, 11, 13, 15]
+    assert check_epochs(500, 8)[:2] == [61, 124] and check_epochs(500, 8)[-1] == 499
+    assert check_epochs(3, 8) == [0, 1, 2]  # fewer epochs than points: every epoch
     with pytest.raises(ValueError, match="points must be >= 1"):
         check_epochs(10, 0)
 
@@ -230,8 +230,9 @@ class _BatchSizeModel(FakeModel):
 
 def test_points_give_a_t0_row_and_8_points_reading_inputs_once(tmp_path):
     """Error against run time: a row before training (t = 0, the untrained network), then
-    `points` = 8 checks over an 8-epoch run (the final alignment the last), inputs read from
-    the loaders once and inferred in batches of infer_batch_size sequences, both splits together."""
+    `points` = 8 checks over an 8-epoch run, the last on the final weights, then the final
+    alignment on the same weights; inputs read from the loaders once and inferred in batches
+    of infer_batch_size sequences, both splits together."""
     torch.set_num_threads(1)
     cb = KRRAlignmentCallback(latent="y", alignment={"cv": 2}, checks={"cv": 2}, val_frame_stride=3,
                               points=8, infer_batch_size=32)
@@ -242,16 +243,18 @@ def test_points_give_a_t0_row_and_8_points_reading_inputs_once(tmp_path):
                         accelerator="cpu", devices=1, num_sanity_val_steps=0, limit_train_batches=1)
     trainer.fit(model, datamodule=dm)
     rows = [json.loads(line) for line in cb.history_path(trainer).read_text().splitlines()]
-    assert len(rows) >= 9
     assert rows[0]["initial"] and rows[0]["epoch"] == -1 and rows[0]["train_wall_time_s"] == 0.0
-    assert [r["epoch"] for r in rows] == [-1, 0, 1, 2, 3, 4, 5, 6, 7] and rows[-1]["final"]
-    assert sum(not r["final"] for r in rows) == 8 and not any(r["initial"] for r in rows[1:])
+    assert [r["epoch"] for r in rows] == [-1, 0, 1, 2, 3, 4, 5, 6, 7, 7] and rows[-1]["final"]
+    assert sum(not r["final"] for r in rows) == 9 and not any(r["initial"] for r in rows[1:])
+    # the last check and the final alignment read the same weights, each with its own read-out
+    assert rows[-2]["step"] == rows[-1]["step"] and rows[-2]["alignment_settings"]["cv"] == 2
+    assert rows[-2]["val_frame_stride"] == 3 and rows[-1]["val_frame_stride"] == 1
     wall = [r["train_wall_time_s"] for r in rows]
-    assert all(b > a for a, b in zip(wall, wall[1:])), wall
+    assert all(b > a for a, b in zip(wall[:-1], wall[1:-1])) and wall[-1] >= wall[-2], wall
     # read once (the final alignment reuses the cache: it holds every sequence); the 48 training
     # and 16 held-out sequences inferred together in batches of 32
     assert dm.eval_ds.reads == 48 and dm.test_set.reads == 16
-    assert model.eval_batches == [32, 32] * 9
+    assert model.eval_batches == [32, 32] * 10
 
 
 def test_both_splits_inferred_in_one_pass_give_each_splits_own_latents():

@@ -65,6 +65,26 @@ def test_run_summary_lines(tmp_path):
     assert run_summary_lines(odd, cwd=REPO)[-2].endswith(f"python evaluate.py '{odd}'")
 
 
+
+def test_checks_line_compares_the_last_three_checks_like_with_like(tmp_path):
+    """The closing block's checks line: the last three periodic checks (not the step-0 row, not
+    the final alignment, whose read-out differs) and their spread, (max - min) / min."""
+    from embodied_tactile.run.summary import check_spread
+
+    per = (0.3, 0.3, 0.3, 0.3)
+    rows = [(0, 0.99, per), (6, 0.5, per), (8, 0.4, per), (10, 0.44, per), (12, 0.42, per), (12, 0.3, per)]
+    run = fake_run(tmp_path / "run", rows=rows)
+    hist = [json.loads(ln) for ln in (run / "krr_history.jsonl").read_text().splitlines()]
+    hist[0]["initial"], hist[-1]["final"] = True, True
+    (run / "krr_history.jsonl").write_text("".join(json.dumps(r) + "\n" for r in hist))
+    checks, spread = check_spread(hist)
+    assert [r["step"] for r in checks] == [8, 10, 12] and spread == pytest.approx(0.1)
+    line = next(ln for ln in run_summary_lines(run, cwd=tmp_path) if ln.startswith("checks:"))
+    assert "steps 8, 10, 12" in line and "0.4, 0.44, 0.42" in line and "spread 10 %" in line
+    assert check_spread(hist[:3]) is None  # one periodic check only: nothing to compare
+    # fewer than three checks: no line
+    assert not any(ln.startswith("checks:") for ln in run_summary_lines(fake_run(tmp_path / "short"), cwd=tmp_path))
+
 PAPER_CONFIG = """seed: 0
 data: {split: trial}
 modality: {name: multi_l}

@@ -30,8 +30,12 @@ lines) only in the epoch it was computed.
 When it runs (error against run time): with ``initial`` a row at t = 0 (``on_train_start``
 of a run that does not resume; ``"epoch": -1``), then either every ``every_n_epochs`` epochs
 or, with ``every_n_epochs=None``, at ``points`` epochs spread evenly over ``max_epochs``
-(:func:`check_epochs`; the final alignment is the last of the ``points``), so a run's curve
-has ``points + 1`` rows whatever its length (fewer when it has fewer epochs than points).
+(:func:`check_epochs`), the last after the last epoch, then the final alignment: a run's
+curve has ``points`` periodic rows whatever its length (fewer when it has fewer epochs than
+points). The last periodic check reads the final weights with the checks' own read-out, so
+the curve ends on the same measurement it started with: the final alignment reads the same
+weights 1.1-1.4x lower (docs/experiments/default_budget.md, 2026-11-27), and a curve that
+ended on it would fall at its last point whatever the training did.
 The periodic checks read their inputs once: the training and held-out sequences are fixed
 for the run, so the first check keeps them (CPU tensors, the keys ``collect_latents`` reads)
 and every later check only runs the latent inference, in batches of ``infer_batch_size``
@@ -78,18 +82,15 @@ def factor_names(datamodule) -> tuple[str, ...]:
     return tuple(getattr(datamodule, "factor_names", FACTOR_NAMES))
 
 
-def check_epochs(max_epochs: int, points: int, final: bool = True) -> list[int]:
+def check_epochs(max_epochs: int, points: int) -> list[int]:
     """0-based epochs after which a run of ``max_epochs`` epochs runs a periodic check so
     that its ``points`` checks are spread evenly: epoch counts ``round(k * max_epochs /
-    points)``, k = 1 .. points, without duplicates; with ``final`` the last point is the
-    final alignment (after the last epoch), so the last epoch gets no periodic check."""
+    points)``, k = 1 .. points, without duplicates; the last is the last epoch."""
     if points < 1:
         raise ValueError(f"KRRAlignmentCallback points must be >= 1, got {points}")
     if max_epochs < 1:
         return []
     counts = {max(1, round(k * max_epochs / points)) for k in range(1, points + 1)}
-    if final:
-        counts.discard(max_epochs)
     return sorted(c - 1 for c in counts if c <= max_epochs)
 
 
@@ -271,7 +272,7 @@ class KRRAlignmentCallback(Callback):
         max_epochs = trainer.max_epochs
         if max_epochs is None or max_epochs < 1:  # open-ended run: no length to spread points over
             return (epoch + 1) % 10 == 0
-        return epoch in check_epochs(int(max_epochs), self.points, final=self.run_on_train_end)
+        return epoch in check_epochs(int(max_epochs), self.points)
 
     def state_dict(self) -> dict[str, float]:
         """Elapsed wall time and callback time so far, so that a resumed run continues them."""

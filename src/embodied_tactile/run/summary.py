@@ -87,6 +87,22 @@ def last_alignment(run_dir: str | os.PathLike) -> dict | None:
     return rows[-1] if rows else None
 
 
+#: how many of the last periodic checks :func:`check_spread` compares
+FLAT_CHECKS = 3
+
+
+def check_spread(rows: Sequence[Mapping], n: int = FLAT_CHECKS) -> tuple[list[Mapping], float] | None:
+    """How flat a run's curve ends: its last ``n`` periodic checks (neither the step-0 row nor
+    the final alignment; the last check reads the final weights) and their spread, (max - min)
+    / min of their whole-trajectory NMSE. None with fewer than ``n`` checks or a value
+    missing."""
+    checks = [r for r in rows if not r.get("final") and not r.get("initial")][-n:]
+    values = [r.get("nmse_overall") for r in checks]
+    if len(checks) < n or any(v is None for v in values) or min(values) <= 0:
+        return None
+    return checks, (max(values) - min(values)) / min(values)
+
+
 def show_path(p: str | os.PathLike, cwd: str | os.PathLike | None = None) -> str:
     """Relative to ``cwd`` when inside it (what the user types), else absolute."""
     p = Path(p).absolute()
@@ -241,7 +257,14 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     lines = [RULE, f"run {status}: {show_path(run, cwd)}"]
     if status == "failed" and m.get("error"):
         lines.append(f"error: {m['error']}")
-    lines += nmse_lines(last_alignment(run))
+    rows = krr_history(run)
+    lines += nmse_lines(rows[-1] if rows else None)
+    spread = check_spread(rows)
+    if spread is not None:
+        checks, frac = spread
+        lines.append(f"checks:        the last {len(checks)} (steps {', '.join(str(r.get('step')) for r in checks)}): "
+                     f"{', '.join(_fmt(r['nmse_overall']) for r in checks)}, spread {100 * frac:.0f} % "
+                     f"(the checks' cheaper read-out)")
     t = f"training time: {duration(m.get('train_wall_s'))}"
     if m.get("data_prepare_s") is not None:
         t += f" (data preparation {duration(m.get('data_prepare_s'))} on top)"
