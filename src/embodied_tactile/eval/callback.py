@@ -34,7 +34,7 @@ or, with ``every_n_epochs=None``, at ``points`` epochs spread evenly over ``max_
 curve has ``points`` periodic rows whatever its length (fewer when it has fewer epochs than
 points). The last periodic check reads the final weights with the checks' own read-out, so
 the curve ends on the same measurement it started with: the final alignment reads the same
-weights 1.1-1.4x lower (docs/experiments/default_budget.md, 2026-11-27), and a curve that
+weights 1.1-1.5x lower (docs/experiments/default_budget.md, 2026-11-27), and a curve that
 ended on it would fall at its last point whatever the training did.
 The periodic checks read their inputs once: the training and held-out sequences are fixed
 for the run, so the first check keeps them (CPU tensors, the keys ``collect_latents`` reads)
