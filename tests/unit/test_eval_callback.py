@@ -257,6 +257,29 @@ def test_points_give_a_t0_row_and_8_points_reading_inputs_once(tmp_path):
     assert model.eval_batches == [32, 32] * 10
 
 
+
+class _FrozenModel(_BatchSizeModel):
+    def configure_optimizers(self):  # lr 0: the final weights are the untrained ones
+        return torch.optim.SGD(self.parameters(), lr=0.0)
+
+
+def test_step0_row_holds_the_floor_read_by_the_final_alignments_readout(tmp_path):
+    """The untrained network's floor is the run's own read-out: with weights that never move,
+    the step-0 row's ``floor`` equals the final alignment to the last bit, while the step-0
+    check itself (a cheaper read-out, every third frame) is another number."""
+    torch.set_num_threads(1)
+    cb = KRRAlignmentCallback(latent="y", alignment={"cv": 3}, checks={"cv": 2, "frames_per_sequence": 1},
+                              val_frame_stride=3, points=2)
+    trainer = L.Trainer(max_epochs=2, default_root_dir=tmp_path, logger=False, callbacks=[cb],
+                        enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
+                        accelerator="cpu", devices=1, num_sanity_val_steps=0, limit_train_batches=1)
+    trainer.fit(_FrozenModel(), datamodule=_CountingDataModule())
+    first, final = cb.history[0], cb.history[-1]
+    assert first["initial"] and final["final"] and "floor" not in final
+    for key in ("nmse", "nmse_overall", "nmse_last", "nmse_last_overall"):
+        assert first["floor"][key] == final[key]
+    assert first["nmse_overall"] != final["nmse_overall"]
+
 def test_both_splits_inferred_in_one_pass_give_each_splits_own_latents():
     """The callback infers the cached training and held-out sequences in one pass (merged
     batches); every sequence's latents equal those of inferring each split on its own."""

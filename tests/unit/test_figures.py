@@ -69,6 +69,20 @@ def test_error_vs_runtime_facets_per_modality_and_short_unique_legend():
         plt.close(fig)
 
 
+
+def test_error_vs_runtime_line_is_the_checks_without_the_final_alignment():
+    """The line traces the periodic checks; the final alignment (another read-out of the last
+    check's weights) is not a point of it."""
+    rows = [{"train_wall_time_s": 0.0, "nmse_overall": 1.0, "initial": True},
+            {"train_wall_time_s": 10.0, "nmse_overall": 0.5}, {"train_wall_time_s": 20.0, "nmse_overall": 0.4},
+            {"train_wall_time_s": 20.5, "nmse_overall": 0.3, "final": True}]
+    fig = F.error_vs_runtime_figure({"multi_l/soft/pressing": rows})
+    try:
+        (line,) = [ln for ax in fig.axes for ln in ax.get_lines() if len(ln.get_xdata()) > 1]
+        assert list(line.get_xdata()) == [0.0, 10.0, 20.0] and list(line.get_ydata()) == [1.0, 0.5, 0.4]
+    finally:
+        plt.close(fig)
+
 def test_umap_one_panel_per_factor_coloured_by_level():
     obj = np.repeat(np.arange(32), 2)
     fac = np.stack([get_object(o).factors() for o in obj])

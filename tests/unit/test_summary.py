@@ -122,6 +122,11 @@ def test_the_last_lines_say_what_the_number_means(tmp_path, monkeypatch):
     assert [ln.split()[-2:] for ln in lines[2:5]] == [["0.1234", "0.0987"], ["0.998", "0.988"], ["1.003", "1.003"]]
     assert "untrained" in lines[3] and "mean predictor" in lines[4]
     assert "measures recognition" in text
+    # a step-0 row with its floor (the final alignment's read-out of the untrained network): the floor
+    floored = {**initial, "floor": {"nmse_overall": 0.977, "nmse_last_overall": 0.966}}
+    (run / "krr_history.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (floored, final)))
+    assert S.protocol_lines(run)[3].split()[-2:] == ["0.977", "0.966"]
+    (run / "krr_history.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (initial, final)))
     assert ("Objects never touched: python train.py experiment=population; measured: the population default: "
             "whole trajectory 1.100, last frame 0.750 (2 seed(s), 64 test objects; untrained 0.900 / 0.850)") in text
     assert "docs/experiments/population_budget.md" in text

@@ -27,6 +27,10 @@ sequence and every held-out frame, on the final weights, so ``python evaluate.py
 A ``krr/*`` value shows in ``trainer.callback_metrics`` (hence in the per-epoch progress
 lines) only in the epoch it was computed.
 
+The step-0 row also holds ``floor``: the untrained network read by the final alignment's
+read-out (every sequence and frame, the run's ``alignment``), the same read-out as the run's
+number, which the closing block and the study's floor table set beside it.
+
 When it runs (error against run time): with ``initial`` a row at t = 0 (``on_train_start``
 of a run that does not resume; ``"epoch": -1``), then either every ``every_n_epochs`` epochs
 or, with ``every_n_epochs=None``, at ``points`` epochs spread evenly over ``max_epochs``
@@ -351,19 +355,19 @@ class KRRAlignmentCallback(Callback):
         train_wall = 0.0 if initial else self._elapsed_before + (t0 - self._t_start) - self._cb_before - self._cb_time
         stride = 1 if final else self.val_frame_stride
         base_kw = self.final_kw if final else self.align_kw
-        tr, te = self._latents(trainer, pl_module, final)
-        assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
-        tr, te = encode_split(tr, self.targets), encode_split(te, self.targets)
+        latents = self._latents(trainer, pl_module, final)
         names = factor_names(trainer.datamodule)
         t_inf = time.perf_counter()
         split = str(getattr(trainer.datamodule, "split", "trial"))
-        align_kw = alignment_kwargs(base_kw, split, tr.get("object_id"))
-        align = fit_alignment(select_latents(tr, self.latent), tr["factors"], ids=tr.get("seq_id"), **align_kw)
-        # every frame is read (a per-time read-out reads a frame by its place in the trial); the
-        # periodic checks score every stride-th frame, the last one kept
-        pred = align.predict(select_latents(te, self.latent), ids=te.get("seq_id"))[:, ::-1][:, ::stride][:, ::-1]
-        curve = nmse_over_time(te["factors"], pred)  # (T', K)
-        per_factor = nmse_trajectory(te["factors"], pred)  # == mean of the curve over frames
+        tr, te, align, curve, per_factor = self._score(*latents, base_kw, split, stride)
+        floor = None
+        if initial:  # the untrained network read by the final alignment's read-out: the run's floor
+            whole = latents if self._inputs[2] else self._latents(trainer, pl_module, True)
+            _, _, f_align, f_curve, f_per = self._score(*whole, self.final_kw, split, 1)
+            floor = {"nmse": {f: _fin(v) for f, v in zip(names, f_per)}, "nmse_overall": _fin(overall(f_per)),
+                     "nmse_last": {f: _fin(v) for f, v in zip(names, f_curve[-1])},
+                     "nmse_last_overall": _fin(overall(f_curve[-1])),
+                     "alignment": {k: f_align.params.get(k) for k in ("readout", "method", "alpha", "gamma")}}
         # the mean predictor: the training targets' mean at every frame (the same at every frame,
         # so its whole-trajectory and last-frame NMSE are one number)
         with np.errstate(invalid="ignore"):
@@ -403,6 +407,8 @@ class KRRAlignmentCallback(Callback):
             "alignment_settings": {**{k: v for k, v in base_kw.items() if k != "n_threads"},
                                    "groups": resolve_cv_grouping(self.groups, split)},
         }
+        if floor is not None:
+            row["floor"] = floor
         if final:
             self.final = row
         self.history.append(row)
@@ -416,6 +422,20 @@ class KRRAlignmentCallback(Callback):
                  row["epoch"],
                  metrics["krr/nmse_overall"], cb, 100 * metrics["krr/callback_fraction"])
         return metrics
+
+    def _score(self, tr: dict, te: dict, base_kw: Mapping[str, Any], split: str, stride: int):
+        """Fit the alignment ``base_kw`` on the training latents ``tr`` and read the held-out
+        ``te``: (tr, te with encoded targets, the fitted alignment, the NMSE curve over the
+        scored frames (T', K), the NMSE per factor over the trajectory). Every frame is read
+        (a per-time read-out reads a frame by its place in the trial); every ``stride``-th is
+        scored, the last one kept."""
+        assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
+        tr, te = encode_split(tr, self.targets), encode_split(te, self.targets)
+        align_kw = alignment_kwargs(base_kw, split, tr.get("object_id"))
+        align = fit_alignment(select_latents(tr, self.latent), tr["factors"], ids=tr.get("seq_id"), **align_kw)
+        pred = align.predict(select_latents(te, self.latent), ids=te.get("seq_id"))[:, ::-1][:, ::stride][:, ::-1]
+        curve = nmse_over_time(te["factors"], pred)  # (T', K)
+        return tr, te, align, curve, nmse_trajectory(te["factors"], pred)  # the latter == the curve's mean
 
     def history_path(self, trainer) -> Path:
         """``<run folder>/krr_history.jsonl``: the trainer's root dir (the Hydra run folder),

@@ -357,10 +357,12 @@ def error_vs_runtime_figure(histories: Mapping[str, Sequence[Mapping]], *, title
     per run): colour = scene (skin, primitive, other axes), style = method.
 
     ``histories``: 'modality/skin/primitive...' -> krr_history rows (the Latent Filter's
-    training-time alignments, a line); ``points``: 'method/modality/skin/primitive...' ->
+    training-time checks, a line: the final alignment's row is left out, it reads the last
+    check's weights with another read-out); ``points``: 'method/modality/skin/primitive...' ->
     (train_time_s, nmse_overall) (each method's evaluate.py result, a marker)."""
     items = []  # (facet, series, method, kind, x, y)
     for label, rows in histories.items():
+        rows = [r for r in rows if not r.get("final")] or list(rows)
         f, se = _scene(label)
         items.append((f, se, "latent_filter", "line", [r["train_wall_time_s"] for r in rows],
                       [r["nmse_overall"] for r in rows]))

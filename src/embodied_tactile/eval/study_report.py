@@ -462,8 +462,8 @@ def _json_table(blob: Mapping, name: str) -> Table | None:
 
 def floor_table(blob: Mapping) -> Table | None:
     """Per cell (modality, e-Skin, primitive): the training's final KRR alignment beside the
-    same read-out of the untrained network (its step-0 check, ``krr_history.jsonl``), whole
-    trajectory and last frame, mean over seeds, and in how many seeds the trained filter is
+    same read-out of the untrained network (the step-0 row's ``floor``,
+    ``krr_history.jsonl``), whole trajectory and last frame, mean over seeds, and in how many seeds the trained filter is
     below its own floor on both; None when no run has both rows."""
     from ..run.summary import krr_history
 
@@ -475,6 +475,7 @@ def floor_table(blob: Mapping) -> Table | None:
         final = next((r for r in reversed(rows) if r.get("final")), None)
         if not (first and final and cfg):
             continue
+        first = first.get("floor", first)  # the final alignment's read-out (runs before it: the check's)
         key = tuple(str((cfg.get(k) or {}).get("name")) for k in ("modality", "skin", "primitive"))
         cells[key].append(tuple(float(r.get(k, np.nan)) for r, k in ((final, "nmse_overall"), (first, "nmse_overall"),
                                                                      (final, "nmse_last_overall"),
@@ -487,7 +488,7 @@ def floor_table(blob: Mapping) -> Table | None:
         below = int(np.sum((v[:, 0] < v[:, 1]) & (v[:, 2] < v[:, 3])))
         rows.append([*key, len(v), *(float(np.mean(v[:, i])) for i in range(4)), f"{below} of {len(v)}"])
     return Table("untrained_floor", "The trained filter beside its own floor: the training's final KRR alignment "
-                 "and the same alignment of the untrained network (the step-0 check), overall NMSE on the "
+                 "and the same alignment of the untrained network (the step-0 row's floor), overall NMSE on the "
                  "held-out test trials, mean over seeds; 'below floor' counts the seeds in which the trained "
                  "filter is below the untrained one on both read-outs.",
                  ["modality", "skin", "primitive", "n seeds", "trained whole", "untrained whole", "trained last",

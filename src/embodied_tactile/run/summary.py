@@ -201,8 +201,8 @@ def run_config(run_dir: str | os.PathLike):
 
 def protocol_lines(run_dir: str | os.PathLike, cfg=None) -> list[str]:
     """What the run's held-out number means: the final alignment beside the same read-out of
-    the untrained network (the step-0 check) and the mean predictor, whole trajectory and last
-    frame; what the split measures (the run's ``config_resolved.yaml``); and the command,
+    the untrained network (the step-0 row's ``floor``) and the mean predictor, whole
+    trajectory and last frame; what the split measures (the run's ``config_resolved.yaml``); and the command,
     number and page for objects never touched. ``cfg``: the run's config when the caller has
     read it (:func:`run_config`)."""
     from omegaconf import OmegaConf
@@ -222,8 +222,9 @@ def protocol_lines(run_dir: str | os.PathLike, cfg=None) -> list[str]:
     label = f"Latent Filter {modality} ({recipe(cfg)})"
     initial = next((r for r in rows if r.get("initial")), None)
     table = [("this run", final.get("nmse_overall"), final.get("nmse_last_overall"))]
-    if initial:
-        table.append(("the same, untrained (step 0)", initial.get("nmse_overall"), initial.get("nmse_last_overall")))
+    if initial:  # its floor: the final alignment's read-out (a run before it: the step-0 check's)
+        floor = initial.get("floor", initial)
+        table.append(("the same, untrained (step 0)", floor.get("nmse_overall"), floor.get("nmse_last_overall")))
     if final.get("nmse_mean_predictor_overall") is not None:
         m = final["nmse_mean_predictor_overall"]
         table.append(("mean predictor", m, m))
