@@ -19,7 +19,12 @@ from .options import ContextOptions, ModuleOptions, OptimizerOptions, build, def
 
 _DEFAULT = ModuleOptions()
 LR_SCHEDULES = ("constant", "cosine", "cooldown")
-def cooldown_factor(step: int, total: int, fraction: float) -> float:
+#: ``cooldown``: the share of the run's optimiser steps over which the lr falls linearly to 0
+#: (constant before): the last two of the KRR callback's 8 checks read a run whose lr is falling
+COOLDOWN_FRACTION = 0.25
+
+
+def cooldown_factor(step: int, total: int, fraction: float = COOLDOWN_FRACTION) -> float:
     """The ``cooldown`` schedule's multiple of the lr at optimiser step ``step`` (0-based) of
     ``total``: 1 until the last ``fraction`` of the steps, then linear to 0 at step ``total``."""
     span = max(1.0, fraction * total)
@@ -125,7 +130,7 @@ class LatentFilterModule(L.LightningModule):
         lr_schedule: ``"constant"`` (the optimizer's lr throughout), ``"cosine"`` (the lr
             falls from its value to 0 along a half cosine over the run's optimiser steps,
             ``trainer.estimated_stepping_batches``) or ``"cooldown"`` (constant, then linear to 0
-            over the last ``cooldown_fraction`` of the steps); docs/reference/model.md,
+            over the last :data:`COOLDOWN_FRACTION` of the steps); docs/reference/model.md,
             "Learning-rate schedule".
         code_lr_scale: the prior's object codes (``prior.embedding``) train in a parameter
             group of their own at this multiple of the optimizer's lr (1 = one group, the
@@ -144,16 +149,13 @@ class LatentFilterModule(L.LightningModule):
 
     def __init__(self, net: LatentFilter | Mapping[str, Any], annealing: Any = None, optimizer: Any = None,
                  check_finite: bool = _DEFAULT.check_finite, lr_schedule: str = _DEFAULT.lr_schedule,
-                 code_lr_scale: float = _DEFAULT.code_lr_scale, context: Optional[Mapping[str, Any]] = None,
-                 cooldown_fraction: float = _DEFAULT.cooldown_fraction) -> None:
+                 code_lr_scale: float = _DEFAULT.code_lr_scale, context: Optional[Mapping[str, Any]] = None) -> None:
         super().__init__()
         context = check_context(context)
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
         if not code_lr_scale > 0:
             raise ValueError(f"code_lr_scale must be > 0, got {code_lr_scale}")
-        if not 0 < cooldown_fraction <= 1:
-            raise ValueError(f"cooldown_fraction must be in (0, 1], got {cooldown_fraction}")
         if not isinstance(net, LatentFilter):
             if not isinstance(net, Mapping):
                 raise TypeError(f"{type(self).__name__}: net must be a LatentFilter or its config mapping, "
@@ -164,12 +166,11 @@ class LatentFilterModule(L.LightningModule):
         self.check_finite = bool(check_finite)
         self.lr_schedule = lr_schedule
         self.code_lr_scale = float(code_lr_scale)
-        self.cooldown_fraction = float(cooldown_fraction)
         # saved once: the network's own constructor arguments, the schedule and the optimizer
         self.save_hyperparameters({"net": net.config(), "annealing": schedule.config(),
                                    "optimizer": _optimizer_spec(optimizer), "check_finite": bool(check_finite),
                                    "lr_schedule": lr_schedule, "code_lr_scale": float(code_lr_scale),
-                                   "context": context, "cooldown_fraction": float(cooldown_fraction)})
+                                   "context": context})
         self.context = context
         self.model = net
         self.annealing: AnnealingSchedule = schedule
@@ -290,7 +291,7 @@ class LatentFilterModule(L.LightningModule):
         if self.lr_schedule == "cosine":
             scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total, eta_min=0.0)
         else:
-            scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: cooldown_factor(step, total, self.cooldown_fraction))
+            scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: cooldown_factor(step, total))
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
 

@@ -102,7 +102,6 @@ class ModuleOptions:
     check_finite: bool = True
     lr_schedule: str = "constant"
     code_lr_scale: float = field(default=1.0, metadata=bounds(0, lo_open=True))
-    cooldown_fraction: float = field(default=0.25, metadata=bounds(0, 1, lo_open=True))  # lr_schedule=cooldown: the decaying share of the steps
 
 
 def build(cls: type, given: Optional[Mapping[str, Any]], owner: str) -> Any:
