@@ -62,10 +62,11 @@ def test_run_folder_contents(one_run):
     assert split["train"] and split["val"] and not set(split["train"]) & set(split["val"])
     history = [json.loads(line) for line in (one_run / "krr_history.jsonl").read_text().splitlines()]
     assert history and "train_wall_time_s" in history[-1]
-    # error against run time starts at t = 0 (the untrained network); 2 epochs, points: 8 ->
-    # a check after epoch 1 and the final alignment after epoch 2
+    # error against run time starts at t = 0 (the untrained network, with its floor read by the
+    # run's read-out); 2 epochs, points: 8 -> a check after each epoch, then the final alignment
     assert history[0]["initial"] and history[0]["train_wall_time_s"] == 0.0 and history[0]["epoch"] == -1
-    assert [(h["epoch"], h["final"]) for h in history] == [(-1, False), (0, False), (1, True)]
+    assert history[0]["floor"]["alignment"]["readout"] == history[-1]["alignment"]["readout"]
+    assert [(h["epoch"], h["final"]) for h in history] == [(-1, False), (0, False), (1, False), (1, True)]
 
 
 @pytest.mark.slow  # one_run: a train.py subprocess
