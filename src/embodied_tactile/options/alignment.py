@@ -62,9 +62,9 @@ class AlignmentCheckOptions:
     """``callbacks.krr_alignment``: the KRR callback's own settings
     (:class:`~embodied_tactile.eval.callback.KRRAlignmentCallback`): when it checks the
     alignment during training and how cheaply. A row at t = 0 (``initial``), then ``points``
-    checks spread over ``max_epochs`` (the final alignment is the last: the run's
-    ``alignment`` as it is, on every sequence and frame, as evaluate.py reads it), or one every
-    ``every_n_epochs`` epochs; the periodic checks change only what ``checks`` names
+    checks spread over ``max_epochs``, the last on the final weights (then the final
+    alignment: the run's ``alignment`` as it is, on every sequence and frame, as evaluate.py
+    reads it), or one every ``every_n_epochs`` epochs; the periodic checks change only what ``checks`` names
     (``KRRAlignmentCallback.CHECK_DEFAULTS`` when null), on at most ``max_train_sequences``
     training sequences and every ``val_frame_stride``-th held-out frame."""
 
