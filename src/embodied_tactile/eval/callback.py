@@ -52,7 +52,7 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -364,9 +364,7 @@ class KRRAlignmentCallback(Callback):
         if initial:  # the untrained network read by the final alignment's read-out: the run's floor
             whole = latents if self._inputs[2] else self._latents(trainer, pl_module, True)
             _, _, f_align, f_curve, f_per = self._score(*whole, self.final_kw, split, 1)
-            floor = {"nmse": {f: _fin(v) for f, v in zip(names, f_per)}, "nmse_overall": _fin(overall(f_per)),
-                     "nmse_last": {f: _fin(v) for f, v in zip(names, f_curve[-1])},
-                     "nmse_last_overall": _fin(overall(f_curve[-1])),
+            floor = {**_nmse_fields(names, f_per, f_curve[-1]),
                      "alignment": {k: f_align.params.get(k) for k in ("readout", "method", "alpha", "gamma")}}
         # the mean predictor: the training targets' mean at every frame (the same at every frame,
         # so its whole-trajectory and last-frame NMSE are one number)
@@ -393,9 +391,7 @@ class KRRAlignmentCallback(Callback):
             "train_wall_time_s": float(train_wall), "callback_time_s": float(cb),
             "callback_infer_s": float(t_inf - t0), "callback_krr_s": float(cb - (t_inf - t0)),
             "callback_time_total_s": float(cb_total), "callback_fraction": metrics["krr/callback_fraction"],
-            "nmse": {f: _fin(v) for f, v in zip(names, per_factor)},
-            "nmse_overall": _fin(metrics["krr/nmse_overall"]), "nmse_last": {f: _fin(v) for f, v in zip(names, curve[-1])},
-            "nmse_last_overall": _fin(metrics["krr/nmse_last_overall"]),
+            **_nmse_fields(names, per_factor, curve[-1]),
             "nmse_mean_predictor": {f: _fin(v) for f, v in zip(names, per_factor_mean)},
             "nmse_mean_predictor_overall": _fin(overall(per_factor_mean)),
             "n_train": int(len(tr["factors"])), "n_test": int(len(te["factors"])), "latent": self.latent,
@@ -446,6 +442,13 @@ class KRRAlignmentCallback(Callback):
     def _log_to_loggers(trainer, metrics: Mapping[str, Any]) -> None:
         for lg in trainer.loggers:
             lg.log_metrics(dict(metrics), step=trainer.global_step)
+
+
+def _nmse_fields(names: Sequence[str], per_factor, last) -> dict[str, Any]:
+    """A row's NMSE fields: per factor and their mean over the trajectory (``per_factor``) and
+    at the last scored frame (``last``), non-finite values as None."""
+    return {"nmse": {f: _fin(v) for f, v in zip(names, per_factor)}, "nmse_overall": _fin(overall(per_factor)),
+            "nmse_last": {f: _fin(v) for f, v in zip(names, last)}, "nmse_last_overall": _fin(overall(last))}
 
 
 def _fin(v) -> float | None:

@@ -463,8 +463,9 @@ def _json_table(blob: Mapping, name: str) -> Table | None:
 def floor_table(blob: Mapping) -> Table | None:
     """Per cell (modality, e-Skin, primitive): the training's final KRR alignment beside the
     same read-out of the untrained network (the step-0 row's ``floor``,
-    ``krr_history.jsonl``), whole trajectory and last frame, mean over seeds, and in how many seeds the trained filter is
-    below its own floor on both; None when no run has both rows."""
+    ``krr_history.jsonl``), whole trajectory and last frame, mean over seeds, and in how
+    many seeds the trained filter is below its own floor on both; None when no run has both
+    rows."""
     from ..run.summary import krr_history
 
     cells: dict[tuple, list[tuple[float, float, float, float]]] = defaultdict(list)
