@@ -583,26 +583,6 @@ def test_cosine_lr_schedule_falls_to_zero_over_the_runs_steps(tmp_path):
         LatentFilterModule(LatentFilter("fsr_t", **TINY), lr_schedule="step")
 
 
-def test_cooldown_lr_schedule_is_constant_then_falls_linearly_to_zero(tmp_path):
-    """cooldown: the lr stays at its value for the first 3/4 of the run's steps, then falls
-    linearly to 0 at the last step (16 steps: 12 at the lr, then 4/4, 3/4, 2/4, 1/4 of it)."""
-    from embodied_tactile.model.module import cooldown_factor
-
-    torch.manual_seed(0)
-    lrs = []
-
-    class Record(L.Callback):
-        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-            lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
-
-    module = LatentFilterModule(LatentFilter("fsr_t", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
-                                lr_schedule="cooldown")
-    data = DataLoader(ListDataset(make_batch(1, B=8, T=4)), batch_size=2)  # 4 steps per epoch
-    trainer(tmp_path, max_steps=-1, max_epochs=4, callbacks=[Record()]).fit(module, data)
-    assert lrs == pytest.approx([1e-2] * 12 + [1e-2, 0.75e-2, 0.5e-2, 0.25e-2], rel=1e-6)
-    assert cooldown_factor(16, 16) == 0.0 and cooldown_factor(0, 1) == 1.0
-
-
 def test_code_lr_scale_puts_the_object_codes_in_a_group_of_their_own():
     """code_lr_scale != 1: two parameter groups, the prior's codes alone at scale x lr (the
     cosine schedule scales both); 1: one group; <= 0 refused."""

@@ -18,17 +18,7 @@ from .latent_filter import LatentFilter, to_plain
 from .options import ContextOptions, ModuleOptions, OptimizerOptions, build, defaults
 
 _DEFAULT = ModuleOptions()
-LR_SCHEDULES = ("constant", "cosine", "cooldown")
-#: ``cooldown``: the share of the run's optimiser steps over which the lr falls linearly to 0
-#: (constant before): the last two of the KRR callback's 8 checks read a run whose lr is falling
-COOLDOWN_FRACTION = 0.25
-
-
-def cooldown_factor(step: int, total: int, fraction: float = COOLDOWN_FRACTION) -> float:
-    """The ``cooldown`` schedule's multiple of the lr at optimiser step ``step`` (0-based) of
-    ``total``: 1 until the last ``fraction`` of the steps, then linear to 0 at step ``total``."""
-    span = max(1.0, fraction * total)
-    return min(1.0, max(0.0, (total - step) / span))
+LR_SCHEDULES = ("constant", "cosine")
 
 
 def _optimizer_spec(optimizer: Any) -> Optional[dict[str, Any]]:
@@ -127,11 +117,9 @@ class LatentFilterModule(L.LightningModule):
         check_finite: raise FloatingPointError on non-finite inputs (naming trial and frame)
             or a non-finite loss (naming the terms and the batch's trials), in training and
             validation / test steps.
-        lr_schedule: ``"constant"`` (the optimizer's lr throughout), ``"cosine"`` (the lr
+        lr_schedule: ``"constant"`` (the optimizer's lr throughout) or ``"cosine"`` (the lr
             falls from its value to 0 along a half cosine over the run's optimiser steps,
-            ``trainer.estimated_stepping_batches``) or ``"cooldown"`` (constant, then linear to 0
-            over the last :data:`COOLDOWN_FRACTION` of the steps); docs/reference/model.md,
-            "Learning-rate schedule".
+            ``trainer.estimated_stepping_batches``; docs/reference/model.md, "Learning-rate schedule").
         code_lr_scale: the prior's object codes (``prior.embedding``) train in a parameter
             group of their own at this multiple of the optimizer's lr (1 = one group, the
             default; docs/reference/model.md, "Fixed object codes").
@@ -288,11 +276,8 @@ class LatentFilterModule(L.LightningModule):
         if self.lr_schedule == "constant" or getattr(self, "_trainer", None) is None:
             return optimizer
         total = max(1, int(self.trainer.estimated_stepping_batches))
-        if self.lr_schedule == "cosine":
-            scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total, eta_min=0.0)
-        else:
-            scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: cooldown_factor(step, total))
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+        cosine = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total, eta_min=0.0)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": cosine, "interval": "step"}}
 
 
 def __getattr__(name: str) -> Any:
