@@ -466,7 +466,7 @@ def floor_table(blob: Mapping) -> Table | None:
     ``krr_history.jsonl``), whole trajectory and last frame, mean over seeds, and in how
     many seeds the trained filter is below its own floor on both; None when no run has both
     rows."""
-    from ..run.summary import krr_history
+    from ..run.summary import krr_history, untrained_floor
 
     cells: dict[tuple, list[tuple[float, float, float, float]]] = defaultdict(list)
     for f in _run_files(blob):
@@ -476,7 +476,7 @@ def floor_table(blob: Mapping) -> Table | None:
         final = next((r for r in reversed(rows) if r.get("final")), None)
         if not (first and final and cfg):
             continue
-        first = first.get("floor", first)  # the final alignment's read-out (runs before it: the check's)
+        first = untrained_floor(first)
         key = tuple(str((cfg.get(k) or {}).get("name")) for k in ("modality", "skin", "primitive"))
         cells[key].append(tuple(float(r.get(k, np.nan)) for r, k in ((final, "nmse_overall"), (first, "nmse_overall"),
                                                                      (final, "nmse_last_overall"),

@@ -199,15 +199,21 @@ def run_config(run_dir: str | os.PathLike):
         return OmegaConf.create({})
 
 
-def protocol_lines(run_dir: str | os.PathLike, cfg=None) -> list[str]:
+def untrained_floor(initial: Mapping) -> Mapping:
+    """The untrained network's read-out in a run's step-0 row: its ``floor`` (the final
+    alignment's read-out), or for a run before it the step-0 check itself."""
+    return initial.get("floor", initial)
+
+
+def protocol_lines(run_dir: str | os.PathLike, cfg=None, rows: Sequence[Mapping] | None = None) -> list[str]:
     """What the run's held-out number means: the final alignment beside the same read-out of
     the untrained network (the step-0 row's ``floor``) and the mean predictor, whole
     trajectory and last frame; what the split measures (the run's ``config_resolved.yaml``); and the command,
-    number and page for objects never touched. ``cfg``: the run's config when the caller has
-    read it (:func:`run_config`)."""
+    number and page for objects never touched. ``cfg`` / ``rows``: the run's config
+    (:func:`run_config`) and history (:func:`krr_history`) when the caller has read them."""
     from omegaconf import OmegaConf
 
-    rows = krr_history(run_dir)
+    rows = krr_history(run_dir) if rows is None else rows
     final = next((r for r in reversed(rows) if r.get("final")), None)
     if final is None:
         return []
@@ -222,8 +228,8 @@ def protocol_lines(run_dir: str | os.PathLike, cfg=None) -> list[str]:
     label = f"Latent Filter {modality} ({recipe(cfg)})"
     initial = next((r for r in rows if r.get("initial")), None)
     table = [("this run", final.get("nmse_overall"), final.get("nmse_last_overall"))]
-    if initial:  # its floor: the final alignment's read-out (a run before it: the step-0 check's)
-        floor = initial.get("floor", initial)
+    if initial:
+        floor = untrained_floor(initial)
         table.append(("the same, untrained (step 0)", floor.get("nmse_overall"), floor.get("nmse_last_overall")))
     if final.get("nmse_mean_predictor_overall") is not None:
         m = final["nmse_mean_predictor_overall"]
@@ -293,7 +299,7 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     else:
         lines.append(f"next:          {own[2].format(run=show_path(run, cwd))}")
     lines.append(RULE)
-    protocol = protocol_lines(run, cfg)
+    protocol = protocol_lines(run, cfg, rows)
     if protocol:
         lines += protocol + [RULE]
     return lines
