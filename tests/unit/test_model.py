@@ -808,3 +808,87 @@ def test_saved_targets_compare_in_todays_spelling():
     assert current_target("embodied_tactile.data.datamodule.TactileDataModule") == \
         "embodied_tactile.data.datamodule.TactileDataModule.from_config"
     assert current_target("torch.optim.Adam") == "torch.optim.Adam"
+
+
+# ------------------------------------------------------------------ weight averaging
+class _SeedEachStep(L.Callback):
+    """The step's draws from its step number: a resumed fit draws what an unbroken one does."""
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        torch.manual_seed(trainer.global_step)
+
+
+def _averaged_fit(tmp_path, name, max_steps, ckpt_path=None, decay=0.5):
+    torch.manual_seed(0)
+    module = LatentFilterModule(LatentFilter("acc", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
+                                weight_average=decay)
+    loader = DataLoader(ListDataset(make_batch(1, B=4, T=6)), batch_size=2)
+    ckpt = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / name, save_last=True, every_n_train_steps=1)
+    trainer(tmp_path / name, max_steps=max_steps, enable_checkpointing=True, callbacks=[_SeedEachStep(), ckpt],
+            limit_val_batches=0).fit(module, loader, ckpt_path=ckpt_path)
+    return module, tmp_path / name / "last.ckpt"
+
+
+def test_weight_average_follows_its_recursion_and_becomes_the_runs_weights(tmp_path):
+    """The average after each optimiser step is lerp(average, weights, 1 - d_n),
+    d_n = min(decay, (1 + n) / (10 + n)), from a copy of the initial weights; after fit the
+    network holds it, and the checkpoint's state_dict holds it too, the optimiser's weights
+    beside it under ``weight_average``."""
+    torch.manual_seed(0)
+    module = LatentFilterModule(LatentFilter("acc", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
+                                weight_average=0.5)
+    seen = []  # the optimiser's weights after each step, as the average sees them
+
+    class Record(L.Callback):
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            seen.append({k: p.detach().clone() for k, p in pl_module.named_parameters()})
+
+    initial = {k: p.detach().clone() for k, p in module.named_parameters()}
+    ckpt = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "c", save_last=True, every_n_train_steps=3)
+    trainer(tmp_path, max_steps=3, enable_checkpointing=True, callbacks=[Record(), ckpt],
+            limit_val_batches=0).fit(module, DataLoader(ListDataset(make_batch(1, B=6, T=6)), batch_size=2))
+    expected = {k: v.clone() for k, v in initial.items()}
+    for n, w in enumerate(seen, start=1):
+        d = min(0.5, (1 + n) / (10 + n))
+        expected = {k: d * expected[k] + (1 - d) * w[k] for k in expected}
+    for k, p in module.named_parameters():
+        assert torch.allclose(p, expected[k], atol=1e-6), k
+    assert any(not torch.equal(seen[-1][k], expected[k]) for k in expected)  # the average is not the last step
+    saved = torch.load(tmp_path / "c" / "last.ckpt", weights_only=False)
+    for k in expected:
+        assert torch.allclose(saved["state_dict"][k], expected[k], atol=1e-6), k
+        assert torch.equal(saved["weight_average"]["weights"][k], seen[-1][k]), k
+    assert saved["weight_average"]["updates"] == 3
+    loaded = LatentFilterModule.load_from_checkpoint(tmp_path / "c" / "last.ckpt")
+    assert loaded.hparams["weight_average"] == 0.5
+    for k, p in loaded.named_parameters():
+        assert torch.allclose(p, expected[k], atol=1e-6), k
+
+
+def test_a_resumed_weight_averaged_fit_continues_both_the_weights_and_their_average(tmp_path):
+    """Four steps in one fit equal two steps, a checkpoint and two more resumed from it:
+    the optimiser's weights and the average both continue (the checkpoint's state_dict holds
+    the average; the resumed fit puts the optimiser's weights back)."""
+    whole, _ = _averaged_fit(tmp_path, "whole", 4)
+    _, ckpt = _averaged_fit(tmp_path, "half", 2)
+    resumed, _ = _averaged_fit(tmp_path, "resumed", 4, ckpt_path=ckpt)
+    assert resumed.average.tensors is None and resumed.average.updates == 4
+    for (k, a), b in zip(whole.named_parameters(), resumed.parameters()):
+        assert torch.allclose(a, b, atol=1e-6), k
+
+
+def test_averaged_weights_is_a_noop_without_averaging_and_swaps_back():
+    module = LatentFilterModule(LatentFilter("acc", **TINY))
+    before = [p.detach().clone() for p in module.parameters()]
+    with module.averaged_weights():
+        assert all(torch.equal(a, p) for a, p in zip(before, module.parameters()))
+    averaged = LatentFilterModule(LatentFilter("acc", **TINY), weight_average=0.9)
+    averaged.average.start(averaged)
+    for t in averaged.average.tensors.values():
+        t.add_(1.0)
+    own = [p.detach().clone() for p in averaged.parameters()]
+    with averaged.averaged_weights():
+        assert all(torch.equal(a + 1.0, p) for a, p in zip(own, averaged.parameters()))
+    assert all(torch.equal(a, p) for a, p in zip(own, averaged.parameters()))
+    with pytest.raises(ValueError, match="weight_average must be a decay in"):
+        LatentFilterModule(LatentFilter("acc", **TINY), weight_average=1.0)

@@ -48,11 +48,12 @@ sequences (one recursion loop per batch instead of one per loader batch).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, ContextManager, Mapping, Sequence
 
 import numpy as np
 
@@ -264,7 +265,8 @@ class KRRAlignmentCallback(Callback):
         self._cb_time = 0.0
         self._inputs = None
         if self.initial and trainer.global_step == 0 and self._elapsed_before == 0.0:
-            metrics = self._evaluate(trainer, pl_module, initial=True)  # t = 0: the untrained network
+            with averaged(pl_module):
+                metrics = self._evaluate(trainer, pl_module, initial=True)  # t = 0: the untrained network
             if metrics:
                 self._log_to_loggers(trainer, metrics)
 
@@ -295,7 +297,8 @@ class KRRAlignmentCallback(Callback):
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         if self.due(trainer):
-            metrics = self._evaluate(trainer, pl_module)
+            with averaged(pl_module):
+                metrics = self._evaluate(trainer, pl_module)
             if metrics:
                 for k, v in metrics.items():
                     pl_module.log(k, v, on_step=False, on_epoch=True, logger=False, prog_bar=(k == "krr/nmse_overall"))
@@ -303,7 +306,8 @@ class KRRAlignmentCallback(Callback):
 
     def on_train_end(self, trainer, pl_module) -> None:
         if self.run_on_train_end:
-            metrics = self._evaluate(trainer, pl_module, final=True)
+            with averaged(pl_module):
+                metrics = self._evaluate(trainer, pl_module, final=True)
             if metrics:
                 import torch
 
@@ -442,6 +446,12 @@ class KRRAlignmentCallback(Callback):
     def _log_to_loggers(trainer, metrics: Mapping[str, Any]) -> None:
         for lg in trainer.loggers:
             lg.log_metrics(dict(metrics), step=trainer.global_step)
+
+
+def averaged(pl_module) -> ContextManager[None]:
+    """The module's averaged weights for a check (``weight_average``); its own otherwise."""
+    hold = getattr(pl_module, "averaged_weights", None)
+    return hold() if hold is not None else contextlib.nullcontext()
 
 
 def _nmse_fields(names: Sequence[str], per_factor, last) -> dict[str, Any]:

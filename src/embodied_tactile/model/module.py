@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import asdict
 from typing import Any, Callable, Optional
 
@@ -129,6 +130,13 @@ class LatentFilterModule(L.LightningModule):
             context objective"). ``source`` (``trial`` | ``window``) names the DataModule's
             pairing (configs/data reads it from here); ``initial_frames`` target frames are
             filtered before the open-loop rollout; ``refilter`` filters every target frame.
+        weight_average: None (default) or a decay d in (0, 1): an exponential moving average
+            of the network's parameters, updated after every optimiser step with decay
+            min(d, (1 + n) / (10 + n)) at the n-th update (:class:`WeightAverage`). The
+            run's weights are then the average: the KRR checks and the final alignment read
+            it (:meth:`averaged_weights`), every checkpoint's ``state_dict`` holds it (the
+            weights the optimiser moves are kept beside it, for resuming), and after fit
+            the network holds it (docs/reference/model.md, "Weight averaging").
 
     Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
     train/elbo, anneal/*; val/loss, val/elbo (per sequence, higher is better),
@@ -137,13 +145,16 @@ class LatentFilterModule(L.LightningModule):
 
     def __init__(self, net: LatentFilter | Mapping[str, Any], annealing: Any = None, optimizer: Any = None,
                  check_finite: bool = _DEFAULT.check_finite, lr_schedule: str = _DEFAULT.lr_schedule,
-                 code_lr_scale: float = _DEFAULT.code_lr_scale, context: Optional[Mapping[str, Any]] = None) -> None:
+                 code_lr_scale: float = _DEFAULT.code_lr_scale, context: Optional[Mapping[str, Any]] = None,
+                 weight_average: Optional[float] = _DEFAULT.weight_average) -> None:
         super().__init__()
         context = check_context(context)
         if lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {lr_schedule!r}")
         if not code_lr_scale > 0:
             raise ValueError(f"code_lr_scale must be > 0, got {code_lr_scale}")
+        if weight_average is not None and not 0.0 < float(weight_average) < 1.0:
+            raise ValueError(f"weight_average must be a decay in (0, 1) or None, got {weight_average}")
         if not isinstance(net, LatentFilter):
             if not isinstance(net, Mapping):
                 raise TypeError(f"{type(self).__name__}: net must be a LatentFilter or its config mapping, "
@@ -158,10 +169,12 @@ class LatentFilterModule(L.LightningModule):
         self.save_hyperparameters({"net": net.config(), "annealing": schedule.config(),
                                    "optimizer": _optimizer_spec(optimizer), "check_finite": bool(check_finite),
                                    "lr_schedule": lr_schedule, "code_lr_scale": float(code_lr_scale),
-                                   "context": context})
+                                   "context": context,
+                                   "weight_average": None if weight_average is None else float(weight_average)})
         self.context = context
         self.model = net
         self.annealing: AnnealingSchedule = schedule
+        self.average = None if weight_average is None else WeightAverage(float(weight_average))
 
     # ------------------------------------------------------------------ API
     def forward(self, obs: Tensor, actions: Tensor, sample: bool = False) -> dict[str, Tensor]:
@@ -252,16 +265,50 @@ class LatentFilterModule(L.LightningModule):
         if (self.hparams["net"].get("prior") or {}).get("population_weight") is None and statistics.n_train_sequences:
             self.model.prior.population_weight = 1.0 / int(statistics.n_train_sequences)
 
+    # ------------------------------------------------------------------ weight averaging
+    @contextlib.contextmanager
+    def averaged_weights(self) -> Iterator[None]:
+        """The network holds the averaged weights inside the block (``weight_average``; the
+        weights the optimiser moves outside it); a no-op without averaging."""
+        if self.average is None or not self.average.started:
+            yield
+            return
+        self.average.swap(self)
+        try:
+            yield
+        finally:
+            self.average.swap(self)
+
     def on_fit_start(self) -> None:
         if self.model.input_standardize and not bool(self.model.input_stats_set):
             raise ValueError("input_standardize (the default) needs the training set's channel statistics: fit with a "
                              "TactileDataModule and the HandOverStatistics callback (embodied_tactile.run.runtime; "
                              "train.py adds it), or build the network with input_standardize=False")
+        if self.average is not None:
+            self.average.start(self)  # a resumed run's checkpoint held the average: the optimiser's weights return
+
+    def optimizer_step(self, *args: Any, **kwargs: Any) -> None:
+        super().optimizer_step(*args, **kwargs)
+        if self.average is not None:  # before any on_train_batch_end: a checkpoint saved there has this step
+            self.average.update(self)
+
+    def on_train_end(self) -> None:
+        if self.average is not None and self.average.started:
+            self.average.swap(self)  # the run's weights from here on: validate_at_end, the caller
+            self.average.stop()
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if self.average is not None and self.average.started:
+            self.average.save(checkpoint)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        """Checkpoints of earlier layouts load (:func:`~.compat.upgrade_state_dict`)."""
+        """Checkpoints of earlier layouts load (:func:`~.compat.upgrade_state_dict`); a
+        weight-averaged run's checkpoint loads its average (the optimiser's weights are kept
+        for :meth:`on_fit_start` of a resumed fit)."""
         checkpoint["state_dict"] = upgrade_state_dict(checkpoint.get("state_dict") or {},
                                                       late=isinstance(self.model.observation, LateFusion))
+        if self.average is not None:
+            self.average.load(checkpoint)
 
     def configure_optimizers(self):
         if getattr(self, "_trainer", None) is not None:  # schedule lengths given as a fraction of the run's steps
@@ -278,6 +325,79 @@ class LatentFilterModule(L.LightningModule):
         total = max(1, int(self.trainer.estimated_stepping_batches))
         cosine = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total, eta_min=0.0)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": cosine, "interval": "step"}}
+
+
+class WeightAverage:
+    """An exponential moving average of a module's parameters (float32, on their device).
+
+    After the n-th optimiser step (n = 1, 2, ...) every averaged tensor moves toward the
+    parameter by (1 - d_n), d_n = min(decay, (1 + n) / (10 + n)): early updates forget the
+    initialisation fast, later ones average over about 1 / (1 - decay) steps. The average
+    starts as a copy of the parameters (:meth:`start`), so before any update it equals them.
+    Buffers are not averaged (input statistics and the prior's record of seen objects are
+    the network's own).
+    """
+
+    KEY = "weight_average"  # the checkpoint entry: decay, updates and the optimiser's weights
+
+    def __init__(self, decay: float) -> None:
+        self.decay = float(decay)
+        self.updates = 0
+        self.tensors: Optional[dict[str, Tensor]] = None
+        self._resume: Optional[dict[str, Any]] = None
+
+    @property
+    def started(self) -> bool:
+        return self.tensors is not None
+
+    def start(self, module: torch.nn.Module) -> None:
+        """Begin averaging ``module``'s parameters; after a checkpoint of an averaged run
+        (:meth:`load`) the module holds the average, which is kept, and the optimiser's
+        weights are put back."""
+        params = dict(module.named_parameters())
+        if self._resume is not None:
+            state, self._resume = self._resume, None
+            self.tensors = {k: p.detach().clone() for k, p in params.items()}
+            self.updates = int(state["updates"])
+            with torch.no_grad():
+                for k, p in params.items():
+                    p.copy_(state["weights"][k])
+            return
+        self.tensors = {k: p.detach().clone() for k, p in params.items()}
+        self.updates = 0
+
+    def stop(self) -> None:
+        self.tensors = None
+
+    @torch.no_grad()
+    def update(self, module: torch.nn.Module) -> None:
+        if self.tensors is None:
+            self.start(module)
+        self.updates += 1
+        d = min(self.decay, (1.0 + self.updates) / (10.0 + self.updates))
+        params = dict(module.named_parameters())
+        names = list(self.tensors)
+        torch._foreach_lerp_([self.tensors[k] for k in names], [params[k].detach() for k in names], 1.0 - d)
+
+    @torch.no_grad()
+    def swap(self, module: torch.nn.Module) -> None:
+        """Exchange the module's parameters with the average (twice: back as before)."""
+        for k, p in module.named_parameters():
+            held = p.detach().clone()
+            p.copy_(self.tensors[k])
+            self.tensors[k] = held
+
+    def save(self, checkpoint: dict[str, Any]) -> None:
+        """The checkpoint's ``state_dict`` gets the average; the optimiser's weights go
+        under :attr:`KEY`."""
+        state = checkpoint["state_dict"]
+        weights = {k: state[k] for k in self.tensors}
+        state.update({k: v.detach().clone() for k, v in self.tensors.items()})
+        checkpoint[self.KEY] = {"decay": self.decay, "updates": self.updates, "weights": weights}
+
+    def load(self, checkpoint: Mapping[str, Any]) -> None:
+        """Keep a checkpoint's optimiser weights for the :meth:`start` of a resumed fit."""
+        self._resume = checkpoint.get(self.KEY)
 
 
 def __getattr__(name: str) -> Any:

@@ -102,6 +102,7 @@ class ModuleOptions:
     check_finite: bool = True
     lr_schedule: str = "constant"
     code_lr_scale: float = field(default=1.0, metadata=bounds(0, lo_open=True))
+    weight_average: Optional[float] = field(default=None, metadata=bounds(0, 1, lo_open=True, hi_open=True))
 
 
 def build(cls: type, given: Optional[Mapping[str, Any]], owner: str) -> Any:
