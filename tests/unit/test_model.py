@@ -832,21 +832,25 @@ def _averaged_fit(tmp_path, name, max_steps, ckpt_path=None, decay=0.5):
 def test_weight_average_follows_its_recursion_and_becomes_the_runs_weights(tmp_path):
     """The average after each optimiser step is lerp(average, weights, 1 - d_n),
     d_n = min(decay, (1 + n) / (10 + n)), from a copy of the initial weights; after fit the
-    network holds it, and the checkpoint's state_dict holds it too, the optimiser's weights
-    beside it under ``weight_average``."""
+    network holds it, the validation loop in fit reads it, and the checkpoint's state_dict
+    holds it too, the optimiser's weights beside it under ``weight_average``."""
     torch.manual_seed(0)
     module = LatentFilterModule(LatentFilter("acc", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
                                 weight_average=0.5)
-    seen = []  # the optimiser's weights after each step, as the average sees them
+    seen, validated = [], []  # the optimiser's weights after each step; the weights validation reads
 
     class Record(L.Callback):
         def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
             seen.append({k: p.detach().clone() for k, p in pl_module.named_parameters()})
 
+        def on_validation_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0):
+            validated.append({k: p.detach().clone() for k, p in pl_module.named_parameters()})
+
     initial = {k: p.detach().clone() for k, p in module.named_parameters()}
     ckpt = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "c", save_last=True, every_n_train_steps=3)
+    data = DataLoader(ListDataset(make_batch(1, B=6, T=6)), batch_size=2)
     trainer(tmp_path, max_steps=3, enable_checkpointing=True, callbacks=[Record(), ckpt],
-            limit_val_batches=0).fit(module, DataLoader(ListDataset(make_batch(1, B=6, T=6)), batch_size=2))
+            limit_val_batches=1).fit(module, data, data)
     expected = {k: v.clone() for k, v in initial.items()}
     for n, w in enumerate(seen, start=1):
         d = min(0.5, (1 + n) / (10 + n))
@@ -854,6 +858,9 @@ def test_weight_average_follows_its_recursion_and_becomes_the_runs_weights(tmp_p
     for k, p in module.named_parameters():
         assert torch.allclose(p, expected[k], atol=1e-6), k
     assert any(not torch.equal(seen[-1][k], expected[k]) for k in expected)  # the average is not the last step
+    assert len(validated) == 1  # the epoch's validation, after the third step: the average
+    for k in expected:
+        assert torch.allclose(validated[0][k], expected[k], atol=1e-6), k
     saved = torch.load(tmp_path / "c" / "last.ckpt", weights_only=False)
     for k in expected:
         assert torch.allclose(saved["state_dict"][k], expected[k], atol=1e-6), k

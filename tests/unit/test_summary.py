@@ -81,6 +81,10 @@ def test_checks_line_compares_the_last_three_checks_like_with_like(tmp_path):
     assert [r["step"] for r in checks] == [8, 10, 12] and spread == pytest.approx(0.1)
     line = next(ln for ln in run_summary_lines(run, cwd=tmp_path) if ln.startswith("checks:"))
     assert "steps 8, 10, 12" in line and "0.4, 0.44, 0.42" in line and "spread 10 %" in line
+    assert "moving average" not in line
+    (run / "config_resolved.yaml").write_text("model: {weight_average: 0.99}\n")  # the checks read the average
+    line = next(ln for ln in run_summary_lines(run, cwd=tmp_path) if ln.startswith("checks:"))
+    assert line.endswith("(the checks' cheaper read-out, of the weights' moving average (decay 0.99))")
     assert check_spread(hist[:3]) is None  # one periodic check only: nothing to compare
     # fewer than three checks: no line
     assert not any(ln.startswith("checks:") for ln in run_summary_lines(fake_run(tmp_path / "short"), cwd=tmp_path))

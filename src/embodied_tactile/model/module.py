@@ -134,8 +134,9 @@ class LatentFilterModule(L.LightningModule):
             of the network's parameters, updated after every optimiser step with decay
             min(d, (1 + n) / (10 + n)) at the n-th update (:class:`WeightAverage`). The
             run's weights are then the average: the KRR checks and the final alignment read
-            it (:meth:`averaged_weights`), every checkpoint's ``state_dict`` holds it (the
-            weights the optimiser moves are kept beside it, for resuming), and after fit
+            it (:meth:`averaged_weights`), so does the validation loop in fit (the held-out
+            ELBO and the checkpoint chosen by it), every checkpoint's ``state_dict`` holds it
+            (the weights the optimiser moves are kept beside it, for resuming), and after fit
             the network holds it (docs/reference/model.md, "Weight averaging").
 
     Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
@@ -292,6 +293,14 @@ class LatentFilterModule(L.LightningModule):
         if self.average is not None:  # before any on_train_batch_end: a checkpoint saved there has this step
             self.average.update(self)
 
+    def on_validation_epoch_start(self) -> None:
+        if self.average is not None and self.average.started:  # in fit: the held-out ELBO of the run's weights
+            self.average.swap(self)
+
+    def on_validation_epoch_end(self) -> None:
+        if self.average is not None and self.average.started:
+            self.average.swap(self)
+
     def on_train_end(self) -> None:
         if self.average is not None and self.average.started:
             self.average.swap(self)  # the run's weights from here on: validate_at_end, the caller
@@ -375,9 +384,8 @@ class WeightAverage:
             self.start(module)
         self.updates += 1
         d = min(self.decay, (1.0 + self.updates) / (10.0 + self.updates))
-        params = dict(module.named_parameters())
-        names = list(self.tensors)
-        torch._foreach_lerp_([self.tensors[k] for k in names], [params[k].detach() for k in names], 1.0 - d)
+        for k, p in module.named_parameters():
+            self.tensors[k].lerp_(p.detach(), 1.0 - d)
 
     @torch.no_grad()
     def swap(self, module: torch.nn.Module) -> None:

@@ -264,14 +264,19 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     lines = [RULE, f"run {status}: {show_path(run, cwd)}"]
     if status == "failed" and m.get("error"):
         lines.append(f"error: {m['error']}")
+    from omegaconf import OmegaConf
+
+    cfg = run_config(run)
     rows = krr_history(run)
     lines += nmse_lines(rows[-1] if rows else None)
     spread = check_spread(rows)
     if spread is not None:
         checks, frac = spread
+        decay = OmegaConf.select(cfg, "model.weight_average", default=None)
+        weights = "" if decay is None else f", of the weights' moving average (decay {decay:g})"
         lines.append(f"checks:        the last {len(checks)} (steps {', '.join(str(r.get('step')) for r in checks)}): "
                      f"{', '.join(_fmt(r['nmse_overall']) for r in checks)}, spread {100 * frac:.0f} % "
-                     f"(the checks' cheaper read-out)")
+                     f"(the checks' cheaper read-out{weights})")
     t = f"training time: {duration(m.get('train_wall_s'))}"
     if m.get("data_prepare_s") is not None:
         t += f" (data preparation {duration(m.get('data_prepare_s'))} on top)"
@@ -289,9 +294,6 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     have = [n for n in ("metrics.json", HISTORY, "csv/metrics.csv") if (run / n).exists()]
     lines.append(f"metrics:       {show_path(run, cwd)}/{{{','.join(have)}}}" if len(have) > 1 else
                  f"metrics:       {show_path(run / have[0], cwd) if have else 'none written'}")
-    from omegaconf import OmegaConf
-
-    cfg = run_config(run)
     own = OWN_READERS.get(OmegaConf.select(cfg, "modality.name", default=None))
     if own is None:
         lines.append(f"figures:       {show_path(run / 'evaluation', cwd)}/ (tables, figures/), written by:")
