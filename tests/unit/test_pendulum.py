@@ -253,22 +253,39 @@ def test_short_training_learns_the_angle(short_run):
     assert ol["model"].shape == (20,) and np.all(ol["model"] < ol["last_frame"][0] * 10)
 
 
+REMEDIES = ["model.net.obs_dropout=0.5", "model.net.y_update=evidence"]
+
+
+def _read_run(folder, overrides):
+    """One 300-step training of the remedies' comparison (module-level: a spawned process runs it)."""
+    torch.set_num_threads(1)
+    return train_scene(folder, 300, overrides, n_filter=10, horizon=20, max_rows=600, snr_draws=2)[0]
+
+
 @pytest.fixture(scope="module")
-def remedy_run(tmp_path_factory):
+def remedy_and_plain(tmp_path_factory):
     """The short run with the remedies that make the filter filter (docs/reference/model.md, "Pendulum
-    benchmark"): observation dropout 0.5 and the evidence y update."""
-    torch.set_num_threads(1)
-    return train_scene(tmp_path_factory.mktemp("remedy"), 300,
-                       [*PLAIN, "model.net.obs_dropout=0.5", "model.net.y_update=evidence"],
-                       n_filter=10, horizon=20, max_rows=600, snr_draws=2)[0]
+    benchmark"): observation dropout 0.5 and the evidence y update; and the same data, seed and
+    steps under the plain ELBO. The two trainings run side by side, one torch thread each, the
+    plain one in a spawned process (the same numbers as one after the other: each is
+    deterministic at one thread)."""
+    import concurrent.futures
+    import multiprocessing
+
+    with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        plain = pool.submit(_read_run, tmp_path_factory.mktemp("plain"), PLAIN)
+        remedy = _read_run(tmp_path_factory.mktemp("remedy"), [*PLAIN, *REMEDIES])
+        return remedy, plain.result()
 
 
 @pytest.fixture(scope="module")
-def plain_run(tmp_path_factory):
-    """remedy_run's data, seed and steps under the plain ELBO."""
-    torch.set_num_threads(1)
-    return train_scene(tmp_path_factory.mktemp("plain"), 300, PLAIN, n_filter=10, horizon=20, max_rows=600,
-                       snr_draws=2)[0]
+def remedy_run(remedy_and_plain):
+    return remedy_and_plain[0]
+
+
+@pytest.fixture(scope="module")
+def plain_run(remedy_and_plain):
+    return remedy_and_plain[1]
 
 
 @pytest.mark.slow  # remedy_run, plain_run: train the Latent Filter 300 steps each
