@@ -14,8 +14,6 @@ the first round and after every round in the same process. Modes:
   compile  torch.compile of encoders and decoders (not the time loop)
   naive    the per-frame reference: encoder and decoder called inside the time loop
            (``steps.naive_terms``), same weights
-  fsr16    the FSR-only pathways' networks at the sensor's 16 x 16 (``encoder.fsr_side=16``); its
-           GFLOP/s and % of ceiling use the fp32 step's FLOP count (an effective rate)
 
 ``--scene default|paper`` builds the model as ``python train.py`` does (the composed
 config: ``experiment=paper`` for the paper's) at the scene's shapes (default: batch 16,
@@ -51,7 +49,7 @@ from embodied_tactile.model import module as lf_module  # noqa: E402
 from embodied_tactile.model import networks  # noqa: E402
 from embodied_tactile.model.networks import ConvDecoder, ConvEncoder  # noqa: E402
 
-MODES = ("fp32", "before", "bf16", "compile", "naive", "fsr16")
+MODES = ("fp32", "before", "bf16", "compile", "naive")
 #: whole trials of the simulated scenes (configs/data/sim.yaml ``seq_len: null``)
 WHOLE_TRIAL_FRAMES = 300
 
@@ -86,7 +84,7 @@ def code_before():
         ConvDecoder.body, lf.gaussian_nll_frames, lf_module.nonfinite_inputs = saved
 
 
-def scene_module(scene: str, modality: str | None, extra: tuple[str, ...] = ()):
+def scene_module(scene: str, modality: str | None):
     """(LightningModule built from the composed train config, batch size, frames per window)."""
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
@@ -96,7 +94,6 @@ def scene_module(scene: str, modality: str | None, extra: tuple[str, ...] = ()):
     overrides = ["hydra.runtime.output_dir=/tmp"] + (["experiment=paper"] if scene == "paper" else [])
     if modality:
         overrides.append(f"modality={modality}")
-    overrides += list(extra)
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
         cfg = compose(config_name="train", overrides=overrides)
     module = instantiate(cfg.model)
@@ -114,13 +111,10 @@ class Mode:
 
         warnings.filterwarnings("ignore", message=r".*self\.log\(\)` but the `self\.trainer` reference is not registered")
         torch.manual_seed(0)
-        native = mode == "fsr16"  # the FSR pathway's networks at 16 x 16 (encoder.fsr_side)
         if args.scene:
-            self.module, _, _ = scene_module(args.scene, args.modality,
-                                             ("model.net.encoder.fsr_side=16",) if native else ())
+            self.module, _, _ = scene_module(args.scene, args.modality)
         else:
-            self.module = training_module(LatentFilter(args.modality or "multi_l",
-                                                       **({"encoder": {"fsr_side": 16}} if native else {})))
+            self.module = training_module(LatentFilter(args.modality or "multi_l"))
         m = self.module.model
         self.name = mode
         self.ctx = contextlib.nullcontext

@@ -18,13 +18,12 @@ module (:mod:`.module`) trains whichever the network built.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Optional
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
 
-from .networks import FRAME_SIDE, ConvDecoder, ConvEncoder, fuse_gaussians
+from .networks import ConvDecoder, ConvEncoder, fuse_gaussians
 
 
 class EarlyFusion(nn.Module):
@@ -33,11 +32,10 @@ class EarlyFusion(nn.Module):
     Args: n_channels (C), n_z, widths / hidden (the :class:`ConvEncoder` sizes, shared by
     the decoder), min_var (encoder variance floor)."""
 
-    def __init__(self, n_channels: int, n_z: int, widths: Sequence[int], hidden: int, min_var: float,
-                 side: int = FRAME_SIDE) -> None:
+    def __init__(self, n_channels: int, n_z: int, widths: Sequence[int], hidden: int, min_var: float) -> None:
         super().__init__()
-        self.encoder = ConvEncoder(n_channels, n_z, widths, hidden, min_var, side)
-        self.decoder = ConvDecoder(n_channels, n_z, widths, hidden, side)
+        self.encoder = ConvEncoder(n_channels, n_z, widths, hidden, min_var)
+        self.decoder = ConvDecoder(n_channels, n_z, widths, hidden)
 
     def encode(self, o: Tensor) -> tuple[Tensor, Tensor]:
         return self.encoder(o)
@@ -56,7 +54,7 @@ class LateFusion(nn.Module):
     """
 
     def __init__(self, pathways: Sequence[tuple[str, Sequence[int]]], n_z: int, widths: Sequence[int],
-                 hidden: int, min_var: float, sides: Optional[Mapping[str, int]] = None) -> None:
+                 hidden: int, min_var: float) -> None:
         super().__init__()
         pathways = [(str(name), [int(i) for i in idx]) for name, idx in pathways]
         order = [i for _, idx in pathways for i in idx]
@@ -66,9 +64,8 @@ class LateFusion(nn.Module):
         self.decoders = nn.ModuleDict()
         self.pathways = pathways
         for name, idx in pathways:  # encoder then decoder per pathway: the initialisation order of the RNG draws
-            side = (sides or {}).get(name, FRAME_SIDE)
-            self.encoders[name] = ConvEncoder(len(idx), n_z, widths, hidden, min_var, side)
-            self.decoders[name] = ConvDecoder(len(idx), n_z, widths, hidden, side)
+            self.encoders[name] = ConvEncoder(len(idx), n_z, widths, hidden, min_var)
+            self.decoders[name] = ConvDecoder(len(idx), n_z, widths, hidden)
             self.register_buffer(f"_idx_{name}", torch.tensor(idx, dtype=torch.long), persistent=False)
         self._identity_order = order == list(range(len(order)))
         self.register_buffer("_inv_order", torch.argsort(torch.tensor(order)), persistent=False)
@@ -99,15 +96,13 @@ FUSION_CLASSES: dict[str, type[ObservationModel]] = {"single": EarlyFusion, "ear
 
 
 def observation_model(fusion: str, pathways: Sequence[tuple[str, Sequence[int]]], n_z: int,
-                      widths: Sequence[int], hidden: int, min_var: float,
-                      sides: Optional[Mapping[str, int]] = None) -> ObservationModel:
+                      widths: Sequence[int], hidden: int, min_var: float) -> ObservationModel:
     """The observation model of a modality with this ``fusion`` and ``pathways``
-    (``[(name, [channel indices]), ...]``; one pathway over all channels unless late);
-    ``sides``: the side each pathway's networks work at, by name (28 where unnamed)."""
+    (``[(name, [channel indices]), ...]``; one pathway over all channels unless late)."""
     cls = FUSION_CLASSES.get(fusion)
     if cls is None:
         raise ValueError(f"unknown fusion {fusion!r}; known: {sorted(FUSION_CLASSES)}")
     if cls is LateFusion:
-        return LateFusion(pathways, n_z, widths, hidden, min_var, sides)
-    (name, idx), = pathways  # one pathway over every channel
-    return EarlyFusion(len(idx), n_z, widths, hidden, min_var, (sides or {}).get(name, FRAME_SIDE))
+        return LateFusion(pathways, n_z, widths, hidden, min_var)
+    (_, idx), = pathways  # one pathway over every channel
+    return EarlyFusion(len(idx), n_z, widths, hidden, min_var)

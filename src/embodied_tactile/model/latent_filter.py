@@ -142,8 +142,7 @@ class LatentFilter(nn.Module):
         # built first: the same seed gives the same initial parameters as before the
         # fusion code moved to model/fusion.py
         self.observation: ObservationModel = observation_model(
-            self.modality["fusion"], self.modality["pathways"], n_z, list(enc.widths), enc.hidden, min_var,
-            self._sides(int(enc.fsr_side)))
+            self.modality["fusion"], self.modality["pathways"], n_z, list(enc.widths), enc.hidden, min_var)
         self.transition = TransitionNet(n_z, n_y, n_a, opts.transition_hidden, min_var)
         self.y_posterior = YPosterior(n_z, n_y, n_a, opts.lstm_hidden, min_var,
                                       update=opts.y_update,
@@ -169,18 +168,6 @@ class LatentFilter(nn.Module):
             self.register_buffer("input_shift", torch.zeros(self.n_channels))
             self.register_buffer("input_scale", torch.ones(self.n_channels))
             self.register_buffer("input_stats_set", torch.tensor(False))
-
-    def _sides(self, fsr_side: int) -> dict[str, int]:
-        """The side each pathway's networks work at: ``fsr_side`` for pathways of FSR
-        channels only (the sensor's 16 x 16, resized to 28 x 28 by the preprocessing), 28
-        for the others."""
-        channels = self.modality["channels"]
-        sides = {name: fsr_side for name, idx in self.modality["pathways"]
-                 if all(str(channels[i]).startswith("fsr") for i in idx)}
-        if fsr_side != 28 and not sides:
-            raise ValueError(f"encoder.fsr_side={fsr_side} needs a pathway of FSR channels only; "
-                             f"{self.modality['name']} has {self.modality['pathways']}")
-        return sides
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> "LatentFilter":

@@ -198,55 +198,29 @@ def _check_widths(widths: Sequence[int]) -> tuple[int, int]:
     return widths  # type: ignore[return-value]
 
 
-#: The frames' side (the paper's 28 x 28) and the sides a network may work at inside it
-FRAME_SIDE = 28
-NETWORK_SIDES = (28, 16)
-
-
-def resize_matrix(n_in: int, n_out: int) -> Tensor:
-    """(n_out, n_in): ``F.interpolate(mode="linear", align_corners=False)`` from n_in to
-    n_out samples as a matrix (the 2-D bilinear resize of the preprocessing is this on
-    each axis)."""
-    eye = torch.eye(n_in, dtype=torch.float64).unsqueeze(1)  # (n_in, 1, n_in)
-    return F.interpolate(eye, size=n_out, mode="linear", align_corners=False).squeeze(1).T.contiguous()
-
-
-def _check_side(side: int) -> int:
-    if int(side) not in NETWORK_SIDES:
-        raise ValueError(f"a network's side must be one of {NETWORK_SIDES}, got {side}")
-    return int(side)
-
-
 class ConvEncoder(_CompilableBody):
     """Inverse measurement model q(z_t | o_t): two stride-2 convs 28->14->7, MLP head.
 
     Input (N, C, 28, 28), output mean (N, n_z) and variance (N, n_z) (softplus + floor,
-    float32). Runs over all B*T frames in one call. ``side`` 16: the frames are first
-    mapped to 16 x 16 by the pseudo-inverse of the bilinear 16 -> 28 resize (exact for the
-    FSR frames, which the preprocessing resized so), and the convs run 16->8->4.
+    float32). Runs over all B*T frames in one call.
     """
 
     def __init__(self, in_channels: int, n_z: int, widths: Sequence[int] = (16, 32),
-                 hidden: int = 128, min_var: float = 1e-3, side: int = FRAME_SIDE) -> None:
+                 hidden: int = 128, min_var: float = 1e-3) -> None:
         super().__init__()
         w1, w2 = _check_widths(widths)
         self.in_channels = int(in_channels)
         self.min_var = float(min_var)
-        self.side = _check_side(side)
-        if self.side != FRAME_SIDE:
-            down = torch.linalg.pinv(resize_matrix(self.side, FRAME_SIDE)).float()  # (side, 28)
-            self.register_buffer("_down", down, persistent=False)
-        q = self.side // 4
         self.conv = nn.Sequential(
             nn.Conv2d(in_channels, w1, 4, stride=2, padding=1), nn.ELU(),
             nn.Conv2d(w1, w2, 4, stride=2, padding=1), nn.ELU(),
             nn.Flatten(),
-            nn.Linear(w2 * q * q, hidden), nn.ELU(),
+            nn.Linear(w2 * 7 * 7, hidden), nn.ELU(),
         )
         self.head = nn.Linear(hidden, 2 * n_z)
 
     def forward(self, o: Tensor) -> tuple[Tensor, Tensor]:
-        if o.shape[-3:] != (self.in_channels, FRAME_SIDE, FRAME_SIDE):
+        if o.shape[-3:] != (self.in_channels, 28, 28):
             raise ValueError(f"encoder expects (N, {self.in_channels}, 28, 28), got {tuple(o.shape)}")
         m, raw = _run(self, o).chunk(2, dim=-1)
         return m.float(), softplus_var(raw, self.min_var)
@@ -255,8 +229,6 @@ class ConvEncoder(_CompilableBody):
         """Convs and MLP: (N, C, 28, 28) -> (N, 2 n_z) raw head output (what
         :func:`compile_convs` compiles). The channels_last copy is made here, so a chunked
         pass (:func:`_run`) copies one chunk at a time, never the whole input."""
-        if self.side != FRAME_SIDE:
-            o = self._down.to(o.dtype) @ o @ self._down.to(o.dtype).T
         if o.shape[0] >= CHANNELS_LAST_MIN_FRAMES and o.device.type == "cpu":
             o = o.contiguous(memory_format=torch.channels_last)  # ~2-3x faster oneDNN convs
         return self.head(self.conv(o))
@@ -266,21 +238,15 @@ class ConvDecoder(_CompilableBody):
     """Observation model mean: mirror of :class:`ConvEncoder` (transposed convs 7->14->28).
 
     Input z (N, n_z), output (N, C, 28, 28) means; the Gaussian sigma lives in the model.
-    ``side`` 16: transposed convs 4->8->16, then the bilinear 16 -> 28 resize of the
-    preprocessing (the FSR frames lie in its range).
     """
 
     def __init__(self, out_channels: int, n_z: int, widths: Sequence[int] = (16, 32),
-                 hidden: int = 128, side: int = FRAME_SIDE) -> None:
+                 hidden: int = 128) -> None:
         super().__init__()
         w1, w2 = _check_widths(widths)
         self.out_channels = int(out_channels)
         self.w2 = w2
-        self.side = _check_side(side)
-        if self.side != FRAME_SIDE:
-            self.register_buffer("_up", resize_matrix(self.side, FRAME_SIDE).float(), persistent=False)  # (28, side)
-        q = self.side // 4
-        self.fc = nn.Sequential(nn.Linear(n_z, hidden), nn.ELU(), nn.Linear(hidden, w2 * q * q), nn.ELU())
+        self.fc = nn.Sequential(nn.Linear(n_z, hidden), nn.ELU(), nn.Linear(hidden, w2 * 7 * 7), nn.ELU())
         self.deconv = nn.Sequential(
             nn.ConvTranspose2d(w2, w1, 4, stride=2, padding=1), nn.ELU(),
             nn.ConvTranspose2d(w1, out_channels, 4, stride=2, padding=1),
@@ -295,20 +261,13 @@ class ConvDecoder(_CompilableBody):
         the last transposed conv as :func:`subpixel_conv_transpose`, and return the means in
         the contiguous layout of the observations (the likelihood's elementwise ops read
         both alike)."""
-        q = self.side // 4
-        h = self.fc(z).view(z.shape[0], self.w2, q, q)
+        h = self.fc(z).view(z.shape[0], self.w2, 7, 7)
         if not (z.shape[0] >= CHANNELS_LAST_MIN_FRAMES and z.device.type == "cpu"):
-            return self._resized(self.deconv(h))
+            return self.deconv(h)
         h = h.contiguous(memory_format=torch.channels_last)  # ~2x faster transposed convs
         h = self.deconv[1](self.deconv[0](h))
         last = self.deconv[2]
-        return self._resized(subpixel_conv_transpose(h, last.weight, last.bias))
-
-    def _resized(self, x: Tensor) -> Tensor:
-        if self.side == FRAME_SIDE:
-            return x
-        up = self._up.to(x.dtype)
-        return up @ x @ up.T
+        return subpixel_conv_transpose(h, last.weight, last.bias)
 
 
 #: ``_SUBPIXEL_TAPS[r]``: for output phase r (row or column 2m + r) of a stride-2, 4-tap,

@@ -13,7 +13,7 @@ Plain dataclasses: no torch, no Hydra.
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, ClassVar, List, Mapping, Optional
 
-from embodied_tactile.options.checks import Rule, at_least, bounds, one_of
+from embodied_tactile.options.checks import Rule, at_least, bounds
 
 
 @dataclass
@@ -22,7 +22,6 @@ class EncoderOptions:
 
     widths: List[int] = field(default_factory=lambda: [16, 32])
     hidden: int = 128
-    fsr_side: int = field(default=28, metadata=one_of(28, 16))  # 16: networks of FSR-only pathways at the sensor's 16 x 16
 
 
 @dataclass
