@@ -265,8 +265,7 @@ class KRRAlignmentCallback(Callback):
         self._cb_time = 0.0
         self._inputs = None
         if self.initial and trainer.global_step == 0 and self._elapsed_before == 0.0:
-            with averaged(pl_module):
-                metrics = self._evaluate(trainer, pl_module, initial=True)  # t = 0: the untrained network
+            metrics = self._evaluate(trainer, pl_module, initial=True)  # t = 0: the untrained network
             if metrics:
                 self._log_to_loggers(trainer, metrics)
 
@@ -297,8 +296,7 @@ class KRRAlignmentCallback(Callback):
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         if self.due(trainer):
-            with averaged(pl_module):
-                metrics = self._evaluate(trainer, pl_module)
+            metrics = self._evaluate(trainer, pl_module)
             if metrics:
                 for k, v in metrics.items():
                     pl_module.log(k, v, on_step=False, on_epoch=True, logger=False, prog_bar=(k == "krr/nmse_overall"))
@@ -306,8 +304,7 @@ class KRRAlignmentCallback(Callback):
 
     def on_train_end(self, trainer, pl_module) -> None:
         if self.run_on_train_end:
-            with averaged(pl_module):
-                metrics = self._evaluate(trainer, pl_module, final=True)
+            metrics = self._evaluate(trainer, pl_module, final=True)
             if metrics:
                 import torch
 
@@ -337,18 +334,19 @@ class KRRAlignmentCallback(Callback):
         The final alignment of a run whose cache holds only part of a split reads both
         splits whole from their loaders and merges them the same way
         (:func:`collect_split_latents`, as evaluate.py does)."""
-        loaders = self._loaders(trainer)
-        if self._inputs is None:
-            train, train_whole = cache_batches(loaders[0], self.max_train_sequences)
-            held, held_whole = cache_batches(loaders[1], self.max_val_sequences)
-            self._inputs = (rebatch(train + held, self.infer_batch_size), _count(train), train_whole and held_whole)
-        batches, n_train, whole = self._inputs
-        if final and not whole:  # both splits whole, inferred as evaluate.py infers them
-            return collect_split_latents(pl_module, cache_batches(loaders[0], None)[0],
-                                         cache_batches(loaders[1], None)[0], latent=self.latent,
-                                         batch_size=self.infer_batch_size)
-        # the same batches collect_split_latents would merge, merged once per fit
-        return _split_at(collect_latents(pl_module, batches, latent=self.latent), n_train)
+        with averaged(pl_module):  # the run's weights: the average where the module keeps one
+            loaders = self._loaders(trainer)
+            if self._inputs is None:
+                train, train_whole = cache_batches(loaders[0], self.max_train_sequences)
+                held, held_whole = cache_batches(loaders[1], self.max_val_sequences)
+                self._inputs = (rebatch(train + held, self.infer_batch_size), _count(train), train_whole and held_whole)
+            batches, n_train, whole = self._inputs
+            if final and not whole:  # both splits whole, inferred as evaluate.py infers them
+                return collect_split_latents(pl_module, cache_batches(loaders[0], None)[0],
+                                             cache_batches(loaders[1], None)[0], latent=self.latent,
+                                             batch_size=self.infer_batch_size)
+            # the same batches collect_split_latents would merge, merged once per fit
+            return _split_at(collect_latents(pl_module, batches, latent=self.latent), n_train)
 
     def _evaluate(self, trainer, pl_module, final: bool = False, initial: bool = False) -> dict[str, float]:
         import torch

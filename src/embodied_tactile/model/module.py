@@ -267,11 +267,16 @@ class LatentFilterModule(L.LightningModule):
             self.model.prior.population_weight = 1.0 / int(statistics.n_train_sequences)
 
     # ------------------------------------------------------------------ weight averaging
+    @property
+    def averaging(self) -> bool:
+        """Whether an average is kept now (``weight_average``, in fit)."""
+        return self.average is not None and self.average.started
+
     @contextlib.contextmanager
     def averaged_weights(self) -> Iterator[None]:
         """The network holds the averaged weights inside the block (``weight_average``; the
         weights the optimiser moves outside it); a no-op without averaging."""
-        if self.average is None or not self.average.started:
+        if not self.averaging:
             yield
             return
         self.average.swap(self)
@@ -294,20 +299,20 @@ class LatentFilterModule(L.LightningModule):
             self.average.update(self)
 
     def on_validation_epoch_start(self) -> None:
-        if self.average is not None and self.average.started:  # in fit: the held-out ELBO of the run's weights
+        if self.averaging:  # in fit: the held-out ELBO of the run's weights
             self.average.swap(self)
 
     def on_validation_epoch_end(self) -> None:
-        if self.average is not None and self.average.started:
+        if self.averaging:
             self.average.swap(self)
 
     def on_train_end(self) -> None:
-        if self.average is not None and self.average.started:
+        if self.averaging:
             self.average.swap(self)  # the run's weights from here on: validate_at_end, the caller
             self.average.stop()
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        if self.average is not None and self.average.started:
+        if self.averaging:
             self.average.save(checkpoint)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -364,16 +369,13 @@ class WeightAverage:
         (:meth:`load`) the module holds the average, which is kept, and the optimiser's
         weights are put back."""
         params = dict(module.named_parameters())
-        if self._resume is not None:
-            state, self._resume = self._resume, None
-            self.tensors = {k: p.detach().clone() for k, p in params.items()}
-            self.updates = int(state["updates"])
+        self.tensors = {k: p.detach().clone() for k, p in params.items()}
+        state, self._resume = self._resume, None
+        self.updates = 0 if state is None else int(state["updates"])
+        if state is not None:
             with torch.no_grad():
                 for k, p in params.items():
                     p.copy_(state["weights"][k])
-            return
-        self.tensors = {k: p.detach().clone() for k, p in params.items()}
-        self.updates = 0
 
     def stop(self) -> None:
         self.tensors = None
