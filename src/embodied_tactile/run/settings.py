@@ -80,7 +80,66 @@ def check_train_config(cfg: DictConfig) -> None:
             options = PendulumOptions  # the pendulum scene's data (experiment=pendulum)
         if isinstance(node, DictConfig):
             check_options(options, node, key)
+    _check_design(cfg)
     _check_population(cfg)
+
+
+def _check_design(cfg: DictConfig) -> None:
+    """A simulated scene of the catalogue's objects must be one the simulator can make and the
+    split can honour: ``data.actions`` are distinct parameter sets of the action table, every
+    object has at least two trials on the trial split, and the held-out share is the one asked
+    for (the split caps it at all but one trial per object, and an object split must keep
+    every factor level among its training objects). SettingsError naming the key otherwise."""
+    present, source = config_value(cfg, "data.source")
+    if not present or source != "simulated":
+        return
+    from embodied_tactile import constants as C
+
+    scene = scene_defaults()
+
+    def get(name: str) -> Any:
+        present, value = config_value(cfg, f"data.{name}")
+        return value if present else scene.get(name)
+
+    actions = get("actions")
+    if actions is not None:
+        bad = [a for a in actions if not isinstance(a, int) or isinstance(a, bool) or not 0 <= a < C.N_ACTIONS]
+        if bad or not actions:
+            raise SettingsError(f"data.actions={actions}: parameter sets are integers 0..{C.N_ACTIONS - 1} of the "
+                                "action table (null = all 16)" + (f"; {bad} are not" if bad else ""))
+        if len(set(actions)) != len(actions):
+            raise SettingsError(f"data.actions={actions}: a parameter set is named twice")
+    objects = get("objects")
+    if objects is not None and not (isinstance(objects, list) and all(isinstance(o, int) for o in objects)):
+        return  # a population: its roles are fixed by sim.population
+    split, test_fraction, val_fraction = get("split"), get("test_fraction"), get("val_fraction")
+    if not isinstance(test_fraction, (int, float)) or not isinstance(val_fraction, (int, float)):
+        return  # typed checks name these
+    per_object = (C.N_ACTIONS if actions is None else len(actions)) * int(get("repetitions"))
+    if split == "trial":
+        if per_object < 2:
+            raise SettingsError(f"data.actions={actions} x data.repetitions={get('repetitions')} give one trial per "
+                                "object: the trial split holds out other touches of training objects and needs at "
+                                "least two")
+        if round(test_fraction * per_object) > per_object - 1:
+            raise SettingsError(f"data.test_fraction={test_fraction}: with {per_object} trials per object an object "
+                                f"would keep no training trial; at most {(per_object - 1) / per_object:.3g}")
+    elif split == "object":
+        from embodied_tactile.data.datamodule import split_trials  # lightning: only for an object split
+        from embodied_tactile.data.prepare import catalogue_trials
+
+        try:
+            listed = [t for t in catalogue_trials(actions, 1) if objects is None or t.object_id in objects]
+            train, _, _ = split_trials(listed, by="object", test_fraction=test_fraction,
+                                       val_fraction=val_fraction, seed=int(get("split_seed") or 0))
+        except ValueError as err:
+            raise SettingsError(f"data.test_fraction={test_fraction}, data.val_fraction={val_fraction}: {err}") from None
+        for k, name in enumerate(C.FACTOR_NAMES):
+            levels = {round(t.factors[k], 6) for t in listed}
+            kept = {round(t.factors[k], 6) for t in train}
+            if levels - kept:
+                raise SettingsError(f"data.test_fraction={test_fraction}, data.val_fraction={val_fraction}: the object "
+                                    f"split leaves no training object with {name} = {sorted(levels - kept)}")
 
 
 def _check_population(cfg: DictConfig) -> None:

@@ -1,0 +1,75 @@
+"""A bad design request (a parameter set that does not exist, one trial per object on the trial
+split, a held-out share the split cannot honour, an object split that leaves a factor level
+without training objects) stops train.py at the entry: one line naming the key, exit 2,
+nothing written."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+from omegaconf import OmegaConf
+
+from conftest import REPO
+from embodied_tactile.options.checks import SettingsError
+from embodied_tactile.run.settings import check_train_config
+
+
+def data(**kw):
+    base = {"source": "simulated", "objects": None, "actions": [2, 6, 10, 14], "repetitions": 1, "split": "trial",
+            "test_fraction": 0.25, "val_fraction": 0.125, "split_seed": 0}
+    return OmegaConf.create({"data": {**base, **kw}})
+
+
+@pytest.mark.parametrize("kw, needles", [
+    ({"actions": [2, 16]}, ("data.actions=[2, 16]", "0..15", "[16]")),
+    ({"actions": [-1]}, ("data.actions=[-1]",)),
+    ({"actions": [3, 3]}, ("data.actions=[3, 3]", "twice")),
+    ({"actions": []}, ("data.actions=[]",)),
+    ({"actions": [6], "repetitions": 1}, ("data.actions=[6]", "data.repetitions=1", "one trial per object")),
+    ({"test_fraction": 0.9, "val_fraction": 0.05}, ("data.test_fraction=0.9", "4 trials per object", "at most 0.75")),
+    ({"split": "object", "test_fraction": 0.8, "val_fraction": 0.1}, ("data.test_fraction=0.8", "no training object")),
+    ({"split": "object", "objects": [0, 8, 17, 27], "actions": [0, 5, 10]}, ("object split", "no training object")),
+])
+def test_a_design_the_split_or_the_simulator_cannot_honour_names_its_key(kw, needles):
+    from embodied_tactile.run.settings import _check_design
+
+    with pytest.raises(SettingsError) as info:
+        _check_design(data(**kw))
+    for n in needles:
+        assert n in str(info.value), (n, str(info.value))
+
+
+@pytest.mark.parametrize("kw", [
+    {},                                                   # the default scene
+    {"actions": None, "repetitions": 5},                  # the paper's design
+    {"actions": None, "test_fraction": 0.9, "val_fraction": 0.05},  # 16 trials per object: 14 held out, 2 kept
+    {"split": "object"},                                  # the held-out-objects protocol on the catalogue
+    {"objects": "population", "split": "object", "actions": [6]},  # a population: roles fixed elsewhere
+    {"source": "recorded", "actions": [6]},               # recordings: the trials that exist decide
+])
+def test_a_design_that_works_passes(kw):
+    from embodied_tactile.run.settings import _check_design
+
+    _check_design(data(**kw))
+
+
+def test_the_check_runs_with_the_typed_checks_of_train_py():
+    with pytest.raises(SettingsError, match=r"data.actions=\[16\]"):
+        check_train_config(data(actions=[16]))
+
+
+@pytest.mark.slow  # train.py subprocess
+def test_train_py_refuses_a_bad_design_in_one_line_and_writes_nothing(tmp_path):
+    cmd = [sys.executable, str(REPO / "train.py"), "debug=fast", "data.actions=[0,5,16]",
+           f"paths.log_dir={tmp_path / 'logs'}", f"paths.data_dir={tmp_path / 'data'}",
+           f"hydra.run.dir={tmp_path / 'run'}"]
+    res = subprocess.run(cmd, cwd=tmp_path, env={**os.environ, "WANDB_MODE": "disabled"}, capture_output=True,
+                         text=True, timeout=240)
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert res.stderr.strip().splitlines() == [
+        "train.py: error: data.actions=[0, 5, 16]: parameter sets are integers 0..15 of the action table "
+        "(null = all 16); [16] are not"]
+    assert not (tmp_path / "run").exists() and not any((tmp_path / "data").rglob("*.h5"))
