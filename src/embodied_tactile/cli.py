@@ -20,8 +20,8 @@ from omegaconf import DictConfig
 
 from embodied_tactile.options.checks import check_options, field_spec
 from embodied_tactile.run.config import config_dir
-from embodied_tactile.run.settings import (EXIT_BAD_SETTINGS, SettingsError, check_paths, check_train_config,
-                                           config_value, fail)
+from embodied_tactile.run.settings import (EXIT_BAD_SETTINGS, SettingsError, check_paths, check_sweep_folder,
+                                           check_train_config, config_value, fail)
 
 
 def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
@@ -211,6 +211,10 @@ class EntryCallback(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, "hydra.sweep.dir")
+        try:
+            check_sweep_folder(config)
+        except SettingsError as err:
+            fail(err)
         present, v = config_value(config, "hydra.sweep.dir")
         self._sweep_dir = str(v) if present else None
 

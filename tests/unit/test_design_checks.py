@@ -73,3 +73,29 @@ def test_train_py_refuses_a_bad_design_in_one_line_and_writes_nothing(tmp_path):
         "train.py: error: data.actions=[0, 5, 16]: parameter sets are integers 0..15 of the action table "
         "(null = all 16); [16] are not"]
     assert not (tmp_path / "run").exists() and not any((tmp_path / "data").rglob("*.h5"))
+
+
+def _multirun(task: list[str], params: dict | None) -> "OmegaConf":
+    return OmegaConf.create({"hydra": {"overrides": {"task": task}, "sweeper": {"params": params}}})
+
+
+def test_a_study_part_into_another_parts_sweep_folder_is_refused_and_a_resume_passes(tmp_path):
+    from embodied_tactile.run.settings import check_sweep_folder
+
+    folder = tmp_path / "study"
+    part = _multirun(["primitive=pressing", "seed=0,1,2"], {"combo": "acc_soft,multi_l_soft"})
+    check_sweep_folder(OmegaConf.merge(part, {"hydra": {"sweep": {"dir": str(folder)}}}))  # no record yet
+    folder.mkdir()
+    OmegaConf.save(part, folder / "multirun.yaml")
+    before = (folder / "multirun.yaml").read_bytes()
+    same = OmegaConf.merge(part, {"hydra": {"sweep": {"dir": str(folder)}}})
+    check_sweep_folder(same)  # the same multirun again: a resume
+    other = OmegaConf.merge(_multirun(["primitive=sliding", "seed=0,1,2"], {"combo": "acc_soft,multi_l_soft"}),
+                            {"hydra": {"sweep": {"dir": str(folder)}}})
+    with pytest.raises(SettingsError, match=r"hydra.sweep.dir=.*study: holds another multirun \(primitive=pressing"):
+        check_sweep_folder(other)
+    wider = OmegaConf.merge(_multirun(["primitive=pressing", "seed=0,1,2"], {"combo": "acc_soft"}),
+                            {"hydra": {"sweep": {"dir": str(folder)}}})
+    with pytest.raises(SettingsError, match="sweeper params"):
+        check_sweep_folder(wider)
+    assert (folder / "multirun.yaml").read_bytes() == before

@@ -196,4 +196,31 @@ def check_paths(cfg: DictConfig, *, run_dir_key: str | None = None) -> None:
             check_writable_dir(run_dir_key, Path(str(v)).parent)
 
 
-__all__ = ["EXIT_BAD_SETTINGS", "Exit", "SECTIONS", "fail", "SettingsError", "check_train_config", "check_paths", "check_writable_dir"]
+def check_sweep_folder(cfg: DictConfig) -> None:
+    """A sweep folder holds one multirun: Hydra rewrites its ``multirun.yaml`` at every start,
+    so a multirun whose overrides or sweep parameters differ from the ones recorded there would
+    overwrite another part's record (and put its jobs beside that part's). SettingsError naming
+    ``hydra.sweep.dir`` then; the same multirun again (a resume) passes."""
+    present, folder = config_value(cfg, "hydra.sweep.dir")
+    if not present or not folder or not (Path(str(folder)) / "multirun.yaml").is_file():
+        return
+    try:
+        earlier = OmegaConf.load(Path(str(folder)) / "multirun.yaml")
+    except Exception:  # noqa: BLE001 -- an unreadable record is not ours to judge: Hydra rewrites it
+        return
+
+    def what(c: DictConfig) -> tuple[list, Any]:
+        task = OmegaConf.select(c, "hydra.overrides.task", default=[])
+        params = OmegaConf.select(c, "hydra.sweeper.params", default=None)
+        return (sorted(OmegaConf.to_container(task)) if task is not None else [],
+                OmegaConf.to_container(params) if params is not None else None)
+
+    (task0, params0), (task1, params1) = what(earlier), what(cfg)
+    if task0 != task1 or params0 != params1:
+        shown = " ".join(task0) if task0 != task1 else f"sweeper params {params0}"
+        raise SettingsError(f"hydra.sweep.dir={folder}: holds another multirun ({shown}); give each part of a study "
+                            f"a folder of its own (hydra.sweep.dir={folder}/<part>) and evaluate.py merges them")
+
+
+__all__ = ["EXIT_BAD_SETTINGS", "Exit", "SECTIONS", "fail", "SettingsError", "check_sweep_folder", "check_train_config", "check_paths",
+           "check_writable_dir"]
