@@ -99,3 +99,24 @@ def test_a_study_part_into_another_parts_sweep_folder_is_refused_and_a_resume_pa
     with pytest.raises(SettingsError, match="sweeper params"):
         check_sweep_folder(wider)
     assert (folder / "multirun.yaml").read_bytes() == before
+
+
+def test_the_paper_design_scene_has_the_papers_trials_and_holds_out_a_quarter(tmp_path):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from embodied_tactile.data.datamodule import split_trials
+    from embodied_tactile.data.prepare import catalogue_trials
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=["experiment=paper_design", f"paths.log_dir={tmp_path}"])
+    d = cfg.data
+    assert d.actions is None and d.repetitions == 5 and d.test_fraction == 0.25
+    assert (d.batch_size, d.train_window, d.windows_per_epoch, cfg.trainer.max_epochs) == (16, 50, 480, 32)
+    trials = catalogue_trials(None, d.repetitions)
+    train, val, test = split_trials(trials, test_fraction=d.test_fraction, val_fraction=d.val_fraction)
+    assert (len(trials), len(test)) == (2560, 640)
+    held = {(t.object_id, t.action_index) for t in test}
+    assert len({t.object_id for t in test}) == 32 and len({t.action_index for t in test}) == 16
+    assert {(t.object_id, t.action_index) for t in train} | held >= held
