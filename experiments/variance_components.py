@@ -187,6 +187,7 @@ def analyse(args) -> None:
         done[key] = analyse_run(run_dir, args.boot, args.readout_seeds)
         cache_file.write_text(json.dumps(done, indent=1))
     print_tables(done, args.designs, args.levels)
+    print_power(done, args.designs, args.levels, args.delta)
 
 
 def _sd(v) -> float:
@@ -225,6 +226,45 @@ def print_tables(done: dict, designs: list[str], levels: int) -> None:
         print(f"| {design} | " + " | ".join(cells) + f" | {mw:.3f} / {ml:.3f} (n={len(rows)}) |")
 
 
+def seeds_for(sd_d: float, delta: float, n_max: int = 500) -> int | None:
+    """The fewest seeds (>= 3) at which a paired difference of standard deviation ``sd_d`` is
+    detected at ``delta`` with 80 % power (None: more than ``n_max``)."""
+    from embodied_tactile.eval.verdicts import detectable_difference
+
+    for n in range(3, n_max + 1):
+        if detectable_difference(sd_d / np.sqrt(n), n - 1) <= delta:
+            return n
+    return None
+
+
+def print_power(done: dict, designs: list[str], levels: int, delta: float) -> None:
+    """The paired difference between two cells, whole trajectory: its standard deviation lies
+    between sqrt(2) x sd(init) (the cells share data and split, and those effects cancel) and
+    sqrt(2) x sqrt(sd(init)^2 + sd(split)^2 + sd(data)^2) (nothing cancels; each one-factor sd
+    carries its own SGD noise, so this over-counts)."""
+    from embodied_tactile.eval.verdicts import detectable_difference
+
+    print(f"\nPaired difference of two cells (Overall, whole trajectory): detectable difference at 80 % power, "
+          f"and the seeds needed for {delta}\n")
+    print("| design | sd of d: best / worst | detectable, 3 seeds | 5 seeds | 10 seeds | seeds for "
+          f"{delta}: best / worst |")
+    print("|---|---|---|---|---|---|")
+    for design in designs:
+        rows = {k.split("/", 1)[1]: v for k, v in done.items() if k.startswith(design + "/")}
+        sds = {}
+        for f in FACTORS:
+            vals = [rows[n]["whole"] for n in ["base"] + [f"{f}{lvl}" for lvl in range(1, levels)] if n in rows]
+            sds[f] = _sd(vals)
+        if not np.isfinite(sds["init"]):
+            continue
+        best = float(np.sqrt(2) * sds["init"])
+        worst = float(np.sqrt(2 * sum(v * v for v in sds.values() if np.isfinite(v))))
+        det = [f"{detectable_difference(best / np.sqrt(n), n - 1):.3f} / "
+               f"{detectable_difference(worst / np.sqrt(n), n - 1):.3f}" for n in (3, 5, 10)]
+        print(f"| {design} | {best:.3f} / {worst:.3f} | " + " | ".join(det) +
+              f" | {seeds_for(best, delta) or '> 500'} / {seeds_for(worst, delta) or '> 500'} |")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("command", choices=["train", "analyse"])
@@ -235,6 +275,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--lanes", type=int, default=1)
     ap.add_argument("--boot", type=int, default=500, help="bootstrap resamples of the test trials / objects")
     ap.add_argument("--readout-seeds", type=int, default=5, help="read-out refits per within-run component")
+    ap.add_argument("--delta", type=float, default=0.03, help="the paired difference the study should detect")
     args = ap.parse_args(argv)
     {"train": train, "analyse": analyse}[args.command](args)
 

@@ -133,7 +133,9 @@ def verdict_of(lo: float, hi: float) -> str:
     return "reproduced" if lo > 0 else "contradicted" if hi < 0 else "inconclusive"
 
 
-def _detectable(se: float, df: float) -> float:
+def detectable_difference(se: float, df: float) -> float:
+    """The true mean difference a two-sided 5 % t test with ``df`` degrees of freedom detects
+    with 80 % power when its standard error is ``se``: (t_0.975 + t_0.80) x se."""
     from scipy.stats import t as student_t
 
     if not (math.isfinite(se) and math.isfinite(df) and df > 0):
@@ -157,7 +159,7 @@ def difference(a_runs: Sequence[Results], b_runs: Sequence[Results], score_a: Ca
         st = seed_stats(d)
         se = st["std"] / math.sqrt(st["n"]) if st["n"] >= 2 else float("nan")
         out = {"pairing": "paired by seed", "n_a": len(a_runs), "n_b": len(b_runs), "seeds": [str(s) for s in common],
-               **st, "detectable": _detectable(se, st["n"] - 1) if st["n"] >= MIN_SEEDS else float("nan")}
+               **st, "detectable": detectable_difference(se, st["n"] - 1) if st["n"] >= MIN_SEEDS else float("nan")}
     else:
         a = np.array([score_a(r) for r in a_runs], dtype=np.float64)
         b = np.array([score_b(r) for r in b_runs], dtype=np.float64)
@@ -173,7 +175,7 @@ def difference(a_runs: Sequence[Results], b_runs: Sequence[Results], score_a: Ca
             if se > 0:
                 df = (va + vb) ** 2 / (va ** 2 / (a.size - 1) + vb ** 2 / (b.size - 1))
                 h = float(student_t.ppf(0.975, df)) * se
-                det = _detectable(se, df)
+                det = detectable_difference(se, df)
             else:
                 h, det = 0.0, 0.0
             lo, hi = mean - h, mean + h
