@@ -103,7 +103,7 @@ def _check_population(cfg: DictConfig) -> None:
         check_population_size(int(get("n_objects")), int(get("n_val_objects")), int(get("n_test_objects")),
                               C.N_ACTIONS if actions is None else len(actions), int(get("repetitions")),
                               fields_for_channels(get("channels")), int(get("sim_workers")),
-                              bool(get("allow_large_population")))
+                              bool(get("allow_large_population")), int(get("n_unlabelled_objects")))
     except ValueError as err:
         raise SettingsError(str(err)) from None
 
