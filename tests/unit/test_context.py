@@ -276,7 +276,8 @@ def test_a_checkpoint_with_the_removed_random_length_loads_at_its_off_value():
     from embodied_tactile.model.module import check_context
 
     assert check_context({"source": "trial", "random_length": False}) == {"source": "trial", "touches": 1,
-                                                                          "initial_frames": 3, "refilter": False}
+                                                                          "initial_frames": 3, "refilter": False,
+                                                                          "invariance": 0.0, "physical": 0.0}
     with pytest.raises(ValueError, match="random_length=True.*measured, rejected and removed"):
         check_context({"source": "trial", "random_length": True})
 
