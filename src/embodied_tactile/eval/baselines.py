@@ -83,6 +83,34 @@ def evaluate_handcrafted(train: Mapping[str, Any], test: Mapping[str, Any], chan
                    seq_id=test.get("seq_id"), **meta)
 
 
+def evaluate_hybrid(train: Mapping[str, Any], test: Mapping[str, Any], channels: Sequence[str], *, latent: str = "y",
+                    alignment: Mapping[str, Any] | None = None, split: str = "trial",
+                    handcrafted: HandcraftedOptions | Mapping[str, Any] | None = None, **meta) -> Results:
+    """The hybrid reader (method 'hybrid_krr'): the same KRR alignment on [hand-crafted
+    features, the run's latents] frame by frame (features (n, T, k) then ``latent`` (n, T,
+    d), :func:`~embodied_tactile.eval.results.select_latents`; the alignment standardises
+    every column on the training rows). It answers whether the latents add what the features
+    miss; it is reported beside the latents alone, never in their place. ``train`` /
+    ``test``: as :func:`evaluate_handcrafted`, with the latents."""
+    from .results import select_latents
+
+    assert_disjoint(train.get("seq_id"), test.get("seq_id"))
+    t0 = time.perf_counter()
+    f_tr, names = handcrafted_features(train["obs"], train["actions"], channels, handcrafted)
+    f_te, _ = handcrafted_features(test["obs"], test["actions"], channels, handcrafted)
+    x_tr = np.concatenate([f_tr, select_latents(train, latent)], axis=-1)
+    x_te = np.concatenate([f_te, select_latents(test, latent)], axis=-1)
+    t1 = time.perf_counter()
+    align = fit_alignment(x_tr, train["factors"], ids=train.get("seq_id"),
+                          **alignment_kwargs(alignment, split, train.get("object_id")))
+    t2 = time.perf_counter()
+    pred = align.predict(x_te, ids=test.get("seq_id"))
+    params = {"alignment": align.params, "features": names, "latent": latent, "feature_s": t1 - t0,
+              "krr_fit_s": t2 - t1}
+    return Results(pred, test["factors"], test["object_id"], test["action_index"], method="hybrid_krr",
+                   n_train=len(x_tr), latents_last=x_te[:, -1], params=params, seq_id=test.get("seq_id"), **meta)
+
+
 # =========================================================================== (c) mean
 class MeanPredictor:
     """Predicts the train mean of every factor at every frame."""
