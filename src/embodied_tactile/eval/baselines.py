@@ -1,31 +1,8 @@
 """Baselines scored with the same splits, the same alignment and the same :func:`nmse`.
 
-(a) Hand-crafted features -> KRR (the features: :mod:`embodied_tactile.data.features`). Computed from the PREPROCESSED sequences the model sees
-    (``obs`` (n, T, C, 28, 28) + ``actions`` (n, T, 6)), so the comparison is on equal
-    inputs (raw 700 Hz signals would give the baseline information the model never gets).
-    Every feature is *causal*: the value at frame t summarises frames 0..t only (running
-    max / running means from cumulative sums). The feature vector at frame t therefore plays
-    the role of a latent at frame t: the alignment is fitted on the final segment of the
-    training sequences (= whole-sequence features) and applied at every frame of the held-out
-    sequences, exactly like the Latent Filter's latents. Features (those whose channels
-    exist in the modality):
-
-    * force: per-frame force F_t = mean over taxels of the available FSR layers; running peak
-      force, running mean force;
-    * force-indentation slope: least-squares slope of F against depth (-z, action column 2)
-      and against the drive s_t = ||a_t - a_0|| (all six action columns);
-    * hysteresis: signed loop area sum F_t ds_t relative to sum |F_t ds_t| (loading vs
-      unloading; 0 for an elastic contact);
-    * relaxation: mean relative force change dF/F over frames where the action is still
-      (|ds| < 10 % of its running max) and in contact (F > 50 % of its running max);
-    * top/bottom shear proxy (both FSR layers): distance between the pressure centroids of the
-      two layers, and the top-bottom difference energy mean((top - bottom)^2) / mean(top^2 +
-      bottom^2), averaged over contact frames;
-    * contact area fraction (taxels above 10 % of the frame max) and spatial-spectrum centroid
-      of the (top) force image (2-D FFT radial frequency), over contact frames;
-    * vibration (acc channel, 4 x 4 tiles of 7 x 7 log-mel bins in [0, 1] scaled dB):
-      low / mid / high band mean level (mel bins 0-15 / 16-31 / 32-48), spectral centroid
-      (in mel-bin units, power-weighted), running std of the high band.
+(a) Hand-crafted features -> KRR: the causal features of :mod:`embodied_tactile.data.features`
+    (computed from the preprocessed sequences the model sees), read by the same alignment as
+    the latents; the hybrid reader (:func:`evaluate_hybrid`) reads [features, latents].
 
 (b) Supervised GRU regressor (upper bound): small conv frame encoder + GRU over
     [frame features, action] -> the 4 standardised factors at every step, trained on the
