@@ -164,3 +164,17 @@ def test_recipes_set_the_weights_and_the_feature_targets(tmp_path):
         module = instantiate(cfg.model)
         assert (module.feature_head is not None) is (phys > 0)
     assert _compose(["experiment=population"], tmp_path).model.context.invariance == 0.0
+
+
+def test_train_entry_refuses_the_physical_term_without_its_targets(tmp_path):
+    from embodied_tactile.run.settings import SettingsError, check_train_config
+    from tests.unit.test_configs import _compose
+
+    cfg = _compose(["experiment=population", "model.context.physical=5"], tmp_path)
+    with pytest.raises(SettingsError, match="model.context.physical=5.0 needs data.context_features=true"):
+        check_train_config(cfg)
+    check_train_config(_compose(["experiment=population", "recipe=context_physical"], tmp_path))
+    with pytest.raises(SettingsError, match="n_unlabelled_objects"):
+        check_train_config(_compose(["experiment=population", "data.n_unlabelled_objects=-1"], tmp_path))
+    with pytest.raises(SettingsError, match=r"\(256 \+ 32 \+ 64 \+ 20000 unlabelled objects x 2 action"):
+        check_train_config(_compose(["experiment=population", "data.n_unlabelled_objects=20000"], tmp_path))

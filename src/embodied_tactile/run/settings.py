@@ -81,6 +81,18 @@ def check_train_config(cfg: DictConfig) -> None:
         if isinstance(node, DictConfig):
             check_options(options, node, key)
     _check_population(cfg)
+    _check_context_features(cfg)
+
+
+def _check_context_features(cfg: DictConfig) -> None:
+    """``model.context.physical`` > 0 reads the targets ``data.context_features`` serves:
+    SettingsError naming both keys when the data would not serve them."""
+    present, weight = config_value(cfg, "model.context.physical")
+    if present and weight is not None and float(weight) > 0:
+        served, features = config_value(cfg, "data.context_features")
+        if not (served and features):
+            raise SettingsError(f"model.context.physical={weight} needs data.context_features=true (the targets of the "
+                                "physical term; configs/recipe/context_physical.yaml sets both)")
 
 
 def _check_population(cfg: DictConfig) -> None:
