@@ -19,6 +19,11 @@ read-out only, which is fitted on the same 256 labelled training objects and sco
 same 32 validation and 64 test objects at every N. The optimiser-step budget is the
 population default's (16 epochs of 480 windows) at every N: more objects, not more steps.
 
+The terms' weights are the recipes' (100 each, per sequence: a start, not a choice; a
+smoke run at initialisation read a target NLL of about 4e5, KL_y about 13 and an unweighted
+VICReg term about 2); ``--weight W`` trains the invariance, physical and both objectives at W
+instead, in folders of their own (``<objective>-wW``), screened by the same rule.
+
 Every run is ``python train.py threads=1`` in ``WORK/runs/<objective>/n<N>/seed<s>`` with
 one data folder ``WORK/data``. ``prepare`` simulates and caches the largest N first: the
 smaller scenes read subsets of the same raw file and caches (a scene prepared first at a
@@ -69,17 +74,26 @@ SMOKE = ["data.n_val_objects=2", "data.n_test_objects=2", "trainer.max_epochs=1"
          "data.batch_size=4", "alignment.cv=2"]
 
 
-def plan(objectives: list[str], sizes: list[int], seeds: list[int], labelled: int) -> list[tuple[str, int, int, list[str]]]:
+def plan(objectives: list[str], sizes: list[int], seeds: list[int], labelled: int,
+         weight: float | None = None) -> list[tuple[str, int, int, list[str]]]:
     """(objective, N, seed, overrides) of every run; N counts the training objects, the
-    ``labelled`` ones and N - labelled unlabelled ones."""
+    ``labelled`` ones and N - labelled unlabelled ones. ``weight``: the label-free terms'
+    weight instead of the recipes' (the objective then reads ``<objective>-w<weight>``)."""
     out = []
     for n in sizes:
         if n < labelled:
             raise SystemExit(f"--sizes: N={n} is below the {labelled} labelled training objects")
         for seed in seeds:
             for obj in objectives:
-                out.append((obj, n, seed, ["experiment=population", *OBJECTIVES[obj], f"seed={seed}",
-                                           f"data.n_objects={labelled}", f"data.n_unlabelled_objects={n - labelled}"]))
+                overrides = ["experiment=population", *OBJECTIVES[obj], f"seed={seed}",
+                             f"data.n_objects={labelled}", f"data.n_unlabelled_objects={n - labelled}"]
+                name = obj
+                if weight is not None and obj != "context":
+                    keys = {"invariance": ["invariance"], "physical": ["physical"],
+                            "both": ["invariance", "physical"]}[obj]
+                    overrides += [f"model.context.{k}={weight}" for k in keys]
+                    name = f"{obj}-w{weight:g}"
+                out.append((name, n, seed, overrides))
     return out
 
 
@@ -120,7 +134,7 @@ def prepare(args) -> int:
 def train(args) -> int:
     work = Path(args.work).resolve()
     worst = 0
-    for i, (obj, n, seed, overrides) in enumerate(plan(args.objectives, args.sizes, args.seeds, args.labelled)):
+    for i, (obj, n, seed, overrides) in enumerate(plan(args.objectives, args.sizes, args.seeds, args.labelled, args.weight)):
         if i % args.lanes != args.lane:
             continue
         out = run_dir(work, obj, n, seed)
@@ -135,7 +149,7 @@ def evaluate(args) -> int:
     work = Path(args.work).resolve()
     worst = 0
     extra = ["alignment.cv=2"] if args.smoke else []
-    for obj, n, seed, _ in plan(args.objectives, args.sizes, args.seeds, args.labelled):
+    for obj, n, seed, _ in plan(args.objectives, args.sizes, args.seeds, args.labelled, args.weight):
         out = run_dir(work, obj, n, seed)
         if not finished(out):
             continue
@@ -149,10 +163,11 @@ def evaluate(args) -> int:
 
 
 # ----------------------------------------------------------------------------- analysis
-def scores(work: Path, objectives: list[str], sizes: list[int], seeds: list[int], labelled: int) -> list[dict]:
+def scores(work: Path, objectives: list[str], sizes: list[int], seeds: list[int], labelled: int,
+           weight: float | None = None) -> list[dict]:
     """One row per run, side and reader: last frame and whole trajectory (mean over factors)."""
     rows = []
-    for obj, n, seed, _ in plan(objectives, sizes, seeds, labelled):
+    for obj, n, seed, _ in plan(objectives, sizes, seeds, labelled, weight):
         for side, folder in SIDES.items():
             path = run_dir(work, obj, n, seed) / folder / "results.json"
             if not path.exists():
@@ -224,14 +239,15 @@ def tables(rows: list[dict], objectives: list[str], sizes: list[int]) -> str:
 
 def analyse(args) -> int:
     work = Path(args.work).resolve()
-    rows = scores(work, args.objectives, args.sizes, args.seeds, args.labelled)
+    rows = scores(work, args.objectives, args.sizes, args.seeds, args.labelled, args.weight)
+    names = list(dict.fromkeys(r["objective"] for r in rows))
     if not rows:
         print(f"no evaluated run under {work / 'runs'}", file=sys.stderr)
         return 1
-    print(tables(rows, args.objectives, args.sizes))
+    print(tables(rows, names, args.sizes))
     print("\nselection (validation objects, last frame):")
     for n in args.sizes:
-        chosen, notes = verdict(rows, n, args.objectives)
+        chosen, notes = verdict(rows, n, names)
         for line in notes:
             print("  " + line)
         print(f"  N={n}: adopted {chosen}")
@@ -253,6 +269,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lanes", type=int, default=1)
     ap.add_argument("--smoke", action="store_true",
                     help="a toy scene (2 validation and 2 test objects, 1 epoch of 8 windows): measures nothing")
+    ap.add_argument("--weight", type=float, default=None,
+                    help="the label-free terms' weight instead of the recipes' (runs in folders of their own)")
     ap.add_argument("--json", type=Path, default=None, help="analyse: every row as JSON")
     args = ap.parse_args(argv)
     if not 0 <= args.lane < args.lanes:

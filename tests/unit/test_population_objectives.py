@@ -43,3 +43,11 @@ def test_an_objective_is_adopted_only_if_lower_in_every_seed_by_more_than_the_se
     rows += [{**r, "side": "test", "last": 0.0} for r in _rows(context, [0.9, 0.9, 0.9], "both")]
     chosen, notes = po.verdict(rows, 256, ["context", "invariance", "physical", "both"])
     assert chosen == "physical" and any("both: 0 of 3 seeds" in n for n in notes)
+
+
+def test_a_weight_other_than_the_recipes_names_its_runs():
+    runs = po.plan(["context", "invariance", "both"], [256], [0], 256, weight=1000.0)
+    assert [r[0] for r in runs] == ["context", "invariance-w1000", "both-w1000"]
+    assert "model.context.invariance=1000.0" in runs[1][3] and "model.context.physical=1000.0" not in runs[1][3]
+    assert {"model.context.invariance=1000.0", "model.context.physical=1000.0"} <= set(runs[2][3])
+    assert not any("model.context" in o for o in runs[0][3])
