@@ -136,6 +136,9 @@ class LatentFilterModule(L.LightningModule):
             context objective"). ``source`` (``trial`` | ``window``) names the DataModule's
             pairing (configs/data reads it from here); ``initial_frames`` target frames are
             filtered before the open-loop rollout; ``refilter`` filters every target frame.
+            ``invariance`` / ``physical`` (0: off): the weights of the label-free terms
+            (:meth:`auxiliary_terms`, :mod:`.objectives`) added to the training loss; with
+            ``physical`` > 0 the module holds ``feature_head``.
         weight_average: None (default) or a decay d in (0, 1): an exponential moving average
             of the network's parameters, updated after every optimiser step with decay
             min(d, (1 + n) / (10 + n)) at the n-th update (:class:`WeightAverage`). The
@@ -145,8 +148,9 @@ class LatentFilterModule(L.LightningModule):
             (the weights the optimiser moves are kept beside it, for resuming), and after fit
             the network holds it (docs/reference/model.md, "Weight averaging").
 
-    Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
-    train/elbo, anneal/*; val/loss, val/elbo (per sequence, higher is better),
+    Logs: train/loss (annealed, with the weighted label-free terms), train/nll, train/kl_z,
+    train/kl_y, train/entropy, train/elbo, anneal/*, train/invariance (train/variance,
+    train/covariance) and train/physical where their weights are > 0; val/loss, val/elbo (per sequence, higher is better),
     val/nll, val/kl_z, val/kl_y (and test/* likewise).
     """
 
