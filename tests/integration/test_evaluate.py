@@ -86,7 +86,7 @@ def test_run_cli_writes_everything_as_trained_modality(trained):
     res = json.loads((out / "results.json").read_text())
     # the run's own modality, no argument given
     assert {r["modality"] for r in res["runs"]} == {"fsr_tb"}
-    assert {r["method"] for r in res["runs"]} == {"latent_filter", "untrained", "handcrafted_krr", "gru", "mean"}
+    assert {r["method"] for r in res["runs"]} == {"latent_filter", "untrained", "handcrafted_krr", "hybrid_krr", "gru", "mean"}
     assert "| latent_filter | fsr_tb | soft | pressing |" in (out / "table_summary.md").read_text()
     # the saved split is reused: sizes equal split.json
     split = json.loads((run / "split.json").read_text())
@@ -169,7 +169,7 @@ def test_multirun_aggregate_and_skip(trained, capsys):
     res = json.loads((multi / "evaluation" / "results.json").read_text())
     lf = [r for r in res["runs"] if r["method"] == "latent_filter"]
     assert {r["modality"] for r in lf} == {"acc", "fsr_t"}
-    assert {r["method"] for r in res["runs"]} == {"latent_filter", "untrained", "handcrafted_krr", "mean"}  # no GRU by default
+    assert {r["method"] for r in res["runs"]} == {"latent_filter", "untrained", "handcrafted_krr", "hybrid_krr", "mean"}  # no GRU by default
     assert all(math.isfinite(r["nmse_trajectory_overall"]) for r in res["runs"])
     assert set(res["histories"]) == {"acc/soft/pressing", "fsr_t/soft/pressing"}
     curves = res["figure_curves"]["modality"]

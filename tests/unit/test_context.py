@@ -210,7 +210,8 @@ def test_module_trains_on_pairs_and_refuses_batches_without_a_context(tmp_path):
     torch.manual_seed(0)
     module = LatentFilterModule(LatentFilter("acc", **TINY), optimizer={"name": "Adam", "lr": 1e-2},
                                      context={"source": "trial", "initial_frames": 2})
-    assert module.hparams["context"] == {"source": "trial", "touches": 1, "initial_frames": 2, "refilter": False}
+    assert module.hparams["context"] == {"source": "trial", "touches": 1, "initial_frames": 2, "refilter": False,
+                                        "invariance": 0.0, "physical": 0.0}
     batch = pair_batch()
     opt = module.configure_optimizers()
     first = None
@@ -275,7 +276,8 @@ def test_a_checkpoint_with_the_removed_random_length_loads_at_its_off_value():
     from embodied_tactile.model.module import check_context
 
     assert check_context({"source": "trial", "random_length": False}) == {"source": "trial", "touches": 1,
-                                                                          "initial_frames": 3, "refilter": False}
+                                                                          "initial_frames": 3, "refilter": False,
+                                                                          "invariance": 0.0, "physical": 0.0}
     with pytest.raises(ValueError, match="random_length=True.*measured, rejected and removed"):
         check_context({"source": "trial", "random_length": True})
 
@@ -352,7 +354,8 @@ def test_recipe_context_sets_the_pairing_and_the_rungs(tmp_path):
     cfg = _compose(["experiment=population"], tmp_path)
     assert cfg.data.context == "trial" and cfg.model.net.obs_dropout == 0.0
     module = instantiate(cfg.model)
-    assert module.context == {"source": "trial", "touches": 1, "initial_frames": 3, "refilter": False}
+    assert module.context == {"source": "trial", "touches": 1, "initial_frames": 3, "refilter": False,
+                              "invariance": 0.0, "physical": 0.0}
     assert cfg.data.context_touches == 1
     assert module.model.y_start == "population"
     a1 = _compose(["experiment=population", "model.net.y_start=fixed", "model.context.source=window"], tmp_path)

@@ -637,3 +637,29 @@ def test_evaluation_options_and_run_selection_without_a_trained_run(tmp_path):
     assert ev.output_folder(tmp_path / "a", runs[:1], "run", base, {}) == tmp_path / "a" / "evaluation"
     assert ev.output_folder(tmp_path, runs, "multirun", ev.parse_options(["held_out=val"]), {"modality": ["acc"]}) \
         == tmp_path / "evaluation-val-modality=acc"
+
+
+def test_hybrid_reader_reads_what_the_features_and_the_latents_each_carry():
+    """KRR on [hand-crafted features, y]: y carries factor 0 only, the features factor 2
+    (stiffness, in the force amplitude) only; the hybrid reads both, each reader alone one."""
+    from embodied_tactile.eval.baselines import evaluate_handcrafted, evaluate_hybrid
+
+    channels = ("acc", "fsr_t", "fsr_b")
+    tr, te = _obs_split(80, seed=1), _obs_split(30, seed=2, offset=1000)
+    rng = np.random.default_rng(3)
+    mu, sd = tr["factors"][:, 0].mean(), tr["factors"][:, 0].std()
+    for split in (tr, te):
+        n, t = split["obs"].shape[:2]
+        y = 0.05 * rng.normal(size=(n, t, 4))
+        y[:, :, 0] += ((split["factors"][:, 0] - mu) / sd)[:, None]
+        split["y"] = y.astype(np.float32)
+    kw = dict(alignment={"cv": 3, "readout": "final_segment"}, modality="multi_l")
+    hybrid = evaluate_hybrid(tr, te, channels, **kw)
+    alone, _ = evaluate_latents(tr, te, **kw)
+    features = evaluate_handcrafted(tr, te, channels, **kw)
+    assert hybrid.method == "hybrid_krr" and hybrid.pred.shape == (30, 16, 4) and np.isfinite(hybrid.pred).all()
+    last = {name: r.curve()[-1] for name, r in (("hybrid", hybrid), ("y", alone), ("features", features))}
+    assert last["hybrid"][0] < 0.2 and last["hybrid"][2] < 0.3
+    assert last["y"][0] < 0.2 and last["y"][2] > 0.6
+    assert last["features"][0] > 0.6 and last["features"][2] < 0.3
+    assert hybrid.latents_last.shape[1] == features.latents_last.shape[1] + 4

@@ -163,3 +163,25 @@ def test_curves_over_time_are_tabled_and_drawn_and_read_outs_do_not_mix(tmp_path
     _run(tmp_path / "old", 24, 0, 0.8)  # results from before alignment.readout: the paper's final tenth
     with pytest.raises(ValueError, match="mix read-outs.*final_segment.*per_time"):
         G.collect([root, tmp_path / "old"])
+
+
+def test_the_hybrid_reader_is_a_row_of_its_own_per_recipe(tmp_path):
+    """evaluate.py's hybrid_krr (KRR on [hand-crafted features, y]) is its own row beside the
+    Latent Filter's, named by the run's recipe, aggregated over seeds like it."""
+    root = tmp_path / "runs"
+    for seed, lf in ((0, 0.8), (1, 0.9)):
+        for labels in (True, False):
+            _run(root, 24, seed, lf, labels=labels)
+            res = root / f"n24_s{seed}_{labels}" / "evaluation" / "results.json"
+            runs = json.loads(res.read_text())["runs"]
+            runs.append({**runs[0], "method": "hybrid_krr", "nmse_trajectory_overall": lf / 4,
+                         "nmse_last_step_overall": lf / 8})
+            res.write_text(json.dumps({"runs": runs}))
+    rows = G.collect([root])
+    agg = G.aggregate(rows)
+    for labels in ("labels", "no labels"):
+        hybrid = agg[f"hand-crafted + y of Latent Filter multi_l ({labels}), KRR"][24]
+        assert hybrid["mean"] == pytest.approx(0.85 / 4) and hybrid["seeds"] == [0, 1]
+        assert agg[f"Latent Filter multi_l ({labels})"][24]["mean"] == pytest.approx(0.85)
+    text = G.write_page(rows, tmp_path / "docs", command="test").read_text()
+    assert "| hand-crafted + y of Latent Filter multi_l (labels), KRR |" in text

@@ -11,6 +11,7 @@ import pytest
 
 from embodied_tactile import constants as C
 from embodied_tactile.data.datamodule import TactileDataModule, split_trials
+from embodied_tactile.data.features import handcrafted_features
 from embodied_tactile.data.prepare import TrialRef
 from embodied_tactile.data.rawformat import read_trial, write_trial
 from embodied_tactile.sim import population as POP
@@ -157,3 +158,54 @@ def test_population_scene_end_to_end(tmp_path):
     assert len(saved["test"]) == 2 and len(saved["val"]) == 1
     batch = next(iter(dm.test_dataloader()))
     assert batch["object_id"].min() >= C.POPULATION_ID_BASE
+
+
+def test_unlabelled_objects_follow_the_labelled_ones_and_their_roles():
+    pop = POP.population(3, seed=7, n_val=1, n_test=2, n_unlabelled=4)
+    plain = POP.population(3, seed=7, n_val=1, n_test=2)
+    assert [o.object_id for o in pop["unlabelled"]] == [C.POPULATION_ID_BASE + k for k in range(6, 10)]
+    assert all([o.object_id for o in pop[r]] == [o.object_id for o in plain[r]] for r in ("train", "val", "test"))
+    assert "unlabelled" not in plain
+    assert POP.object_role(C.POPULATION_ID_BASE + 6, n_val=1, n_test=2, n_train=3) == "unlabelled"
+    assert POP.object_role(C.POPULATION_ID_BASE + 5, n_val=1, n_test=2, n_train=3) == "train"
+    with pytest.raises(ValueError, match="n_unlabelled"):
+        POP.population(3, n_unlabelled=-1)
+
+
+@pytest.mark.slow  # simulates and caches 10 trials
+def test_unlabelled_objects_train_without_labels_and_the_readout_keeps_the_labelled(tmp_path):
+    """n_unlabelled_objects: the training loader serves the labelled training objects and
+    the unlabelled ones (NaN factors, paired by object for the context objective, with their
+    crops' standardised hand-crafted features); the alignment, statistics, validation and
+    test sets hold the same labelled objects as without them."""
+    kw = dict(data_dir=str(tmp_path / "data"), objects="population", n_objects=2, n_val_objects=1, n_test_objects=1,
+              population_seed=3, actions=[6, 14], channels=("fsr_t",), split="object", sim_workers=1,
+              preprocess_workers=1, batch_size=4, train_window=20, context="trial")
+    dm = TactileDataModule.from_config(n_unlabelled_objects=1, context_features=True, **kw)
+    dm.prepare_data()
+    dm.setup("fit")
+    bare = TactileDataModule.from_config(**kw)
+    bare.prepare_data()  # the same raw file: nothing simulated again
+    bare.setup("fit")
+    assert not bare.prepared.simulated and bare.unlabelled == []
+    for a, b in ((dm.train_set, bare.train_set), (dm.val_set, bare.val_set), (dm.test_set, bare.test_set)):
+        assert [t.name for t in a.trials] == [t.name for t in b.trials]
+        assert all(np.isfinite(t.factors).all() for t in a.trials)
+    np.testing.assert_array_equal(dm.statistics.channel_mean, bare.statistics.channel_mean)
+    assert {t.object_id for t in dm.unlabelled} == {C.POPULATION_ID_BASE + 4} and len(dm.unlabelled) == 2
+    assert all(np.isnan(t.factors).all() for t in dm.unlabelled)
+    crops = dm.train_crops
+    assert len(crops) == 6 and {t.name for t in crops.trials} == {t.name for t in dm.train_set.trials + dm.unlabelled}
+    mean, std = dm.features_scale
+    for i in range(len(crops)):
+        item = crops[i]
+        tr = crops.trials[i]
+        assert np.isnan(item["factors"].numpy()).all() == (tr in dm.unlabelled)
+        assert item["context_trial"] != tr.name
+        assert {t.object_id for t in crops.trials if t.name == item["context_trial"]} == {tr.object_id}
+        f, _ = handcrafted_features(item["obs"].numpy()[None], item["actions"].numpy()[None], ["fsr_t"])
+        np.testing.assert_allclose(item["target_features"].numpy(), (f[0, -1] - mean) / std, rtol=1e-5, atol=1e-5)
+    assert "target_features" not in dm.train_set[0] and "target_features" not in bare.train_crops[0]
+    assert dm.describe()["n_unlabelled"] == 2
+    with pytest.raises(ValueError, match="needs objects='population'"):
+        TactileDataModule.from_config(data_dir=str(tmp_path / "x"), n_unlabelled_objects=2)

@@ -30,6 +30,7 @@ from embodied_tactile.options.data import LoaderOptions, SceneOptions, SplitOpti
 from embodied_tactile.data.statistics import DataStatistics
 from embodied_tactile.run.jsonio import write_json
 from embodied_tactile.data.modality import CHANNELS, fields_for_channels
+from embodied_tactile.data.features import handcrafted_features
 
 __all__ = ["ConstantChannelError", "TactileDataModule", "TactileSequenceDataset", "split_trials", "TrialRef", "PreparedData", "Scene",
            "data_dir_lock", "fields_for_channels"]
@@ -116,7 +117,8 @@ def split_trials(trials: Sequence[TrialRef], *, by: str = SplitOptions.split,
         only from objects that keep at least one training trial.
     ``by="object"`` (objects never touched in training): train, validation and test objects
       are disjoint. ``roles`` (object id -> 'train' | 'val' | 'test', a population's fixed
-      roles) decides where given; otherwise ``round(test_fraction * n_objects)`` test objects
+      roles) decides where given (objects of role 'unlabelled' are in none of the three:
+      :attr:`TactileDataModule.unlabelled` serves them); otherwise ``round(test_fraction * n_objects)`` test objects
       and then ``round(val_fraction * n_objects)`` validation objects (at least 1 each while
       a training object remains) are drawn balanced over factor levels
       (:func:`_stratified_objects`).
@@ -215,11 +217,17 @@ class TactileSequenceDataset(Dataset):
     id only picks the trials to pair; it is served as before and never used as the pairing's
     output. ``draw_seed`` makes every item's draws a function of (seed, index) (validation:
     the same pairs every epoch); None = torch's global RNG.
+
+    ``feature_scale`` (mean, std) of k hand-crafted features: every item also carries
+    ``target_features`` (k,), the served crop's hand-crafted features at its last frame
+    (:func:`~embodied_tactile.data.features.handcrafted_features`, a summary of the whole crop)
+    shifted and scaled by them: the targets of the context objective's physical term.
     """
 
     def __init__(self, cache_files: Mapping[str, str], trials: Sequence[TrialRef], channels: Sequence[str],
                  seq_len: int | None = None, window: int | None = None, windows_per_trial: int = 1,
-                 context: str | None = None, draw_seed: int | None = None, context_touches: int = 1):
+                 context: str | None = None, draw_seed: int | None = None, context_touches: int = 1,
+                 feature_scale: tuple[np.ndarray, np.ndarray] | None = None):
         self.cache_files = dict(cache_files)
         self.trials = list(trials)
         self.channels = list(channels)
@@ -244,6 +252,7 @@ class TactileSequenceDataset(Dataset):
             raise ValueError(f"context_touches must be 1, or > 1 with context='trial' (other trials of the object), "
                              f"got {context_touches} with context={context!r}")
         self.context_touches = int(context_touches)
+        self.feature_scale = None if feature_scale is None else tuple(np.asarray(v, np.float64) for v in feature_scale)
         #: trial name -> the other trials of its object in this set (context='trial')
         self.others: dict[str, list[TrialRef]] = {}
         if context == "trial":
@@ -362,6 +371,10 @@ class TactileSequenceDataset(Dataset):
             "trial": tr.name,  # named in errors (the model's non-finite guard)
             "first_frame": torch.tensor(sl.start or 0, dtype=torch.long),  # of this crop in the trial
         }
+        if self.feature_scale is not None:
+            f, _ = handcrafted_features(obs[None], actions[None], self.channels)
+            mean, std = self.feature_scale
+            item["target_features"] = torch.from_numpy(((f[0, -1] - mean) / std).astype(np.float32))
         if ctx_tr is not None:
             c_obs, c_actions = self._read(h, ctx_tr, ctx_sl)
             item.update(context_obs=torch.from_numpy(np.ascontiguousarray(c_obs)),
@@ -475,6 +488,13 @@ class TactileDataModule(L.LightningDataModule):
             raise ValueError(f"context must be one of {CONTEXTS}, got {loader.context!r}")
         self.context = loader.context
         self.context_touches = int(loader.context_touches)
+        self.context_features = bool(loader.context_features)
+        #: the unlabelled objects' trials (population ``n_unlabelled_objects``, NaN factors):
+        #: served by the training loader beside the training split, never by the alignment,
+        #: statistics or evaluation loaders
+        self.unlabelled: list[TrialRef] = []
+        #: (mean, std) of the hand-crafted features (``context_features``; :meth:`feature_scale`)
+        self.features_scale: tuple[np.ndarray, np.ndarray] | None = None
         #: the preparation stage's result (prepare_data, or attach() with one prepared elsewhere)
         self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
@@ -569,27 +589,61 @@ class TactileDataModule(L.LightningDataModule):
             # deterministic, so the stage finds the existing files without recomputing.
             self.prepared = prepare_scene(self.scene, simulate=False)
         refs = self.prepared.trials
+        roles = self.scene.object_roles() or {}
         if self.split_file and Path(self.split_file).exists():
             train, val, test = self._load_split(refs)
         else:
             train, val, test = split_trials(refs, by=self.split, test_fraction=self.test_fraction,
                                             val_fraction=self.val_fraction, seed=self.split_seed,
-                                            roles=self.scene.object_roles())
+                                            roles=roles or None)
             if self.split_file:
                 self._save_split(train, val, test)
+        self.unlabelled = sorted((t for t in refs if roles.get(t.object_id) == "unlabelled"), key=lambda t: t.name)
+        if self.unlabelled and self.split != "object":
+            raise ValueError("data.n_unlabelled_objects needs split=object (the unlabelled objects are new objects)")
+        if self.context_features:
+            self.features_scale = self.feature_scale(train + self.unlabelled)
         self.train_set = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len)
         self.val_set = TactileSequenceDataset(self.cache_files, val, self.channels, self.seq_len)
         self.test_set = TactileSequenceDataset(self.cache_files, test, self.channels, self.seq_len)
         self.train_crops = self.train_set
         if (self.train_window is not None or self.windows_per_trial != 1 or self.windows_per_epoch is not None
-                or self.context is not None):
-            self.train_crops = TactileSequenceDataset(self.cache_files, train, self.channels, self.seq_len,
-                                                      window=self.train_window,
+                or self.context is not None or self.unlabelled or self.context_features):
+            self.train_crops = TactileSequenceDataset(self.cache_files, train + self.unlabelled, self.channels,
+                                                      self.seq_len, window=self.train_window,
                                                       windows_per_trial=self.windows_per_trial, context=self.context,
-                                                      context_touches=self.context_touches)
+                                                      context_touches=self.context_touches,
+                                                      feature_scale=self.features_scale)
         self.val_pairs = self.held_out_pairs(val) if self.context is not None and val else self.val_set
-        log.info("data: %d train / %d validation / %d test sequences (split=%s), channels %s, skipped %d bad trial(s)",
-                 len(train), len(val), len(test), self.split, self.channels, len(self.skipped))
+        log.info("data: %d train / %d validation / %d test sequences (split=%s), %d unlabelled, channels %s, "
+                 "skipped %d bad trial(s)", len(train), len(val), len(test), self.split, len(self.unlabelled),
+                 self.channels, len(self.skipped))
+
+    #: at most this many training trials (evenly spaced in name order) fix the feature scale
+    FEATURE_SCALE_TRIALS = 512
+
+    def feature_scale(self, trials: Sequence[TrialRef]) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, std) of the hand-crafted features (k,) of the served crops' length: each of
+        up to :attr:`FEATURE_SCALE_TRIALS` training trials, evenly spaced in name order, read
+        from its first frame for ``train_window`` frames (the whole trial without a window),
+        its features at the last of them (:func:`~embodied_tactile.data.features.handcrafted_features`);
+        std floored at 1e-6. No property label is read."""
+        if not trials:
+            raise ValueError("feature_scale needs training trials")
+        ordered = sorted(trials, key=lambda t: t.name)
+        picks = np.unique(np.linspace(0, len(ordered) - 1, min(len(ordered), self.FEATURE_SCALE_TRIALS)).round().astype(int))
+        ds = TactileSequenceDataset(self.cache_files, [ordered[i] for i in picks], self.channels, self.seq_len)
+        rows = []
+        try:
+            h = ds._open()
+            for tr in ds.trials:
+                n = ds._length(h, tr)
+                obs, actions = ds._read(h, tr, slice(0, n if self.train_window is None else min(n, self.train_window)))
+                rows.append(handcrafted_features(obs[None], actions[None], self.channels)[0][0, -1])
+        finally:
+            ds.close()
+        f = np.stack(rows)
+        return f.mean(0), np.maximum(f.std(0), 1e-6)
 
     def held_out_pairs(self, trials: Sequence[TrialRef]) -> TactileSequenceDataset:
         """Fixed context / target pairs of held-out trials (this DataModule's ``context``
@@ -709,6 +763,7 @@ class TactileDataModule(L.LightningDataModule):
             info["n_train"] = len(self.train_set)
             info["n_val"] = len(self.val_set)
             info["n_test"] = len(self.test_set)
+            info["n_unlabelled"] = len(self.unlabelled)
             info["test_objects"] = sorted({t.object_id for t in self.test_set.trials})
             info["objects"] = sorted({t.object_id for t in everything})
             info["actions"] = sorted({t.action_index for t in everything})

@@ -54,21 +54,24 @@ CPU_S_PER_TRIAL = 0.41
 
 
 def population_estimate(n_objects: int, n_val: int, n_test: int, n_actions: int, repetitions: int,
-                        fields: Sequence[str], workers: int) -> tuple[int, float, float]:
-    """``(trials, disk GB, wall hours)`` of preparing a population scene from scratch."""
-    trials = (int(n_objects) + int(n_val) + int(n_test)) * int(n_actions) * int(repetitions)
+                        fields: Sequence[str], workers: int, n_unlabelled: int = 0) -> tuple[int, float, float]:
+    """``(trials, disk GB, wall hours)`` of preparing a population scene from scratch
+    (``n_unlabelled`` unlabelled objects on top of the labelled ones)."""
+    trials = (int(n_objects) + int(n_val) + int(n_test) + int(n_unlabelled)) * int(n_actions) * int(repetitions)
     mb = trials * (RAW_MB_PER_TRIAL + CACHE_MB_PER_FIELD * sum(f != "actions" for f in fields))
     return trials, mb / 1e3, trials * CPU_S_PER_TRIAL / max(1, int(workers)) / 3600
 
 
 def check_population_size(n_objects: int, n_val: int, n_test: int, n_actions: int, repetitions: int,
-                          fields: Sequence[str], workers: int, allow: bool) -> None:
+                          fields: Sequence[str], workers: int, allow: bool, n_unlabelled: int = 0) -> None:
     """ValueError with the estimate when the population has more than POPULATION_MAX_TRIALS
     trials and ``allow`` is false."""
-    trials, gb, hours = population_estimate(n_objects, n_val, n_test, n_actions, repetitions, fields, workers)
+    trials, gb, hours = population_estimate(n_objects, n_val, n_test, n_actions, repetitions, fields, workers,
+                                            n_unlabelled)
     if trials > POPULATION_MAX_TRIALS and not allow:
+        extra = f" + {n_unlabelled} unlabelled" if n_unlabelled else ""
         raise ValueError(
-            f"data.n_objects={n_objects}: the population scene has {trials:,} trials ({n_objects} + {n_val} + {n_test} "
+            f"data.n_objects={n_objects}: the population scene has {trials:,} trials ({n_objects} + {n_val} + {n_test}{extra} "
             f"objects x {n_actions} action(s) x {repetitions}), more than the {POPULATION_MAX_TRIALS:,} allowed "
             f"without data.allow_large_population=true; preparing it takes about {gb:,.0f} GB of disk and "
             f"{hours:,.1f} h with {workers} worker(s)")
@@ -129,6 +132,10 @@ def remove_stale_temporaries(folder: Path) -> list[Path]:
     return removed
 
 
+#: the factors an unlabelled object's trials are listed with: its labels are never read
+UNLABELLED = (float("nan"),) * len(C.FACTOR_NAMES)
+
+
 @dataclass(frozen=True)
 class TrialRef:
     name: str
@@ -163,7 +170,8 @@ class Scene:
     ``objects`` / ``actions``: subsets (None = all). ``objects="population"`` (simulated
     only): the object population of ``sim.population`` with ``n_objects`` training objects,
     ``n_val_objects`` validation and ``n_test_objects`` test objects, drawn with
-    ``population_seed``. ``preprocess``: ``PreprocessConfig`` keyword arguments. ``strict``:
+    ``population_seed``, and ``n_unlabelled_objects`` unlabelled objects after them, listed
+    with NaN factors (:func:`list_trials`): trained on, never labelled. ``preprocess``: ``PreprocessConfig`` keyword arguments. ``strict``:
     a bad raw trial is fatal instead of skipped. ``include_incomplete``: also use recordings
     marked ``complete=False``.
     """
@@ -179,6 +187,7 @@ class Scene:
     n_val_objects: int
     n_test_objects: int
     population_seed: int
+    n_unlabelled_objects: int
     actions: tuple[int, ...] | None
     repetitions: int
     sim_seed: int
@@ -206,11 +215,17 @@ class Scene:
             for k in ("n_objects", "n_val_objects", "n_test_objects"):
                 if isinstance(getattr(self, k), bool) or not isinstance(getattr(self, k), int) or getattr(self, k) < 1:
                     raise ValueError(f"{k} must be an integer >= 1, got {getattr(self, k)!r}")
+            if (isinstance(self.n_unlabelled_objects, bool) or not isinstance(self.n_unlabelled_objects, int)
+                    or self.n_unlabelled_objects < 0):
+                raise ValueError(f"n_unlabelled_objects must be an integer >= 0, got {self.n_unlabelled_objects!r}")
             if isinstance(self.population_seed, bool) or not isinstance(self.population_seed, int) or self.population_seed < 0:
                 raise ValueError(f"population_seed must be an integer >= 0, got {self.population_seed!r}")
             check_population_size(self.n_objects, self.n_val_objects, self.n_test_objects,
                                   C.N_ACTIONS if self.actions is None else len(self.actions), self.repetitions,
-                                  fields_for_channels(self.channels), self.sim_workers, self.allow_large_population)
+                                  fields_for_channels(self.channels), self.sim_workers, self.allow_large_population,
+                                  self.n_unlabelled_objects)
+        elif self.n_unlabelled_objects:
+            raise ValueError(f"n_unlabelled_objects={self.n_unlabelled_objects} needs objects='population'")
         norm = {
             "data_dir": str(self.data_dir),
             "raw_files": tuple(str(f) for f in (self.raw_files or ())),
@@ -244,7 +259,7 @@ class Scene:
         from embodied_tactile.sim.population import population
 
         return population(self.n_objects, seed=self.population_seed, n_val=self.n_val_objects,
-                          n_test=self.n_test_objects)
+                          n_test=self.n_test_objects, n_unlabelled=self.n_unlabelled_objects)
 
     def object_ids(self) -> set[int] | None:
         """The ids of the scene's objects (None = every object in the raw files)."""
@@ -253,7 +268,8 @@ class Scene:
         return None if self.objects is None else set(self.objects)
 
     def object_roles(self) -> dict[int, str] | None:
-        """Population scenes: object id -> 'train' | 'val' | 'test' (fixed by the draw); else None."""
+        """Population scenes: object id -> 'train' | 'val' | 'test' | 'unlabelled' (fixed by the
+        draw); else None."""
         if not self.is_population:
             return None
         return {o.object_id: role for role, objs in self.population_objects().items() for o in objs}
@@ -456,6 +472,7 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequenc
     names = _whole_trials(fields, per_field, cache_files, skipped)
     skipped = _one_per_trial(skipped)
     object_ids = scene.object_ids()
+    roles = scene.object_roles() or {}
     refs = []
     incomplete: list[str] = []
     for name in names:
@@ -474,7 +491,8 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequenc
                 continue
         refs.append(TrialRef(name=name, object_id=int(a["object_id"]), action_index=int(a["action_index"]),
                              skin=str(a["skin"]), primitive=str(a["primitive"]),
-                             factors=tuple(float(a[k]) for k in C.FACTOR_NAMES)))
+                             factors=(UNLABELLED if roles.get(int(a["object_id"])) == "unlabelled"
+                                      else tuple(float(a[k]) for k in C.FACTOR_NAMES))))
     if incomplete and not scene.include_incomplete:
         log.warning("excluded %d incomplete recording(s) (complete=False: interrupted), e.g. %s; "
                     "data.include_incomplete=true uses them", len(incomplete), incomplete[:3])

@@ -47,6 +47,8 @@ def _method_label(method: str, modality: str, recipe_: str, params: Mapping[str,
         return f"Latent Filter {modality} ({recipe_}){UNTRAINED}"
     if method == "mean":
         return "mean predictor"
+    if method == "hybrid_krr":
+        return f"hand-crafted + y of Latent Filter {modality} ({recipe_}), KRR"
     if method == "gru":
         std = bool(((params or {}).get("gru") or {}).get("input_standardize", False))
         return f"{_BASELINE_NAMES[method]} ({modality}, {'standardised' if std else 'raw'} inputs)"

@@ -31,8 +31,8 @@ from embodied_tactile.eval.results import SPLIT_KINDS
 from embodied_tactile.run.jsonio import read_json
 from embodied_tactile.run.paths import config_dir
 
-BASELINES = ("untrained", "handcrafted", "gru", "mean")
-MULTIRUN_BASELINES = ("untrained", "handcrafted", "mean")
+BASELINES = ("untrained", "handcrafted", "hybrid", "gru", "mean")
+MULTIRUN_BASELINES = ("untrained", "handcrafted", "hybrid", "mean")
 SELECT_ALIASES = {"modality": "modality.name", "skin": "skin.name", "primitive": "primitive.name"}
 
 log = logging.getLogger("evaluate")
@@ -182,7 +182,7 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     """-> (Results of every method, krr history rows, info dict)."""
     from embodied_tactile.eval.callback import INFER_BATCH_SIZE
     from embodied_tactile.eval.results import evaluate_latents
-    from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
+    from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_hybrid, evaluate_mean
     from embodied_tactile.data.modality import Modality
     from embodied_tactile.eval.figures import read_history
     from embodied_tactile.eval.targets import encode_split
@@ -261,6 +261,10 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
             results.append(evaluate_handcrafted(tr, te, channels, alignment=align, split=split["kind"],
                                                 handcrafted=OmegaConf.to_container(opts.handcrafted)
                                                 if opts.get("handcrafted") is not None else None, **meta))
+        elif b == "hybrid":  # the same read-out on [hand-crafted features, the run's latents]
+            results.append(evaluate_hybrid(tr, te, channels, latent=opts.latent, alignment=align, split=split["kind"],
+                                           handcrafted=OmegaConf.to_container(opts.handcrafted)
+                                           if opts.get("handcrafted") is not None else None, **meta))
         elif b == "gru":
             gru = OmegaConf.to_container(opts.gru, resolve=True)
             if gru.get("seed") is None:  # the run's seed: a baseline's spread over seeds is measured, not assumed 0
@@ -507,6 +511,7 @@ def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, sele
 
 # ----------------------------------------------------------------------------- terminal
 METHOD_NAMES = {"latent_filter": "Latent Filter", "untrained": "the same, untrained", "handcrafted_krr": "hand-crafted KRR",
+                "hybrid_krr": "hand-crafted + latents KRR",
                 "gru": "GRU", "mean": "mean"}
 
 

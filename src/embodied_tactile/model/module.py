@@ -16,6 +16,7 @@ from .annealing import AnnealingSchedule, build_schedule, check_finite
 from .compat import RENAMED_CLASSES, upgrade_context_config, upgrade_state_dict
 from .fusion import LateFusion
 from .latent_filter import LatentFilter, to_plain
+from .objectives import FeatureHead, feature_count, invariance_terms, physical_term
 from .options import ContextOptions, ModuleOptions, OptimizerOptions, build, defaults
 
 _DEFAULT = ModuleOptions()
@@ -98,6 +99,11 @@ def check_context(context: Optional[Mapping[str, Any]]) -> Optional[dict[str, An
     if int(out["touches"]) < 1 or (int(out["touches"]) > 1 and out["source"] != "trial"):
         raise ValueError(f"context.touches must be 1, or > 1 with source=trial, got {out['touches']} "
                          f"with source={out['source']!r}")
+    for key in ("invariance", "physical"):
+        if not float(out[key]) >= 0.0:
+            raise ValueError(f"context.{key} must be a weight >= 0 (0: off), got {out[key]}")
+    if float(out["invariance"]) > 0 and int(out["touches"]) > 1:
+        raise ValueError("context.invariance compares y of one context touch with y of the target: it needs touches=1")
     return out
 
 
@@ -130,6 +136,9 @@ class LatentFilterModule(L.LightningModule):
             context objective"). ``source`` (``trial`` | ``window``) names the DataModule's
             pairing (configs/data reads it from here); ``initial_frames`` target frames are
             filtered before the open-loop rollout; ``refilter`` filters every target frame.
+            ``invariance`` / ``physical`` (0: off): the weights of the label-free terms
+            (:meth:`auxiliary_terms`, :mod:`.objectives`) added to the training loss; with
+            ``physical`` > 0 the module holds ``feature_head``.
         weight_average: None (default) or a decay d in (0, 1): an exponential moving average
             of the network's parameters, updated after every optimiser step with decay
             min(d, (1 + n) / (10 + n)) at the n-th update (:class:`WeightAverage`). The
@@ -139,8 +148,9 @@ class LatentFilterModule(L.LightningModule):
             (the weights the optimiser moves are kept beside it, for resuming), and after fit
             the network holds it (docs/reference/model.md, "Weight averaging").
 
-    Logs: train/loss (annealed), train/nll, train/kl_z, train/kl_y, train/entropy,
-    train/elbo, anneal/*; val/loss, val/elbo (per sequence, higher is better),
+    Logs: train/loss (annealed, with the weighted label-free terms), train/nll, train/kl_z,
+    train/kl_y, train/entropy, train/elbo, anneal/*, train/invariance (train/variance,
+    train/covariance) and train/physical where their weights are > 0; val/loss, val/elbo (per sequence, higher is better),
     val/nll, val/kl_z, val/kl_y (and test/* likewise).
     """
 
@@ -176,6 +186,9 @@ class LatentFilterModule(L.LightningModule):
         self.model = net
         self.annealing: AnnealingSchedule = schedule
         self.average = None if weight_average is None else WeightAverage(float(weight_average))
+        #: context.physical > 0: y of the context touch -> the target touch's hand-crafted features
+        self.feature_head = (FeatureHead(net.n_y, net.n_a, feature_count(net.modality["channels"]))
+                             if context is not None and float(context["physical"]) > 0 else None)
 
     # ------------------------------------------------------------------ API
     def forward(self, obs: Tensor, actions: Tensor, sample: bool = False) -> dict[str, Tensor]:
@@ -192,7 +205,7 @@ class LatentFilterModule(L.LightningModule):
         return self.model.filter_step(obs_t, action_t, prev_action, state, sample)
 
     # ------------------------------------------------------------------ Lightning
-    def _terms(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
+    def _terms(self, batch: Mapping[str, Tensor], keep_out: bool = False) -> dict[str, Tensor]:
         if self.context is None:
             terms = self.model.elbo_terms(batch, sample=True)
         elif "context_obs" not in batch:
@@ -201,8 +214,41 @@ class LatentFilterModule(L.LightningModule):
         else:
             terms = self.model.context_terms(batch, self.context["initial_frames"], self.context["refilter"],
                                              sample=True)
-        terms.pop("out")
+        out = terms.pop("out")
+        if keep_out:
+            terms["out"] = out
         return terms
+
+    def auxiliary_terms(self, batch: Mapping[str, Any], out: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """The context objective's label-free terms (:mod:`.objectives`), unweighted, from
+        the context touch's q(y) (``out``, :meth:`LatentFilter.context_terms`) and the
+        target touch of ``batch``: ``invariance`` (VICReg total, with its ``variance`` and
+        ``covariance`` parts) between the posterior means of y from the two touches, and
+        ``physical`` (the feature head's error on ``batch["target_features"]``). Empty when
+        both weights are 0. Neither reads ``factors`` or ``object_id``."""
+        found: dict[str, Tensor] = {}
+        if self.context is None:
+            return found
+        if float(self.context["invariance"]) > 0:
+            y_b, _ = self.model.context_posterior(batch["obs"], batch["actions"])
+            vic = invariance_terms(out["y_mean"], y_b)
+            found.update(invariance=vic["total"], variance=vic["variance"], covariance=vic["covariance"])
+        if self.feature_head is not None:
+            if "target_features" not in batch:
+                raise ValueError("model.context.physical > 0 needs batches with target_features: "
+                                 "data.context_features=true (configs/recipe/context_physical.yaml)")
+            pred = self.feature_head(out["y_mean"], batch["actions"])
+            found["physical"] = physical_term(pred, batch["target_features"])
+        return found
+
+    def _with_auxiliary(self, batch: Mapping[str, Any], terms: dict[str, Tensor], loss: Tensor
+                        ) -> tuple[Tensor, dict[str, Tensor]]:
+        """The loss with the weighted label-free terms added, and those terms."""
+        aux = self.auxiliary_terms(batch, terms.pop("out"))
+        for key in ("invariance", "physical"):
+            if key in aux:
+                loss = loss + float(self.context[key]) * aux[key]
+        return loss, aux
 
     def _check_inputs(self, batch: Mapping[str, Any], stage: str, batch_idx: int) -> None:
         bad = nonfinite_inputs(batch) if self.check_finite else []
@@ -222,11 +268,14 @@ class LatentFilterModule(L.LightningModule):
 
     def training_step(self, batch: Mapping[str, Tensor], batch_idx: int) -> Tensor:
         self._check_inputs(batch, "train", batch_idx)
-        terms = self._terms(batch)
-        loss, logs = self.annealing(self.global_step, terms)
+        terms = self._terms(batch, keep_out=True)
+        loss, logs = self.annealing(self.global_step, {k: v for k, v in terms.items() if k != "out"})
+        loss, aux = self._with_auxiliary(batch, terms, loss)
         self._check_loss(batch, "train", batch_idx, terms, loss)
         bs = batch["obs"].shape[0]
         self.log("train/loss", loss, prog_bar=True, batch_size=bs)
+        for k, v in aux.items():
+            self.log(f"train/{k}", v.detach(), batch_size=bs)
         for k in ("nll", "kl_z", "kl_y", "pop", "entropy"):
             self.log(f"train/{k}", terms[k].detach(), batch_size=bs)
         self.log("train/elbo", -(terms["nll"] + terms["kl_z"] + terms["kl_y"]).detach(), batch_size=bs)

@@ -78,12 +78,19 @@ class ContextOptions:
     of the same trial), how many target frames are filtered before the open-loop rollout,
     whether every target frame is filtered (``refilter``, a leak control), and how many other touches (trials) of the object make up one
     context (``touches``; with ``source=trial``): their posteriors q(y | touch) are combined
-    by the product rule of :func:`~.latent_filter.combine_touches`, the read-out of K touches."""
+    by the product rule of :func:`~.latent_filter.combine_touches`, the read-out of K touches.
+    Two label-free terms, off by default (:mod:`.objectives`; both > 0: their sum):
+    ``invariance``, the weight of a VICReg term between y of the context touch and y of the
+    target touch; ``physical``, the weight of y of the context touch predicting the target
+    touch's hand-crafted features (it needs ``data.context_features=true``; it imports the
+    hand-crafted reader's bias)."""
 
     source: str = "trial"
     touches: int = field(default=1, metadata=at_least(1))
     initial_frames: int = field(default=3, metadata=at_least(1))
     refilter: bool = False
+    invariance: float = field(default=0.0, metadata=at_least(0))
+    physical: float = field(default=0.0, metadata=at_least(0))
 
 
 @dataclass

@@ -33,6 +33,7 @@ class SceneOptions:
     n_val_objects: int = field(default=32, metadata=at_least(1))  # population: validation objects (checkpoint selection)
     n_test_objects: int = field(default=64, metadata=at_least(1))  # population: test objects (evaluation only)
     population_seed: int = field(default=0, metadata=at_least(0))  # population: which objects are drawn
+    n_unlabelled_objects: int = field(default=0, metadata=at_least(0))  # population: objects after the training objects, trained on without property labels (NaN factors)
     actions: Optional[List[int]] = None   # null = all 16 parameter sets
     repetitions: int = field(default=SimulationOptions.repetitions, metadata=at_least(1))
     sim_seed: int = SimulationOptions.seed
@@ -70,6 +71,7 @@ class LoaderOptions:
     windows_per_epoch: Optional[int] = field(default=None, metadata=at_least(1))  # instead of windows_per_trial (then null): crops per epoch
     context: Optional[str] = None            # the context objective's pairing: null | trial | window
     context_touches: int = 1                 # context=trial: other trials of the object per context
+    context_features: bool = False           # serve target_features, the target crop's standardised hand-crafted features (model.context.physical)
     pin_memory: bool = False
 
 

@@ -35,7 +35,7 @@ class GRUOptions:
 @dataclass
 class HandcraftedOptions:
     """``handcrafted``: the thresholds of the hand-crafted features
-    (:func:`~embodied_tactile.eval.baselines.handcrafted_features`), each a share of a running
+    (:func:`~embodied_tactile.data.features.handcrafted_features`), each a share of a running
     or per-frame maximum."""
 
     contact_fraction: float = 0.5  # a frame is in contact when its force exceeds this share of its running peak

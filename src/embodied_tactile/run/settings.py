@@ -82,6 +82,18 @@ def check_train_config(cfg: DictConfig) -> None:
             check_options(options, node, key)
     _check_design(cfg)
     _check_population(cfg)
+    _check_context_features(cfg)
+
+
+def _check_context_features(cfg: DictConfig) -> None:
+    """``model.context.physical`` > 0 reads the targets ``data.context_features`` serves:
+    SettingsError naming both keys when the data would not serve them."""
+    present, weight = config_value(cfg, "model.context.physical")
+    if present and weight is not None and float(weight) > 0:
+        served, features = config_value(cfg, "data.context_features")
+        if not (served and features):
+            raise SettingsError(f"model.context.physical={weight} needs data.context_features=true (the targets of the "
+                                "physical term; configs/recipe/context_physical.yaml sets both)")
 
 
 def _check_design(cfg: DictConfig) -> None:
@@ -162,7 +174,7 @@ def _check_population(cfg: DictConfig) -> None:
         check_population_size(int(get("n_objects")), int(get("n_val_objects")), int(get("n_test_objects")),
                               C.N_ACTIONS if actions is None else len(actions), int(get("repetitions")),
                               fields_for_channels(get("channels")), int(get("sim_workers")),
-                              bool(get("allow_large_population")))
+                              bool(get("allow_large_population")), int(get("n_unlabelled_objects")))
     except ValueError as err:
         raise SettingsError(str(err)) from None
 

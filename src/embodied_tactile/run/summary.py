@@ -63,7 +63,12 @@ def recipe(cfg) -> str:
         touches = int(context.get("touches", 1) or 1)
         parts.insert(0, f"context objective ({context.get('source', 'trial')}"
                      + (f", {touches} touches" if touches > 1 else "")
-                     + (", refilter" if context.get("refilter") else "") + ")")
+                     + (", refilter" if context.get("refilter") else "")
+                     + "".join(f", {k} {float(context.get(k) or 0):g}" for k in ("invariance", "physical")
+                               if float(context.get(k) or 0) > 0) + ")")
+    unlabelled = int(OmegaConf.select(cfg, "data.n_unlabelled_objects", default=0) or 0)
+    if unlabelled:
+        parts.append(f"{unlabelled} unlabelled objects")
     return ", ".join(parts)
 
 

@@ -5,9 +5,11 @@ own stream ``SeedSequence([entropy, seed, k])``: it is the same object whatever 
 of the population, so a population of 64 training objects is a subset of one of 512.
 
 Roles are fixed by ``k``: the first ``n_test`` objects are the test objects, the next
-``n_val`` the validation objects, the rest training objects. A learning curve over the
-number of training objects therefore scores every size on the same test objects and
-selects checkpoints on the same validation objects.
+``n_val`` the validation objects, the next ``n_train`` the (labelled) training objects, and
+the ``n_unlabelled`` after them unlabelled objects (training data whose property labels are
+never served). A learning curve over the number of training or unlabelled objects therefore
+scores every size on the same test objects, selects checkpoints on the same validation
+objects and fits the read-out on the same labelled objects.
 
 The draw (per object, independent):
 
@@ -94,17 +96,27 @@ def population_index(object_id: int) -> int:
     return k
 
 
-def population(n_train: int, *, seed: int = 0, n_val: int = 32, n_test: int = 64) -> dict[str, list[C.WaveObject]]:
+def population(n_train: int, *, seed: int = 0, n_val: int = 32, n_test: int = 64, n_unlabelled: int = 0
+               ) -> dict[str, list[C.WaveObject]]:
     """The population's objects by role: ``{"test": [...], "val": [...], "train": [...]}``
-    (objects 0..n_test-1, then n_val, then n_train)."""
-    for name, v, lo in (("n_train", n_train, 1), ("n_val", n_val, 1), ("n_test", n_test, 1)):
+    (objects 0..n_test-1, then n_val, then n_train), and ``"unlabelled"`` (the n_unlabelled
+    objects after them) when n_unlabelled > 0."""
+    for name, v, lo in (("n_train", n_train, 1), ("n_val", n_val, 1), ("n_test", n_test, 1),
+                        ("n_unlabelled", n_unlabelled, 0)):
         if int(v) < lo:
             raise ValueError(f"population {name} must be >= {lo}, got {v}")
-    objs = [population_object(k, seed) for k in range(int(n_test) + int(n_val) + int(n_train))]
-    return {"test": objs[:n_test], "val": objs[n_test:n_test + n_val], "train": objs[n_test + n_val:]}
+    labelled = int(n_test) + int(n_val) + int(n_train)
+    objs = [population_object(k, seed) for k in range(labelled + int(n_unlabelled))]
+    out = {"test": objs[:n_test], "val": objs[n_test:n_test + n_val], "train": objs[n_test + n_val:labelled]}
+    if int(n_unlabelled) > 0:
+        out["unlabelled"] = objs[labelled:]
+    return out
 
 
-def object_role(object_id: int, *, n_val: int, n_test: int) -> str:
-    """'test', 'val' or 'train' of a population object id."""
+def object_role(object_id: int, *, n_val: int, n_test: int, n_train: int | None = None) -> str:
+    """'test', 'val' or 'train' of a population object id; with ``n_train``, 'unlabelled'
+    for the objects after the training objects."""
     k = population_index(object_id)
+    if n_train is not None and k >= n_test + n_val + n_train:
+        return "unlabelled"
     return "test" if k < n_test else "val" if k < n_test + n_val else "train"
