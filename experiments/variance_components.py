@@ -102,18 +102,11 @@ def _overall(res) -> tuple[float, float]:
     return overall(nmse_trajectory(res.factors, res.pred)), overall(nmse_over_time(res.factors, res.pred)[-1])
 
 
-def _nmse_on(factors: np.ndarray, pred: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
-    from embodied_tactile.eval.metrics import nmse_over_time, nmse_trajectory, overall
-
-    f, p = factors[idx], pred[idx]
-    return overall(nmse_trajectory(f, p)), overall(nmse_over_time(f, p)[-1])
-
-
 def analyse_run(run_dir: Path, n_boot: int, n_seeds: int) -> dict:
     """The run's test NMSE and its within-run components (module docstring)."""
     import warnings
 
-    from embodied_tactile.eval.metrics import NMSEUndefinedWarning
+    from embodied_tactile.eval.metrics import NMSEUndefinedWarning, bootstrap_overall
     from embodied_tactile.eval.pipeline import parse_options, run_alignment
     from embodied_tactile.eval.results import evaluate_latents
     from embodied_tactile.eval.runs import (DataCache, collect_splits, data_config, load_run, run_split, trial_names,
@@ -161,16 +154,8 @@ def analyse_run(run_dir: Path, n_boot: int, n_seeds: int) -> dict:
         halves.append(_overall(r))
     out["readout_half"] = halves
     # the test sample: bootstrap over trials and over objects
-    f, p, obj = res.factors, res.pred, np.asarray(res.object_id)
-    boot_t, boot_o = [], []
-    objects = np.unique(obj)
-    members = {o: np.flatnonzero(obj == o) for o in objects}
-    for _ in range(n_boot):
-        boot_t.append(_nmse_on(f, p, rng.integers(0, len(f), len(f))))
-        drawn = rng.choice(objects, size=len(objects), replace=True)
-        boot_o.append(_nmse_on(f, p, np.concatenate([members[o] for o in drawn])))
-    out["boot_trials"] = boot_t
-    out["boot_objects"] = boot_o
+    out["boot_trials"] = bootstrap_overall(res.factors, res.pred, np.arange(res.n_test), n_boot=n_boot).tolist()
+    out["boot_objects"] = bootstrap_overall(res.factors, res.pred, res.object_id, n_boot=n_boot).tolist()
     return out
 
 

@@ -152,3 +152,27 @@ def roc_auc(y, score) -> float:
         return float("nan")
     ranks = rankdata(s)
     return float((ranks[y].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
+
+
+def bootstrap_overall(factors, pred, groups, *, n_boot: int = 1000, seed: int = 0) -> np.ndarray:
+    """The test sample's own noise: Overall NMSE (whole trajectory, last frame) recomputed on
+    ``n_boot`` resamples of the held-out sequences drawn by ``groups`` (an object id per
+    sequence: every sequence of a drawn object comes along, so the objects are the sampled
+    units; a sequence id per sequence resamples sequences). factors (n, K), pred (n, T, K)
+    -> (n_boot, 2). Each resample's NMSE divides by its own targets' variance, as the full
+    set's does; a resample whose factor has no variance gives NaN for that factor, which
+    :func:`overall` skips."""
+    factors = np.asarray(factors, dtype=np.float64)
+    pred = np.asarray(pred, dtype=np.float64)
+    groups = np.asarray(groups)
+    units = np.unique(groups)
+    members = [np.flatnonzero(groups == u) for u in units]
+    rng = np.random.default_rng(seed)
+    out = np.empty((int(n_boot), 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NMSEUndefinedWarning)
+        for b in range(int(n_boot)):
+            idx = np.concatenate([members[i] for i in rng.integers(0, len(units), len(units))])
+            f, p = factors[idx], pred[idx]
+            out[b] = overall(nmse_trajectory(f, p)), overall(nmse_over_time(f, p)[-1])
+    return out

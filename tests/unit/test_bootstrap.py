@@ -1,0 +1,42 @@
+"""The test sample's own noise: the bootstrap of the Overall NMSE over held-out objects."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from embodied_tactile.eval.metrics import bootstrap_overall, nmse_over_time, nmse_trajectory, overall
+
+
+def _sample(n_objects: int, per_object: int, noise: float, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    f = np.repeat(rng.normal(size=(n_objects, 4)), per_object, axis=0)
+    pred = f[:, None, :] + noise * rng.normal(size=(len(f), 6, 4))
+    return f, pred, np.repeat(np.arange(n_objects), per_object)
+
+
+def test_a_perfect_reader_has_no_sampling_noise_and_the_draws_repeat_with_the_seed():
+    f, _, g = _sample(16, 4, 0.0)
+    b = bootstrap_overall(f, np.repeat(f[:, None, :], 5, axis=1), g, n_boot=50)
+    assert b.shape == (50, 2) and np.all(b == 0)
+    f, p, g = _sample(16, 4, 0.5)
+    assert np.array_equal(bootstrap_overall(f, p, g, n_boot=30, seed=3), bootstrap_overall(f, p, g, n_boot=30, seed=3))
+    assert not np.array_equal(bootstrap_overall(f, p, g, n_boot=30, seed=3), bootstrap_overall(f, p, g, n_boot=30, seed=4))
+
+
+def test_the_resamples_centre_on_the_full_sets_value_and_narrow_with_more_objects():
+    f, p, g = _sample(32, 4, 0.5)
+    b = bootstrap_overall(f, p, g, n_boot=400)
+    whole, last = overall(nmse_trajectory(f, p)), overall(nmse_over_time(f, p)[-1])
+    assert abs(np.median(b[:, 0]) - whole) < 0.03 and abs(np.median(b[:, 1]) - last) < 0.05
+    f4, p4, g4 = _sample(128, 4, 0.5)
+    assert bootstrap_overall(f4, p4, g4, n_boot=400)[:, 0].std() < 0.7 * b[:, 0].std()
+
+
+def test_objects_as_units_are_wider_than_sequences_when_an_objects_errors_agree():
+    rng = np.random.default_rng(1)
+    f = np.repeat(rng.normal(size=(24, 4)), 4, axis=0)
+    shared = np.repeat(rng.normal(size=(24, 1, 4)), 4, axis=0)  # one error per object, on every touch
+    p = f[:, None, :] + 0.6 * shared + 0.05 * rng.normal(size=(len(f), 6, 4))
+    by_object = bootstrap_overall(f, p, np.repeat(np.arange(24), 4), n_boot=400)[:, 0].std()
+    by_sequence = bootstrap_overall(f, p, np.arange(len(f)), n_boot=400)[:, 0].std()
+    assert by_object > 1.4 * by_sequence
