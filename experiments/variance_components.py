@@ -1,7 +1,7 @@
 """Where the spread of the held-out NMSE comes from, and how it shrinks as the design grows.
 
-    python experiments/variance_components.py train --work WORK --lane 0 --lanes 2   # one lane of the runs (resumes)
-    python experiments/variance_components.py train --work WORK --lane 1 --lanes 2   # beside it, threads=1 each
+    python experiments/variance_components.py train --work WORK &   # one lane of the runs (resumes)
+    python experiments/variance_components.py train --work WORK &   # a second lane beside it, threads=1 each
     python experiments/variance_components.py analyse --work WORK                    # the tables of the page
 
 Each design (``DESIGNS``) is trained at one base setting (seed 0, split seed 0, simulated
@@ -10,7 +10,9 @@ dataset 0) and with one source of variation changed at a time (``FACTORS``):
 * ``init``: the model seed (initialisation, window draws, SGD order), data and split fixed;
 * ``split``: the split seed (which trials train, validate, test), model seed and data fixed;
 * ``data``: the simulator's noise seed (a new dataset of the same objects and actions),
-  model seed and split fixed.
+  model seed and split fixed;
+* ``main``: the model seed and the split seed together, the data fixed: what ``python
+  train.py seed=S`` varies (the main job's seed spread).
 
 Every run is ``python train.py threads=1`` in ``WORK/runs/<design>/<factor><level>`` with one
 data folder ``WORK/data`` shared by all (simulated once per design and data seed). ``analyse``
@@ -56,18 +58,42 @@ FACTORS = {
     "init": lambda s: [f"seed={s}", "data.split_seed=0", "data.sim_seed=0"],
     "split": lambda s: ["seed=0", f"data.split_seed={s}", "data.sim_seed=0"],
     "data": lambda s: ["seed=0", "data.split_seed=0", f"data.sim_seed={s}"],
+    "main": lambda s: [f"seed={s}", f"data.split_seed={s}", "data.sim_seed=0"],  # as `python train.py seed=S` varies
 }
 
 
 def plan(designs: list[str], levels: int) -> list[tuple[str, str, list[str]]]:
-    """(design, run name, overrides) of every run, base runs first."""
+    """(design, run name, overrides) of every run in the order the lanes take them: per design
+    the base run, the first level of every factor, every level of ``main`` (the main job's
+    seed spread), then the further levels of the others."""
     out = []
     for d in designs:
         out.append((d, "base", DESIGNS[d] + FACTORS["init"](0)))
+        later = []
         for lvl in range(1, levels):
             for f, make in FACTORS.items():
-                out.append((d, f"{f}{lvl}", DESIGNS[d] + make(lvl)))
+                (out if lvl == 1 or f == "main" else later).append((d, f"{f}{lvl}", DESIGNS[d] + make(lvl)))
+        out += later
     return out
+
+
+def claim(run_dir: Path) -> bool:
+    """Take ``run_dir`` for this lane: a claim file naming this process, made atomically; a
+    claim of a process that no longer runs is taken over (a lane of an earlier session)."""
+    mark = run_dir.with_name(run_dir.name + ".claimed")
+    mark.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        fd = os.open(mark, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        try:
+            os.kill(int(mark.read_text() or 0), 0)
+            return False  # another lane holds it
+        except (ValueError, ProcessLookupError, PermissionError):
+            mark.unlink(missing_ok=True)
+            return claim(run_dir)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(str(os.getpid()))
+    return True
 
 
 def finished(run_dir: Path) -> bool:
@@ -76,13 +102,11 @@ def finished(run_dir: Path) -> bool:
 
 
 def train(args) -> None:
+    """Every run of the plan not finished and not taken by another lane, in plan order."""
     work = Path(args.work).resolve()
-    runs = plan(args.designs, args.levels)
-    for i, (design, name, overrides) in enumerate(runs):
-        if i % args.lanes != args.lane:
-            continue
+    for design, name, overrides in plan(args.designs, args.levels):
         run_dir = work / "runs" / design / name
-        if finished(run_dir):
+        if finished(run_dir) or not claim(run_dir):
             continue
         cmd = [sys.executable, str(REPO / "train.py"), "threads=1", "logger=none", f"paths.data_dir={work / 'data'}",
                f"hydra.run.dir={run_dir}", *overrides]
@@ -256,8 +280,6 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--work", required=True, help="folder of the runs and their shared data folder")
     ap.add_argument("--designs", nargs="+", default=["sets4", "sets16"], choices=list(DESIGNS))
     ap.add_argument("--levels", type=int, default=3, help="levels per factor, the base run included")
-    ap.add_argument("--lane", type=int, default=0)
-    ap.add_argument("--lanes", type=int, default=1)
     ap.add_argument("--boot", type=int, default=500, help="bootstrap resamples of the test trials / objects")
     ap.add_argument("--readout-seeds", type=int, default=5, help="read-out refits per within-run component")
     ap.add_argument("--delta", type=float, default=0.03, help="the paired difference the study should detect")
