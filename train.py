@@ -23,19 +23,7 @@ from __future__ import annotations
 import sys
 
 import embodied_tactile.run.threadenv  # noqa: F401  OpenMP's spin count before torch loads it
-import hydra
-from omegaconf import DictConfig
-
-import embodied_tactile.run.config  # noqa: F401  registers the typed configs before Hydra composes
-from embodied_tactile import cli
-from embodied_tactile.run.training import run_job
-
-
-@hydra.main(version_base="1.3", config_path="configs", config_name="train")
-def main(cfg: DictConfig) -> float | None:
-    return run_job(cfg)  # embodied_tactile.run.training.train: the recipe, top to bottom
-
+from embodied_tactile.cli import train_main  # = embodied-tactile train; the recipe: embodied_tactile.run.training
 
 if __name__ == "__main__":
-    cli.check_typed_overrides(sys.argv[1:])  # one line for a value of the wrong type, before Hydra merges it
-    sys.exit(main())
+    sys.exit(train_main())

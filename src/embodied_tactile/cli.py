@@ -1,5 +1,6 @@
 """The command-line side of the Hydra entry points: one line and exit status 2 for a bad
-setting (:func:`fail`), ``main()`` of a Hydra command (:func:`hydra_command`), and train.py's
+setting (:func:`fail`), ``main()`` of a Hydra command (:func:`hydra_command`), train's entry point
+(:func:`train_main`: ``embodied-tactile train`` and ``python train.py``), and its
 Hydra callback (:class:`EntryCallback`, registered in ``configs/train.yaml``): settings are
 checked (:mod:`embodied_tactile.run.settings`) and the run folder claimed
 (:mod:`embodied_tactile.run.runfolder`) before Hydra creates it; a multirun ends with its summary
@@ -65,6 +66,39 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
         sys.exit(0 if code[0] is None and _info_only() else (EXIT_BAD_SETTINGS if code[0] is None else code[0]))
 
     return main
+
+
+@hydra.main(version_base="1.3", config_path=config_dir(), config_name="train")
+def _train_app(cfg: DictConfig) -> None:
+    from embodied_tactile.run.training import run_job  # loads torch and Lightning: only once the settings passed
+
+    run_job(cfg)
+
+
+def train_main(argv: Sequence[str] | None = None) -> int:
+    """``embodied-tactile train`` and ``python train.py``: Hydra ``key=value`` overrides over
+    configs/train.yaml (``-m`` for a sweep; default ``sys.argv[1:]``) -> the exit status
+    (train.py's docstring lists them). Values of the typed options are checked before Hydra
+    merges them (:func:`check_typed_overrides`), the composed config by :class:`EntryCallback`."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    saved = sys.argv
+    sys.argv = [saved[0] if saved else "train.py", *args]
+    try:
+        check_typed_overrides(args)
+        _train_app()
+    except SystemExit as exc:
+        return exit_status(exc)
+    finally:
+        sys.argv = saved
+    return 0
+
+
+def exit_status(exc: SystemExit) -> int:
+    """The exit status of a ``SystemExit`` (a message as its code: printed, status 1, as Python does)."""
+    if exc.code is None or isinstance(exc.code, int):
+        return exc.code or 0
+    print(exc.code, file=sys.stderr)
+    return 1
 
 
 def check_overrides(options: type, args: Sequence[str], prog: str) -> None:
@@ -232,4 +266,4 @@ class EntryCallback(Callback):
             fail(err)
 
 
-__all__ = ["EntryCallback", "check_overrides", "check_typed_overrides", "hydra_command"]
+__all__ = ["EntryCallback", "check_overrides", "check_typed_overrides", "exit_status", "hydra_command", "train_main"]

@@ -19,6 +19,7 @@ from embodied_tactile.run import quiet
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
+        prog="evaluate.py",  # = embodied-tactile evaluate; its errors read "evaluate.py: error: ..." either way
         description="Evaluate a training run folder, a checkpoint file or a multirun folder "
                     "(options: key=value over configs/evaluate.yaml).",
         epilog="e.g. python evaluate.py logs/train/runs/<run> latent=both baselines=[handcrafted,mean] umap=false")
