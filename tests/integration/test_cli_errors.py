@@ -179,7 +179,7 @@ def test_wrongly_typed_data_override_is_one_line(capsys):
         assert err == f"train.py: error: {line}", err
     check_typed_overrides(["experiment=pendulum", "data=pendulum"])  # the scene with its own data: composes
     with pytest.raises(SystemExit) as info:
-        check_typed_overrides(["data=pendulum"])  # without the scene Hydra fails on cpu_budget's tactile keys
+        check_typed_overrides(["data=pendulum"])  # without the scene: the tactile modality and model
     assert info.value.code == 2
     assert capsys.readouterr().err.strip().endswith("python train.py experiment=pendulum")
 

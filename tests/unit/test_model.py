@@ -899,3 +899,21 @@ def test_averaged_weights_is_a_noop_without_averaging_and_swaps_back():
     assert all(torch.equal(a, p) for a, p in zip(own, averaged.parameters()))
     with pytest.raises(ValueError, match="weight_average must be a decay in"):
         LatentFilterModule(LatentFilter("acc", **TINY), weight_average=1.0)
+
+
+def test_checkpoint_without_weight_average_loads_unaveraged(tmp_path):
+    """A checkpoint written before ``weight_average`` existed was trained without an average:
+    it loads without one (compat.UNSAVED_MODULE_OPTIONS), not with today's default 0.99, and
+    its weights unchanged."""
+    import lightning
+
+    module = LatentFilterModule(LatentFilter("acc", **TINY), weight_average=None)
+    hparams = {k: v for k, v in module.hparams.items() if k != "weight_average"}
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": hparams,
+                "pytorch-lightning_version": lightning.__version__}, path)
+    assert LatentFilterModule(LatentFilter("acc", **TINY)).average is not None  # today's default averages
+    loaded = LatentFilterModule.load_from_checkpoint(str(path), map_location="cpu")
+    assert loaded.average is None and loaded.hparams["weight_average"] is None
+    for (k, a), b in zip(module.state_dict().items(), loaded.state_dict().values()):
+        assert torch.equal(a, b), k

@@ -34,7 +34,7 @@ import h5py
 from embodied_tactile import constants as C
 from embodied_tactile.data.rawformat import unique_paths
 from embodied_tactile.data.modality import fields_for_channels
-from embodied_tactile.options.data import SceneOptions, scene_defaults
+from embodied_tactile.options.data import SceneOptions, scene_values
 
 log = logging.getLogger(__name__)
 
@@ -230,10 +230,9 @@ class Scene:
     @classmethod
     def from_config(cls, data: Mapping[str, Any] | None = None, /, **kw: Any) -> "Scene":
         """The scene of a data config (``cfg.data``, or keyword arguments): its preparation
-        keys, the defaults of :class:`~embodied_tactile.options.data.SceneOptions` where it is
-        silent or null; the split and loader keys are the DataModule's and are ignored here."""
-        given = {**(data or {}), **kw}
-        return cls(**{k: (given[k] if given.get(k) is not None else v) for k, v in scene_defaults().items()})
+        keys (:func:`~embodied_tactile.options.data.scene_values`: the defaults where it is silent,
+        ``actions: null`` all 16 sets); the split and loader keys are the DataModule's and are ignored here."""
+        return cls(**scene_values({**(data or {}), **kw}))
 
     @property
     def is_population(self) -> bool:

@@ -59,7 +59,7 @@ import numpy as np
 
 from ..constants import FACTOR_NAMES
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment, resolve_cv_grouping
-from ..options.alignment import AlignmentCheckOptions, alignment_options
+from ..options.alignment import CHECK_ALIGNMENT, AlignmentCheckOptions, alignment_options
 from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
 from .metrics import nmse_over_time, nmse_trajectory, overall
 from .results import select_latents
@@ -217,10 +217,6 @@ class KRRAlignmentCallback(Callback):
     ``nystroem_threshold`` rows, held-out frames subsampled by ``val_frame_stride``; inputs
     read once and inferred ``infer_batch_size`` sequences at a time."""
 
-    #: what a periodic check changes in the run's alignment (cheaper: they trace the curve)
-    CHECK_DEFAULTS = {"frames_per_sequence": 2, "cv": 3, "nystroem_threshold": 1024, "n_components": 256,
-                      "alphas": [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0], "gammas": [0.3, 1.0, 3.0]}
-
     def __init__(self, every_n_epochs: int | None = _OPTIONS.every_n_epochs, latent: str = _OPTIONS.latent,
                  max_train_sequences: int | None = _OPTIONS.max_train_sequences,
                  max_val_sequences: int | None = None, val_frame_stride: int = _OPTIONS.val_frame_stride,
@@ -246,9 +242,9 @@ class KRRAlignmentCallback(Callback):
         self.max_val_sequences = max_val_sequences
         self.val_frame_stride = max(1, int(val_frame_stride))
         # the final alignment is the run's `alignment` (evaluate.py reads the same from the run's config);
-        # the periodic checks change only what CHECK_DEFAULTS / `checks` name
+        # the periodic checks change only what CHECK_ALIGNMENT / `checks` name
         self.final_kw = alignment_options(alignment)
-        self.align_kw = alignment_options(self.final_kw, self.CHECK_DEFAULTS, checks)
+        self.align_kw = alignment_options(self.final_kw, CHECK_ALIGNMENT, checks)
         self.groups = self.final_kw["groups"]
         self.run_on_train_end = run_on_train_end
         self.history_name = history_name

@@ -415,7 +415,7 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     overrides, selection = split_overrides(overrides)
     opts = parse_options(overrides)
     if opts.torch_threads:  # else each run's own (evaluate_run)
-        from embodied_tactile.run.runtime import set_threads
+        from embodied_tactile.run.threadenv import set_threads
 
         set_threads(int(opts.torch_threads))
     target = Path(target)

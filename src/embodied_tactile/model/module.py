@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from .annealing import AnnealingSchedule, build_schedule, check_finite
-from .compat import RENAMED_CLASSES, upgrade_context_config, upgrade_state_dict
+from .compat import RENAMED_CLASSES, UNSAVED_MODULE_OPTIONS, upgrade_context_config, upgrade_state_dict
 from .fusion import LateFusion
 from .latent_filter import LatentFilter, to_plain
 from .options import ContextOptions, ModuleOptions, OptimizerOptions, build, defaults
@@ -321,6 +321,10 @@ class LatentFilterModule(L.LightningModule):
         for :meth:`on_fit_start` of a resumed fit)."""
         checkpoint["state_dict"] = upgrade_state_dict(checkpoint.get("state_dict") or {},
                                                       late=isinstance(self.model.observation, LateFusion))
+        saved = checkpoint.get("hyper_parameters") or {}
+        if "weight_average" not in saved and UNSAVED_MODULE_OPTIONS["weight_average"] is None:
+            self.average = None  # written before the option existed: trained without an average
+            self.hparams["weight_average"] = None
         if self.average is not None:
             self.average.load(checkpoint)
 

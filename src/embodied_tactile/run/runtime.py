@@ -29,7 +29,7 @@ from lightning.pytorch.loggers.logger import rank_zero_experiment
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile.run.jsonio import write_json
-from embodied_tactile.run.threadenv import TrainingRegistry
+from embodied_tactile.run.threadenv import TrainingRegistry, set_threads
 
 log = logging.getLogger(__name__)
 
@@ -428,18 +428,6 @@ def thread_budget(setting: Any, jobs: int, cores: int | None = None) -> int:
     if n < 1:
         raise ValueError(f"threads must be a positive integer or 'auto', got {setting!r}")
     return min(n, share)
-
-
-def set_threads(n: int) -> int:
-    """The one place that sets the intra-op threads: torch, and OMP / MKL / OpenBLAS for
-    processes started later (DataLoader workers, numba, BLAS in sklearn). Returns ``n``."""
-    n = int(n)
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ[var] = str(n)
-    import torch
-
-    torch.set_num_threads(n)
-    return n
 
 
 #: the registry of this process (train.py registers through :func:`configure_threads`)

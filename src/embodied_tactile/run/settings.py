@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile.options.alignment import AlignmentOptions
 from embodied_tactile.options.checks import SettingsError, check_options
-from embodied_tactile.options.data import DataOptions, PendulumOptions, scene_defaults
+from embodied_tactile.options.data import DataOptions, PendulumOptions, scene_defaults, scene_values
 from embodied_tactile.options.run import RunKeys, TrainerKeys
 from embodied_tactile.run.config import AlignmentCallbackNode, ModelNode, PendulumNode
 
@@ -92,11 +92,15 @@ def _check_population(cfg: DictConfig) -> None:
     from embodied_tactile import constants as C
     from embodied_tactile.data.prepare import check_population_size, fields_for_channels
 
-    scene = scene_defaults()  # a key the config does not hold: the data module's default
+    given = {}
+    for name in scene_defaults():
+        present, value = config_value(cfg, f"data.{name}")
+        if present:
+            given[name] = value
+    scene = scene_values(given)  # a key the config does not hold: the data module's default
 
     def get(name: str) -> Any:
-        present, value = config_value(cfg, f"data.{name}")
-        return value if present and value is not None else scene[name]
+        return scene[name]
 
     actions = get("actions")
     try:

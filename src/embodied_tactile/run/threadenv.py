@@ -130,3 +130,15 @@ class TrainingRegistry:
 
 
 spin_briefly()
+
+
+def set_threads(n: int) -> int:
+    """The one place that sets the intra-op threads: torch, and OMP / MKL / OpenBLAS for
+    processes started later (DataLoader workers, numba, BLAS in sklearn). Returns ``n``."""
+    n = int(n)
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(n)
+    import torch
+
+    torch.set_num_threads(n)
+    return n
