@@ -47,3 +47,22 @@ def test_ci_runs_the_readmes_test_command():
     # the main job is the same set-up without -q and the dev extra, then train.py
     assert [c.replace(" -q", "").replace('".[dev]"', ".") for c in tests[:-1]] == train[:-1]
     assert train[-1] == "python train.py"
+
+
+def test_experiments_index_lists_every_page_once():
+    """docs/experiments/index.md links each page of the folder and of its archive, once."""
+    folder = REPO / "docs" / "experiments"
+    links = re.findall(r"\]\(([^)]+\.md)\)", (folder / "index.md").read_text())
+    pages = sorted(str(p.relative_to(folder)) for p in folder.rglob("*.md") if p.name != "index.md")
+    assert sorted(set(links)) == pages
+    rows = [line for line in (folder / "index.md").read_text().splitlines() if line.startswith("| ") and ".md)" in line]
+    assert sorted(r.rsplit("](", 1)[1].split(")")[0] for r in rows) == pages  # one row per page
+
+
+def test_hand_written_pages_name_no_machine_path():
+    """Commands in the README and the reference and experiment pages are relative to the
+    repository (generated pages name their sources where the report found them)."""
+    pages = [REPO / "README.md", *(REPO / "docs" / "reference").glob("*.md"), *(REPO / "docs" / "experiments").rglob("*.md")]
+    pattern = re.compile(r"(?<![\w.])/(?:work|home|root|tmp/(?!eskin\b|numba_cache\b))[\w.\-]+")
+    found = [f"{p.relative_to(REPO)}: {m.group(0)}" for p in pages for m in pattern.finditer(p.read_text())]
+    assert found == []
