@@ -1,0 +1,178 @@
+"""What a run folder says is what happened: a run is ``finished`` only when its training
+reached its length and its final read-out ran; a stop signal before training or in the
+final read-out ends the run within seconds and says where; a checkpoint that does not fit
+the run's model is refused with every file kept. In-process trainings of the tiny scene
+(``composed``), each fault injected in this process."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from test_training_inprocess import composed  # noqa: F401  the fixture
+
+EVAL_FAST = ["baselines=[mean]", "figures=false", "umap=false", "alignment.cv=2", "print_tables=false"]
+
+
+def _every_file(run: Path) -> dict[str, str]:
+    return {p.relative_to(run).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+def _signal_in_check(monkeypatch, which: str, hold_s: float = 8.0) -> dict:
+    """The KRR callback's check ``which`` ("initial" or "final") sends SIGTERM to this process
+    and then takes ``hold_s`` more seconds (a long check on a busy machine); records when."""
+    from embodied_tactile.eval.callback import KRRAlignmentCallback
+
+    seen = {"sent": None, "initial": 0, "final": 0}
+    original = KRRAlignmentCallback._evaluate
+
+    def evaluate(self, trainer, pl_module, final=False, initial=False):
+        kind = "initial" if initial else "final" if final else "periodic"
+        if kind in seen:
+            seen[kind] += 1
+        if kind == which and seen["sent"] is None:
+            seen["sent"] = time.perf_counter()
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(hold_s)
+        return original(self, trainer, pl_module, final=final, initial=initial)
+
+    monkeypatch.setattr(KRRAlignmentCallback, "_evaluate", evaluate)
+    return seen
+
+
+def test_sigterm_in_the_check_before_training_skips_it_and_the_final_readout(composed, monkeypatch):
+    """Fault: SIGTERM during the KRR check before the first step. Before: the check ran to its
+    end, then the final read-out, and only then exit 143 (12-26 s on a real run). Now: exit
+    143 at once, neither finishes, metrics.json says interrupted in the check before training."""
+    from embodied_tactile.run.training import train
+
+    cfg, run = composed
+    seen = _signal_in_check(monkeypatch, "initial")
+    with pytest.raises(SystemExit) as info:
+        train(cfg, str(run))
+    took = time.perf_counter() - seen["sent"]
+    assert info.value.code == 143
+    assert took < 5.0, took
+    assert seen["final"] == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted" and metrics["final_readout"] is False
+    assert metrics["stopped_by"] == "SIGTERM" and metrics["stopped_in"] == "check before training"
+    assert "krr_final" not in metrics
+
+
+def test_run_stopped_in_its_final_readout_resumes_at_its_length_into_the_readout(composed, monkeypatch):
+    """Fault: SIGTERM during the final read-out, then the same command again (max_epochs equal
+    to the epochs trained). Before: the resumed run trained nothing, ran no read-out, and said
+    "finished" with final_readout false and krr_final null. Now: the stop is prompt and saves
+    the last step; the resume runs the final read-out on those weights and only then says
+    finished."""
+    from embodied_tactile.run.training import train
+
+    cfg, run = composed
+    seen = _signal_in_check(monkeypatch, "final")
+    with pytest.raises(SystemExit) as info:
+        train(cfg, str(run))
+    assert info.value.code == 143 and time.perf_counter() - seen["sent"] < 5.0
+    stopped = json.loads((run / "metrics.json").read_text())
+    assert stopped["status"] == "interrupted" and stopped["stopped_in"] == "final read-out"
+    assert stopped["final_readout"] is False and stopped["last_checkpoint"] == "checkpoints/last.ckpt"
+    ck = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert ck["global_step"] == stopped["step"] > 0
+
+    monkeypatch.undo()
+    train(cfg, str(run))  # the same length: nothing to train, the read-out to make
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "finished" and metrics["final_readout"] is True
+    assert metrics["krr_final"]["final"] is True and metrics["krr_final"]["step"] == stopped["step"]
+    assert metrics["krr_final"]["epoch"] >= 0  # the final weights' read-out, not the step-0 check
+
+
+def test_run_outcome_is_finished_only_with_its_length_and_readout():
+    from types import SimpleNamespace
+
+    from embodied_tactile.run.runfolder import StopSignals, run_outcome
+
+    class Reader:
+        run_on_train_end = True
+
+        def __init__(self, final):
+            self.final = final
+
+        def ensure_final(self, trainer, pl_module):  # pragma: no cover - not called here
+            pass
+
+    done = SimpleNamespace(fit_loop=SimpleNamespace(done=True), interrupted=False)
+    cut = SimpleNamespace(fit_loop=SimpleNamespace(done=False), interrupted=False)
+    assert run_outcome(done, [Reader({"nmse_overall": 0.5})], StopSignals()) == ("finished", True)
+    assert run_outcome(done, [Reader(None)], StopSignals()) == ("interrupted", False)
+    assert run_outcome(done, [], StopSignals()) == ("finished", False)  # no read-out configured
+    assert run_outcome(cut, [Reader({"nmse_overall": 0.5})], StopSignals())[0] == "interrupted"
+
+
+def _misfit(run: Path) -> None:
+    """Every checkpoint of ``run`` as if copied from a run of another modality: one more input
+    channel in the first 4-D encoder weight, the modality named in its hyperparameters."""
+    for path in (run / "checkpoints").glob("*.ckpt"):
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+        key = next(k for k, v in ck["state_dict"].items() if "encoder" in k and v.ndim == 4)
+        w = ck["state_dict"][key]
+        ck["state_dict"][key] = torch.zeros(w.shape[0], w.shape[1] + 1, *w.shape[2:])
+        ck["hyper_parameters"]["net"]["modality"] = {"name": "acc_fsr_t", "channels": ["acc", "fsr_t"]}
+        torch.save(ck, path)
+
+
+def test_a_checkpoint_of_another_model_is_refused_and_every_file_kept(composed, capsys, tmp_path):
+    """Fault: a finished run whose checkpoints come from another modality, resumed for more
+    epochs, then evaluated alone and in a folder beside a good run. Before: the resume failed
+    with a traceback (exit 1) and rewrote metrics.json "failed"; evaluate failed with a
+    traceback and a folder of runs stopped at that run. Now: exit 2 with one line naming the
+    file and the mismatch, every file byte-identical; the folder's other run is scored and
+    the misfit named as skipped."""
+    from embodied_tactile.eval.command import main as evaluate_main
+    from embodied_tactile.run.training import compose, train
+
+    cfg, run = composed
+    train(cfg, str(run))
+    folder = tmp_path / "sweep"
+    good, bad = folder / "0", folder / "1"
+    shutil.copytree(run, good)
+    shutil.move(str(run), bad)
+    _misfit(bad)
+    before = _every_file(bad)
+    capsys.readouterr()
+
+    longer = compose([f"{o}" for o in _overrides(cfg)] + ["trainer.max_epochs=2"], str(bad))
+    with pytest.raises(SystemExit) as info:
+        train(longer, str(bad))
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("train.py: error: ") and "last.ckpt" in err[0]
+    assert "modality acc_fsr_t" in err[0] and "of another shape" in err[0]
+    assert _every_file(bad) == before
+
+    assert evaluate_main([str(bad), *EVAL_FAST]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("evaluate.py: error: ") and "does not fit the model" in err[-1]
+    assert "modality acc_fsr_t" in err[-1] and "Traceback" not in "\n".join(err)
+
+    assert evaluate_main([str(folder), *EVAL_FAST]) == 0
+    out = capsys.readouterr().out
+    assert f"SKIPPED {bad}" in out and "does not fit" in out
+    assert "evaluated 1 run(s) (1 skipped)" in out
+    assert _every_file(bad) == before
+
+
+def _overrides(cfg) -> list[str]:
+    """The overrides the ``composed`` fixture used (its run folder aside)."""
+    return ["debug=fast", "modality=acc", "threads=1", "seed=0", "plain_progress=true", "logger=csv",
+            "callbacks.krr_alignment.points=1", f"paths.data_dir={cfg.paths.data_dir}",
+            f"paths.log_dir={cfg.paths.log_dir}"]
