@@ -38,4 +38,5 @@ def main(cfg: DictConfig) -> float | None:
 
 if __name__ == "__main__":
     cli.check_typed_overrides(sys.argv[1:])  # one line for a value of the wrong type, before Hydra merges it
+    cli.check_composes(sys.argv[1:])  # one line for a group option or key that does not exist (Hydra's own: exit 1)
     sys.exit(main())

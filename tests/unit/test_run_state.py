@@ -176,3 +176,62 @@ def _overrides(cfg) -> list[str]:
     return ["debug=fast", "modality=acc", "threads=1", "seed=0", "plain_progress=true", "logger=csv",
             "callbacks.krr_alignment.points=1", f"paths.data_dir={cfg.paths.data_dir}",
             f"paths.log_dir={cfg.paths.log_dir}"]
+
+
+def test_a_dead_channel_refuses_a_new_run_and_leaves_no_folder(composed, monkeypatch, capsys):
+    """Fault: every training frame of the modality's channel reads one value (a dead layer).
+    Before: exit 2 with one line, but the run folder stayed behind (metrics.json "failed",
+    config_resolved.yaml, provenance.json). Now: the same line, and no folder."""
+    import numpy as np
+
+    from embodied_tactile.data.statistics import DataStatistics
+    from embodied_tactile.run.training import train
+
+    cfg, run = composed
+    real = DataStatistics.of.__func__
+
+    def dead(cls, batches, n):
+        st = real(cls, batches, n)
+        return cls(st.channel_mean, np.zeros_like(st.channel_std), st.n_train_sequences)
+
+    monkeypatch.setattr(DataStatistics, "of", classmethod(dead))
+    with pytest.raises(SystemExit) as info:
+        train(cfg, str(run))
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("train.py: error: channel acc ") and "is constant" in err[0]
+    assert not run.exists()
+
+
+@pytest.mark.parametrize("threads", [0, -2, "many"])
+def test_threads_below_one_is_a_bad_setting(threads):
+    """Fault: threads=0. Before: a traceback from thread_budget (exit 1) after the run folder
+    was written. Now: the entry's check names it."""
+    from omegaconf import OmegaConf
+
+    from embodied_tactile.run.settings import SettingsError, check_train_config
+
+    with pytest.raises(SettingsError, match=rf"^threads={threads!r} \(\w+\): expected auto or an integer >= 1$"):
+        check_train_config(OmegaConf.create({"threads": threads}))
+    for ok in ("auto", 1, 4, None):
+        check_train_config(OmegaConf.create({"threads": ok}))
+
+
+@pytest.mark.parametrize("args, needles", [
+    (["modality=mutli_l"], ("modality=mutli_l: no such option", "multi_l")),
+    (["trainer.max_epoch=3"], ("trainer.max_epoch=3: no such key", "+trainer.max_epoch=")),
+    (["-m", "modality=acc,mutli_l"], ("modality=mutli_l: no such option",)),
+])
+def test_hydra_composition_errors_are_one_line_exit_2(args, needles, capsys):
+    """Fault: a mistyped group option or key. Before: Hydra's several-line report and exit 1.
+    Now: train.py's entry check prints one line, exit 2, before Hydra makes a folder."""
+    from embodied_tactile.cli import check_composes
+
+    with pytest.raises(SystemExit) as info:
+        check_composes(args)
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("train.py: error: ")
+    for n in needles:
+        assert n in err[0], (n, err)
+    check_composes(["modality=acc", "trainer.max_epochs=3", "-m", "seed=1,2"])  # a command that composes

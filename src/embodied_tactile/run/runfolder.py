@@ -73,6 +73,7 @@ class CheckpointWriteError(OSError):
 
 # ----------------------------------------------------------------------------- lock
 _held: dict[str, int] = {}  # resolved run folder -> fd of its lock, for this process
+_created: set[str] = set()  # resolved run folders this process created (lock): discard_new may remove them
 
 
 def _is_rank_zero() -> bool:
@@ -120,6 +121,8 @@ def lock(run_dir: str | os.PathLike, record: bool = True) -> None:
     run_dir = Path(run_dir).resolve()
     if str(run_dir) in _held or not _is_rank_zero():
         return
+    if not run_dir.exists():
+        _created.add(str(run_dir))
     run_dir.mkdir(parents=True, exist_ok=True)
     fd, holder = try_lock(run_dir / LOCK_FILE)
     if fd is None:
@@ -153,6 +156,36 @@ def training_holder(run_dir: str | os.PathLike) -> dict | None:
     if fd >= 0:
         os.close(fd)  # drops the probe's shared lock
     return None
+
+
+def discard_new(run_dir: str | os.PathLike) -> bool:
+    """Remove ``run_dir`` whole when this process created it (:func:`lock`) and it holds no
+    run: a start refused before training leaves nothing behind (Hydra's ``.hydra/`` and log
+    included). False (nothing removed) for a folder that existed before, e.g. a multirun
+    job's, which Hydra creates and whose reason the sweep's table reads."""
+    import shutil
+
+    key = str(Path(run_dir).resolve())
+    if key not in _created or holds_run(run_dir):
+        return False
+    release(run_dir)
+    shutil.rmtree(key, ignore_errors=True)
+    _created.discard(key)
+    return True
+
+
+def refuse(run_dir: str | os.PathLike, err: Exception, resuming: bool) -> None:
+    """A start refused before training (a bad setting, a dead channel, another run's split
+    or data): one line and exit 2 (:func:`~embodied_tactile.run.settings.fail`). A new run's
+    folder is removed when this process created it (:func:`discard_new`), else it gets
+    ``metrics.json`` ``failed`` with the reason (a multirun job); a folder that holds a run
+    is left byte-identical."""
+    from embodied_tactile.run.jsonio import write_json
+    from embodied_tactile.run.settings import fail
+
+    if not resuming and not discard_new(run_dir):
+        write_json(Path(run_dir) / "metrics.json", {"status": "failed", "error": str(err)})
+    fail(err)
 
 
 def release(run_dir: str | os.PathLike) -> None:
@@ -490,6 +523,7 @@ def claim(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
         check_checkpoint_fits(cfg, run_dir)
     except (RunFolderError, RunFinished):
         release(run_dir)
+        discard_new(run_dir)  # a folder made only to be refused goes again
         raise
     record_holder(run_dir)
     if _is_rank_zero():

@@ -80,7 +80,17 @@ def check_train_config(cfg: DictConfig) -> None:
             options = PendulumOptions  # the pendulum scene's data (experiment=pendulum)
         if isinstance(node, DictConfig):
             check_options(options, node, key)
+    _check_threads(cfg)
     _check_population(cfg)
+
+
+def _check_threads(cfg: DictConfig) -> None:
+    """``threads``: ``auto`` (or null) or a ceiling >= 1 (:func:`~embodied_tactile.run.runtime.thread_budget`)."""
+    present, v = config_value(cfg, "threads")
+    if not present or v is None or v == "auto":
+        return
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise SettingsError(f"threads={v!r} ({type(v).__name__}): expected auto or an integer >= 1")
 
 
 def _check_population(cfg: DictConfig) -> None:

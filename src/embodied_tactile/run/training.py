@@ -97,10 +97,8 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
         return None
     try:  # cli.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
-    except settings.SettingsError as err:
-        if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
-            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}"})
-        settings.fail(err)
+    except settings.SettingsError as err:  # a folder holding a run is never rewritten by a refused start
+        runfolder.refuse(run_dir, err, runfolder.holds_run(run_dir))
     # SIGTERM / SIGINT: last.ckpt after the step under way (no validation nor KRR check after it), "interrupted", exit 143 / 130
     stop = runfolder.StopSignals(last_path=f"{run_dir}/checkpoints/last.ckpt").install()
     resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
@@ -176,12 +174,8 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
         runfolder.finish_fit(trainer, model, callbacks, stop)  # a run resumed at its own length: its final read-out
-    except runfolder.RunFolderError as err:  # refused before anything of the run was rewritten
-        settings.fail(err)
-    except ConstantChannelError as err:  # bad data, found before training: one line naming channel, layer, files
-        if not resuming:
-            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": str(err)})
-        settings.fail(err)
+    except (runfolder.RunFolderError, ConstantChannelError) as err:  # refused before anything of the run was rewritten
+        runfolder.refuse(run_dir, err, resuming)  # a dead channel: one line naming channel, layer, files
     except BaseException as err:  # any failure: the folder must not look like a finished run
         stop.settle()  # a signal in the final read-out: last.ckpt holds the last step's weights
         status = "interrupted" if stop.received is not None else "failed"
