@@ -235,3 +235,97 @@ def test_hydra_composition_errors_are_one_line_exit_2(args, needles, capsys):
     for n in needles:
         assert n in err[0], (n, err)
     check_composes(["modality=acc", "trainer.max_epochs=3", "-m", "seed=1,2"])  # a command that composes
+
+
+# ----------------------------------------------------------------------------- evaluate: one line, nothing written
+@pytest.fixture()
+def evaluated_run(composed):
+    """A finished run of the tiny scene with one evaluation of it (``<run>/evaluation``)."""
+    from embodied_tactile.eval.command import main as evaluate_main
+    from embodied_tactile.run.training import train
+
+    cfg, run = composed
+    train(cfg, str(run))
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a fresh evaluate.py process
+    assert evaluate_main([str(run), *EVAL_FAST]) == 0
+    return run
+
+
+def _evaluate(*argv: str):
+    """evaluate.py's main in this process -> its exit status, or what escaped it."""
+    from embodied_tactile.eval.command import main as evaluate_main
+
+    try:
+        return evaluate_main(list(argv))
+    except KeyboardInterrupt:
+        return "KeyboardInterrupt escaped"
+    except Exception as err:  # noqa: BLE001 -- the fault shows as what escaped
+        return f"{type(err).__name__} escaped"
+
+
+def _interrupt_at(monkeypatch, target, name: str, sig=signal.SIGINT) -> None:
+    original = getattr(target, name)
+
+    def stopped(*a, **k):
+        os.kill(os.getpid(), sig)
+        time.sleep(3)
+        return original(*a, **k)
+
+    monkeypatch.setattr(target, name, stopped)
+
+
+def test_ctrl_c_in_evaluate_exits_130_in_every_phase(evaluated_run, monkeypatch, capsys):
+    """Fault: Ctrl-C while evaluate finds the runs, prepares the data, or writes the report.
+    Before: a KeyboardInterrupt traceback out of main (exit 130 or 1 by phase). Now: one line,
+    exit 130, the earlier evaluation byte-identical and no temporary folder left."""
+    from embodied_tactile.eval import pipeline, report, runs
+
+    before = _every_file(evaluated_run / "evaluation")
+    for phase, target in (("discover", (pipeline, "discover")), ("data", (runs.DataCache, "get")),
+                          ("report", (report, "write_report"))):
+        with monkeypatch.context() as patch:
+            _interrupt_at(patch, *target)
+            capsys.readouterr()
+            assert _evaluate(str(evaluated_run), *EVAL_FAST) == 130, phase
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1].startswith("evaluate.py: stopped by SIGINT: nothing written"), (phase, err[-3:])
+        assert "Traceback" not in "\n".join(err), phase
+        assert _every_file(evaluated_run / "evaluation") == before, phase
+        assert not list(evaluated_run.glob(".evaluation.tmp-*")), phase
+
+
+def test_evaluate_on_a_full_or_read_only_folder_is_one_line(evaluated_run, monkeypatch, capsys):
+    """Fault: the disk fills while the report is written (Errno 28 from PIL); the run folder
+    is read-only. Before: tracebacks, exit 1. Now: one line naming the folder and the OS
+    reason, exit 2, the earlier evaluation kept."""
+    import errno
+    import tempfile
+
+    from embodied_tactile.eval import report
+
+    before = _every_file(evaluated_run / "evaluation")
+    real = report.write_report
+
+    def full(results, out, **kw):
+        (Path(out) / "table_partial.md").write_text("half")
+        raise OSError(errno.ENOSPC, "No space left on device", str(Path(out) / "figures" / "nmse.png"))
+
+    monkeypatch.setattr(report, "write_report", full)
+    capsys.readouterr()
+    assert _evaluate(str(evaluated_run), *EVAL_FAST) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"evaluate.py: error: cannot write the evaluation into "
+                                               f"{evaluated_run / 'evaluation'}: No space left on device")
+    assert _every_file(evaluated_run / "evaluation") == before
+    assert not list(evaluated_run.glob(".evaluation.tmp-*"))
+
+    monkeypatch.setattr(report, "write_report", real)
+
+    def read_only(*a, **k):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)  # the probe of a folder on a read-only mount
+    assert _evaluate(str(evaluated_run), *EVAL_FAST, "out=" + str(evaluated_run / "again")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot write the evaluation into" in err[0] and "Read-only file system" in err[0]
+    assert not (evaluated_run / "again").exists()
