@@ -456,11 +456,21 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequenc
     names = _whole_trials(fields, per_field, cache_files, skipped)
     skipped = _one_per_trial(skipped)
     object_ids = scene.object_ids()
+    sets = recording_sets(per_field[0], names)
     refs = []
     incomplete: list[str] = []
     for name in names:
         a = per_field[0][name]
         if str(a["skin"]) != scene.skin or str(a["primitive"]) != scene.primitive:
+            src = str(a.get("source_file"))
+            if sets.get(src) == (scene.skin, scene.primitive):  # a mislabelled trial of this scene's set
+                entry = {"file": src, "trial": name, "field": "attrs/skin" if str(a["skin"]) != scene.skin
+                         else "attrs/primitive",
+                         "problem": f"skin={a['skin']} primitive={a['primitive']} in a recording set of "
+                                    f"{scene.skin}/{scene.primitive} trials: its attributes disagree with its file; "
+                                    "left out (fix the attributes, or move the trial to a file of its own scene)"}
+                log.warning("skipping %s / %s: %s", src, name, entry["problem"])
+                skipped.append(entry)
             continue
         if object_ids is not None and int(a["object_id"]) not in object_ids:
             continue
@@ -486,6 +496,20 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequenc
             f"actions={scene.actions} in {dict(cache_files)} (skipped: {skipped[:5]})"
         )
     return refs, skipped, (incomplete if not scene.include_incomplete else [])
+
+
+def recording_sets(attrs: Mapping[str, Mapping[str, Any]], names: Sequence[str]) -> dict[str, tuple[str, str]]:
+    """``{raw file: (skin, primitive)}`` the most trials of each file hold: the scene the file
+    records. A trial of that file with other attributes disagrees with its file (a file
+    whose trials are mostly of another scene is that scene's, and its trials are not this
+    scene's to name)."""
+    from collections import Counter
+
+    counts: dict[str, Counter] = {}
+    for name in names:
+        a = attrs[name]
+        counts.setdefault(str(a.get("source_file")), Counter())[(str(a["skin"]), str(a["primitive"]))] += 1
+    return {f: c.most_common(1)[0][0] for f, c in counts.items()}
 
 
 def _one_per_trial(entries: Sequence[Mapping[str, str]]) -> list[dict[str, str]]:
