@@ -97,8 +97,13 @@ def _parse_overrides(args: Sequence[str]) -> list:
 
 
 def _values(override: Any) -> list:
-    """An override's value, or every value of a sweep."""
-    return list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+    """An override's value, or every value of a sweep, as parsed (a sweep over lists, e.g.
+    ``data.raw_files=[a.h5,b.h5],[c.h5]``, gives lists; numbers give numbers)."""
+    if not override.is_sweep_override():
+        return [override.value()]
+    from hydra.core.override_parser.types import Transformer
+
+    return list(override.sweep_iterator(transformer=Transformer.identity))
 
 
 def _typed_value(options: Any, path: str, shown: str, value: Any, prog: str) -> DictConfig:
@@ -218,7 +223,7 @@ def check_composes(args: Sequence[str], config_name: str = "train", prog: str = 
             first.append(o.input_line)
             continue
         try:
-            values = _values(o)
+            values = list(o.sweep_string_iterator())
         except Exception:  # noqa: BLE001 -- an interval sweep (a sweeper's): its values are the sweeper's
             return
         group = Path(config_dir()) / o.key_or_group.replace(".", "/")

@@ -329,3 +329,50 @@ def test_evaluate_on_a_full_or_read_only_folder_is_one_line(evaluated_run, monke
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "cannot write the evaluation into" in err[0] and "Read-only file system" in err[0]
     assert not (evaluated_run / "again").exists()
+
+
+# ----------------------------------------------------------------------------- sweeps
+def test_a_finished_job_run_again_leaves_every_file_unchanged_train_log_included(composed, capsys):
+    """Fault: the same multirun again on a finished sweep: each job's train() finds its run
+    finished. Before: one line appended to each job's train.log (the README promises every
+    file unchanged). Now: it says so on stdout and no byte of the folder changes."""
+    import logging
+
+    from embodied_tactile.run.training import train
+
+    cfg, run = composed
+    train(cfg, str(run))
+    handler = logging.FileHandler(run / "train.log")  # as Hydra's job logging: the root logger into the job's log
+    root = logging.getLogger()
+    root.addHandler(handler)
+    old_level = root.level
+    root.setLevel(logging.INFO)
+    try:
+        before = _every_file(run)
+        capsys.readouterr()
+        assert train(cfg, str(run)) is None
+        handler.flush()
+        assert _every_file(run) == before
+        assert "is finished" in capsys.readouterr().out
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(old_level)
+        handler.close()
+
+
+def test_a_sweep_over_recording_sets_is_one_job_per_set():
+    """Fault: ``-m 'data.raw_files=[a.h5,b.h5],[c*.h5]'`` (two recording sets). Before: refused
+    ("expected a list or null") however it was quoted. Now: the typed check passes each list
+    and Hydra's sweeper makes one job per set."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from embodied_tactile.cli import check_typed_overrides
+
+    args = ["data.source=recorded", "data.raw_files=[rec/soft_a.h5,rec/soft_b.h5],[rec/hard/*.h5]", "seed=0,1"]
+    check_typed_overrides(["-m", *args])
+    jobs = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(args), None)[0]
+    assert sorted({j[1] for j in jobs}) == ["data.raw_files=[rec/hard/*.h5]", "data.raw_files=[rec/soft_a.h5,rec/soft_b.h5]"]
+    assert len(jobs) == 4
+    with pytest.raises(SystemExit):  # a set that is not a list is still refused, naming it
+        check_typed_overrides(["-m", "data.raw_files=[rec/a.h5],3"])

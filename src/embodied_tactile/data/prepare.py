@@ -391,12 +391,15 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
         # a cache found (not built now) is checked once per preparation: each array against its crc32
         damaged = {fld: bad for fld, path in files.items() if Path(path) in existing and (bad := verify_cache(path))}
         if damaged:  # set the damaged files aside (kept) and rebuild those fields from the raw files
+            asides = {}
             for fld, bad in damaged.items():
-                aside = _set_aside(Path(files[fld]))
+                asides[fld] = _set_aside(Path(files[fld]))
                 log.warning("%s: %d cached array(s) fail their checksum (e.g. %s); moved to %s, rebuilding %s from "
-                            "the raw files", files[fld], len(bad), ", ".join(bad[:3]), aside.name, fld)
+                            "the raw files", files[fld], len(bad), ", ".join(bad[:3]), asides[fld].name, fld)
             files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=tuple(scene.fields),
                                 workers=scene.preprocess_workers, strict=scene.strict)
+            for aside in asides.values():  # rebuilt: the newest damaged copy is kept for inspection, no older one
+                _prune_set_aside(aside)
     cache_files = {k: str(v) for k, v in files.items()}
     trials, skipped, incomplete = list_trials(scene, cache_files, raw_paths)
     return PreparedData(scene=scene, raw_files=raw_paths, cache_files=cache_files, trials=trials, skipped=skipped,
@@ -412,6 +415,21 @@ def _set_aside(path: Path) -> Path:
         target = path.with_name(f"{path.name}.corrupt-{n}")
     path.rename(target)
     return target
+
+
+def _prune_set_aside(keep: Path) -> list[Path]:
+    """Once a damaged cache file's rebuild succeeded: remove the older damaged copies of the
+    same file (``<name>.corrupt``, ``<name>.corrupt-N``) beside ``keep``, the newest, each
+    named in a log line: one copy per cache file, not one per failure (each as large as
+    the cache)."""
+    name = keep.name.rsplit(".corrupt", 1)[0]
+    removed = []
+    for old in keep.parent.glob(f"{glob.escape(name)}.corrupt*"):
+        if old != keep and (old.name == f"{name}.corrupt" or old.name.startswith(f"{name}.corrupt-")):
+            old.unlink(missing_ok=True)
+            removed.append(old)
+            log.info("removed %s: an older damaged copy of %s (the newest is kept: %s)", old, name, keep.name)
+    return removed
 
 
 def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequence[str] | None = None

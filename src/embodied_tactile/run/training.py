@@ -92,8 +92,7 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
     except runfolder.RunFolderError as err:
         settings.fail(err)
     except runfolder.RunFinished as done:  # a multirun job (a single run stops at entry): nothing to train
-        log.info("%s", done)
-        print(f"train.py: {done}", flush=True)
+        print(f"train.py: {done}", flush=True)  # not logged: the job's train.log stays as it was
         return None
     try:  # cli.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
