@@ -376,3 +376,20 @@ def test_a_sweep_over_recording_sets_is_one_job_per_set():
     assert len(jobs) == 4
     with pytest.raises(SystemExit):  # a set that is not a list is still refused, naming it
         check_typed_overrides(["-m", "data.raw_files=[rec/a.h5],3"])
+
+
+def test_a_full_output_folder_is_refused_at_the_entry(tmp_path, monkeypatch):
+    """Fault: the disk of the log folder is full. Before: the entry's probe created an empty
+    file, which a full disk allows, and the run failed later with a traceback. Now: the probe
+    writes and syncs a block, and a full disk is one line naming the key and the reason."""
+    import errno
+
+    from embodied_tactile.run import settings
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(settings.os, "fsync", full)
+    with pytest.raises(settings.SettingsError, match=r"^paths.log_dir=.*: cannot create or write this folder "
+                                                     r"\(No space left on device\)$"):
+        settings.check_writable_dir("paths.log_dir", tmp_path / "logs")
