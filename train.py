@@ -12,9 +12,9 @@ Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt; 
 is locked while a training runs, and a restart with settings, split or data (per trial) that
 differ, or with fewer epochs than its checkpoint's, is refused; the same command on a
 finished run changes nothing (embodied_tactile.run.runfolder). Exit codes: 0 finished (or
-already finished), 2 bad setting or refused start, 130 / 143 SIGINT / SIGTERM (last.ckpt
-saved after the step under way, "interrupted"), 74 a checkpoint could not be written, 1 any
-other failure; a multirun runs every job and exits 1 when one did not finish (its table
+already finished), 2 bad setting or refused start (a new run's folder removed), 130 / 143
+SIGINT / SIGTERM within seconds in any phase (last.ckpt saved after the step under way,
+"interrupted", stopped_in), 74 a checkpoint could not be written, 1 any other failure; a multirun runs every job and exits 1 when one did not finish (its table
 says why).
 """
 

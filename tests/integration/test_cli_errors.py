@@ -68,6 +68,9 @@ def test_typed_check_covers_the_optional_context_group(capsys):
     ("data.batch_size=0", ("data.batch_size=0", ">= 1")),
     ("model.optimizer.lr=fast", ("model.optimizer.lr='fast'", "number")),
     ("data.train_window=1", ("data.train_window=1", ">= 2")),
+    ("modality=mutli_l", ("modality=mutli_l: no such option", "multi_l")),  # Hydra's own errors: exit 1 before
+    ("trainer.max_epoch=3", ("trainer.max_epoch=3: no such key", "+trainer.max_epoch=")),
+    ("threads=0", ("threads=0 (int): expected auto or an integer >= 1",)),  # a traceback and a folder before
 ])
 def test_wrongly_typed_setting_names_key_and_value(tmp_path, capsys, restore_logging, override, needles):
     res = train_here(tmp_path, capsys, f"paths.data_dir={tmp_path / 'data'}", override)

@@ -421,8 +421,9 @@ def test_changed_raw_data_is_refused_or_named_at_evaluation(fast_data_dir, tmp_p
 
 
 def test_stop_signal_outside_the_training_steps_raises_and_inside_sets_should_stop():
-    """SIGTERM during data preparation ends the run as interrupted (StopRequested, which
-    train.py turns into exit 143); during the steps it only asks Lightning to stop."""
+    """SIGTERM during data preparation or the check before the first step ends the run as
+    interrupted (StopRequested, which train.py turns into exit 143); during the steps it only
+    asks Lightning to stop."""
     from types import SimpleNamespace
 
     from embodied_tactile.run.runfolder import StopRequested, StopSignals
@@ -436,10 +437,17 @@ def test_stop_signal_outside_the_training_steps_raises_and_inside_sets_should_st
         assert stop.exit_code() == 143
         stop = StopSignals().install()
         trainer = SimpleNamespace(should_stop=False)
+        stop.on_train_start(trainer, None)  # the check before the first step: abandoned at once
+        with pytest.raises(StopRequested, match="stopped by SIGTERM"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+        assert stop.phase == "check before training"
+        stop = StopSignals().install()
         stop.on_train_start(trainer, None)
+        stop.on_train_batch_start(trainer, None, None, 0)
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.1)
-        assert trainer.should_stop and stop.exit_code() == 130 and stop.name == "SIGINT"
+        assert trainer.should_stop and stop.exit_code() == 130 and stop.name == "SIGINT" and stop.phase == "training"
     finally:
         for s, h in old.items():
             signal.signal(s, h)

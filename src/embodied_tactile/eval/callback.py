@@ -308,6 +308,14 @@ class KRRAlignmentCallback(Callback):
                 # the final alignment replaces any earlier krr/* value (metrics.json's fit_metrics)
                 trainer.callback_metrics.update({k: torch.tensor(v) for k, v in metrics.items()})
 
+    def ensure_final(self, trainer, pl_module) -> None:
+        """The final alignment when the fit did not run it: a run resumed at its own length
+        (Lightning's fit loop is done before it starts and calls neither ``on_train_start``
+        nor ``on_train_end``) reads its restored final weights here, so that its result is
+        the final read-out, never an earlier check."""
+        if self.final is None and self.run_on_train_end:
+            self.on_train_end(trainer, pl_module)
+
     # ------------------------------------------------------------------ work
     def _loaders(self, trainer):
         dm = trainer.datamodule

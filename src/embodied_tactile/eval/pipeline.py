@@ -12,6 +12,7 @@ every table is in the output folder.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -428,9 +429,33 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     for st in states.values():  # a run that is not finished says so first, with the checkpoint evaluated
         if st.get("line"):
             print(st["line"], flush=True)
+    writable(out)
     owned = OwnedOutput(out)
-    with owned:
-        return _evaluate_runs(target, kind, runs, skipped, selection, opts, baselines, owned, states)
+    try:
+        with owned:
+            return _evaluate_runs(target, kind, runs, skipped, selection, opts, baselines, owned, states)
+    except OSError as err:  # a full disk or a read-only folder while writing: nothing published
+        if err.errno not in WRITE_ERRNOS:
+            raise
+        raise EvaluationError(f"cannot write the evaluation into {out}: {err.strerror or err}"
+                              f"{f' ({err.filename})' if err.filename else ''}; nothing written, an earlier "
+                              f"evaluation there is kept (free space, or give out=<another folder>)") from None
+
+
+#: OS errors of a folder that cannot take the evaluation's files (full, read-only, quota, size limit, permissions)
+WRITE_ERRNOS = (errno.ENOSPC, errno.EROFS, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM)
+
+
+def writable(out: Path) -> None:
+    """EvaluationError naming ``out`` and the OS reason when its folder cannot be written
+    (read-only, full): checked before any data are prepared."""
+    from embodied_tactile.run.settings import SettingsError, check_writable_dir
+
+    try:
+        check_writable_dir("out", out.parent)
+    except SettingsError as err:
+        raise EvaluationError(f"cannot write the evaluation into {out}: {str(err).split('(', 1)[-1].rstrip(')')}; "
+                              "give out=<a writable folder>") from None
 
 
 def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, selection: dict, opts: DictConfig,

@@ -190,7 +190,29 @@ def load_run(run_dir: Path, which: str, ckpt: Path | None = None) -> Run:
         raise EvaluationError(f"{run_dir} is not a training run folder: no config_resolved.yaml "
                               "(give a run folder made by train.py, one of its checkpoints, or a multirun folder)")
     cfg = OmegaConf.load(cpath)
-    return Run(run_dir=run_dir, ckpt=ckpt or find_checkpoint(run_dir, which), cfg=cfg, name=run_dir.name)
+    run = Run(run_dir=run_dir, ckpt=ckpt or find_checkpoint(run_dir, which), cfg=cfg, name=run_dir.name)
+    check_fits(run)
+    return run
+
+
+def check_fits(run: Run) -> None:
+    """EvaluationError naming the checkpoint and the mismatch (modality, shapes:
+    :func:`~embodied_tactile.run.runfolder.checkpoint_misfit`) when its weights do not fit the
+    model the run's config builds: a checkpoint copied from another run is refused before
+    any data are prepared (a folder of runs skips it and scores the others)."""
+    import torch
+    from hydra.utils import instantiate
+
+    from embodied_tactile.run.runfolder import checkpoint_misfit
+
+    if OmegaConf.select(run.cfg, "model._target_", default=None) is None:
+        return
+    with torch.random.fork_rng():  # building the model draws its initial weights: the caller's stream stays
+        model = instantiate(run.cfg.model)
+    misfit = checkpoint_misfit(model, torch.load(run.ckpt, map_location="cpu", mmap=True, weights_only=False))
+    if misfit:
+        raise EvaluationError(f"{run.ckpt}: does not fit the model of its run {run.run_dir} ({misfit}); "
+                              "not evaluated")
 
 
 def job_dirs(folder: Path) -> list[Path]:

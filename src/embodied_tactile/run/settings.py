@@ -13,6 +13,7 @@ runs them before Hydra creates the run folder and exits with status :data:`EXIT_
 
 from __future__ import annotations
 
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -80,7 +81,17 @@ def check_train_config(cfg: DictConfig) -> None:
             options = PendulumOptions  # the pendulum scene's data (experiment=pendulum)
         if isinstance(node, DictConfig):
             check_options(options, node, key)
+    _check_threads(cfg)
     _check_population(cfg)
+
+
+def _check_threads(cfg: DictConfig) -> None:
+    """``threads``: ``auto`` (or null) or a ceiling >= 1 (:func:`~embodied_tactile.run.runtime.thread_budget`)."""
+    present, v = config_value(cfg, "threads")
+    if not present or v is None or v == "auto":
+        return
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise SettingsError(f"threads={v!r} ({type(v).__name__}): expected auto or an integer >= 1")
 
 
 def _check_population(cfg: DictConfig) -> None:
@@ -113,8 +124,9 @@ def _check_population(cfg: DictConfig) -> None:
 
 
 def check_writable_dir(key: str, value: Any) -> Path:
-    """Create the folder if needed and write a probe file into it; SettingsError naming the
-    key, the path and the OS reason otherwise."""
+    """Create the folder if needed and write a probe file of one block into it (synced: a
+    full disk fails as a read-only folder does); SettingsError naming the key, the path and
+    the OS reason otherwise."""
     if value is None or str(value) == "":
         raise SettingsError(f"{key} is empty: give a folder")
     p = Path(str(value)).expanduser()
@@ -122,8 +134,10 @@ def check_writable_dir(key: str, value: Any) -> Path:
         if p.exists() and not p.is_dir():
             raise SettingsError(f"{key}={value}: exists and is not a folder")
         p.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=p):
-            pass
+        with tempfile.TemporaryFile(dir=p) as probe:  # a block written and synced: a full disk fails here
+            probe.write(b"\0" * 4096)
+            probe.flush()
+            os.fsync(probe.fileno())
     except OSError as err:
         raise SettingsError(f"{key}={value}: cannot create or write this folder ({err.strerror or err})") from None
     return p

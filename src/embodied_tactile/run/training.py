@@ -92,15 +92,12 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
     except runfolder.RunFolderError as err:
         settings.fail(err)
     except runfolder.RunFinished as done:  # a multirun job (a single run stops at entry): nothing to train
-        log.info("%s", done)
-        print(f"train.py: {done}", flush=True)
+        print(f"train.py: {done}", flush=True)  # not logged: the job's train.log stays as it was
         return None
     try:  # cli.EntryCallback checked before the folder existed; values swept with -m reach only the job
         settings.check_train_config(cfg)
-    except settings.SettingsError as err:
-        if not runfolder.holds_run(run_dir):  # a finished run's metrics.json is never rewritten by a refused start
-            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": f"bad setting: {err}"})
-        settings.fail(err)
+    except settings.SettingsError as err:  # a folder holding a run is never rewritten by a refused start
+        runfolder.refuse(run_dir, err, runfolder.holds_run(run_dir))
     # SIGTERM / SIGINT: last.ckpt after the step under way (no validation nor KRR check after it), "interrupted", exit 143 / 130
     stop = runfolder.StopSignals(last_path=f"{run_dir}/checkpoints/last.ckpt").install()
     resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
@@ -175,30 +172,28 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
             write_json(f"{run_dir}/metrics.json", metrics)
         t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
-    except runfolder.RunFolderError as err:  # refused before anything of the run was rewritten
-        settings.fail(err)
-    except ConstantChannelError as err:  # bad data, found before training: one line naming channel, layer, files
-        if not resuming:
-            write_json(f"{run_dir}/metrics.json", {"status": "failed", "error": str(err)})
-        settings.fail(err)
+        runfolder.finish_fit(trainer, model, callbacks, stop)  # a run resumed at its own length: its final read-out
+    except (runfolder.RunFolderError, ConstantChannelError) as err:  # refused before anything of the run was rewritten
+        runfolder.refuse(run_dir, err, resuming)  # a dead channel: one line naming channel, layer, files
     except BaseException as err:  # any failure: the folder must not look like a finished run
+        stop.settle()  # a signal in the final read-out: last.ckpt holds the last step's weights
         status = "interrupted" if stop.received is not None else "failed"
         metrics.update(status=status, error=str(err) or type(err).__name__, error_type=type(err).__name__,
                        train_wall_s=time.perf_counter() - t0)
         if stop.received is not None:
-            metrics.update(stopped_by=stop.name, final_readout=False)
+            metrics.update(stopped_by=stop.name, stopped_in=stop.phase, final_readout=False)
         if stop.saved is not None:
             metrics.update(last_checkpoint=runfolder.in_folder(run_dir, stop.saved), step=stop.step)
         write_json(f"{run_dir}/metrics.json", metrics)
         if isinstance(err, FloatingPointError):  # the model's non-finite-loss guard: name step and term
             log.error("training stopped: %s (last good checkpoint kept in %s/checkpoints)", err, run_dir)
         if stop.saved is not None:
-            log.error("%s: stopped after the optimiser step of step %d, %s saved (no validation or KRR check after "
-                      "the signal); start the same command again to resume; exit %d", stop.name, stop.step, stop.saved,
-                      stop.exit_code())
+            log.error("%s (%s): stopped after the optimiser step of step %d, %s saved (no validation, KRR check or "
+                      "final read-out after the signal); start the same command again to resume; exit %d", stop.name,
+                      stop.phase, stop.step, stop.saved, stop.exit_code())
             raise SystemExit(stop.exit_code()) from None
         if stop.received is not None:
-            log.error("%s before training began: nothing new to save; exit %d", stop.name, stop.exit_code())
+            log.error("%s (%s): no training step of this start to save; exit %d", stop.name, stop.phase, stop.exit_code())
             raise SystemExit(stop.exit_code()) from None
         if isinstance(err, runfolder.CheckpointWriteError):  # disk full: one line, the previous file kept
             print(f"train.py: error: {err}", file=sys.stderr)
@@ -209,7 +204,7 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
     if stop.received is not None:  # stopped between steps: the state of this step is the run's last.ckpt
         last = f"{run_dir}/checkpoints/last.ckpt"
         trainer.save_checkpoint(last)
-        metrics.update(status="interrupted", stopped_by=stop.name, last_checkpoint=runfolder.in_folder(run_dir, last),
+        metrics.update(status="interrupted", stopped_by=stop.name, stopped_in=stop.phase, last_checkpoint=runfolder.in_folder(run_dir, last),
                        step=trainer.global_step, final_readout=any(getattr(c, "final", None) for c in callbacks))
         write_json(f"{run_dir}/metrics.json", metrics)
         log.error("%s: stopped at step %d, %s saved; start the same command again to resume; exit %d",
@@ -239,8 +234,8 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
         metrics["best_value"] = {best[1]["key"]: best[1]["value"]}
     metrics["data"] = datamodule.describe() if hasattr(datamodule, "describe") else {}
     metrics["peak_rss_bytes"] = runtime.peak_rss_bytes()
-    metrics["status"] = "interrupted" if trainer.interrupted or stop.received is not None else "finished"
-    metrics["final_readout"] = metrics["krr_final"] is not None  # the run's final KRR alignment (callbacks.krr_alignment)
+    # finished: its length reached and its final KRR alignment (callbacks.krr_alignment) made
+    metrics["status"], metrics["final_readout"] = runfolder.run_outcome(trainer, callbacks, stop)
     if trainer.global_rank == 0:
         write_json(f"{run_dir}/metrics.json", metrics)
         log.info("run folder: %s", run_dir)
