@@ -181,7 +181,7 @@ def run_alignment(cfg: DictConfig, opts: DictConfig) -> dict:
 
 def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequence[str]) -> tuple[list, list[dict], dict]:
     """-> (Results of every method, krr history rows, info dict)."""
-    from embodied_tactile.eval.callback import INFER_BATCH_SIZE
+    from embodied_tactile.eval.latents import INFER_BATCH_SIZE
     from embodied_tactile.eval.results import evaluate_latents
     from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_mean
     from embodied_tactile.data.modality import Modality

@@ -393,7 +393,7 @@ def trial_objects(dm) -> dict[str, int]:
 def collect_split(model, batches: list, names: list[str], latent: str) -> tuple[dict, float]:
     """collect_latents over pre-loaded batches (so the timing is inference only) + the
     observations / actions the baselines need + trial names as seq_id."""
-    from embodied_tactile.eval.callback import collect_latents
+    from embodied_tactile.eval.latents import collect_latents
 
     t0 = time.perf_counter()
     split = collect_latents(model, batches, latent=latent)
@@ -404,11 +404,11 @@ def collect_splits(model, train: tuple[list, list[str]], held: tuple[list, list[
                    batch_size: int) -> tuple[dict, dict, float]:
     """:func:`collect_split` of the training and the held-out side (each ``(batches,
     names)``), inferred together as the training's final read-out infers them
-    (:func:`~embodied_tactile.eval.callback.collect_split_latents`, ``batch_size`` sequences a
+    (:func:`~embodied_tactile.eval.latents.collect_split_latents`, ``batch_size`` sequences a
     batch: the run's ``callbacks.krr_alignment.infer_batch_size``), so evaluate.py reads the
     same latents to the bit -> (training split, held-out split, inference seconds per held-out
     share of the sequences)."""
-    from embodied_tactile.eval.callback import collect_split_latents
+    from embodied_tactile.eval.latents import collect_split_latents
 
     t0 = time.perf_counter()
     tr, te = collect_split_latents(model, train[0], held[0], latent=latent, batch_size=batch_size)
