@@ -171,7 +171,7 @@ def test_resumed_csv_one_row_per_step_and_metric_when_lightning_saves_after_each
     learning rate and first loss at step 4. Lightning saves the CSV after every log call, so
     the resumed run's rows at step 4 arrive in separate saves; before, only the first save's
     metric was deduplicated and train/loss at step 4 appeared twice."""
-    from embodied_tactile.run.runtime import ResumableCSVLogger
+    from embodied_tactile.run.resume import ResumableCSVLogger
 
     folder = tmp_path / "csv"
     folder.mkdir()

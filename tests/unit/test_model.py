@@ -683,7 +683,7 @@ def test_fit_sets_the_input_stats_from_the_training_set_and_checkpoints_carry_th
     HandOverStatistics hands them to the module; without them a standardising network
     refuses to fit; checkpoints carry them."""
     from embodied_tactile.data.statistics import DataStatistics
-    from embodied_tactile.run.runtime import HandOverStatistics
+    from embodied_tactile.run.handover import HandOverStatistics
 
     torch.manual_seed(0)
     batch = make_batch(1, B=4, T=6)
@@ -787,7 +787,8 @@ def test_benchmark_reference_loss_equals_the_vectorised_elbo_terms():
     ("embodied_tactile.models.module.LateFusionLatentFilter", "embodied_tactile.model.module.LatentFilterModule"),
     ("embodied_tactile.models.latent_filter.LatentFilter", "embodied_tactile.model.latent_filter.LatentFilter"),
     ("embodied_tactile.models.annealing.LinearKLWarmup", "embodied_tactile.model.annealing.LinearKLWarmup"),
-    ("embodied_tactile.runtime.ResumableCSVLogger", "embodied_tactile.run.runtime.ResumableCSVLogger"),
+    ("embodied_tactile.runtime.ResumableCSVLogger", "embodied_tactile.run.resume.ResumableCSVLogger"),
+    ("embodied_tactile.run.runtime.ResumableCSVLogger", "embodied_tactile.run.resume.ResumableCSVLogger"),
 ])
 def test_saved_configs_of_the_earlier_layout_name_todays_classes(old, new):
     """The ``_target_`` strings of a ``config_resolved.yaml`` written before the package was
@@ -803,7 +804,8 @@ def test_saved_targets_compare_in_todays_spelling():
     assert current_target("embodied_tactile.models.module.EarlyFusionLatentFilter") == \
         "embodied_tactile.model.module.LatentFilterModule"
     assert current_target("embodied_tactile.models.annealing.LinearKLWarmup") == "embodied_tactile.model.annealing.LinearKLWarmup"
-    assert current_target("embodied_tactile.runtime.ResumableCSVLogger") == "embodied_tactile.run.runtime.ResumableCSVLogger"
+    assert current_target("embodied_tactile.runtime.ResumableCSVLogger") == "embodied_tactile.run.resume.ResumableCSVLogger"
+    assert current_target("embodied_tactile.run.runtime.ResumableCSVLogger") == "embodied_tactile.run.resume.ResumableCSVLogger"
     # the DataModule is built from a data config's flat keys by from_config (its constructor takes groups)
     assert current_target("embodied_tactile.data.datamodule.TactileDataModule") == \
         "embodied_tactile.data.datamodule.TactileDataModule.from_config"

@@ -72,7 +72,7 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     torch.manual_seed(0)
     net = LatentFilter("multi_l", encoder={"widths": [4, 8], "hidden": 16}, transition_hidden=16, lstm_hidden=16)
     model = LatentFilterModule(net, optimizer={"name": "Adam", "lr": 1e-3})
-    from embodied_tactile.run.runtime import HandOverStatistics
+    from embodied_tactile.run.handover import HandOverStatistics
 
     trainer = L.Trainer(max_epochs=1, accelerator="cpu", logger=False, enable_checkpointing=False, callbacks=[HandOverStatistics()],
                         enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)

@@ -479,7 +479,7 @@ class TactileDataModule(L.LightningDataModule):
         self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
         #: the training split's channel statistics and size (setup("fit")), handed to the model by
-        #: :class:`embodied_tactile.run.runtime.HandOverStatistics`
+        #: :class:`embodied_tactile.run.handover.HandOverStatistics`
         self.statistics: DataStatistics | None = None
         self.val_set: TactileSequenceDataset | None = None  # model selection (training objects)
         self.test_set: TactileSequenceDataset | None = None  # held out: evaluation only

@@ -323,7 +323,7 @@ class PreparedData:
     simulated: int = 0
     cache_built: list[str] = field(default_factory=list)
     #: ``{field: {trial: digest}}`` of every valid raw trial (its name, attributes and the
-    #: bytes that field reads): a run's data identity per trial (runtime.data_identity)
+    #: bytes that field reads): a run's data identity per trial (run.provenance.data_identity)
     trial_digests: dict[str, dict[str, str]] = field(default_factory=dict)
 
     def summary(self) -> str:

@@ -187,7 +187,8 @@ def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequen
     from embodied_tactile.data.modality import Modality
     from embodied_tactile.eval.figures import read_history
     from embodied_tactile.eval.targets import encode_split
-    from embodied_tactile.run.runtime import data_changes, data_identity, set_threads, trial_digests
+    from embodied_tactile.run.provenance import data_changes, data_identity, trial_digests
+    from embodied_tactile.run.threadenv import set_threads
 
     t_run = time.perf_counter()
     cfg = run.cfg
@@ -464,7 +465,7 @@ def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, sele
     publishes it as ``owned.out``."""
     from embodied_tactile.eval.report import write_report
     from embodied_tactile.eval.results import config_axes
-    from embodied_tactile.run.runtime import peak_rss_bytes
+    from embodied_tactile.run.provenance import peak_rss_bytes
 
     out, tmp = owned.out, owned.tmp
     t0 = time.perf_counter()

@@ -83,9 +83,12 @@ RENAMED_CLASSES = {"EarlyFusionLatentFilter": "LatentFilterModule", "LateFusionL
 
 #: module paths that saved configs (``_target_`` of the model, its network, annealing schedule
 #: and logger) and checkpoints of the earlier layout name -> where that code is now; a
-#: submodule follows its package (``embodied_tactile.models.module`` -> ``embodied_tactile.model.module``)
+#: submodule follows its package (``embodied_tactile.models.module`` -> ``embodied_tactile.model.module``).
+#: The run plumbing's ``runtime`` module was split by concern; of it, saved configs name only the
+#: CSV logger (``logger._target_``), now in ``run.resume``
 MOVED_MODULES = {"embodied_tactile.models": "embodied_tactile.model",
-                 "embodied_tactile.runtime": "embodied_tactile.run.runtime"}
+                 "embodied_tactile.runtime": "embodied_tactile.run.resume",
+                 "embodied_tactile.run.runtime": "embodied_tactile.run.resume"}
 
 
 def moved_to(name: str) -> str | None:

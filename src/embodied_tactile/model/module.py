@@ -255,7 +255,7 @@ class LatentFilterModule(L.LightningModule):
 
     def use_data_statistics(self, statistics: Any) -> None:
         """What the network needs from its training data, handed over by the data side
-        (:class:`embodied_tactile.run.runtime.HandOverStatistics` at the start of fit; any object
+        (:class:`embodied_tactile.run.handover.HandOverStatistics` at the start of fit; any object
         with ``channel_mean``, ``channel_std`` (C,) and ``n_train_sequences``): the encoders'
         input statistics (``input_standardize``) and the prior's population weight,
         1 / (training sequences) per sequence, unless the config fixes it. Input statistics a
@@ -288,7 +288,7 @@ class LatentFilterModule(L.LightningModule):
     def on_fit_start(self) -> None:
         if self.model.input_standardize and not bool(self.model.input_stats_set):
             raise ValueError("input_standardize (the default) needs the training set's channel statistics: fit with a "
-                             "TactileDataModule and the HandOverStatistics callback (embodied_tactile.run.runtime; "
+                             "TactileDataModule and the HandOverStatistics callback (embodied_tactile.run.handover; "
                              "train.py adds it), or build the network with input_standardize=False")
         if self.average is not None:
             self.average.start(self)  # a resumed run's checkpoint held the average: the optimiser's weights return

@@ -406,7 +406,7 @@ def checkpoint_progress(ck: Mapping[str, Any]) -> tuple[int, int]:
 
 
 def resume_candidate(run_dir: str | os.PathLike) -> tuple[Path, dict] | None:
-    """The checkpoint a restart would continue from (:func:`runtime.find_resume_checkpoint`'s
+    """The checkpoint a restart would continue from (:func:`~embodied_tactile.run.resume.find_resume_checkpoint`'s
     order: ``last.ckpt``, else the newest readable) and its header, without renaming anything."""
     folder = Path(run_dir) / "checkpoints"
     found = [p for p in folder.glob("*.ckpt") if p.is_file()]

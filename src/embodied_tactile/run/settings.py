@@ -86,7 +86,7 @@ def check_train_config(cfg: DictConfig) -> None:
 
 
 def _check_threads(cfg: DictConfig) -> None:
-    """``threads``: ``auto`` (or null) or a ceiling >= 1 (:func:`~embodied_tactile.run.runtime.thread_budget`)."""
+    """``threads``: ``auto`` (or null) or a ceiling >= 1 (:func:`~embodied_tactile.run.threads.thread_budget`)."""
     present, v = config_value(cfg, "threads")
     if not present or v is None or v == "auto":
         return
