@@ -193,7 +193,8 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
                       stop.phase, stop.step, stop.saved, stop.exit_code())
             raise SystemExit(stop.exit_code()) from None
         if stop.received is not None:
-            log.error("%s (%s): no training step of this start to save; exit %d", stop.name, stop.phase, stop.exit_code())
+            log.error("%s (%s): no training step of this start to save; exit %d", stop.name, stop.phase,
+                      stop.exit_code())
             raise SystemExit(stop.exit_code()) from None
         if isinstance(err, runfolder.CheckpointWriteError):  # disk full: one line, the previous file kept
             print(f"train.py: error: {err}", file=sys.stderr)
@@ -204,7 +205,8 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
     if stop.received is not None:  # stopped between steps: the state of this step is the run's last.ckpt
         last = f"{run_dir}/checkpoints/last.ckpt"
         trainer.save_checkpoint(last)
-        metrics.update(status="interrupted", stopped_by=stop.name, stopped_in=stop.phase, last_checkpoint=runfolder.in_folder(run_dir, last),
+        metrics.update(status="interrupted", stopped_by=stop.name, stopped_in=stop.phase,
+                       last_checkpoint=runfolder.in_folder(run_dir, last),
                        step=trainer.global_step, final_readout=any(getattr(c, "final", None) for c in callbacks))
         write_json(f"{run_dir}/metrics.json", metrics)
         log.error("%s: stopped at step %d, %s saved; start the same command again to resume; exit %d",
