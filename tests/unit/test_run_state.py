@@ -22,6 +22,18 @@ from test_training_inprocess import composed  # noqa: F401  the fixture
 EVAL_FAST = ["baselines=[mean]", "figures=false", "umap=false", "alignment.cv=2", "print_tables=false"]
 
 
+@pytest.fixture(autouse=True)
+def _no_handlers_on_closed_streams():
+    """A handler an earlier in-process run left on a stream pytest has since closed would print
+    "--- Logging error ---" into this test's stderr: such handlers are dropped first."""
+    import logging
+
+    for logger in [logging.getLogger(), *logging.root.manager.loggerDict.values()]:
+        for h in list(getattr(logger, "handlers", [])):
+            if isinstance(h, logging.StreamHandler) and getattr(h.stream, "closed", False):
+                logger.removeHandler(h)
+
+
 def _every_file(run: Path) -> dict[str, str]:
     return {p.relative_to(run).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(run.rglob("*")) if p.is_file()}

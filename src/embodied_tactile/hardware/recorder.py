@@ -143,7 +143,9 @@ class RecorderSettings:
 
 @dataclass
 class RecordResult:
-    status: str  # complete | interrupted | unplugged | no_data | disk_full | write_error | output_vanished | rate_mismatch | low_coverage
+    # complete | interrupted | unplugged | no_data | disk_full | write_error | output_vanished | rate_mismatch
+    # | low_coverage
+    status: str
     n_trial: int = 0
     n_baseline: int = 0
     n_pose: int = 0

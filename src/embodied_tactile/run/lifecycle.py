@@ -180,7 +180,8 @@ class RunFolderLifecycle:
                       stop.phase, stop.step, stop.saved, stop.exit_code())
             raise SystemExit(stop.exit_code()) from None
         if stop.received is not None:
-            log.error("%s (%s): no training step of this start to save; exit %d", stop.name, stop.phase, stop.exit_code())
+            log.error("%s (%s): no training step of this start to save; exit %d", stop.name, stop.phase,
+                      stop.exit_code())
             raise SystemExit(stop.exit_code()) from None
         if isinstance(err, runfolder.CheckpointWriteError):  # disk full: one line, the previous file kept
             print(f"train.py: error: {err}", file=sys.stderr)
