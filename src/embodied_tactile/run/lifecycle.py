@@ -62,7 +62,8 @@ class RunFolderLifecycle:
             runfolder.refuse(run_dir, err, runfolder.holds_run(run_dir))
         # SIGTERM / SIGINT: last.ckpt after the step under way (no validation nor KRR check after it), exit 143 / 130
         self.stop = runfolder.StopSignals(last_path=f"{run_dir}/checkpoints/last.ckpt").install()
-        self.resuming = runfolder.holds_run(run_dir)  # its config and provenance are rewritten once its data are checked
+        # a resumed run's config and provenance are rewritten once its data are checked (prepare)
+        self.resuming = runfolder.holds_run(run_dir)
         self._trained_on = read_json(f"{run_dir}/provenance.json").get("raw_data") if self.resuming else None
         if not self.resuming:
             provenance.save_provenance(cfg, run_dir)
@@ -137,7 +138,8 @@ class RunFolderLifecycle:
             metrics["final_val"] = final_val
         for cb in trainer.checkpoint_callbacks:  # the monitored one keeps the best, the unmonitored one last.ckpt
             key = "best_checkpoint" if getattr(cb, "monitor", None) else "last_checkpoint"
-            path = (cb.best_model_path if key == "best_checkpoint" else cb.last_model_path or cb.best_model_path) or None
+            path = cb.best_model_path if key == "best_checkpoint" else cb.last_model_path or cb.best_model_path
+            path = path or None
             metrics[key] = runfolder.in_folder(run_dir, path)
         best = runfolder.best_checkpoint(run_dir)  # over every checkpoint in the folder, by the value each one stores
         if best is not None:
@@ -152,7 +154,7 @@ class RunFolderLifecycle:
             log.info("run folder: %s", run_dir)
             if not in_multirun:  # a multirun ends with cli.EntryCallback's summary
                 summary.print_run_summary(run_dir, metrics)
-        runfolder.release(run_dir)  # the folder is free once its run is written (a multirun's next job goes on in this process)
+        runfolder.release(run_dir)  # free once its run is written: a multirun's next job goes on in this process
 
     def __exit__(self, kind: type | None, err: BaseException | None, tb: Any) -> None:
         """A failure between :meth:`prepare` and the fit's end: refused (one line, exit 2,
