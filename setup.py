@@ -1,6 +1,6 @@
 """Builds the wheel with the top-level ``configs/`` copied into the package
 (``embodied_tactile/configs``), so that an installed ``embodied-tactile`` finds its configs
-from any folder (``embodied_tactile.run.paths.config_dir``). The rest is pyproject.toml."""
+from any folder (``embodied_tactile.paths.config_dir``). The rest is pyproject.toml."""
 
 import shutil
 from pathlib import Path

@@ -98,7 +98,7 @@ def main() -> None:
     env = environment(args.omp_wait_policy)
     from embodied_tactile.run.threads import available_cores
 
-    subprocess.run([sys.executable, "-m", "embodied_tactile.data.prepare_cli", f"paths.data_dir={data_dir}", *extra],
+    subprocess.run([sys.executable, "-m", "embodied_tactile.run.prepare_cli", f"paths.data_dir={data_dir}", *extra],
                    cwd=REPO, env=env, check=True, capture_output=True)
 
     print(f"CPU: {cpu_model()}, {available_cores()} available cores; train.py {' '.join(extra) or '(default)'}; "

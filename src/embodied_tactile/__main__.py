@@ -4,7 +4,7 @@ Each subcommand calls its entry point's ``main(argv)`` in this process with the 
 arguments and exits with the status it returns; every one takes Hydra ``key=value`` overrides
 over the configs (evaluate's after the run folders). ``embodied-tactile COMMAND --help``
 prints that entry point's own help. The configs are the checkout's ``configs/`` or, in an
-installed wheel, the copy built into the package (:func:`embodied_tactile.run.paths.config_dir`).
+installed wheel, the copy built into the package (:func:`embodied_tactile.paths.config_dir`).
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ COMMANDS = {
     "train": ("embodied_tactile.cli:train_main", "train a Latent Filter on one scene, or a sweep with -m (Hydra key=value over configs/train.yaml)"),
     "evaluate": ("embodied_tactile.eval.command:main", "evaluate trained runs: NMSE of the KRR read-out and the baselines (RUN... key=value)"),
     "simulate": ("embodied_tactile.sim.simulate:main", "simulate raw e-Skin trials into one HDF5 file (key=value)"),
-    "prepare": ("embodied_tactile.data.prepare_cli:main", "prepare a scene's data: simulate missing trials, build the caches (train's key=value)"),
+    "prepare": ("embodied_tactile.run.prepare_cli:main", "prepare a scene's data: simulate missing trials, build the caches (train's key=value)"),
     "record": ("embodied_tactile.hardware.record:main", "record e-Skin trials from a serial port (Hydra key=value over configs/record.yaml)"),
     "emulate": ("embodied_tactile.hardware.emulate:main", "fake e-Skin on a pseudo-terminal, for the recorder (Hydra key=value over configs/emulate.yaml)"),
     "palpate": ("embodied_tactile.active.palpate:main", "closed-loop active palpation with a trained run (Hydra key=value over configs/palpate.yaml)"),
-    "report": ("embodied_tactile.eval.pages:main", "regenerate the pages under docs/generated/, page=all|results|generalisation|active (Hydra key=value over configs/report.yaml)"),
+    "report": ("embodied_tactile.pages:main", "regenerate the pages under docs/generated/, page=all|results|generalisation|active (Hydra key=value over configs/report.yaml)"),
 }
 
 
@@ -39,7 +39,7 @@ def usage() -> str:
 
 def missing_configs() -> str | None:
     """One line saying what to do when no config folder is found, else None."""
-    from embodied_tactile.run.paths import CONFIG_ENV, config_dir
+    from embodied_tactile.paths import CONFIG_ENV, config_dir
 
     if Path(config_dir()).is_dir():
         return None

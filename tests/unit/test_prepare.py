@@ -18,7 +18,7 @@ N_TINY = len(TINY_OBJECTS) * len(TINY_ACTIONS) * 2
 
 
 def _prepare_cli(tmp_path, data_dir, *overrides):
-    cmd = [sys.executable, "-m", "embodied_tactile.data.prepare_cli", f"paths.data_dir={data_dir}", "modality=acc",
+    cmd = [sys.executable, "-m", "embodied_tactile.run.prepare_cli", f"paths.data_dir={data_dir}", "modality=acc",
            f"data.objects=[{','.join(map(str, TINY_OBJECTS))}]", f"data.actions=[{','.join(map(str, TINY_ACTIONS))}]",
            "data.repetitions=2", "data.sim_workers=1", "data.preprocess_workers=1", *overrides]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -147,7 +147,7 @@ def _prepare_args(data_dir, *overrides):
 
 
 def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp_path, capsys):
-    from embodied_tactile.data import prepare_cli as prepare
+    from embodied_tactile.run import prepare_cli as prepare
 
     d = tmp_path / "data"
     shutil.copytree(tiny_data_dir, d)  # raw file and caches of the tiny scene
@@ -162,7 +162,7 @@ def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp
 
 @pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])
 def test_main_in_process_bad_setting_is_one_line_exit_2(tmp_path, capsys, override, needle):
-    from embodied_tactile.data import prepare_cli as prepare
+    from embodied_tactile.run import prepare_cli as prepare
 
     assert prepare.main(_prepare_args(tmp_path / "data", override)) == 2
     err = capsys.readouterr().err.strip()

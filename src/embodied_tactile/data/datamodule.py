@@ -28,7 +28,7 @@ from torch.utils.data import DataLoader, Dataset, RandomSampler
 from embodied_tactile.data.prepare import PreparedData, Scene, TrialRef, data_dir_lock, prepare_scene
 from embodied_tactile.options.data import LoaderOptions, SceneOptions, SplitOptions, group_options
 from embodied_tactile.data.statistics import DataStatistics
-from embodied_tactile.run.jsonio import write_json
+from embodied_tactile.jsonio import write_json
 from embodied_tactile.data.modality import CHANNELS, fields_for_channels
 
 __all__ = ["ConstantChannelError", "TactileDataModule", "TactileSequenceDataset", "split_trials", "TrialRef", "PreparedData", "Scene",

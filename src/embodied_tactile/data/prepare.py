@@ -13,7 +13,7 @@ x actions, simulated or recorded), under an advisory lock on the data folder
 
 It returns :class:`PreparedData`: the cache files, the usable trials, the skipped trials
 with reasons, the interrupted recordings left out. The DataModule splits and serves it
-(``TactileDataModule.prepare_data`` calls this stage); ``python -m embodied_tactile.data.prepare_cli``
+(``TactileDataModule.prepare_data`` calls this stage); ``python -m embodied_tactile.run.prepare_cli``
 runs it on its own. No torch here.
 """
 

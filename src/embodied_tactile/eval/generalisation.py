@@ -31,7 +31,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from ..constants import FACTOR_NAMES
-from ..run.jsonio import write_json
+from ..jsonio import write_json
 from ..run.summary import recipe
 from .results import scored_on_validation
 

@@ -29,8 +29,8 @@ from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect
                                         load_module, run_split, run_state, trial_names, trial_objects,
                                         untrained_module)
 from embodied_tactile.eval.results import SPLIT_KINDS
-from embodied_tactile.run.jsonio import read_json
-from embodied_tactile.run.paths import config_dir
+from embodied_tactile.jsonio import read_json
+from embodied_tactile.paths import config_dir
 
 BASELINES = ("untrained", "handcrafted", "gru", "mean")
 MULTIRUN_BASELINES = ("untrained", "handcrafted", "mean")

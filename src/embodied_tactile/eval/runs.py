@@ -22,7 +22,7 @@ from typing import Any, Mapping
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile.run import summary
-from embodied_tactile.run.jsonio import read_json
+from embodied_tactile.jsonio import read_json
 
 log = logging.getLogger(__name__)
 

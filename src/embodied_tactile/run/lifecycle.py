@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 
 from embodied_tactile.data.datamodule import ConstantChannelError
 from embodied_tactile.run import provenance, resume, runfolder, settings, summary
-from embodied_tactile.run.jsonio import read_json, write_json
+from embodied_tactile.jsonio import read_json, write_json
 
 log = logging.getLogger("train")
 

@@ -18,7 +18,7 @@ from typing import Any, Mapping, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile.run.jsonio import write_json
+from embodied_tactile.jsonio import write_json
 
 #: the packages whose versions provenance.json records
 PACKAGES = (

@@ -180,7 +180,7 @@ def refuse(run_dir: str | os.PathLike, err: Exception, resuming: bool) -> None:
     folder is removed when this process created it (:func:`discard_new`), else it gets
     ``metrics.json`` ``failed`` with the reason (a multirun job); a folder that holds a run
     is left byte-identical."""
-    from embodied_tactile.run.jsonio import write_json
+    from embodied_tactile.jsonio import write_json
     from embodied_tactile.run.settings import fail
 
     if not resuming and not discard_new(run_dir):
@@ -373,7 +373,7 @@ def keep_split(run_dir: str | os.PathLike, datamodule: Any, resuming: bool) -> N
     if resuming:
         check_same_split(run_dir, split, f"the split this start would train on ({source or 'drawn anew'})")
     elif source and Path(source).is_file() and Path(source).resolve() != own.resolve():
-        from embodied_tactile.run.jsonio import write_json
+        from embodied_tactile.jsonio import write_json
 
         write_json(own, json.loads(Path(source).read_text()), indent=1)
 

@@ -18,7 +18,7 @@ from omegaconf import DictConfig
 from embodied_tactile.run import quiet, runfolder, summary
 from embodied_tactile.run.compile_convs import configure_compile
 from embodied_tactile.run.handover import HandOverStatistics
-from embodied_tactile.run.jsonio import read_json
+from embodied_tactile.jsonio import read_json
 from embodied_tactile.run.lifecycle import RunFolderLifecycle
 from embodied_tactile.run.progress import PlainProgress, use_plain_progress
 from embodied_tactile.run.threads import configure_threads
@@ -70,7 +70,7 @@ def compose(overrides: list[str], run_dir: str) -> DictConfig:
     from omegaconf import open_dict
 
     import embodied_tactile.run.config  # noqa: F401  registers the typed configs
-    from embodied_tactile.run.paths import config_dir
+    from embodied_tactile.paths import config_dir
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):

@@ -6,9 +6,9 @@ from pathlib import Path
 #: environment variable naming another config folder
 CONFIG_ENV = "EMBODIED_TACTILE_CONFIG_DIR"
 #: the copy of the top-level ``configs/`` that a built wheel carries (setup.py's build_py)
-PACKAGED = Path(__file__).resolve().parents[1] / "configs"
+PACKAGED = Path(__file__).resolve().parent / "configs"
 #: the checkout's ``configs/`` (an editable install: the package under ``src/``)
-CHECKOUT = Path(__file__).resolve().parents[3] / "configs"
+CHECKOUT = Path(__file__).resolve().parents[2] / "configs"
 
 
 def config_dir() -> str:
