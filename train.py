@@ -12,9 +12,9 @@ Starting again with the same folder (hydra.run.dir=...) resumes from last.ckpt; 
 is locked while a training runs, and a restart with settings, split or data (per trial) that
 differ, or with fewer epochs than its checkpoint's, is refused; the same command on a
 finished run changes nothing (embodied_tactile.run.runfolder). Exit codes: 0 finished (or
-already finished), 2 bad setting or refused start, 130 / 143 SIGINT / SIGTERM (last.ckpt
-saved after the step under way, "interrupted"), 74 a checkpoint could not be written, 1 any
-other failure; a multirun runs every job and exits 1 when one did not finish (its table
+already finished), 2 bad setting or refused start (a new run's folder removed), 130 / 143
+SIGINT / SIGTERM within seconds in any phase (last.ckpt saved after the step under way,
+"interrupted", stopped_in), 74 a checkpoint could not be written, 1 any other failure; a multirun runs every job and exits 1 when one did not finish (its table
 says why).
 """
 
@@ -23,19 +23,7 @@ from __future__ import annotations
 import sys
 
 import embodied_tactile.run.threadenv  # noqa: F401  OpenMP's spin count before torch loads it
-import hydra
-from omegaconf import DictConfig
-
-import embodied_tactile.run.config  # noqa: F401  registers the typed configs before Hydra composes
-from embodied_tactile import cli
-from embodied_tactile.run.training import run_job
-
-
-@hydra.main(version_base="1.3", config_path="configs", config_name="train")
-def main(cfg: DictConfig) -> float | None:
-    return run_job(cfg)  # embodied_tactile.run.training.train: the recipe, top to bottom
-
+from embodied_tactile.cli import train_main  # = embodied-tactile train; the recipe: embodied_tactile.run.training
 
 if __name__ == "__main__":
-    cli.check_typed_overrides(sys.argv[1:])  # one line for a value of the wrong type, before Hydra merges it
-    sys.exit(main())
+    sys.exit(train_main())

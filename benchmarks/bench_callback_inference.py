@@ -21,6 +21,7 @@ import time
 import torch
 
 from embodied_tactile.model.latent_filter import LatentFilter
+from embodied_tactile.run.threadenv import set_threads
 
 
 def split_sizes(n: int, size: int) -> list[int]:
@@ -36,7 +37,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     torch.manual_seed(0)
     net = LatentFilter(args.modality).eval()
     n = args.train + args.held_out

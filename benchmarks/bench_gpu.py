@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 import torch
+from embodied_tactile.run.threadenv import set_threads
 
 REPO = Path(__file__).resolve().parents[1]
 MODALITIES = ("acc", "fsr_t", "fsr_b", "fsr_tb", "multi_e", "multi_l")
@@ -185,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
               "Run it on a machine with a GPU, or --device cpu for a dry run of the code path.", file=sys.stderr)
         return EXIT_NO_CUDA
     if args.device == "cpu":
-        torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+        set_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
         where = f"CPU dry run ({torch.get_num_threads()} thread(s)): NOT GPU figures"
     else:
         p = torch.cuda.get_device_properties(0)

@@ -28,6 +28,7 @@ from hydra.utils import instantiate
 
 from embodied_tactile.data import datamodule as dm_module
 from embodied_tactile.run.training import compose
+from embodied_tactile.run.threadenv import set_threads
 
 
 def _lookup_every_time(self, h, fld, tr):
@@ -41,7 +42,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("overrides", nargs="*", help="train.py overrides of the scene (key=value)")
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     with tempfile.TemporaryDirectory() as run_dir:
         cfg = compose(list(args.overrides), run_dir)
         dm = instantiate(cfg.data)

@@ -5,7 +5,7 @@ Checkpoints: the default model's (``python train.py``: MULTI-L) state dict plus 
 state of the same size, saved ``--repeats`` times by Lightning's ``TorchCheckpointIO`` and
 by ``runfolder.AtomicCheckpointIO`` (temporary file, fsync, rename) into ``--work``; the
 median of each and the difference times the main job's checkpoint count (two per epoch,
-``trainer.max_epochs`` of the composed default: configs/experiment/cpu_budget.yaml).
+``trainer.max_epochs`` of the composed default: configs/train.yaml).
 
 Cache: ``data.cache.verify_cache`` over every ``*.h5`` in ``<data-dir>/cache`` (the main
 job's data folder once prepared), seconds and MB/s.
@@ -20,6 +20,7 @@ import os
 import statistics
 import time
 from pathlib import Path
+from embodied_tactile.run.threadenv import set_threads
 
 
 def checkpoint_times(work: Path, repeats: int) -> dict[str, float]:
@@ -48,7 +49,7 @@ def checkpoint_times(work: Path, repeats: int) -> dict[str, float]:
             times.append(time.perf_counter() - t0)
         out[name] = statistics.median(times)
     out["mb"] = os.path.getsize(work / "atomic.ckpt") / 1e6
-    torch.set_num_threads(1)
+    set_threads(1)
     return out
 
 

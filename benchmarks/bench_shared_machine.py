@@ -8,7 +8,7 @@ The scene's data are prepared once first (``embodied-tactile prepare`` with the
 same overrides; not timed). Then one ``python train.py`` runs alone, then two start at the
 same moment, each in its own run folder under ``--work``, each with the default thread
 policy (``threads=auto``: the cores divided among the trainings live on the machine,
-re-counted at every epoch, ``runtime.ThreadShare``) unless ``--threads`` gives a ceiling.
+re-counted at every epoch, ``run.threads.ThreadShare``) unless ``--threads`` gives a ceiling.
 Printed: the CPU (``lscpu`` model name), the cores, the 1-minute load average before and
 after each phase, and per training the threads it logged (at start, then each change),
 the training phase (``metrics.json`` ``train_wall_s``), the process's wall time and the
@@ -96,9 +96,9 @@ def main() -> None:
     data_dir = args.data_dir or args.work / "data"
     extra = list(args.overrides) + ([f"threads={args.threads}"] if args.threads else [])
     env = environment(args.omp_wait_policy)
-    from embodied_tactile.run.runtime import available_cores
+    from embodied_tactile.run.threads import available_cores
 
-    subprocess.run([sys.executable, "-m", "embodied_tactile.data.prepare_cli", f"paths.data_dir={data_dir}", *extra],
+    subprocess.run([sys.executable, "-m", "embodied_tactile.run.prepare_cli", f"paths.data_dir={data_dir}", *extra],
                    cwd=REPO, env=env, check=True, capture_output=True)
 
     print(f"CPU: {cpu_model()}, {available_cores()} available cores; train.py {' '.join(extra) or '(default)'}; "

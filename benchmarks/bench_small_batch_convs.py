@@ -20,6 +20,7 @@ import time
 import torch
 
 from embodied_tactile.model import LatentFilter
+from embodied_tactile.run.threadenv import set_threads
 
 
 @contextlib.contextmanager
@@ -55,7 +56,7 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=5, help="interleaved on/off rounds")
     p.add_argument("--modality", default="multi_l")
     args = p.parse_args()
-    torch.set_num_threads(1)
+    set_threads(1)
     torch.manual_seed(0)
     print(f"torch {torch.__version__}, mkldnn available {torch.backends.mkldnn.is_available()}, "
           f"1 thread, {args.modality}, {args.steps} steps x {args.rounds} rounds, "

@@ -48,6 +48,7 @@ from embodied_tactile.model import latent_filter as lf  # noqa: E402
 from embodied_tactile.model import module as lf_module  # noqa: E402
 from embodied_tactile.model import networks  # noqa: E402
 from embodied_tactile.model.networks import ConvDecoder, ConvEncoder  # noqa: E402
+from embodied_tactile.run.threadenv import set_threads
 
 MODES = ("fp32", "before", "bf16", "compile", "naive")
 #: whole trials of the simulated scenes (configs/data/sim.yaml ``seq_len: null``)
@@ -224,7 +225,7 @@ def main() -> None:
     p.add_argument("--profile", action="store_true", help="profile the first mode")
     p.add_argument("--profile-steps", type=int, default=3)
     args = p.parse_args()
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     batch_size, seq = 48, WHOLE_TRIAL_FRAMES
     if args.scene:
         _, batch_size, seq = scene_module(args.scene, args.modality)

@@ -49,6 +49,7 @@ from steps import make_batch, matmul_ceiling, naive_terms  # noqa: E402
 from embodied_tactile.model import LatentFilter  # noqa: E402
 from embodied_tactile.model import networks  # noqa: E402
 from embodied_tactile.model.networks import gaussian_nll  # noqa: E402
+from embodied_tactile.run.threadenv import set_threads
 
 LEVERS = ("naive", "eager", "compile_convs", "cl_end_to_end", "onednn_off", "compile_step")
 
@@ -169,7 +170,7 @@ def main() -> None:
     p.add_argument("--levers", nargs="+", default=list(LEVERS), choices=LEVERS)
     p.add_argument("--no-breakdown", action="store_true")
     args = p.parse_args()
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     print(f"torch {torch.__version__}, cpu capability {torch.backends.cpu.get_cpu_capability()}, "
           f"{torch.get_num_threads()} threads, {args.modality} B={args.batch} T={args.seq} 28x28, "
           f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")

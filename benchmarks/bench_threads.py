@@ -1,8 +1,8 @@
 """Thread policy under concurrency (docs/experiments/speed_levers.md, target 3): a lone training job against two
-concurrent ones, each process with the threads ``runtime`` gives it.
+concurrent ones, each process with the threads ``run.threads`` gives it.
 
 Each job is a subprocess that applies the policy exactly as ``train.py`` does
-(``runtime.thread_budget("auto", runtime.concurrent_jobs(n_jobs))`` -> ``runtime.set_threads``:
+(``threads.thread_budget("auto", threads.concurrent_jobs(n_jobs))`` -> ``threadenv.set_threads``:
 ``auto`` = available cores / concurrent jobs; OpenMP's spin count as train.py's, ``threadenv``:
 GOMP_SPINCOUNT=1000 unless it or OMP_WAIT_POLICY is set in the environment), builds a Latent Filter and times training steps
 (``bench_step_ceiling.step``: ELBO, backward, Adam) after one warm-up step. Concurrent jobs
@@ -30,9 +30,9 @@ from pathlib import Path
 
 
 def worker(args: argparse.Namespace) -> None:
-    from embodied_tactile.run import runtime
+    from embodied_tactile.run import threadenv, threads as share
 
-    threads = runtime.set_threads(runtime.thread_budget("auto", runtime.concurrent_jobs(args.jobs)) if args.threads == "auto"
+    threads = threadenv.set_threads(share.thread_budget("auto", share.concurrent_jobs(args.jobs)) if args.threads == "auto"
                                   else int(args.threads))  # a fixed count bypasses the policy (its ceiling too)
     import contextlib
 
@@ -89,7 +89,7 @@ def main() -> None:
         worker(args)
         return
 
-    from embodied_tactile.run.runtime import available_cores
+    from embodied_tactile.run.threads import available_cores
 
     print(f"{args.modality}, B={args.batch} T={args.seq} 28x28, {args.steps} timed steps per job, threads={args.threads}, "
           f"{available_cores()} available cores, os.cpu_count() {os.cpu_count()}")

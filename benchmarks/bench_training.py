@@ -22,6 +22,7 @@ import torch
 
 from embodied_tactile.model import LatentFilter
 from embodied_tactile.data.modality import modality_names
+from embodied_tactile.run.threadenv import set_threads
 from steps import make_batch, naive_terms
 
 
@@ -50,7 +51,7 @@ def time_pair(fast, naive, opt, repeats: int, naive_repeats: int) -> tuple[list[
 
 
 def bench_latency(model_kw: dict, n: int = 2000) -> tuple[float, float]:
-    torch.set_num_threads(1)
+    set_threads(1)
     m = LatentFilter("multi_l", **model_kw).eval()
     obs = torch.rand(n + 100, 1, 3, 28, 28)
     act = torch.randn(n + 100, 1, 6)
@@ -85,7 +86,7 @@ def main() -> None:
     B = args.batch or (8 if args.quick else 48)
     T = args.seq or (50 if args.quick else 300)
     model_kw = dict(encoder={"widths": args.widths, "hidden": args.hidden}, transition_hidden=128, lstm_hidden=128)
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; shapes B={B}, T={T}, 28x28; "
           f"encoder widths {args.widths}, hidden {args.hidden}; n_z=16, n_y=16")
     print(f"load average at start: {os.getloadavg()[0]:.2f} (1 min) on {os.cpu_count()} CPUs")

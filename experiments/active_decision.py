@@ -25,6 +25,7 @@ import time
 
 import numpy as np
 import torch
+from embodied_tactile.run.threadenv import set_threads
 
 
 def _synthetic_model():
@@ -50,7 +51,7 @@ def main() -> None:
     ap.add_argument("--settings", default="1x300,4x300,8x300,4x100",
                     help="comma-separated n_rollouts x horizon settings")
     args = ap.parse_args()
-    torch.set_num_threads(1)
+    set_threads(1)
     from embodied_tactile.active.episode import filter_touch
     from embodied_tactile.active.policy import expected_variance_reduction
 

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from embodied_tactile.run.threadenv import set_threads
 
 REPO = Path(__file__).resolve().parents[1]
 INITIAL_FRAMES = 3
@@ -304,7 +305,7 @@ def main(argv=None) -> int:
     ap.add_argument("--touch-prior", default="start", choices=("start", "marginal"),
                     help="the prior combine_touches counts once: the touches' own start (touch_prior) or the population marginal")
     args = ap.parse_args(argv)
-    torch.set_num_threads(1)
+    set_threads(1)
     if args.untrained:
         print(write_untrained(*args.untrained))
         return 0

@@ -26,7 +26,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: name -> train.py overrides on top of the default (experiment=cpu_budget)
+#: name -> train.py overrides on top of the default (the typed defaults, no experiment)
 VARIANTS: dict[str, list[str]] = {
     "default": [],  # direct y posterior, 6 x 50-frame windows, y_weight 10
     "previous_default": ["data.train_window=null", "data.windows_per_trial=1", "annealing.schedule.y_weight=1.0"],

@@ -5,7 +5,7 @@
     python experiments/modality_bounds.py --data-dir /tmp/mod9/data --modalities acc --gru-epochs 5
     python experiments/modality_bounds.py --data-dir /tmp/mod9/data --preprocess acc_combine=magnitude
 
-Scene: the default one (soft skin, pressing) at the cpu_budget experiment's size, 32 objects
+Scene: the default one (soft skin, pressing) at the default budget's size, 32 objects
 x 4 actions (indices 2, 6, 10, 14), prepared by the project's preparation stage
 (``TactileDataModule.prepare_data``: simulates missing trials into ``<data-dir>/raw``,
 builds the caches), split by ``split_trials`` with ``--seed`` (the paper's trial split;
@@ -57,6 +57,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from embodied_tactile.run.threadenv import set_threads
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -204,7 +205,7 @@ def main(argv=None) -> None:
 
     import torch
 
-    torch.set_num_threads(1)
+    set_threads(1)
     from embodied_tactile.eval.baselines import evaluate_code_regression, evaluate_gru, evaluate_handcrafted
     from embodied_tactile.constants import FACTOR_NAMES
     from embodied_tactile.data.modality import load_modality

@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from embodied_tactile.run.threadenv import set_threads
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -77,7 +78,7 @@ def main(argv=None) -> None:
 
     import torch
 
-    torch.set_num_threads(1)
+    set_threads(1)
     from embodied_tactile.run import quiet
     from embodied_tactile.eval import runs as ev
     from embodied_tactile.eval.pipeline import parse_options

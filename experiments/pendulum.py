@@ -33,8 +33,8 @@ from hydra.utils import instantiate
 from embodied_tactile.eval.pendulum import DIAGNOSTIC_READOUTS, READOUTS, read_out
 from embodied_tactile.eval.runs import load_module, load_run, untrained_module
 from embodied_tactile.data.pendulum import N_OBJECTS
-from embodied_tactile.run.jsonio import read_json
-from embodied_tactile.run.runtime import set_threads
+from embodied_tactile.jsonio import read_json
+from embodied_tactile.run.threadenv import set_threads
 from embodied_tactile.run.training import compose, train
 
 

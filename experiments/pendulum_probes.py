@@ -48,8 +48,8 @@ import yaml
 from embodied_tactile.data.modality import load_modality
 from embodied_tactile.data.pendulum import N_OBJECTS, angle_precision, generate, least_squares_parameters
 from embodied_tactile.eval.baselines import GRURegressor
-from embodied_tactile.run.jsonio import read_json
-from embodied_tactile.run.runtime import set_threads
+from embodied_tactile.jsonio import read_json
+from embodied_tactile.run.threadenv import set_threads
 
 
 def _targets(data) -> np.ndarray:

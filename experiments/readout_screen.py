@@ -43,6 +43,7 @@ from embodied_tactile.eval.runs import (DataCache, collect_split, data_config, d
                                         untrained_module)
 from embodied_tactile.eval.targets import encode_split
 from embodied_tactile.data.modality import Modality
+from embodied_tactile.run.threadenv import set_threads
 
 CANDIDATES = {
     "paper": {"readout": "final_segment"},
@@ -138,7 +139,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     import torch
 
-    torch.set_num_threads(1)
+    set_threads(1)
     print("| run | reader | read-out | whole | last | frame 1 | max | first <= 0.5 |")
     print("|---|---|---|---|---|---|---|---|")
     rows = [r for run in args.runs for r in screen(run, args.held_out, args.candidates, args.readers)]

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from embodied_tactile.run.threadenv import set_threads
 
 
 def combined(split: dict, k: int, prior, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -73,7 +74,7 @@ def main(argv=None) -> int:
     ap.add_argument("--k", nargs="+", type=int, default=[1, 2, 4])
     ap.add_argument("--seed", type=int, default=0, help="the order in which each object's trials are taken")
     args = ap.parse_args(argv)
-    torch.set_num_threads(1)
+    set_threads(1)
     print("| run | seed | side | " + " | ".join(f"K={k}" for k in args.k) + " |")
     print("|---" * (3 + len(args.k)) + "|")
     for run in args.runs:

@@ -43,7 +43,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: design -> train.py overrides on top of the default scene (experiment=cpu_budget). Every
+#: design -> train.py overrides on top of the default scene (the typed defaults). Every
 #: design trains 960 optimiser steps (32 epochs of 480 windows at batch 16).
 DESIGNS: dict[str, list[str]] = {
     "sets4": [],  # the default scene: 4 parameter sets at 0.6 Hz, one touch (128 trials)

@@ -1,5 +1,6 @@
 """The command-line side of the Hydra entry points: one line and exit status 2 for a bad
-setting (:func:`fail`), ``main()`` of a Hydra command (:func:`hydra_command`), and train.py's
+setting (:func:`fail`), ``main()`` of a Hydra command (:func:`hydra_command`), train's entry point
+(:func:`train_main`: ``embodied-tactile train`` and ``python train.py``), and its
 Hydra callback (:class:`EntryCallback`, registered in ``configs/train.yaml``): settings are
 checked (:mod:`embodied_tactile.run.settings`) and the run folder claimed
 (:mod:`embodied_tactile.run.runfolder`) before Hydra creates it; a multirun ends with its summary
@@ -67,6 +68,40 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
     return main
 
 
+@hydra.main(version_base="1.3", config_path=config_dir(), config_name="train")
+def _train_app(cfg: DictConfig) -> None:
+    from embodied_tactile.run.training import run_job  # loads torch and Lightning: only once the settings passed
+
+    run_job(cfg)
+
+
+def train_main(argv: Sequence[str] | None = None) -> int:
+    """``embodied-tactile train`` and ``python train.py``: Hydra ``key=value`` overrides over
+    configs/train.yaml (``-m`` for a sweep; default ``sys.argv[1:]``) -> the exit status
+    (train.py's docstring lists them). Values of the typed options are checked before Hydra
+    merges them (:func:`check_typed_overrides`), the composed config by :class:`EntryCallback`."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    saved = sys.argv
+    sys.argv = [saved[0] if saved else "train.py", *args]
+    try:
+        check_typed_overrides(args)  # one line for a value of the wrong type, before Hydra merges it
+        check_composes(args)  # one line for a group option or key that does not exist (Hydra's own: exit 1)
+        _train_app()
+    except SystemExit as exc:
+        return exit_status(exc)
+    finally:
+        sys.argv = saved
+    return 0
+
+
+def exit_status(exc: SystemExit) -> int:
+    """The exit status of a ``SystemExit`` (a message as its code: printed, status 1, as Python does)."""
+    if exc.code is None or isinstance(exc.code, int):
+        return exc.code or 0
+    print(exc.code, file=sys.stderr)
+    return 1
+
+
 def check_overrides(options: type, args: Sequence[str], prog: str) -> None:
     """The ``key=value`` overrides of a command whose config is the dataclass ``options``,
     checked before Hydra composes: a key the options do not declare, a value of the wrong type
@@ -97,8 +132,13 @@ def _parse_overrides(args: Sequence[str]) -> list:
 
 
 def _values(override: Any) -> list:
-    """An override's value, or every value of a sweep."""
-    return list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+    """An override's value, or every value of a sweep, as parsed (a sweep over lists, e.g.
+    ``data.raw_files=[a.h5,b.h5],[c.h5]``, gives lists; numbers give numbers)."""
+    if not override.is_sweep_override():
+        return [override.value()]
+    from hydra.core.override_parser.types import Transformer
+
+    return list(override.sweep_iterator(transformer=Transformer.identity))
 
 
 def _typed_value(options: Any, path: str, shown: str, value: Any, prog: str) -> DictConfig:
@@ -188,6 +228,70 @@ def check_typed_overrides(args: Sequence[str]) -> None:
             _typed_value(nodes[root], rest, o.key_or_group, value, "train.py")
 
 
+#: command-line flags after which Hydra does not compose the command's config as given (help,
+#: another config file or folder, shell completion): :func:`check_composes` leaves them to Hydra
+_OWN_FLAGS = ("-h", "--help", "--hydra-help", "-c", "--cfg", "-i", "--info", "-cp", "--config-path", "-cn",
+              "--config-name", "-cd", "--config-dir", "-sc", "--shell-completion", "--experimental-rerun")
+
+
+def check_composes(args: Sequence[str], config_name: str = "train", prog: str = "train.py") -> None:
+    """The command line's overrides composed as Hydra will compose them, before Hydra runs:
+    a group option that does not exist (``modality=mutli_l``) or a key the config does not
+    hold (``trainer.max_epoch=3``) prints one line naming it and what exists, exit 2
+    (Hydra's own report is several lines and exit 1). A sweep (``-m a=x,y``) is composed
+    with each override's first value; every value of a swept group is checked to exist."""
+    import os
+
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException, MissingConfigException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if any(a.split("=", 1)[0] in _OWN_FLAGS for a in args):
+        return
+    overrides = _parse_overrides(args)
+    if not overrides and any(not a.startswith("-") for a in args):
+        return  # a malformed override: Hydra names it itself
+    first = []
+    for o in overrides:
+        if not o.is_sweep_override():
+            first.append(o.input_line)
+            continue
+        try:
+            values = list(o.sweep_string_iterator())
+        except Exception:  # noqa: BLE001 -- an interval sweep (a sweeper's): its values are the sweeper's
+            return
+        group = Path(config_dir()) / o.key_or_group.replace(".", "/")
+        names = sorted(q.stem for q in group.glob("*.yaml"))
+        for v in values:
+            if names and not o.key_or_group.startswith("hydra") and str(v) not in names:
+                fail(SettingsError(f"{o.key_or_group}={v}: no such option (configs/{o.key_or_group}/ holds "
+                                   f"{', '.join(names)})"), prog)
+        first.append(f"{o.get_key_element()}={values[0]}")
+    if GlobalHydra.instance().is_initialized():
+        return  # inside another Hydra app (a test): the app's own composition reports
+    try:
+        with initialize_config_dir(config_dir=os.path.abspath(config_dir()), version_base="1.3"):
+            compose(config_name=config_name, overrides=first, return_hydra_config=True)
+    except MissingConfigException as err:
+        missing = str(err).split("Could not find '", 1)[-1].split("'", 1)[0]
+        group, _, value = missing.rpartition("/")
+        options = ", ".join(getattr(err, "options", None) or [])
+        fail(SettingsError(f"{group.replace('/', '.')}={value}: no such option"
+                           + (f" (configs/{group}/ holds {options})" if options else "")), prog)
+    except (HydraException, OmegaConfBaseException) as err:
+        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+        cause = str(err.__cause__).splitlines()[0] if err.__cause__ is not None and str(err.__cause__) else ""
+        if lines and lines[0].startswith("Could not override '"):
+            key = lines[0].split("'")[1]
+            value = next((str(o.value()) for o in overrides if o.key_or_group == key), "")
+            fail(SettingsError(f"{key}={value}: no such key in the config ({cause or lines[0]}); a new key is added "
+                               f"with +{key}=..."), prog)
+        fail(SettingsError("; ".join(lines + ([cause] if cause else []))), prog)
+    finally:
+        GlobalHydra.instance().clear()
+
+
 class EntryCallback(Callback):
     """Hydra callback of train.py: check settings before any folder is made; at the end of a
     multirun, print its summary (:mod:`embodied_tactile.run.summary`)."""
@@ -236,4 +340,5 @@ class EntryCallback(Callback):
             fail(err)
 
 
-__all__ = ["EntryCallback", "check_overrides", "check_typed_overrides", "hydra_command"]
+__all__ = ["EntryCallback", "check_composes", "check_overrides", "check_typed_overrides", "exit_status", "hydra_command",
+           "train_main"]

@@ -26,6 +26,19 @@ def train(tmp_path: Path, *overrides: str, timeout: int = 240) -> subprocess.Com
     return subprocess.run(cmd, cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=timeout)
 
 
+def train_here(tmp_path: Path, capsys, *overrides: str) -> subprocess.CompletedProcess:
+    """train.py's entry point (cli.train_main) in this process, as :func:`train` runs it:
+    its exit status and what it printed."""
+    from embodied_tactile.cli import train_main
+
+    flags = [o for o in overrides if o.startswith("-")]
+    args = [*flags, "debug=fast", f"paths.log_dir={tmp_path / 'logs'}", *[o for o in overrides if not o.startswith("-")]]
+    capsys.readouterr()
+    code = train_main(args)
+    out = capsys.readouterr()
+    return subprocess.CompletedProcess(args, code, out.out, out.err)
+
+
 def _one_line_exit_2(res: subprocess.CompletedProcess, *needles: str) -> str:
     assert res.returncode == 2, (res.returncode, res.stdout[-2000:], res.stderr[-3000:])
     err = res.stderr.strip()
@@ -50,61 +63,59 @@ def test_typed_check_covers_the_optional_context_group(capsys):
     assert "model.context.initial_frames='many' (str): expected an integer" in capsys.readouterr().err
 
 
-@pytest.mark.slow  # train.py subprocess
 @pytest.mark.parametrize("override, needles", [
     ("trainer.max_epochs=abc", ("trainer.max_epochs='abc'", "integer")),
     ("data.batch_size=0", ("data.batch_size=0", ">= 1")),
     ("model.optimizer.lr=fast", ("model.optimizer.lr='fast'", "number")),
     ("data.train_window=1", ("data.train_window=1", ">= 2")),
+    ("modality=mutli_l", ("modality=mutli_l: no such option", "multi_l")),  # Hydra's own errors: exit 1 before
+    ("trainer.max_epoch=3", ("trainer.max_epoch=3: no such key", "+trainer.max_epoch=")),
+    ("threads=0", ("threads=0 (int): expected auto or an integer >= 1",)),  # a traceback and a folder before
 ])
-def test_wrongly_typed_setting_names_key_and_value(tmp_path, override, needles):
-    res = train(tmp_path, f"paths.data_dir={tmp_path / 'data'}", override)
+def test_wrongly_typed_setting_names_key_and_value(tmp_path, capsys, restore_logging, override, needles):
+    res = train_here(tmp_path, capsys, f"paths.data_dir={tmp_path / 'data'}", override)
     _one_line_exit_2(res, *needles)
     runs = tmp_path / "logs" / "train" / "runs"
     assert not (runs.exists() and any(runs.iterdir())), "a bad setting must not leave a run folder"
 
 
-@pytest.mark.slow  # train.py subprocess
-def test_log_dir_that_cannot_be_created(tmp_path):
+def test_log_dir_that_cannot_be_created(tmp_path, capsys, restore_logging):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
-    res = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", f"paths.data_dir={tmp_path / 'data'}",
-                          f"paths.log_dir={blocker}/logs"], cwd=tmp_path, env=ENV, capture_output=True, text=True,
-                         timeout=240)
+    res = train_here(tmp_path, capsys, f"paths.data_dir={tmp_path / 'data'}", f"paths.log_dir={blocker}/logs")
     _one_line_exit_2(res, f"paths.log_dir={blocker}/logs", "cannot create or write")
 
 
-@pytest.mark.slow  # train.py subprocess
-def test_data_dir_that_is_a_file(tmp_path):
+def test_data_dir_that_is_a_file(tmp_path, capsys, restore_logging):
     blocker = tmp_path / "data.txt"
     blocker.write_text("not a folder")
-    res = train(tmp_path, f"paths.data_dir={blocker}")
+    res = train_here(tmp_path, capsys, f"paths.data_dir={blocker}")
     _one_line_exit_2(res, f"paths.data_dir={blocker}", "not a folder")
 
 
-@pytest.mark.slow  # train.py subprocess
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
-def test_unwritable_data_dir(tmp_path):
+def test_unwritable_data_dir(tmp_path, capsys, restore_logging):
     ro = tmp_path / "ro"
     ro.mkdir()
     ro.chmod(0o500)
     try:
-        res = train(tmp_path, f"paths.data_dir={ro}")
+        res = train_here(tmp_path, capsys, f"paths.data_dir={ro}")
     finally:
         ro.chmod(0o700)
     _one_line_exit_2(res, f"paths.data_dir={ro}")
 
 
-@pytest.mark.slow  # train.py subprocess
-def test_swept_bad_value_fails_its_job_and_the_sweep_says_so(tmp_path):
+@pytest.mark.slow  # a Hydra multirun of two jobs in this process (~16 s with the first Lightning import)
+def test_swept_bad_value_fails_its_job_and_the_sweep_says_so(tmp_path, capsys, restore_logging):
     """A value swept with -m reaches only the job: train.py checks again there and marks the
     job folder failed; the other jobs still run, the sweep's table names each refused job
     with its reason, exit 1."""
     sweep = tmp_path / "multi"
-    res = train(tmp_path, "-m", f"paths.data_dir={tmp_path / 'data'}", "trainer.max_epochs=abc",
-                f"hydra.sweep.dir={sweep}")
+    res = train_here(tmp_path, capsys, "-m", f"paths.data_dir={tmp_path / 'data'}", "trainer.max_epochs=abc",
+                     f"hydra.sweep.dir={sweep}")
     _one_line_exit_2(res, "trainer.max_epochs='abc'")  # caught before the sweep starts
-    res = train(tmp_path, "-m", f"paths.data_dir={tmp_path / 'data'}", "seed=x,y", f"hydra.sweep.dir={sweep}")
+    res = train_here(tmp_path, capsys, "-m", f"paths.data_dir={tmp_path / 'data'}", "seed=x,y",
+                     f"hydra.sweep.dir={sweep}")
     assert res.returncode == 1 and "Traceback" not in res.stderr
     assert "train.py: error: seed='x' (str): expected an integer" in res.stderr
     assert "train.py: error: seed='y' (str): expected an integer" in res.stderr  # the second job ran too
@@ -179,7 +190,7 @@ def test_wrongly_typed_data_override_is_one_line(capsys):
         assert err == f"train.py: error: {line}", err
     check_typed_overrides(["experiment=pendulum", "data=pendulum"])  # the scene with its own data: composes
     with pytest.raises(SystemExit) as info:
-        check_typed_overrides(["data=pendulum"])  # without the scene Hydra fails on cpu_budget's tactile keys
+        check_typed_overrides(["data=pendulum"])  # without the scene: the tactile modality and model
     assert info.value.code == 2
     assert capsys.readouterr().err.strip().endswith("python train.py experiment=pendulum")
 

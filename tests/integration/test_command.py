@@ -1,14 +1,19 @@
 """The one command: ``embodied-tactile --help`` lists every subcommand, and each subcommand's
-``--help`` reaches its entry point (a subprocess each, as a user types it)."""
+``--help`` reaches its entry point (a subprocess each, as a user types it); the package as a
+wheel installs it runs from any folder with the configs built in, or refuses in one line."""
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
 import subprocess
 import sys
 
 import pytest
 
-from embodied_tactile.__main__ import COMMANDS
+from conftest import REPO
+from embodied_tactile.__main__ import COMMANDS, main
 
 #: a line of each entry point's own help
 OWN_HELP = {"train": "train is powered by Hydra", "evaluate": "usage: evaluate.py", "simulate": "Simulate raw e-Skin trials",
@@ -51,3 +56,49 @@ def test_subcommand_help(name, helps):
     res = helps[name]
     assert res.returncode == 0, res.stderr[-2000:]
     assert OWN_HELP[name] in res.stdout, res.stdout[:2000]
+
+
+def test_subcommands_run_in_this_process(capsys):
+    """The dispatcher calls each entry point's main(argv) here and returns its status."""
+    assert main(["train", "data.batch_size=0"]) == 2
+    assert capsys.readouterr().err.strip() == "train.py: error: data.batch_size=0 (int): expected an integer >= 1"
+    assert main(["simulate", "skin=rubber"]) == 2
+    assert capsys.readouterr().err.strip().startswith("simulate: error: ")
+
+
+def test_missing_configs_refused_in_one_line(monkeypatch, tmp_path, capsys):
+    monkeypatch.setenv("EMBODIED_TACTILE_CONFIG_DIR", str(tmp_path / "nowhere"))
+    assert main(["train", "debug=fast"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"embodied-tactile: error: no configs found at {tmp_path / 'nowhere'}")
+
+
+@pytest.mark.slow  # builds the package (~2 s) and trains debug=fast in a subprocess (~30 s)
+def test_installed_package_trains_from_any_folder(tmp_path, fast_data_dir):
+    """What a wheel installs (setup.py's build_py: the package, configs/ built in) runs
+    ``embodied-tactile train debug=fast`` from a folder outside the checkout; the same package
+    without its configs refuses in one line, no traceback."""
+    lib, work = tmp_path / "lib", tmp_path / "elsewhere"
+    subprocess.run([sys.executable, "setup.py", "-q", "build_py", "--build-lib", str(lib)], cwd=REPO, check=True,
+                   capture_output=True)
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "EMBODIED_TACTILE_CONFIG_DIR"}
+    env.update(PYTHONPATH=str(lib), WANDB_MODE="disabled")  # the built package before the editable checkout
+    where = subprocess.run([sys.executable, "-c", "import embodied_tactile.paths as p; print(p.__file__, p.config_dir())"],
+                           cwd=work, env=env, capture_output=True, text=True, check=True).stdout.split()
+    assert where == [str(lib / "embodied_tactile" / "run" / "paths.py"), str(lib / "embodied_tactile" / "configs")]
+
+    def train() -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "embodied_tactile", "train", "debug=fast", "threads=1",
+                               f"paths.data_dir={fast_data_dir}"], cwd=work, env=env, capture_output=True, text=True,
+                              timeout=600)
+
+    res = train()
+    assert res.returncode == 0, res.stderr[-3000:]
+    (run,) = (work / "logs" / "train" / "runs").iterdir()
+    assert json.loads((run / "metrics.json").read_text())["status"] == "finished"
+    assert (run / "train.log").is_file()
+    shutil.rmtree(lib / "embodied_tactile" / "configs")
+    res = train()
+    assert res.returncode == 2 and "Traceback" not in res.stderr + res.stdout
+    assert res.stderr.startswith("embodied-tactile: error: no configs found at ") and res.stderr.count("\n") == 1

@@ -256,7 +256,7 @@ def test_train_then_evaluate_final_numbers_match(trained, capsys):
     out = ev.evaluate(run, ["print_tables=false", "baselines=[mean]", "figures=false"])  # default: the final weights
     c = out["runs"][0]["training_final_alignment"]
     assert c["other"] == [], c
-    # the same weights, latents inferred in the same batches (eval.callback.collect_split_latents)
+    # the same weights, latents inferred in the same batches (eval.latents.collect_split_latents)
     # and the same read-out: one number (5.8e-05 apart when evaluate.py inferred per loader batch)
     assert c["evaluate_nmse_overall"] == pytest.approx(final["nmse_overall"], abs=1e-9)
     printed = capsys.readouterr().out

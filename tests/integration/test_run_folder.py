@@ -171,7 +171,7 @@ def test_resumed_csv_one_row_per_step_and_metric_when_lightning_saves_after_each
     learning rate and first loss at step 4. Lightning saves the CSV after every log call, so
     the resumed run's rows at step 4 arrive in separate saves; before, only the first save's
     metric was deduplicated and train/loss at step 4 appeared twice."""
-    from embodied_tactile.run.runtime import ResumableCSVLogger
+    from embodied_tactile.run.resume import ResumableCSVLogger
 
     folder = tmp_path / "csv"
     folder.mkdir()
@@ -421,8 +421,9 @@ def test_changed_raw_data_is_refused_or_named_at_evaluation(fast_data_dir, tmp_p
 
 
 def test_stop_signal_outside_the_training_steps_raises_and_inside_sets_should_stop():
-    """SIGTERM during data preparation ends the run as interrupted (StopRequested, which
-    train.py turns into exit 143); during the steps it only asks Lightning to stop."""
+    """SIGTERM during data preparation or the check before the first step ends the run as
+    interrupted (StopRequested, which train.py turns into exit 143); during the steps it only
+    asks Lightning to stop."""
     from types import SimpleNamespace
 
     from embodied_tactile.run.runfolder import StopRequested, StopSignals
@@ -436,10 +437,17 @@ def test_stop_signal_outside_the_training_steps_raises_and_inside_sets_should_st
         assert stop.exit_code() == 143
         stop = StopSignals().install()
         trainer = SimpleNamespace(should_stop=False)
+        stop.on_train_start(trainer, None)  # the check before the first step: abandoned at once
+        with pytest.raises(StopRequested, match="stopped by SIGTERM"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+        assert stop.phase == "check before training"
+        stop = StopSignals().install()
         stop.on_train_start(trainer, None)
+        stop.on_train_batch_start(trainer, None, None, 0)
         os.kill(os.getpid(), signal.SIGINT)
         time.sleep(0.1)
-        assert trainer.should_stop and stop.exit_code() == 130 and stop.name == "SIGINT"
+        assert trainer.should_stop and stop.exit_code() == 130 and stop.name == "SIGINT" and stop.phase == "training"
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -535,7 +543,7 @@ def test_split_file_with_a_test_trial_in_training_is_refused_at_start(tmp_path):
     cfg = OmegaConf.create({"seed": 0, "trainer": {"max_epochs": 1}, "data": {"split_file": str(split)}})
     with pytest.raises(runfolder.RunFolderError, match=rf"split file {split} puts 1 trial\(s\) on two sides: b \(train and test\)"):
         runfolder.claim(cfg, run)
-    assert [p.name for p in run.iterdir()] == [".lock"]  # the lock it took, released; nothing else
+    assert not run.exists()  # the folder the claim made for its lock is gone again: nothing written
 
 
 def test_resume_on_another_split_is_refused_naming_the_trials_that_move(tmp_path):

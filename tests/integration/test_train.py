@@ -182,7 +182,7 @@ def test_resume_continues_csv_history_and_krr_wall_time(data_dir, tmp_path):
 def test_resumable_csv_logger_moves_rows_of_discarded_training(tmp_path):
     """Rows logged after the checkpoint a run resumes from (training lost to a kill) move to
     metrics.discarded.csv; a fresh start moves them all; nothing is deleted."""
-    from embodied_tactile.run.runtime import ResumableCSVLogger
+    from embodied_tactile.run.resume import ResumableCSVLogger
 
     folder = tmp_path / "csv"
     folder.mkdir()
@@ -208,7 +208,7 @@ def test_resumed_csv_holds_one_row_per_step_and_metric(tmp_path):
     """A run killed after its checkpoint at step 3 had logged step 3's training row: the
     resumed run logs step 3 again and the file keeps one row of it (the new one); the row of
     other metrics at step 3 (logged before the checkpoint) stays."""
-    from embodied_tactile.run.runtime import ResumableCSVLogger
+    from embodied_tactile.run.resume import ResumableCSVLogger
 
     folder = tmp_path / "csv"
     folder.mkdir()
@@ -234,7 +234,7 @@ def _fake_checkpoint(path: Path, step: int, mtime: float) -> None:
 
 
 def test_find_resume_checkpoint_skips_unreadable_files(tmp_path, caplog):
-    from embodied_tactile.run.runtime import find_resume_checkpoint
+    from embodied_tactile.run.resume import find_resume_checkpoint
 
     ck = tmp_path / "checkpoints"
     ck.mkdir()
@@ -246,7 +246,7 @@ def test_find_resume_checkpoint_skips_unreadable_files(tmp_path, caplog):
     data = (ck / "last.ckpt").read_bytes()
     (ck / "last.ckpt").write_bytes(data[: len(data) // 2])  # truncated
     (ck / "best-epoch001.ckpt").write_bytes(b"garbage" * 10)
-    with caplog.at_level("WARNING", logger="embodied_tactile.run.runtime"):
+    with caplog.at_level("WARNING", logger="embodied_tactile.run.resume"):
         assert find_resume_checkpoint(tmp_path) == ck / "best-epoch000.ckpt"
     text = caplog.text
     assert str(ck / "last.ckpt") in text and str(ck / "best-epoch001.ckpt") in text
@@ -257,7 +257,7 @@ def test_find_resume_checkpoint_skips_unreadable_files(tmp_path, caplog):
     torch.save({"weights": 1}, ck / "best-epoch000.ckpt")  # readable, but not a Lightning checkpoint
     (ck / "last.ckpt").write_bytes(b"")  # a second bad last.ckpt does not overwrite the first
     caplog.clear()
-    with caplog.at_level("WARNING", logger="embodied_tactile.run.runtime"):
+    with caplog.at_level("WARNING", logger="embodied_tactile.run.resume"):
         assert find_resume_checkpoint(tmp_path) is None
     assert "not a Lightning checkpoint" in caplog.text and "starts from scratch" in caplog.text
     assert (ck / "last.ckpt.unreadable-1").read_bytes() == b""

@@ -84,6 +84,26 @@ def test_paper_experiment_settings(tmp_path):
     assert cfg.annealing.name == "dvbf"
 
 
+def test_the_default_run_is_the_typed_defaults(tmp_path):
+    """``python train.py`` trains at the typed options' defaults (no experiment sets them), and
+    the paper's settings override them: actions null there stays all 16 sets."""
+    from embodied_tactile.data.prepare import Scene
+    from embodied_tactile.model.options import ModuleOptions
+    from embodied_tactile.options.data import LoaderOptions, SceneOptions
+
+    default, paper = _compose_job([], tmp_path), _compose_job(["experiment=paper"], tmp_path)
+    loader, scene = LoaderOptions(), SceneOptions()
+    for key in ("batch_size", "train_window", "windows_per_trial", "windows_per_epoch", "num_workers"):
+        assert default.data[key] == getattr(loader, key), key
+    assert list(default.data.actions) == scene.actions == [2, 6, 10, 14]
+    assert default.model.weight_average == ModuleOptions().weight_average == 0.99
+    assert default.trainer.max_epochs == 32 and "experiment" not in OmegaConf.to_container(default)
+    assert paper.data.actions is None and paper.model.weight_average is None
+    assert paper.data.train_window is None and paper.data.windows_per_trial == 1
+    assert Scene.from_config(OmegaConf.to_container(paper.data, resolve=True)).actions is None
+    assert Scene.from_config(OmegaConf.to_container(default.data, resolve=True)).actions == (2, 6, 10, 14)
+
+
 def test_ablation_sweep_composes_all_24_jobs(tmp_path):
     """What `python train.py -m sweep=ablation trainer.fast_dev_run=true` launches: 8 modality x
     skin combos x 3 primitives = 24 jobs, each composing its scene and instantiating its data

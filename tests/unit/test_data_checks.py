@@ -252,3 +252,22 @@ def test_stale_temporary_files_of_a_killed_preparation_are_removed(tiny_data_dir
     assert not stale.exists() and fresh.exists()
     assert f"removed {stale}" in caplog.text
     assert prepared.trials
+
+
+def test_damaged_cache_copies_do_not_pile_up(data_copy):
+    """Fault: a cache file fails its checksum three times. Before: three .corrupt-N copies,
+    each as large as the cache (128 MB on the recorded data), kept for good. Now: once each
+    rebuild succeeds, the newest damaged copy is kept for inspection and the older ones go."""
+    from embodied_tactile.data.prepare import prepare_scene
+
+    scene = tiny_scene(data_copy, sim_workers=1)
+    acc = Path(prepare_scene(scene).cache_files["acc"])
+    name = sorted(_arrays(acc))[0].split("/")[0]
+    for value in (1e6, 2e6, 3e6):
+        with h5py.File(acc, "a") as f:
+            f["trials"][name]["acc"][0, 0, 0] = value
+        prepare_scene(scene)
+    copies = sorted(acc.parent.glob(acc.name + ".corrupt*"))
+    assert len(copies) == 1, copies
+    assert _arrays(copies[0])[f"{name}/acc"][0, 0, 0] == 3e6  # the newest damage
+    assert _arrays(acc)[f"{name}/acc"][0, 0, 0] not in (1e6, 2e6, 3e6)

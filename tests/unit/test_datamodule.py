@@ -261,7 +261,7 @@ def _recorded_dm(raw_files, **kw):
     from embodied_tactile.data.datamodule import TactileDataModule
 
     return TactileDataModule.from_config(source="recorded", raw_files=raw_files, skin="soft", primitive="pressing",
-                             channels=["acc"], **kw)
+                                         channels=["acc"], **{"actions": None, **kw})  # every recorded trial
 
 
 def test_raw_file_patterns_absolute_home_and_relative(tmp_path, monkeypatch):

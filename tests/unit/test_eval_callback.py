@@ -108,7 +108,7 @@ def test_callback_writes_history_and_logs(tmp_path):
 def test_collect_latents_feeds_evaluate_latents():
     torch.set_num_threads(1)
     from embodied_tactile.eval import evaluate_latents
-    from embodied_tactile.eval.callback import collect_latents
+    from embodied_tactile.eval.latents import collect_latents
 
     dm, model = FakeDataModule(), FakeModel()
     model.train()
@@ -283,7 +283,7 @@ def test_step0_row_holds_the_floor_read_by_the_final_alignments_readout(tmp_path
 def test_both_splits_inferred_in_one_pass_give_each_splits_own_latents():
     """The callback infers the cached training and held-out sequences in one pass (merged
     batches); every sequence's latents equal those of inferring each split on its own."""
-    from embodied_tactile.eval.callback import collect_latents, rebatch
+    from embodied_tactile.eval.latents import collect_latents, rebatch
     from embodied_tactile.model.latent_filter import LatentFilter
     from embodied_tactile.model.module import LatentFilterModule
 

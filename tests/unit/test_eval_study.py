@@ -332,7 +332,7 @@ def test_study_report_objects_section_takes_object_split_runs_only(tmp_path):
 
 
 def test_study_report_names_a_missing_results_file(tmp_path, capsys, monkeypatch, restore_logging):
-    from embodied_tactile.eval import pages
+    from embodied_tactile import pages
 
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exc:

@@ -74,7 +74,7 @@ def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
 
 def _report(tmp_path, monkeypatch, root) -> int:
     """``embodied-tactile report page=generalisation roots=[root] out=<tmp>/docs``'s exit status."""
-    from embodied_tactile.eval import pages
+    from embodied_tactile import pages
 
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as info:

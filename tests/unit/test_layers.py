@@ -20,7 +20,7 @@ PACKAGE = REPO / "src" / "embodied_tactile"
 #: or a folder; the longest prefix that names a module decides its layer.
 LAYERS: tuple[tuple[str, ...], ...] = (
     # facts and typed options, and the run's light helpers (JSON, paths, warnings, threads)
-    ("constants", "options", "model.options", "run.jsonio", "run.paths", "run.quiet", "run.threadenv"),
+    ("constants", "options", "model.options", "jsonio", "paths", "run.quiet", "run.threadenv"),
     # file formats and what the configs register: numpy and h5py, no torch
     ("data.rawformat", "data.modality", "data.statistics", "data.pendulum", "run.config"),
     ("sim",),  # the simulator writes the raw format
@@ -30,7 +30,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("run",),  # run folder, provenance, settings checks, training
     ("eval", "cli"),  # latents, alignment, baselines, tables; the Hydra entry checks
     ("active", "hardware"),  # palpation and acquisition: commands over a trained run / a port
-    ("eval.pages",),  # `embodied-tactile report`: every generated page, the active tables included
+    ("pages",),  # `embodied-tactile report`: every generated page, the active tables included
     ("__main__", ""),  # the one command and the package's face
 )
 
@@ -139,9 +139,14 @@ def test_the_checks_see_a_circle_and_an_upward_import():
     graph = {"data.cache": {"model.networks"}, "model.networks": {"data.cache"}, "constants": set()}
     assert cycles(graph) == [["data.cache", "model.networks"]]
     assert layer("data.cache") < layer("model.networks") and layer("data.datamodule") > layer("model.networks")
-    assert layer("run.jsonio") < layer("data.cache") < layer("run.training") and layer("nowhere.module") is None
+    assert layer("jsonio") < layer("data.cache") < layer("run.training") and layer("nowhere.module") is None
 
 
-def test_the_package_top_level_holds_only_its_face_the_command_and_the_constants():
+def test_the_package_top_level_holds_only_its_face_the_commands_and_the_bottom_helpers():
+    """The face and the commands above every folder (the one command, its Hydra side, the
+    report over eval/ and active/); below every folder the constants and the plain helpers
+    that every folder may use (JSON, where the configs are)."""
     top = sorted(p.name for p in PACKAGE.glob("*.py"))
-    assert top == ["__init__.py", "__main__.py", "cli.py", "constants.py"]
+    assert top == ["__init__.py", "__main__.py", "cli.py", "constants.py", "jsonio.py", "pages.py", "paths.py"]
+    assert layer("jsonio") == layer("paths") == layer("constants") == 0
+    assert layer("pages") > layer("active.evaluation") and layer("pages") > layer("eval.study_report")

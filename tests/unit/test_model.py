@@ -683,7 +683,7 @@ def test_fit_sets_the_input_stats_from_the_training_set_and_checkpoints_carry_th
     HandOverStatistics hands them to the module; without them a standardising network
     refuses to fit; checkpoints carry them."""
     from embodied_tactile.data.statistics import DataStatistics
-    from embodied_tactile.run.runtime import HandOverStatistics
+    from embodied_tactile.run.handover import HandOverStatistics
 
     torch.manual_seed(0)
     batch = make_batch(1, B=4, T=6)
@@ -787,7 +787,8 @@ def test_benchmark_reference_loss_equals_the_vectorised_elbo_terms():
     ("embodied_tactile.models.module.LateFusionLatentFilter", "embodied_tactile.model.module.LatentFilterModule"),
     ("embodied_tactile.models.latent_filter.LatentFilter", "embodied_tactile.model.latent_filter.LatentFilter"),
     ("embodied_tactile.models.annealing.LinearKLWarmup", "embodied_tactile.model.annealing.LinearKLWarmup"),
-    ("embodied_tactile.runtime.ResumableCSVLogger", "embodied_tactile.run.runtime.ResumableCSVLogger"),
+    ("embodied_tactile.runtime.ResumableCSVLogger", "embodied_tactile.run.resume.ResumableCSVLogger"),
+    ("embodied_tactile.run.runtime.ResumableCSVLogger", "embodied_tactile.run.resume.ResumableCSVLogger"),
 ])
 def test_saved_configs_of_the_earlier_layout_name_todays_classes(old, new):
     """The ``_target_`` strings of a ``config_resolved.yaml`` written before the package was
@@ -803,7 +804,8 @@ def test_saved_targets_compare_in_todays_spelling():
     assert current_target("embodied_tactile.models.module.EarlyFusionLatentFilter") == \
         "embodied_tactile.model.module.LatentFilterModule"
     assert current_target("embodied_tactile.models.annealing.LinearKLWarmup") == "embodied_tactile.model.annealing.LinearKLWarmup"
-    assert current_target("embodied_tactile.runtime.ResumableCSVLogger") == "embodied_tactile.run.runtime.ResumableCSVLogger"
+    assert current_target("embodied_tactile.runtime.ResumableCSVLogger") == "embodied_tactile.run.resume.ResumableCSVLogger"
+    assert current_target("embodied_tactile.run.runtime.ResumableCSVLogger") == "embodied_tactile.run.resume.ResumableCSVLogger"
     # the DataModule is built from a data config's flat keys by from_config (its constructor takes groups)
     assert current_target("embodied_tactile.data.datamodule.TactileDataModule") == \
         "embodied_tactile.data.datamodule.TactileDataModule.from_config"
@@ -899,3 +901,21 @@ def test_averaged_weights_is_a_noop_without_averaging_and_swaps_back():
     assert all(torch.equal(a, p) for a, p in zip(own, averaged.parameters()))
     with pytest.raises(ValueError, match="weight_average must be a decay in"):
         LatentFilterModule(LatentFilter("acc", **TINY), weight_average=1.0)
+
+
+def test_checkpoint_without_weight_average_loads_unaveraged(tmp_path):
+    """A checkpoint written before ``weight_average`` existed was trained without an average:
+    it loads without one (compat.UNSAVED_MODULE_OPTIONS), not with today's default 0.99, and
+    its weights unchanged."""
+    import lightning
+
+    module = LatentFilterModule(LatentFilter("acc", **TINY), weight_average=None)
+    hparams = {k: v for k, v in module.hparams.items() if k != "weight_average"}
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": hparams,
+                "pytorch-lightning_version": lightning.__version__}, path)
+    assert LatentFilterModule(LatentFilter("acc", **TINY)).average is not None  # today's default averages
+    loaded = LatentFilterModule.load_from_checkpoint(str(path), map_location="cpu")
+    assert loaded.average is None and loaded.hparams["weight_average"] is None
+    for (k, a), b in zip(module.state_dict().items(), loaded.state_dict().values()):
+        assert torch.equal(a, b), k

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from embodied_tactile.eval import pages
+from embodied_tactile import pages
 
 from conftest import REPO
 

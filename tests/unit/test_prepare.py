@@ -18,7 +18,7 @@ N_TINY = len(TINY_OBJECTS) * len(TINY_ACTIONS) * 2
 
 
 def _prepare_cli(tmp_path, data_dir, *overrides):
-    cmd = [sys.executable, "-m", "embodied_tactile.data.prepare_cli", f"paths.data_dir={data_dir}", "modality=acc",
+    cmd = [sys.executable, "-m", "embodied_tactile.run.prepare_cli", f"paths.data_dir={data_dir}", "modality=acc",
            f"data.objects=[{','.join(map(str, TINY_OBJECTS))}]", f"data.actions=[{','.join(map(str, TINY_ACTIONS))}]",
            "data.repetitions=2", "data.sim_workers=1", "data.preprocess_workers=1", *overrides]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -147,7 +147,7 @@ def _prepare_args(data_dir, *overrides):
 
 
 def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp_path, capsys):
-    from embodied_tactile.data import prepare_cli as prepare
+    from embodied_tactile.run import prepare_cli as prepare
 
     d = tmp_path / "data"
     shutil.copytree(tiny_data_dir, d)  # raw file and caches of the tiny scene
@@ -162,9 +162,45 @@ def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp
 
 @pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])
 def test_main_in_process_bad_setting_is_one_line_exit_2(tmp_path, capsys, override, needle):
-    from embodied_tactile.data import prepare_cli as prepare
+    from embodied_tactile.run import prepare_cli as prepare
 
     assert prepare.main(_prepare_args(tmp_path / "data", override)) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("prepare: error: ") and needle in err, err
     assert not (tmp_path / "data").exists()  # nothing prepared
+
+
+def test_a_trial_whose_attributes_disagree_with_its_file_is_named_and_skipped(tiny_prepared, tmp_path, caplog):
+    """Fault: one trial of the soft/pressing set says skin=hard. Before: dropped without a
+    word, ``skipped`` empty. Now: a warning names the file, the trial and the attribute, and
+    it is counted in ``skipped``; trials of a file that records another scene stay silent."""
+    import logging
+    import shutil
+
+    import h5py
+
+    from embodied_tactile.data.prepare import list_trials
+
+    scene = tiny_prepared.scene
+    caches = {}
+    for fld, path in tiny_prepared.cache_files.items():
+        caches[fld] = str(tmp_path / os.path.basename(path))
+        shutil.copy(path, caches[fld])
+    first = tiny_prepared.trials[0].name
+    other = tmp_path / "hard_sliding.h5"  # the trials of another scene's file: not this scene's to name
+    for path in caches.values():
+        with h5py.File(path, "a") as f:
+            f["trials"][first].attrs["skin"] = "hard"
+            for name in list(f["trials"])[1:3]:
+                if name != first:
+                    f.copy(f["trials"][name], f["trials"], name=f"{name}_elsewhere")
+                    g = f["trials"][f"{name}_elsewhere"]
+                    g.attrs.update(skin="hard", primitive="sliding", source_file=str(other))
+    with caplog.at_level(logging.WARNING):
+        refs, skipped, _ = list_trials(scene, caches)
+    assert first not in {r.name for r in refs} and len(refs) == len(tiny_prepared.trials) - 1
+    assert [(s["trial"], s["field"]) for s in skipped] == [(first, "attrs/skin")]
+    assert "disagree with its file" in skipped[0]["problem"]
+    lines = [r.getMessage() for r in caplog.records if first in r.getMessage()]
+    assert lines and "skin=hard primitive=pressing in a recording set of soft/pressing" in lines[0]
+    assert not any("_elsewhere" in r.getMessage() for r in caplog.records)

@@ -444,3 +444,26 @@ def test_pool_workers_end_on_sigterm_whatever_handler_train_py_installed(monkeyp
     finally:
         for s, h in saved.items():
             signal.signal(s, h)
+
+
+def test_a_hole_in_the_scenes_window_skips_the_trial():
+    """Fault: a 20 s recording with a 1.5 s hole (lost packets listed) in its first 10 s,
+    the scene's window: 7.5 % of the trial, within MAX_MISSING_SHARE, but 15 % of the window
+    the resampling would interpolate. Before: used without a word. Now: every field of the
+    trial gets the problem, naming the share and the hole; the same hole after the window
+    does not count."""
+    fs = C.FS_TACTILE
+    t = np.arange(int(20 * fs)) / fs
+    attrs = {"fs_tactile": fs}
+    cfg = PreprocessConfig()
+
+    def trial(t):
+        return RawTrial(t=t, acc=None, fsr=None, pose_t=None, pose=None, attrs=attrs)
+
+    inside = t[(t < 3.0) | (t >= 4.5)]
+    probs, _ = P.time_problems(trial(inside), cfg, ("acc", "fsr"))
+    assert set(probs) == {"acc", "fsr"}
+    assert probs["acc"].startswith("tactile/t: 15.0% of the samples of the scene's 10 s window missing")
+    assert "largest gap 1.5 s at 3 s" in probs["acc"] and "MAX_MISSING_SHARE" in probs["acc"]
+    after = t[(t < 13.0) | (t >= 14.5)]
+    assert P.time_problems(trial(after), cfg, ("acc",))[0] == {}

@@ -299,8 +299,9 @@ def test_unknown_factor_nan_passes_the_validator(three_trials):
 def test_a_gap_is_accepted_where_a_lost_packet_is_recorded(tmp_path):
     """A 0.6 s step in the tactile clock: a TrialFormatError naming the sample unless
     tactile/lost_at records a lost packet at the sample after it (the recorder's timeouts);
-    a step within max(MAX_GAP_S, GAP_STEPS / fs) needs nothing."""
-    tr = make_trial(m=170)  # the pose log covers the longer clock
+    a step within max(MAX_GAP_S, GAP_STEPS / fs) needs nothing. (10 s of samples: the gap
+    is within the missing share a trial may have, MAX_MISSING_SHARE.)"""
+    tr = make_trial(n=7000, m=1070)  # the pose log covers the longer clock
     t = tr.t.copy()
     t[400:] += 0.6
     path = tmp_path / "raw.h5"
@@ -313,3 +314,44 @@ def test_a_gap_is_accepted_where_a_lost_packet_is_recorded(tmp_path):
     t[400:] += rf.gap_limit(C.FS_TACTILE) * 0.9
     rf.write_trial(tmp_path / "small.h5", rf.RawTrial(**{**tr.__dict__, "t": t}))
     assert rf.gap_limit(10.0) == 1.0 and rf.gap_limit(1000.0) == rf.MAX_GAP_S
+
+
+def test_a_trial_missing_more_than_the_documented_share_is_skipped_naming_it(tmp_path, caplog):
+    """Fault: a 3 s hole in a 10 s trial whose lost packets are listed (tactile/lost_at), and
+    a trial with a fifth of its samples dropped evenly (garbage answers). Before: both
+    passed scan_raw and were resampled over the hole. Now: each is skipped with a warning
+    naming the file, the trial and the share missing; a trial within MAX_MISSING_SHARE loads."""
+    import logging
+
+    rng = np.random.default_rng(3)
+    hole = make_trial(n=7000, m=1070, repetition=0)
+    keep = (hole.t < 2.0) | (hole.t >= 5.0)
+    first = int(np.argmax(~keep))
+    hole = rf.RawTrial(**{**hole.__dict__, "t": hole.t[keep], "acc": hole.acc[keep], "fsr": hole.fsr[keep],
+                          "lost_at": np.full(int((~keep).sum()), first, dtype=np.int64)})
+    sparse = make_trial(n=7000, m=1070, repetition=1)
+    kept = np.sort(rng.choice(7000, 5600, replace=False))
+    kept[0], kept[-1] = 0, 6999
+    sparse = rf.RawTrial(**{**sparse.__dict__, "t": sparse.t[kept], "acc": sparse.acc[kept], "fsr": sparse.fsr[kept]})
+    fine = make_trial(n=7000, m=1070, repetition=2)
+    kept = np.sort(rng.choice(7000, 6650, replace=False))  # 5 % missing
+    kept[0], kept[-1] = 0, 6999
+    fine = rf.RawTrial(**{**fine.__dict__, "t": fine.t[kept], "acc": fine.acc[kept], "fsr": fine.fsr[kept]})
+    path = tmp_path / "raw.h5"
+    with pytest.raises(rf.TrialFormatError, match=r"30\.0% of the samples of the trial missing .*largest gap 3 s at 2 s"):
+        rf.write_trial(path, hole)
+    names = {}
+    for label, tr, fields in (("hole", hole, ("t", "acc", "fsr", "lost_at")), ("sparse", sparse, ("t", "acc", "fsr"))):
+        w = rf.IncrementalTrialWriter(path, tr.attrs)  # as the recorder stores it: no check on writing
+        for fld in fields:
+            w.append(fld, getattr(tr, fld))
+        w.close(complete=True)
+        names[label] = w.name
+    names["fine"] = rf.write_trial(path, fine)
+    with caplog.at_level(logging.WARNING):
+        good, errors = rf.scan_raw(path, fields=["t", "acc"])
+    assert [g.name for g in good] == [names["fine"]]
+    assert sorted(e.trial for e in errors) == sorted([names["hole"], names["sparse"]])
+    lines = [r.getMessage() for r in caplog.records if "skipping bad trial" in r.getMessage()]
+    assert any(str(path) in ln and names["hole"] in ln and "30.0% of the samples" in ln for ln in lines), lines
+    assert any(names["sparse"] in ln and "20.0% of the samples" in ln for ln in lines), lines

@@ -52,7 +52,8 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     dm = TactileDataModule.from_config(
         data_dir=str(tmp_path / "data"), source="recorded", raw_files=[str(recorded_file)], skin="soft",
         primitive="pressing", channels=["acc", "fsr_t", "fsr_b"], preprocess={"n_frames": 30},
-        preprocess_workers=1, batch_size=2, split_file=str(tmp_path / "split.json"),
+        preprocess_workers=1, batch_size=2, split_file=str(tmp_path / "split.json"), train_window=None,
+        windows_per_trial=1,  # whole 30-frame trials
     )
     dm.prepare_data()
     dm.setup()
@@ -71,7 +72,7 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     torch.manual_seed(0)
     net = LatentFilter("multi_l", encoder={"widths": [4, 8], "hidden": 16}, transition_hidden=16, lstm_hidden=16)
     model = LatentFilterModule(net, optimizer={"name": "Adam", "lr": 1e-3})
-    from embodied_tactile.run.runtime import HandOverStatistics
+    from embodied_tactile.run.handover import HandOverStatistics
 
     trainer = L.Trainer(max_epochs=1, accelerator="cpu", logger=False, enable_checkpointing=False, callbacks=[HandOverStatistics()],
                         enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)

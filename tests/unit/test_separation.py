@@ -23,7 +23,7 @@ CASES = {
     "embodied_tactile.data.preprocess": ["torch", "lightning"],
     "embodied_tactile.data.prepare": ["torch", "lightning"],  # the preparation stage: files only
     "embodied_tactile.data.pendulum": ["torch", "lightning", "librosa", "h5py"],  # the pendulum's data: numpy
-    "embodied_tactile.data.prepare_cli": ["torch", "lightning"],
+    "embodied_tactile.run.prepare_cli": ["torch", "lightning"],
     # the recorder's command starts in a fraction of a second (a second recorder on a busy port
     # is refused while the first one records); the typed configs need no torch
     "embodied_tactile.hardware.record": ["torch", "lightning", "librosa"],

@@ -106,15 +106,15 @@ def test_compile_convs_switch_counts_nets_and_leaves_eval_eager():
 def test_train_config_switch_compile_convs():
     from omegaconf import OmegaConf
 
-    from embodied_tactile.run import runtime
+    from embodied_tactile.run.compile_convs import configure_compile
     from embodied_tactile.model import LatentFilter
 
     root = Path(__file__).resolve().parents[2]
     assert OmegaConf.load(root / "configs" / "train.yaml").compile_convs is False  # the measured default
     m = LatentFilter("fsr_tb")
-    assert runtime.configure_compile(OmegaConf.create({"compile_convs": False}), m) == 0
+    assert configure_compile(OmegaConf.create({"compile_convs": False}), m) == 0
     assert not any(getattr(n, "compiled", False) for n in m.modules())
-    assert runtime.configure_compile(OmegaConf.create({"compile_convs": True}), m) == 2
+    assert configure_compile(OmegaConf.create({"compile_convs": True}), m) == 2
 
 
 def test_no_grad_passes_run_the_convs_in_chunks_with_the_same_result(monkeypatch):

@@ -15,32 +15,32 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from embodied_tactile.run import runtime, threadenv
+from embodied_tactile.run import threadenv, threads
 from embodied_tactile.run.threadenv import TrainingRegistry
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def test_concurrent_jobs_follows_launcher_and_ddp():
-    assert runtime.concurrent_jobs(None, 1, cores=8) == 1
-    assert runtime.concurrent_jobs(2, 1, cores=8) == 2
-    assert runtime.concurrent_jobs(-1, 1, cores=8) == 8  # joblib: one job per core
-    assert runtime.concurrent_jobs(-2, 1, cores=8) == 7  # all but one
-    assert runtime.concurrent_jobs(2, 2, cores=8) == 4  # 2 launcher jobs x 2 DDP processes
-    assert runtime.concurrent_jobs(None, "auto", cores=8) == 1
+    assert threads.concurrent_jobs(None, 1, cores=8) == 1
+    assert threads.concurrent_jobs(2, 1, cores=8) == 2
+    assert threads.concurrent_jobs(-1, 1, cores=8) == 8  # joblib: one job per core
+    assert threads.concurrent_jobs(-2, 1, cores=8) == 7  # all but one
+    assert threads.concurrent_jobs(2, 2, cores=8) == 4  # 2 launcher jobs x 2 DDP processes
+    assert threads.concurrent_jobs(None, "auto", cores=8) == 1
 
 
 def test_thread_budget_divides_cores_and_a_setting_is_a_ceiling():
-    assert runtime.thread_budget("auto", jobs=1, cores=2) == 2
-    assert runtime.thread_budget("auto", jobs=2, cores=2) == 1
-    assert runtime.thread_budget(None, jobs=3, cores=2) == 1  # never 0
-    assert runtime.thread_budget("auto", jobs=2, cores=16) == 8
-    assert runtime.thread_budget("auto", jobs=3, cores=16) == 5
-    assert runtime.thread_budget(3, jobs=1, cores=16) == 3  # fewer than the share: kept
-    assert runtime.thread_budget(3, jobs=2, cores=2) == 1  # more than the share: the share
-    assert runtime.thread_budget(2, jobs=1, cores=2) == 2
+    assert threads.thread_budget("auto", jobs=1, cores=2) == 2
+    assert threads.thread_budget("auto", jobs=2, cores=2) == 1
+    assert threads.thread_budget(None, jobs=3, cores=2) == 1  # never 0
+    assert threads.thread_budget("auto", jobs=2, cores=16) == 8
+    assert threads.thread_budget("auto", jobs=3, cores=16) == 5
+    assert threads.thread_budget(3, jobs=1, cores=16) == 3  # fewer than the share: kept
+    assert threads.thread_budget(3, jobs=2, cores=2) == 1  # more than the share: the share
+    assert threads.thread_budget(2, jobs=1, cores=2) == 2
     with pytest.raises(ValueError, match="positive integer or 'auto'"):
-        runtime.thread_budget(0, jobs=1)
+        threads.thread_budget(0, jobs=1)
 
 
 def test_configure_threads_sets_torch_and_the_environment(monkeypatch, tmp_path):
@@ -49,11 +49,11 @@ def test_configure_threads_sets_torch_and_the_environment(monkeypatch, tmp_path)
         monkeypatch.setenv(var, "99")
     try:
         cfg = OmegaConf.create({"threads": "auto", "trainer": {"strategy": "ddp", "devices": 2}})
-        share = runtime.configure_threads(cfg, TrainingRegistry(tmp_path / "a"))  # no launcher; DDP: 2
-        assert share.jobs == 2 and share.threads == max(1, runtime.available_cores() // 2)
+        share = threads.configure_threads(cfg, TrainingRegistry(tmp_path / "a"))  # no launcher; DDP: 2
+        assert share.jobs == 2 and share.threads == max(1, threads.available_cores() // 2)
         assert torch.get_num_threads() == share.threads
         assert os.environ["OMP_NUM_THREADS"] == os.environ["MKL_NUM_THREADS"] == str(share.threads)
-        assert runtime.configure_threads(OmegaConf.create({"threads": 1}), TrainingRegistry(tmp_path / "b")).threads == 1
+        assert threads.configure_threads(OmegaConf.create({"threads": 1}), TrainingRegistry(tmp_path / "b")).threads == 1
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
@@ -102,14 +102,14 @@ def test_registry_counts_live_trainings_and_forgets_killed_ones(tmp_path):
 def test_thread_share_takes_its_share_and_gives_cores_up_at_the_next_epoch(tmp_path):
     before = torch.get_num_threads()
     try:
-        share = runtime.ThreadShare("auto", cores=2, registry=TrainingRegistry(tmp_path))
+        share = threads.ThreadShare("auto", cores=2, registry=TrainingRegistry(tmp_path))
         assert (share.jobs, share.threads, torch.get_num_threads()) == (1, 2, 2)  # alone: every core
         other, = _holders(tmp_path)  # a second training starts beside it
         try:
             assert share.threads == 2  # unchanged until the next epoch starts
             share.on_train_epoch_start(None, None)
             assert (share.jobs, share.threads, torch.get_num_threads()) == (2, 1, 1)
-            third = runtime.ThreadShare(2, cores=2, registry=TrainingRegistry(tmp_path))
+            third = threads.ThreadShare(2, cores=2, registry=TrainingRegistry(tmp_path))
             assert (third.jobs, third.threads) == (3, 1)  # threads=2 given: still 1 of the 2 cores
             third.registry.release()
         finally:
@@ -117,7 +117,7 @@ def test_thread_share_takes_its_share_and_gives_cores_up_at_the_next_epoch(tmp_p
             other.wait()
         share.on_train_epoch_start(None, None)
         assert (share.jobs, share.threads) == (1, 2)  # alone again
-        three = runtime.ThreadShare("auto", cores=6, declared_jobs=3, registry=TrainingRegistry(tmp_path / "x"))
+        three = threads.ThreadShare("auto", cores=6, declared_jobs=3, registry=TrainingRegistry(tmp_path / "x"))
         assert (three.jobs, three.threads) == (3, 2)  # a launcher's 3 jobs count before they register
     finally:
         torch.set_num_threads(before)

@@ -37,7 +37,8 @@ def names(tiny_data_dir):
 def _recorded(tmp_path, files, channels=("acc", "fsr_t"), **kw):
     return TactileDataModule.from_config(
         data_dir=str(tmp_path / "data"), source="recorded", raw_files=[str(f) for f in files], skin="soft",
-        primitive="pressing", channels=list(channels), preprocess=FAST, preprocess_workers=1, batch_size=2, **kw,
+        primitive="pressing", channels=list(channels), preprocess=FAST, preprocess_workers=1, batch_size=2,
+        actions=None, train_window=None, windows_per_trial=1, **kw,  # every recorded trial, whole
     )
 
 
@@ -222,7 +223,7 @@ def test_data_identity_is_per_trial_of_the_run(tiny_data_dir, names, tmp_path):
     change named only the file. Now: the identity is one digest per trial of the run: the
     added trial changes nothing, the changed trial is named, a removed one too."""
     from embodied_tactile.data.cache import build_cache
-    from embodied_tactile.run.runtime import data_changes, data_identity
+    from embodied_tactile.run.provenance import data_changes, data_identity
 
     raw = _copy_trials(tiny_data_dir / "raw" / "soft_pressing.h5", tmp_path / "raw.h5", names[:3])
     run_trials = names[:3]

@@ -232,7 +232,7 @@ def write_outputs(out_dir: Path, summary: dict[str, Any], result: dict[str, Any]
     """``active_nmse.{md,csv,tex,png}`` and the record ``active_nmse.json`` (meta with the
     caption, summary, curves, actions) from which :func:`rewrite_tables` rewrites the others."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    from embodied_tactile.run.jsonio import write_json
+    from embodied_tactile.jsonio import write_json
 
     meta = {**meta, "caption": caption}
     paths = write_tables(out_dir, "active_nmse", summary, caption, meta.get("title", "active palpation"))

@@ -14,6 +14,7 @@ import numpy as np
 
 from embodied_tactile.eval import runs as R
 from embodied_tactile.eval.pipeline import parse_options, run_targets
+from embodied_tactile.run.threadenv import set_threads
 
 from .model import PalpationModel
 
@@ -49,7 +50,7 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
         data = R.data_config(r, opts)
     except R.EvaluationError as err:
         raise PalpationError(str(err)) from err
-    torch.set_num_threads(int(threads))
+    set_threads(int(threads))
     cache = R.DataCache()
     key, dm = cache.get(data)
     try:

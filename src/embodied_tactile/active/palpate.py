@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile import constants as C
 from embodied_tactile.cli import hydra_command
+from embodied_tactile.run.threadenv import set_threads
 
 log = logging.getLogger("embodied_tactile.active.palpate")
 
@@ -106,7 +107,7 @@ def run(cfg: DictConfig) -> int:
     from embodied_tactile.active.policy import make_policy
 
     _check(cfg)
-    torch.set_num_threads(int(cfg.threads))
+    set_threads(int(cfg.threads))
     try:
         model, info = load_palpation_model(str(cfg.run), checkpoint=str(cfg.checkpoint), threads=int(cfg.threads))
     except PalpationError as err:

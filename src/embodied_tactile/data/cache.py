@@ -57,7 +57,7 @@ from embodied_tactile.data.preprocess import (
     time_problems,
 )
 from embodied_tactile.data import rawformat
-from embodied_tactile.run.jsonio import to_jsonable
+from embodied_tactile.jsonio import to_jsonable
 from embodied_tactile.data.rawformat import FIELDS as RAW_PATHS
 from embodied_tactile.data.rawformat import TrialFormatError
 from embodied_tactile.options.data import SceneOptions

@@ -28,7 +28,7 @@ from torch.utils.data import DataLoader, Dataset, RandomSampler
 from embodied_tactile.data.prepare import PreparedData, Scene, TrialRef, data_dir_lock, prepare_scene
 from embodied_tactile.options.data import LoaderOptions, SceneOptions, SplitOptions, group_options
 from embodied_tactile.data.statistics import DataStatistics
-from embodied_tactile.run.jsonio import write_json
+from embodied_tactile.jsonio import write_json
 from embodied_tactile.data.modality import CHANNELS, fields_for_channels
 from embodied_tactile.data.features import handcrafted_features
 
@@ -499,7 +499,7 @@ class TactileDataModule(L.LightningDataModule):
         self.prepared: PreparedData | None = None
         self.train_set: TactileSequenceDataset | None = None
         #: the training split's channel statistics and size (setup("fit")), handed to the model by
-        #: :class:`embodied_tactile.run.runtime.HandOverStatistics`
+        #: :class:`embodied_tactile.run.handover.HandOverStatistics`
         self.statistics: DataStatistics | None = None
         self.val_set: TactileSequenceDataset | None = None  # model selection (training objects)
         self.test_set: TactileSequenceDataset | None = None  # held out: evaluation only

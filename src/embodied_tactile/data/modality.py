@@ -134,7 +134,7 @@ class Modality:
 def _config_dir() -> "Path":
     from pathlib import Path
 
-    from embodied_tactile.run.paths import config_dir
+    from embodied_tactile.paths import config_dir
 
     return Path(config_dir()) / "modality"
 

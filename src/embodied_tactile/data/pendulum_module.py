@@ -72,7 +72,7 @@ class PendulumDataModule(L.LightningDataModule):
     systems (:data:`~embodied_tactile.data.pendulum.UNSEEN_SYSTEMS`, ``unseen_dataloader``).
     An epoch is one shuffled pass over the training sequences. ``statistics``
     (:class:`~embodied_tactile.data.statistics.DataStatistics` of the training images) goes to
-    the module through :class:`~embodied_tactile.run.runtime.HandOverStatistics`, as the
+    the module through :class:`~embodied_tactile.run.handover.HandOverStatistics`, as the
     tactile DataModule's."""
 
     #: what ``factors`` holds, column by column (the read-out's targets, rad/s and 1/s)

@@ -13,7 +13,7 @@ x actions, simulated or recorded), under an advisory lock on the data folder
 
 It returns :class:`PreparedData`: the cache files, the usable trials, the skipped trials
 with reasons, the interrupted recordings left out. The DataModule splits and serves it
-(``TactileDataModule.prepare_data`` calls this stage); ``python -m embodied_tactile.data.prepare_cli``
+(``TactileDataModule.prepare_data`` calls this stage); ``python -m embodied_tactile.run.prepare_cli``
 runs it on its own. No torch here.
 """
 
@@ -34,7 +34,7 @@ import h5py
 from embodied_tactile import constants as C
 from embodied_tactile.data.rawformat import unique_paths
 from embodied_tactile.data.modality import fields_for_channels
-from embodied_tactile.options.data import SceneOptions, scene_defaults
+from embodied_tactile.options.data import SceneOptions, scene_values
 
 log = logging.getLogger(__name__)
 
@@ -245,10 +245,9 @@ class Scene:
     @classmethod
     def from_config(cls, data: Mapping[str, Any] | None = None, /, **kw: Any) -> "Scene":
         """The scene of a data config (``cfg.data``, or keyword arguments): its preparation
-        keys, the defaults of :class:`~embodied_tactile.options.data.SceneOptions` where it is
-        silent or null; the split and loader keys are the DataModule's and are ignored here."""
-        given = {**(data or {}), **kw}
-        return cls(**{k: (given[k] if given.get(k) is not None else v) for k, v in scene_defaults().items()})
+        keys (:func:`~embodied_tactile.options.data.scene_values`: the defaults where it is silent,
+        ``actions: null`` all 16 sets); the split and loader keys are the DataModule's and are ignored here."""
+        return cls(**scene_values({**(data or {}), **kw}))
 
     @property
     def is_population(self) -> bool:
@@ -340,7 +339,7 @@ class PreparedData:
     simulated: int = 0
     cache_built: list[str] = field(default_factory=list)
     #: ``{field: {trial: digest}}`` of every valid raw trial (its name, attributes and the
-    #: bytes that field reads): a run's data identity per trial (runtime.data_identity)
+    #: bytes that field reads): a run's data identity per trial (run.provenance.data_identity)
     trial_digests: dict[str, dict[str, str]] = field(default_factory=dict)
 
     def summary(self) -> str:
@@ -407,12 +406,15 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
         # a cache found (not built now) is checked once per preparation: each array against its crc32
         damaged = {fld: bad for fld, path in files.items() if Path(path) in existing and (bad := verify_cache(path))}
         if damaged:  # set the damaged files aside (kept) and rebuild those fields from the raw files
+            asides = {}
             for fld, bad in damaged.items():
-                aside = _set_aside(Path(files[fld]))
+                asides[fld] = _set_aside(Path(files[fld]))
                 log.warning("%s: %d cached array(s) fail their checksum (e.g. %s); moved to %s, rebuilding %s from "
-                            "the raw files", files[fld], len(bad), ", ".join(bad[:3]), aside.name, fld)
+                            "the raw files", files[fld], len(bad), ", ".join(bad[:3]), asides[fld].name, fld)
             files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=tuple(scene.fields),
                                 workers=scene.preprocess_workers, strict=scene.strict)
+            for aside in asides.values():  # rebuilt: the newest damaged copy is kept for inspection, no older one
+                _prune_set_aside(aside)
     cache_files = {k: str(v) for k, v in files.items()}
     trials, skipped, incomplete = list_trials(scene, cache_files, raw_paths)
     return PreparedData(scene=scene, raw_files=raw_paths, cache_files=cache_files, trials=trials, skipped=skipped,
@@ -428,6 +430,21 @@ def _set_aside(path: Path) -> Path:
         target = path.with_name(f"{path.name}.corrupt-{n}")
     path.rename(target)
     return target
+
+
+def _prune_set_aside(keep: Path) -> list[Path]:
+    """Once a damaged cache file's rebuild succeeded: remove the older damaged copies of the
+    same file (``<name>.corrupt``, ``<name>.corrupt-N``) beside ``keep``, the newest, each
+    named in a log line: one copy per cache file, not one per failure (each as large as
+    the cache)."""
+    name = keep.name.rsplit(".corrupt", 1)[0]
+    removed = []
+    for old in keep.parent.glob(f"{glob.escape(name)}.corrupt*"):
+        if old != keep and (old.name == f"{name}.corrupt" or old.name.startswith(f"{name}.corrupt-")):
+            old.unlink(missing_ok=True)
+            removed.append(old)
+            log.info("removed %s: an older damaged copy of %s (the newest is kept: %s)", old, name, keep.name)
+    return removed
 
 
 def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequence[str] | None = None
@@ -473,11 +490,21 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequenc
     skipped = _one_per_trial(skipped)
     object_ids = scene.object_ids()
     roles = scene.object_roles() or {}
+    sets = recording_sets(per_field[0], names)
     refs = []
     incomplete: list[str] = []
     for name in names:
         a = per_field[0][name]
         if str(a["skin"]) != scene.skin or str(a["primitive"]) != scene.primitive:
+            src = str(a.get("source_file"))
+            if sets.get(src) == (scene.skin, scene.primitive):  # a mislabelled trial of this scene's set
+                entry = {"file": src, "trial": name, "field": "attrs/skin" if str(a["skin"]) != scene.skin
+                         else "attrs/primitive",
+                         "problem": f"skin={a['skin']} primitive={a['primitive']} in a recording set of "
+                                    f"{scene.skin}/{scene.primitive} trials: its attributes disagree with its file; "
+                                    "left out (fix the attributes, or move the trial to a file of its own scene)"}
+                log.warning("skipping %s / %s: %s", src, name, entry["problem"])
+                skipped.append(entry)
             continue
         if object_ids is not None and int(a["object_id"]) not in object_ids:
             continue
@@ -504,6 +531,20 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequenc
             f"actions={scene.actions} in {dict(cache_files)} (skipped: {skipped[:5]})"
         )
     return refs, skipped, (incomplete if not scene.include_incomplete else [])
+
+
+def recording_sets(attrs: Mapping[str, Mapping[str, Any]], names: Sequence[str]) -> dict[str, tuple[str, str]]:
+    """``{raw file: (skin, primitive)}`` the most trials of each file hold: the scene the file
+    records. A trial of that file with other attributes disagrees with its file (a file
+    whose trials are mostly of another scene is that scene's, and its trials are not this
+    scene's to name)."""
+    from collections import Counter
+
+    counts: dict[str, Counter] = {}
+    for name in names:
+        a = attrs[name]
+        counts.setdefault(str(a.get("source_file")), Counter())[(str(a["skin"]), str(a["primitive"]))] += 1
+    return {f: c.most_common(1)[0][0] for f, c in counts.items()}
 
 
 def _one_per_trial(entries: Sequence[Mapping[str, str]]) -> list[dict[str, str]]:

@@ -31,7 +31,7 @@ import scipy.ndimage
 import scipy.signal
 
 from embodied_tactile import constants as C
-from embodied_tactile.data.rawformat import RawTrial
+from embodied_tactile.data.rawformat import RawTrial, coverage_problem
 
 #: Bump when the numbers this module produces change for the same config and raw data;
 #: part of every cache key (``data.cache``). 2: the accelerometer path runs in float32
@@ -496,8 +496,9 @@ def pose_actions(trial: RawTrial, cfg: PreprocessConfig) -> np.ndarray:
 # ============================================================================ time coverage
 def time_problems(trial: RawTrial, cfg: PreprocessConfig, fields: Iterable[str]) -> tuple[dict[str, str], float | None]:
     """``({field: problem}, seconds)``: the fields of ``fields`` that cannot be computed
-    because the trial is much shorter than the window (every field) or its pose log does
-    not cover the tactile span (``actions``); ``seconds`` is the trial's length when it is
+    because the trial is much shorter than the window or misses more than
+    :data:`~embodied_tactile.data.rawformat.MAX_MISSING_SHARE` of the window's samples (every
+    field), or its pose log does not cover the tactile span (``actions``); ``seconds`` is the trial's length when it is
     longer than the window by more than LONG_FRACTION (cut to it), else None."""
     fields = tuple(fields)
     window = cfg.duration
@@ -510,6 +511,10 @@ def time_problems(trial: RawTrial, cfg: PreprocessConfig, fields: Iterable[str])
         why = (f"tactile/t: the recording covers {covered:.3g} s, the scene's window is {window:g} s "
                f"(n_frames / frame_rate; at least {MIN_SPAN_FRACTION:.0%} needed)")
         return {f: why for f in fields}, None
+    span = min(covered, window)  # the part of the recording the scene's frames are resampled from
+    hole = coverage_problem(t, fs, span, what=f"the scene's {span:.3g} s window")
+    if hole:  # the resampling would interpolate over it
+        return {f: f"tactile/t: {hole}" for f in fields}, None
     out: dict[str, str] = {}
     if "actions" in fields and trial.pose_t is not None and len(trial.pose_t):
         pt = np.asarray(trial.pose_t, dtype=np.float64)

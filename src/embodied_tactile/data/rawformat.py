@@ -91,6 +91,7 @@ REQUIRED_ATTRS: Mapping[str, type] = {
 OPTIONAL_ATTRS: Mapping[str, type] = {
     "complete": bool,  # recorder: False while recording / after an interrupted trial
     "lost_packets": int,
+    "missing_share": float,  # recorder: 1 - packets / (duration x fs_tactile)
     "device": str,
     "notes": str,
     "sim_physics_version": int,  # simulator: version of its physics (sim.physics.PHYSICS_VERSION); absent = 1
@@ -120,6 +121,38 @@ RATE_TOLERANCE = 0.2
 #: has none, may have no gap).
 MAX_GAP_S = 0.5
 GAP_STEPS = 10
+#: Coverage: the share of the samples a clock's declared rate gives its span (a trial's whole
+#: ``tactile/t``; the preprocessing's window of it) that may be missing -- lost, garbage, never
+#: polled. Above it the recorder does not store ``complete=True``, the validator rejects the
+#: trial and the preparation skips it (the resampling would interpolate that share).
+MAX_MISSING_SHARE = 0.10
+
+
+def missing_share(t: np.ndarray, fs: float, span: float | None = None) -> tuple[float, int, int, float, float]:
+    """``(share, got, expected, largest gap s, its start s)`` of the samples a clock ``t`` of
+    declared rate ``fs`` lacks over its first ``span`` seconds (default: all of it, ``t[-1] -
+    t[0] + 1 / fs``): ``expected = span x fs``, ``got`` the samples in ``[t[0], t[0] + span)``,
+    ``share = max(0, 1 - got / expected)``."""
+    t = np.asarray(t, dtype=np.float64)
+    if t.size < 2 or not fs > 0:
+        return 0.0, int(t.size), int(t.size), 0.0, 0.0
+    span = float(t[-1] - t[0]) + 1.0 / fs if span is None else float(span)
+    expected = span * fs
+    got = int(np.searchsorted(t, t[0] + span - 0.5 / fs))
+    steps = np.diff(t[: max(got, 2)])
+    i = int(np.argmax(steps))
+    return max(0.0, 1.0 - got / expected), got, int(round(expected)), float(steps[i]), float(t[i] - t[0])
+
+
+def coverage_problem(t: np.ndarray, fs: float, span: float | None = None, what: str = "the trial") -> str | None:
+    """Why ``t`` misses more than :data:`MAX_MISSING_SHARE` of its samples over ``span``
+    (:func:`missing_share`), or None."""
+    share, got, expected, gap, at = missing_share(t, fs, span)
+    if share <= MAX_MISSING_SHARE:
+        return None
+    return (f"{share:.1%} of the samples of {what} missing ({got} of the {expected} that fs_tactile={fs:g} Hz gives; "
+            f"largest gap {gap:.3g} s at {at:.3g} s); at most {MAX_MISSING_SHARE:.0%} may be missing "
+            "(rawformat.MAX_MISSING_SHARE)")
 
 _DTYPES: Mapping[str, tuple[np.dtype, ...]] = {
     "t": (np.dtype("float64"),),
@@ -513,6 +546,16 @@ def _check_continuity(file: str, name: str, data: Mapping[str, np.ndarray], attr
                 + (f" ({FIELDS[lost]})" if lost is not None else "") + " (rawformat.MAX_GAP_S / GAP_STEPS)")
 
 
+def _check_coverage(file: str, name: str, data: Mapping[str, np.ndarray], attrs: Mapping[str, Any] | None) -> None:
+    """The trial's ``tactile/t`` against its declared ``fs_tactile`` (:func:`coverage_problem`)."""
+    t, fs = data.get("t"), (attrs or {}).get("fs_tactile")
+    if t is None or not fs:
+        return
+    problem = coverage_problem(t, float(fs))
+    if problem:
+        raise TrialFormatError(file, name, FIELDS["t"], problem)
+
+
 def _check_lost(file: str, name: str, fld: str, data: np.ndarray, n: int | None) -> None:
     """Lost-packet positions: sample indices 0..n (n = after the last sample), non-decreasing."""
     path = FIELDS[fld]
@@ -566,8 +609,9 @@ def validate_arrays(file: str | os.PathLike, name: str, trial: RawTrial, fields:
         _check_rate(file, name, fld, arr, trial.attrs)
         if fld in LOST_FIELDS:
             _check_lost(file, name, fld, arr, counts[clock])
-    _check_continuity(file, name, {f: np.asarray(getattr(trial, f)) for f in fields_needed(fields)
-                                   if getattr(trial, f) is not None}, trial.attrs)
+    present = {f: np.asarray(getattr(trial, f)) for f in fields_needed(fields) if getattr(trial, f) is not None}
+    _check_continuity(file, name, present, trial.attrs)
+    _check_coverage(file, name, present, trial.attrs)
 
 
 def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], check: bool = True,
@@ -604,6 +648,7 @@ def _read_group(file: str, name: str, g: h5py.Group, fields: Iterable[str], chec
         out[fld] = data
     if check:
         _check_continuity(file, name, out, attrs)
+        _check_coverage(file, name, out, attrs)
     return out
 
 

@@ -57,9 +57,10 @@ from typing import Any, ContextManager, Mapping, Sequence
 
 import numpy as np
 
-from ..constants import FACTOR_NAMES
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment, resolve_cv_grouping
-from ..options.alignment import AlignmentCheckOptions, alignment_options
+from ..options.alignment import CHECK_ALIGNMENT, AlignmentCheckOptions, alignment_options
+from .latents import (LATENT_KEYS, cache_batches, collect_latents, collect_split_latents, count_sequences,
+                      factor_names, rebatch, split_at)
 from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
 from .metrics import nmse_over_time, nmse_trajectory, overall
 from .results import select_latents
@@ -71,20 +72,7 @@ except ImportError:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
-LATENT_KEYS = {"y": ("y_mean",), "z": ("z_mean",), "both": ("z_mean", "y_mean")}
-
-#: the batch keys the callback keeps between checks (what ``infer_latents`` and
-#: :func:`collect_latents` read)
-CACHED_KEYS = ("obs", "actions", "factors", "object_id", "action_index", "seq_id")
-#: sequences per inference batch of :func:`collect_split_latents` (the callback's ``infer_batch_size``)
-INFER_BATCH_SIZE = AlignmentCheckOptions.infer_batch_size
 _OPTIONS = AlignmentCheckOptions  # the callback's defaults
-
-
-def factor_names(datamodule) -> tuple[str, ...]:
-    """The names of the ``factors`` columns a DataModule serves: its ``factor_names`` (the
-    pendulum's natural frequency and damping), else the catalogue's four (FACTOR_NAMES)."""
-    return tuple(getattr(datamodule, "factor_names", FACTOR_NAMES))
 
 
 def check_epochs(max_epochs: int, points: int) -> list[int]:
@@ -99,116 +87,6 @@ def check_epochs(max_epochs: int, points: int) -> list[int]:
     return sorted(c - 1 for c in counts if c <= max_epochs)
 
 
-def rebatch(batches, batch_size: int) -> list[dict]:
-    """Merge consecutive cached batches whose tensors agree in all but the first dimension
-    into batches of up to ``batch_size`` sequences (lists are concatenated)."""
-    import torch
-
-    out: list[dict] = []
-    for b in batches:
-        last = out[-1] if out else None
-        if (last is not None and last.keys() == b.keys() and len(last["factors"]) + len(b["factors"]) <= batch_size
-                and all(not isinstance(v, torch.Tensor) or v.shape[1:] == last[k].shape[1:] for k, v in b.items())):
-            out[-1] = {k: torch.cat([last[k], v]) if isinstance(v, torch.Tensor) else list(last[k]) + list(v)
-                       for k, v in b.items()}
-        else:
-            out.append(dict(b))
-    return out
-
-
-def cache_batches(loader, max_sequences: int | None) -> tuple[list[dict], bool]:
-    """The first ``max_sequences`` sequences of ``loader`` as CPU batches with the
-    :data:`CACHED_KEYS` only -> (batches, whether they are the whole loader)."""
-    import torch
-
-    batches, n = [], 0
-    for batch in loader:
-        take = len(batch["factors"]) if max_sequences is None else min(len(batch["factors"]), max_sequences - n)
-        batches.append({k: (v[:take].cpu() if isinstance(v, torch.Tensor) else list(v)[:take])
-                        for k, v in batch.items() if k in CACHED_KEYS})
-        n += take
-        if max_sequences is not None and n >= max_sequences:
-            dataset = getattr(loader, "dataset", None)
-            return batches, dataset is not None and hasattr(dataset, "__len__") and len(dataset) == n
-    return batches, True
-
-
-def _to_device(batch, device):
-    import torch
-
-    if isinstance(batch, torch.Tensor):
-        return batch.to(device)
-    if isinstance(batch, Mapping):
-        return {k: _to_device(v, device) for k, v in batch.items()}
-    if isinstance(batch, (list, tuple)):
-        return type(batch)(_to_device(v, device) for v in batch)
-    return batch
-
-
-def collect_latents(pl_module, loader, *, latent: str = "y", max_sequences: int | None = None) -> dict[str, np.ndarray]:
-    """Run ``pl_module.infer_latents`` over ``loader`` -> split dict for
-    :func:`~embodied_tactile.eval.results.evaluate_latents`: ``"z"`` / ``"y"`` (n, T, d) from
-    ``z_mean`` / ``y_mean`` (those the module returns; the ones ``latent`` needs are required),
-    ``factors``, ``object_id``, ``action_index`` and ``seq_id`` when batches carry it.
-    Usable outside the callback (evaluate.py)."""
-    import torch
-
-    need = LATENT_KEYS[latent]
-    lat: dict[str, list] = {"z": [], "y": []}
-    fac, obj, act, ids = [], [], [], []
-    n = 0
-    was_training = pl_module.training
-    pl_module.eval()
-    try:
-        with torch.no_grad():
-            for batch in loader:
-                batch = _to_device(batch, pl_module.device)
-                out = pl_module.infer_latents(batch)
-                missing = [k for k in need if k not in out]
-                if missing:
-                    raise KeyError(f"infer_latents returned {sorted(out)}; latent={latent!r} needs {list(need)}")
-                take = len(batch["factors"]) if max_sequences is None else min(len(batch["factors"]), max_sequences - n)
-                for k in ("z", "y"):
-                    if f"{k}_mean" in out:
-                        lat[k].append(out[f"{k}_mean"][:take].float().cpu().numpy())
-                fac.append(batch["factors"][:take].float().cpu().numpy())
-                obj.append(batch["object_id"][:take].cpu().numpy())
-                act.append(batch["action_index"][:take].cpu().numpy())
-                if "seq_id" in batch:
-                    sid = batch["seq_id"][:take]
-                    ids.append(np.asarray(sid.cpu() if hasattr(sid, "cpu") else sid))
-                n += take
-                if max_sequences is not None and n >= max_sequences:
-                    break
-    finally:
-        pl_module.train(was_training)
-    res = {k: np.concatenate(v) for k, v in lat.items() if v}
-    res.update({"factors": np.concatenate(fac), "object_id": np.concatenate(obj), "action_index": np.concatenate(act)})
-    if ids:
-        res["seq_id"] = np.concatenate(ids)
-    return res
-
-
-def collect_split_latents(pl_module, train, held, *, latent: str = "y", batch_size: int = INFER_BATCH_SIZE
-                          ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """:func:`collect_latents` of the training and the held-out batches inferred together,
-    merged (:func:`rebatch`) into batches of up to ``batch_size`` sequences, training
-    sequences first -> (training split, held-out split). The training's read-outs and
-    evaluate.py read latents through this one function: a sequence's float32 latents depend
-    on the batch it is filtered in (~1e-7), which the KRR fit magnifies to 1e-5 - 1e-4 NMSE,
-    so the two infer the same batches to reproduce one number."""
-    train, held = list(train), list(held)
-    return _split_at(collect_latents(pl_module, rebatch(train + held, batch_size), latent=latent), _count(train))
-
-
-def _count(batches) -> int:
-    return sum(len(b["factors"]) for b in batches)
-
-
-def _split_at(joint: dict[str, np.ndarray], n: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    return {k: v[:n] for k, v in joint.items()}, {k: v[n:] for k, v in joint.items()}
-
-
 class KRRAlignmentCallback(Callback):
     """See module docstring. Defaults aim at <= 10 % of training time: a check at t = 0
     (``initial``) and ``points`` checks over the run (``every_n_epochs=None``; an int
@@ -216,10 +94,6 @@ class KRRAlignmentCallback(Callback):
     sequences, ``frames_per_sequence`` final-segment frames each, Nystroem above
     ``nystroem_threshold`` rows, held-out frames subsampled by ``val_frame_stride``; inputs
     read once and inferred ``infer_batch_size`` sequences at a time."""
-
-    #: what a periodic check changes in the run's alignment (cheaper: they trace the curve)
-    CHECK_DEFAULTS = {"frames_per_sequence": 2, "cv": 3, "nystroem_threshold": 1024, "n_components": 256,
-                      "alphas": [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0], "gammas": [0.3, 1.0, 3.0]}
 
     def __init__(self, every_n_epochs: int | None = _OPTIONS.every_n_epochs, latent: str = _OPTIONS.latent,
                  max_train_sequences: int | None = _OPTIONS.max_train_sequences,
@@ -246,9 +120,9 @@ class KRRAlignmentCallback(Callback):
         self.max_val_sequences = max_val_sequences
         self.val_frame_stride = max(1, int(val_frame_stride))
         # the final alignment is the run's `alignment` (evaluate.py reads the same from the run's config);
-        # the periodic checks change only what CHECK_DEFAULTS / `checks` name
+        # the periodic checks change only what CHECK_ALIGNMENT / `checks` name
         self.final_kw = alignment_options(alignment)
-        self.align_kw = alignment_options(self.final_kw, self.CHECK_DEFAULTS, checks)
+        self.align_kw = alignment_options(self.final_kw, CHECK_ALIGNMENT, checks)
         self.groups = self.final_kw["groups"]
         self.run_on_train_end = run_on_train_end
         self.history_name = history_name
@@ -312,6 +186,14 @@ class KRRAlignmentCallback(Callback):
                 # the final alignment replaces any earlier krr/* value (metrics.json's fit_metrics)
                 trainer.callback_metrics.update({k: torch.tensor(v) for k, v in metrics.items()})
 
+    def ensure_final(self, trainer, pl_module) -> None:
+        """The final alignment when the fit did not run it: a run resumed at its own length
+        (Lightning's fit loop is done before it starts and calls neither ``on_train_start``
+        nor ``on_train_end``) reads its restored final weights here, so that its result is
+        the final read-out, never an earlier check."""
+        if self.final is None and self.run_on_train_end:
+            self.on_train_end(trainer, pl_module)
+
     # ------------------------------------------------------------------ work
     def _loaders(self, trainer):
         dm = trainer.datamodule
@@ -339,14 +221,14 @@ class KRRAlignmentCallback(Callback):
             if self._inputs is None:
                 train, train_whole = cache_batches(loaders[0], self.max_train_sequences)
                 held, held_whole = cache_batches(loaders[1], self.max_val_sequences)
-                self._inputs = (rebatch(train + held, self.infer_batch_size), _count(train), train_whole and held_whole)
+                self._inputs = (rebatch(train + held, self.infer_batch_size), count_sequences(train), train_whole and held_whole)
             batches, n_train, whole = self._inputs
             if final and not whole:  # both splits whole, inferred as evaluate.py infers them
                 return collect_split_latents(pl_module, cache_batches(loaders[0], None)[0],
                                              cache_batches(loaders[1], None)[0], latent=self.latent,
                                              batch_size=self.infer_batch_size)
             # the same batches collect_split_latents would merge, merged once per fit
-            return _split_at(collect_latents(pl_module, batches, latent=self.latent), n_train)
+            return split_at(collect_latents(pl_module, batches, latent=self.latent), n_train)
 
     def _evaluate(self, trainer, pl_module, final: bool = False, initial: bool = False) -> dict[str, float]:
         import torch

@@ -2,12 +2,15 @@
 positional argument, evaluation options as ``key=value`` over ``configs/evaluate.yaml``
 (:func:`embodied_tactile.eval.pipeline.evaluate` does the work and is what tests and
 notebooks call in-process); evaluate.py's docstring says why argparse and not
-``@hydra.main``."""
+``@hydra.main``. Exit status: 0 evaluated, 2 refused (one line: a bad option or path, a run
+that cannot be scored, an output folder that cannot be written), 130 / 143 SIGINT / SIGTERM
+in any phase (nothing written; :class:`~embodied_tactile.run.runfolder.StopSignals`)."""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -15,10 +18,12 @@ from typing import Sequence
 from embodied_tactile.eval.pipeline import evaluate
 from embodied_tactile.eval.runs import EvaluationError, latest_target
 from embodied_tactile.run import quiet
+from embodied_tactile.run.runfolder import StopSignals
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
+        prog="evaluate.py",  # = embodied-tactile evaluate; its errors read "evaluate.py: error: ..." either way
         description="Evaluate a training run folder, a checkpoint file or a multirun folder "
                     "(options: key=value over configs/evaluate.yaml).",
         epilog="e.g. python evaluate.py logs/train/runs/<run> latent=both baselines=[handcrafted,mean] umap=false")
@@ -36,13 +41,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.path = None
     log_dirs = [o.split("=", 1)[1] for o in overrides if o.startswith("paths.log_dir=")]
     overrides = [o for o in overrides if not o.startswith("paths.log_dir=")]
+    stop, handlers = StopSignals(), {s: signal.getsignal(s) for s in StopSignals.SIGNALS}
+    stop.install()  # SIGINT / SIGTERM: StopRequested at once, in every phase
     try:
         if args.path is None:
             args.path = str(latest_target(log_dirs[-1] if log_dirs else None))
         evaluate(args.path, overrides)
-    except EvaluationError as err:
-        print(f"evaluate.py: error: {err}", file=sys.stderr)
-        return 2
+    except BaseException as err:  # noqa: BLE001 -- a stop, whatever a library made of it, is the stop
+        if stop.received is not None:
+            print(f"evaluate.py: stopped by {stop.name}: nothing written (an earlier evaluation in that folder is "
+                  "kept as it was)", file=sys.stderr)
+            return stop.exit_code()
+        if isinstance(err, EvaluationError):
+            print(f"evaluate.py: error: {err}", file=sys.stderr)
+            return 2
+        raise
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
     return 0
 
 

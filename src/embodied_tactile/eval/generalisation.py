@@ -31,7 +31,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from ..constants import FACTOR_NAMES
-from ..run.jsonio import write_json
+from ..jsonio import write_json
 from ..run.summary import recipe
 from .results import scored_on_validation
 
@@ -321,7 +321,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
         "",
         "What the signals allow on the same population (a kernel reader on physical summary features): "
         "docs/experiments/signal_content.md. The paper's 32 objects under the object split: "
-        "docs/experiments/study_held_out_objects.md. The runs: `python train.py experiment=population "
+        "docs/experiments/archive/study_held_out_objects.md. The runs: `python train.py experiment=population "
         "data.n_objects=N seed=S threads=1` (or the sweep, configs/sweep/generalisation.yaml), then `python "
         "evaluate.py <run> baselines=[handcrafted,untrained,mean]` per run (`gru` adds the supervised conv + "
         "GRU: `gru.epochs=16 gru.max_batches_per_epoch=30`). The GRU at other budgets: "

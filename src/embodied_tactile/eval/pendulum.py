@@ -16,7 +16,7 @@ outputs):
   (a model can keep the trial-constant parameters in z instead of y), and ``y_velocity``:
   q(y_t) mean -> theta'_t, frames t >= ``skip`` (a per-step y can carry the moving state).
 
-The latents are read by :func:`~embodied_tactile.eval.callback.collect_split_latents`, as the
+The latents are read by :func:`~embodied_tactile.eval.latents.collect_split_latents`, as the
 run's KRR read-out and evaluate.py read them. Open-loop prediction: filter the first
 ``n_filter`` frames, then :meth:`LatentFilter.predict` the next ``horizon`` frames under the
 known actions; image MSE per horizon against the noiseless rendering, next to copying the
@@ -37,7 +37,7 @@ from torch import nn
 from ..data.pendulum import PendulumData, render
 from ..model.latent_filter import LatentFilter
 from ..model.networks import ConvDecoder, ConvEncoder
-from .callback import collect_split_latents
+from .latents import collect_split_latents
 from .krr import fit_alignment
 
 READOUTS = ("z_angle", "z_velocity", "y_frequency", "y_damping")

@@ -12,6 +12,7 @@ every table is in the output folder.
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -28,8 +29,8 @@ from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect
                                         load_module, run_split, run_state, trial_names, trial_objects,
                                         untrained_module)
 from embodied_tactile.eval.results import SPLIT_KINDS
-from embodied_tactile.run.jsonio import read_json
-from embodied_tactile.run.paths import config_dir
+from embodied_tactile.jsonio import read_json
+from embodied_tactile.paths import config_dir
 
 BASELINES = ("untrained", "handcrafted", "hybrid", "gru", "mean")
 MULTIRUN_BASELINES = ("untrained", "handcrafted", "hybrid", "mean")
@@ -180,13 +181,14 @@ def run_alignment(cfg: DictConfig, opts: DictConfig) -> dict:
 
 def evaluate_run(run: Run, opts: DictConfig, cache: DataCache, baselines: Sequence[str]) -> tuple[list, list[dict], dict]:
     """-> (Results of every method, krr history rows, info dict)."""
-    from embodied_tactile.eval.callback import INFER_BATCH_SIZE
+    from embodied_tactile.eval.latents import INFER_BATCH_SIZE
     from embodied_tactile.eval.results import evaluate_latents
     from embodied_tactile.eval.baselines import evaluate_gru, evaluate_handcrafted, evaluate_hybrid, evaluate_mean
     from embodied_tactile.data.modality import Modality
     from embodied_tactile.eval.figures import read_history
     from embodied_tactile.eval.targets import encode_split
-    from embodied_tactile.run.runtime import data_changes, data_identity, set_threads, trial_digests
+    from embodied_tactile.run.provenance import data_changes, data_identity, trial_digests
+    from embodied_tactile.run.threadenv import set_threads
 
     t_run = time.perf_counter()
     cfg = run.cfg
@@ -419,7 +421,7 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     overrides, selection = split_overrides(overrides)
     opts = parse_options(overrides)
     if opts.torch_threads:  # else each run's own (evaluate_run)
-        from embodied_tactile.run.runtime import set_threads
+        from embodied_tactile.run.threadenv import set_threads
 
         set_threads(int(opts.torch_threads))
     target = Path(target)
@@ -432,9 +434,33 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     for st in states.values():  # a run that is not finished says so first, with the checkpoint evaluated
         if st.get("line"):
             print(st["line"], flush=True)
+    writable(out)
     owned = OwnedOutput(out)
-    with owned:
-        return _evaluate_runs(target, kind, runs, skipped, selection, opts, baselines, owned, states)
+    try:
+        with owned:
+            return _evaluate_runs(target, kind, runs, skipped, selection, opts, baselines, owned, states)
+    except OSError as err:  # a full disk or a read-only folder while writing: nothing published
+        if err.errno not in WRITE_ERRNOS:
+            raise
+        raise EvaluationError(f"cannot write the evaluation into {out}: {err.strerror or err}"
+                              f"{f' ({err.filename})' if err.filename else ''}; nothing written, an earlier "
+                              f"evaluation there is kept (free space, or give out=<another folder>)") from None
+
+
+#: OS errors of a folder that cannot take the evaluation's files (full, read-only, quota, size limit, permissions)
+WRITE_ERRNOS = (errno.ENOSPC, errno.EROFS, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM)
+
+
+def writable(out: Path) -> None:
+    """EvaluationError naming ``out`` and the OS reason when its folder cannot be written
+    (read-only, full): checked before any data are prepared."""
+    from embodied_tactile.run.settings import SettingsError, check_writable_dir
+
+    try:
+        check_writable_dir("out", out.parent)
+    except SettingsError as err:
+        raise EvaluationError(f"cannot write the evaluation into {out}: {str(err).split('(', 1)[-1].rstrip(')')}; "
+                              "give out=<a writable folder>") from None
 
 
 def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, selection: dict, opts: DictConfig,
@@ -443,7 +469,7 @@ def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, sele
     publishes it as ``owned.out``."""
     from embodied_tactile.eval.report import write_report
     from embodied_tactile.eval.results import config_axes
-    from embodied_tactile.run.runtime import peak_rss_bytes
+    from embodied_tactile.run.provenance import peak_rss_bytes
 
     out, tmp = owned.out, owned.tmp
     t0 = time.perf_counter()

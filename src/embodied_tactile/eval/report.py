@@ -13,7 +13,7 @@ import numpy as np
 from .figures import (best_worst_action_curves, class_distances, curves_by, physical_factors, plot_distance_matrix,
                       plot_error_vs_runtime, plot_nmse_curves, plot_umap, readable, write_captions)
 from .metrics import NMSE_DEFINITION, overall
-from ..run.jsonio import to_jsonable
+from ..jsonio import to_jsonable
 from .results import Results
 from .tables import (MISSING, RUNTIME_DEFINITION, caption_note, runtime_points, split_sizes, table_actions,
                      table_aggregate, table_groups, table_heterogeneity, table_runtime, table_summary)

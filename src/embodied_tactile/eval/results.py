@@ -26,7 +26,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..constants import FACTOR_NAMES, N_OBJECTS, OBJECT_GROUPS, get_object
-from ..run.jsonio import to_jsonable
+from ..jsonio import to_jsonable
 from .krr import Alignment, alignment_kwargs, assert_disjoint, fit_alignment
 from .metrics import balanced_accuracy, nmse_over_time, nmse_trajectory, overall, reference_variance, roc_auc
 

@@ -22,7 +22,7 @@ from typing import Any, Mapping
 from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile.run import summary
-from embodied_tactile.run.jsonio import read_json
+from embodied_tactile.jsonio import read_json
 
 log = logging.getLogger(__name__)
 
@@ -190,7 +190,29 @@ def load_run(run_dir: Path, which: str, ckpt: Path | None = None) -> Run:
         raise EvaluationError(f"{run_dir} is not a training run folder: no config_resolved.yaml "
                               "(give a run folder made by train.py, one of its checkpoints, or a multirun folder)")
     cfg = OmegaConf.load(cpath)
-    return Run(run_dir=run_dir, ckpt=ckpt or find_checkpoint(run_dir, which), cfg=cfg, name=run_dir.name)
+    run = Run(run_dir=run_dir, ckpt=ckpt or find_checkpoint(run_dir, which), cfg=cfg, name=run_dir.name)
+    check_fits(run)
+    return run
+
+
+def check_fits(run: Run) -> None:
+    """EvaluationError naming the checkpoint and the mismatch (modality, shapes:
+    :func:`~embodied_tactile.run.runfolder.checkpoint_misfit`) when its weights do not fit the
+    model the run's config builds: a checkpoint copied from another run is refused before
+    any data are prepared (a folder of runs skips it and scores the others)."""
+    import torch
+    from hydra.utils import instantiate
+
+    from embodied_tactile.run.runfolder import checkpoint_misfit
+
+    if OmegaConf.select(run.cfg, "model._target_", default=None) is None:
+        return
+    with torch.random.fork_rng():  # building the model draws its initial weights: the caller's stream stays
+        model = instantiate(run.cfg.model)
+    misfit = checkpoint_misfit(model, torch.load(run.ckpt, map_location="cpu", mmap=True, weights_only=False))
+    if misfit:
+        raise EvaluationError(f"{run.ckpt}: does not fit the model of its run {run.run_dir} ({misfit}); "
+                              "not evaluated")
 
 
 def job_dirs(folder: Path) -> list[Path]:
@@ -371,7 +393,7 @@ def trial_objects(dm) -> dict[str, int]:
 def collect_split(model, batches: list, names: list[str], latent: str) -> tuple[dict, float]:
     """collect_latents over pre-loaded batches (so the timing is inference only) + the
     observations / actions the baselines need + trial names as seq_id."""
-    from embodied_tactile.eval.callback import collect_latents
+    from embodied_tactile.eval.latents import collect_latents
 
     t0 = time.perf_counter()
     split = collect_latents(model, batches, latent=latent)
@@ -382,11 +404,11 @@ def collect_splits(model, train: tuple[list, list[str]], held: tuple[list, list[
                    batch_size: int) -> tuple[dict, dict, float]:
     """:func:`collect_split` of the training and the held-out side (each ``(batches,
     names)``), inferred together as the training's final read-out infers them
-    (:func:`~embodied_tactile.eval.callback.collect_split_latents`, ``batch_size`` sequences a
+    (:func:`~embodied_tactile.eval.latents.collect_split_latents`, ``batch_size`` sequences a
     batch: the run's ``callbacks.krr_alignment.infer_batch_size``), so evaluate.py reads the
     same latents to the bit -> (training split, held-out split, inference seconds per held-out
     share of the sequences)."""
-    from embodied_tactile.eval.callback import collect_split_latents
+    from embodied_tactile.eval.latents import collect_split_latents
 
     t0 = time.perf_counter()
     tr, te = collect_split_latents(model, train[0], held[0], latent=latent, batch_size=batch_size)

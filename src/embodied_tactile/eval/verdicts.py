@@ -1,6 +1,6 @@
 """Verdicts on the paper's findings from the runs of a study (numpy / scipy only).
 
-Follows /work/shared/reference/study-protocol.md and docs/reference/evaluation.md ("Findings and
+Follows the study protocol and docs/reference/evaluation.md ("Findings and
 verdicts"). A finding is tested as one or more comparisons "A is better than B" on a score
 (held-out whole-trajectory NMSE of the Latent Filter, per factor or the overall mean; for the
 object-group findings the group's NMSE normalised by the run's total variance, the paper's

@@ -17,9 +17,18 @@ Packet handling (see ``docs/reference/acquisition.md``):
   request (bytes waiting there mean the pairing was off: the pending packet is dropped,
   counted lost, and the line drained).
 
-Every lost packet is located: the index of the sample that follows the gap is written
-to ``tactile/lost_at`` (``baseline/lost_at`` before ``t = 0``) with the next batch, so
-``lost_packets`` is also ``len(tactile/lost_at) + len(baseline/lost_at)``.
+Every lost or garbage packet is located: the index of the sample that follows the gap
+(the sample it would have been) is written to ``tactile/lost_at`` (``baseline/lost_at``
+before ``t = 0``) with the next batch, so ``lost_packets + garbage_packets`` is
+``len(tactile/lost_at) + len(baseline/lost_at)``.
+
+Coverage: the packet rate is measured against the board's declared rate (``declared_hz``,
+the trial's ``fs_tactile``): in the first ``rate_check_s`` (:func:`rate_problem`), and over
+the whole trial, whose missing share -- the samples the declared rate gives
+``duration_s`` that did not arrive, lost, garbage or never polled while the line was
+drained -- is stored as attr ``missing_share``. Above
+:data:`~embodied_tactile.data.rawformat.MAX_MISSING_SHARE` the trial ends
+``low_coverage``: ``complete=False``, exit 3, the one line names the share.
 
 Committed packets are buffered and written in batches through
 :class:`~embodied_tactile.data.rawformat.IncrementalTrialWriter` every ``flush_s`` (<= 1 s),
@@ -55,7 +64,7 @@ from embodied_tactile.hardware.protocol import (
     PlausibilityConfig,
     decode_packets,
 )
-from embodied_tactile.data.rawformat import IncrementalTrialWriter, rate_problem
+from embodied_tactile.data.rawformat import MAX_MISSING_SHARE, IncrementalTrialWriter, rate_problem
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +126,7 @@ class RecorderSettings:
     reserve_mb: float = 64.0  # stop the trial (disk_full) before less than this would stay writable
     declared_hz: float | None = None  # the trial's fs_tactile: the packet rate of the first rate_check_s is checked against it
     rate_check_s: float = 1.0
+    max_missing_share: float = MAX_MISSING_SHARE  # above it (of duration_s x declared_hz) the trial is not complete
 
     def __post_init__(self) -> None:
         if not 0 < self.flush_s <= 1.0:
@@ -133,7 +143,9 @@ class RecorderSettings:
 
 @dataclass
 class RecordResult:
-    status: str  # complete | interrupted | unplugged | no_data | disk_full | write_error | output_vanished | rate_mismatch
+    # complete | interrupted | unplugged | no_data | disk_full | write_error | output_vanished | rate_mismatch
+    # | low_coverage
+    status: str
     n_trial: int = 0
     n_baseline: int = 0
     n_pose: int = 0
@@ -149,6 +161,8 @@ class RecordResult:
     path: str = ""
     trial: str = ""
     unwritten: int = 0  # packets received but not written (disk_full / write_error)
+    declared_hz: float | None = None  # the board's declared rate the trial is measured against
+    missing_share: float | None = None  # 1 - packets / (duration_s x declared_hz); None without a declared rate
 
     message: str = ""  # why the trial stopped early, when it did not end by itself (rate_mismatch)
 
@@ -160,7 +174,9 @@ class RecordResult:
 
     def summary(self) -> str:
         return (
-            f"{self.status}: {self.n_trial} packets in {self.elapsed_s:.2f} s -> {self.rate_hz:.1f} packets/s; "
+            f"{self.status}: {self.n_trial} packets in {self.elapsed_s:.2f} s -> {self.rate_hz:.1f} packets/s"
+            + (f" of {self.declared_hz:g} declared, {self.missing_share:.1%} of the samples missing"
+               if self.missing_share is not None else "") + "; "
             f"jitter std {self.jitter_std_s * 1e3:.3f} ms, max interval {self.jitter_max_s * 1e3:.3f} ms; "
             f"lost {self.lost}, garbage {self.garbage}; baseline {self.n_baseline} packets, pose {self.n_pose} samples; "
             f"cpu {self.cpu_s:.2f} s; -> {self.path}:{self.trial}"
@@ -273,6 +289,7 @@ class Recorder:
             reason = "longer than expected"
         if reason is not None:
             self.garbage += 1
+            self._mark(t_host)  # the sample it would have been
             key = reason.split("=")[0].split(" ")[0]
             self.reasons[key] = self.reasons.get(key, 0) + 1
             log.debug("garbage packet (%s): resync", reason)
@@ -285,6 +302,10 @@ class Recorder:
         """Count a lost packet and note where: the number of samples of its phase (baseline
         before ``t = 0``, else trial) committed so far, i.e. the index of the next one."""
         self.lost += 1
+        self._mark(t_host)
+
+    def _mark(self, t_host: float) -> None:
+        """Note a sample that did not arrive (lost or garbage) in ``lost_at`` of its phase."""
         phase = "baseline" if t_host - self._t0 < 0 else "trial"
         written = self._n_base if phase == "baseline" else len(self._trial_t)
         self._lost_at[phase].append(written + len(self._bufs[phase][1]))
@@ -486,6 +507,15 @@ class Recorder:
         d = np.diff(trial_t)
         if status == "complete" and trial_t.size < 2:
             status = "no_data"
+        missing = None
+        if s.declared_hz:  # the board's declared rate: the samples the trial should hold
+            missing = max(0.0, 1.0 - trial_t.size / (s.duration_s * float(s.declared_hz)))
+            if status == "complete" and missing > s.max_missing_share:
+                status = "low_coverage"
+                message = (f"{missing:.1%} of the samples missing: {trial_t.size} packets in {s.duration_s:g} s where "
+                           f"fs_tactile={float(s.declared_hz):g} Hz gives {s.duration_s * float(s.declared_hz):.0f} "
+                           f"({self.lost} lost, {self.garbage} garbage, the rest not polled while the line was "
+                           f"drained; at most {s.max_missing_share:.0%}: rawformat.MAX_MISSING_SHARE)")
         res = RecordResult(
             status=status,
             n_trial=int(trial_t.size),
@@ -504,6 +534,8 @@ class Recorder:
             wall_s=time.perf_counter() - t_start,
             unwritten=self._unwritten,
             message=message,
+            declared_hz=float(s.declared_hz) if s.declared_hz else None,
+            missing_share=missing,
         )
         return res
 
@@ -546,6 +578,7 @@ def finish(writer: IncrementalTrialWriter, res: RecordResult, extra_attrs: dict[
             jitter_std_s=res.jitter_std_s,
             jitter_max_s=res.jitter_max_s,
             unwritten_packets=res.unwritten,
+            **({"missing_share": res.missing_share} if res.missing_share is not None else {}),
             **(extra_attrs or {}),
         )
         writer.close(complete=res.status == "complete")

@@ -23,6 +23,9 @@ REMOVED_OPTIONS = {"obs_dropout_span": 1, "elbo_samples": 1, "overshoot": 1, "ov
 UNSAVED_OPTIONS = {"input_standardize": False, "y_update": "direct", "y_evidence_max": None,
                    "y_evidence_range": None, "obs_dropout": 0.0}
 UNSAVED_PRIOR_OPTIONS = {"labels": True}
+#: the LightningModule's options that a checkpoint's hyper-parameters do not name, with the
+#: value it was trained with (written before the option existed): today's default differs
+UNSAVED_MODULE_OPTIONS = {"weight_average": None}
 #: context-objective options that were measured, rejected and removed, with their off value
 #: (random_length: docs/experiments/context_objective.md; filter_weight:
 #: docs/experiments/population_budget.md)
@@ -80,9 +83,12 @@ RENAMED_CLASSES = {"EarlyFusionLatentFilter": "LatentFilterModule", "LateFusionL
 
 #: module paths that saved configs (``_target_`` of the model, its network, annealing schedule
 #: and logger) and checkpoints of the earlier layout name -> where that code is now; a
-#: submodule follows its package (``embodied_tactile.models.module`` -> ``embodied_tactile.model.module``)
+#: submodule follows its package (``embodied_tactile.models.module`` -> ``embodied_tactile.model.module``).
+#: The run plumbing's ``runtime`` module was split by concern; of it, saved configs name only the
+#: CSV logger (``logger._target_``), now in ``run.resume``
 MOVED_MODULES = {"embodied_tactile.models": "embodied_tactile.model",
-                 "embodied_tactile.runtime": "embodied_tactile.run.runtime"}
+                 "embodied_tactile.runtime": "embodied_tactile.run.resume",
+                 "embodied_tactile.run.runtime": "embodied_tactile.run.resume"}
 
 
 def moved_to(name: str) -> str | None:
@@ -99,8 +105,11 @@ DROPPED_CONFIG_KEYS = ("modality.module", "model.net.modality.module", "model.co
 
 
 #: config keys that today's configs write and earlier saved configs lack, with the value
-#: those runs had (the typed data options made ``pin_memory`` a key of ``data``)
-ADDED_CONFIG_KEYS = {"data.pin_memory": False}
+#: those runs had (the typed data options made ``pin_memory`` a key of ``data``; the windows
+#: and the weight average are options added after the first runs, whose defaults are now the
+#: default scene's)
+ADDED_CONFIG_KEYS = {"data.pin_memory": False, "data.train_window": None, "data.windows_per_trial": 1,
+                     "model.weight_average": None}
 
 #: ``_target_`` strings that saved configs hold -> today's (the DataModule is built from its
 #: flat config keys by ``from_config``, its constructor taking the grouped options)

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from .annealing import AnnealingSchedule, build_schedule, check_finite
-from .compat import RENAMED_CLASSES, upgrade_context_config, upgrade_state_dict
+from .compat import RENAMED_CLASSES, UNSAVED_MODULE_OPTIONS, upgrade_context_config, upgrade_state_dict
 from .fusion import LateFusion
 from .latent_filter import LatentFilter, to_plain
 from .objectives import FeatureHead, feature_count, invariance_terms, physical_term
@@ -304,7 +304,7 @@ class LatentFilterModule(L.LightningModule):
 
     def use_data_statistics(self, statistics: Any) -> None:
         """What the network needs from its training data, handed over by the data side
-        (:class:`embodied_tactile.run.runtime.HandOverStatistics` at the start of fit; any object
+        (:class:`embodied_tactile.run.handover.HandOverStatistics` at the start of fit; any object
         with ``channel_mean``, ``channel_std`` (C,) and ``n_train_sequences``): the encoders'
         input statistics (``input_standardize``) and the prior's population weight,
         1 / (training sequences) per sequence, unless the config fixes it. Input statistics a
@@ -337,7 +337,7 @@ class LatentFilterModule(L.LightningModule):
     def on_fit_start(self) -> None:
         if self.model.input_standardize and not bool(self.model.input_stats_set):
             raise ValueError("input_standardize (the default) needs the training set's channel statistics: fit with a "
-                             "TactileDataModule and the HandOverStatistics callback (embodied_tactile.run.runtime; "
+                             "TactileDataModule and the HandOverStatistics callback (embodied_tactile.run.handover; "
                              "train.py adds it), or build the network with input_standardize=False")
         if self.average is not None:
             self.average.start(self)  # a resumed run's checkpoint held the average: the optimiser's weights return
@@ -370,6 +370,10 @@ class LatentFilterModule(L.LightningModule):
         for :meth:`on_fit_start` of a resumed fit)."""
         checkpoint["state_dict"] = upgrade_state_dict(checkpoint.get("state_dict") or {},
                                                       late=isinstance(self.model.observation, LateFusion))
+        saved = checkpoint.get("hyper_parameters") or {}
+        if "weight_average" not in saved and UNSAVED_MODULE_OPTIONS["weight_average"] is None:
+            self.average = None  # written before the option existed: trained without an average
+            self.hparams["weight_average"] = None
         if self.average is not None:
             self.average.load(checkpoint)
 

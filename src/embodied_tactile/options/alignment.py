@@ -35,6 +35,11 @@ from .checks import at_least
 DEFAULT_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
 #: ``gamma`` grid, multiples of 1/d on standardised inputs
 DEFAULT_GAMMAS = (0.1, 0.3, 1.0, 3.0)
+#: what a periodic check of the training changes in the run's alignment (cheaper: the checks
+#: trace the curve; the final alignment and evaluate.py use the run's own): fewer rows and
+#: folds, a smaller Nystroem map and grid
+CHECK_ALIGNMENT = {"frames_per_sequence": 2, "cv": 3, "nystroem_threshold": 1024, "n_components": 256,
+                   "alphas": [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0], "gammas": [0.3, 1.0, 3.0]}
 READOUTS = ("per_time", "final_segment")
 CV_GROUPINGS = ("auto", "sequence", "object")
 
@@ -65,7 +70,7 @@ class AlignmentCheckOptions:
     checks spread over ``max_epochs``, the last on the final weights (then the final
     alignment: the run's ``alignment`` as it is, on every sequence and frame, as evaluate.py
     reads it), or one every ``every_n_epochs`` epochs; the periodic checks change only what ``checks`` names
-    (``KRRAlignmentCallback.CHECK_DEFAULTS`` when null), on at most ``max_train_sequences``
+    (:data:`CHECK_ALIGNMENT`, then ``checks`` over it), on at most ``max_train_sequences``
     training sequences and every ``val_frame_stride``-th held-out frame."""
 
     every_n_epochs: Optional[int] = field(default=None, metadata=at_least(0))  # an int checks every N epochs instead of `points`
@@ -102,5 +107,5 @@ def alignment_options(*layers) -> dict:
     return out
 
 
-__all__ = ["AlignmentCheckOptions", "AlignmentOptions", "CV_GROUPINGS", "DEFAULT_ALPHAS", "DEFAULT_GAMMAS", "READOUTS",
+__all__ = ["AlignmentCheckOptions", "AlignmentOptions", "CHECK_ALIGNMENT", "CV_GROUPINGS", "DEFAULT_ALPHAS", "DEFAULT_GAMMAS", "READOUTS",
            "alignment_options"]

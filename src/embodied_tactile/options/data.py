@@ -10,7 +10,7 @@ sorts back into the groups :class:`~embodied_tactile.data.datamodule.TactileData
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, ClassVar, Dict, List, Mapping, Optional
+from typing import Any, ClassVar, Dict, List, Mapping, Optional, get_args, get_type_hints
 
 from .checks import Rule, at_least, bounds
 from .simulation import SimulationOptions
@@ -34,7 +34,7 @@ class SceneOptions:
     n_test_objects: int = field(default=64, metadata=at_least(1))  # population: test objects (evaluation only)
     population_seed: int = field(default=0, metadata=at_least(0))  # population: which objects are drawn
     n_unlabelled_objects: int = field(default=0, metadata=at_least(0))  # population: objects after the training objects, trained on without property labels (NaN factors)
-    actions: Optional[List[int]] = None   # null = all 16 parameter sets
+    actions: Optional[List[int]] = field(default_factory=lambda: [2, 6, 10, 14])  # the 4 sets at 0.6 Hz (amplitudes 2-8 mm); null = all 16
     repetitions: int = field(default=SimulationOptions.repetitions, metadata=at_least(1))
     sim_seed: int = SimulationOptions.seed
     sim_workers: int = field(default=SimulationOptions.workers, metadata=at_least(1))
@@ -61,13 +61,16 @@ class SplitOptions:
 
 @dataclass
 class LoaderOptions:
-    """How the split is served."""
+    """How the split is served. The defaults are the CPU budget of ``python train.py``: each
+    epoch 6 random 50-frame windows (1.7 s, one pressing cycle) of every training trial, in
+    batches of 16 (docs/experiments/default_budget.md); held-out data and the KRR alignment
+    always use whole trials. ``experiment=paper``: batch 48, whole trials."""
 
-    batch_size: int = field(default=48, metadata=at_least(1))
+    batch_size: int = field(default=16, metadata=at_least(1))
     num_workers: int = field(default=0, metadata=at_least(0))
     seq_len: Optional[int] = field(default=None, metadata=at_least(1))  # null = the full trial
-    train_window: Optional[int] = field(default=None, metadata=at_least(2))  # training crops of this many frames (null = whole trials; >= 2: the recursion needs a transition)
-    windows_per_trial: Optional[int] = field(default=1, metadata=at_least(1))  # random crops per training trial and epoch
+    train_window: Optional[int] = field(default=50, metadata=at_least(2))  # training crops of this many frames (null = whole trials; >= 2: the recursion needs a transition)
+    windows_per_trial: Optional[int] = field(default=6, metadata=at_least(1))  # random crops per training trial and epoch
     windows_per_epoch: Optional[int] = field(default=None, metadata=at_least(1))  # instead of windows_per_trial (then null): crops per epoch
     context: Optional[str] = None            # the context objective's pairing: null | trial | window
     context_touches: int = 1                 # context=trial: other trials of the object per context
@@ -119,4 +122,17 @@ def scene_defaults() -> dict[str, Any]:
     return asdict(SceneOptions())
 
 
-__all__ = ["DataOptions", "GROUPS", "LoaderOptions", "PendulumOptions", "SceneOptions", "SplitOptions", "group_options", "scene_defaults"]
+#: scene options whose null is a value of its own (raw_files: none; objects: all 32; actions: all 16)
+NULLABLE_SCENE_KEYS = frozenset(name for name, hint in get_type_hints(SceneOptions).items()
+                                if type(None) in get_args(hint))
+
+
+def scene_values(given: Mapping[str, Any]) -> dict[str, Any]:
+    """The :class:`SceneOptions` keys of a data config: the default where ``given`` is silent,
+    or null for an option whose null means nothing (:data:`NULLABLE_SCENE_KEYS` keep theirs)."""
+    return {k: given[k] if k in given and (given[k] is not None or k in NULLABLE_SCENE_KEYS) else v
+            for k, v in scene_defaults().items()}
+
+
+__all__ = ["DataOptions", "GROUPS", "LoaderOptions", "PendulumOptions", "SceneOptions", "SplitOptions", "NULLABLE_SCENE_KEYS", "group_options", "scene_defaults",
+           "scene_values"]

@@ -2,7 +2,7 @@
 (:mod:`embodied_tactile.model.options`) as structured configs, and the one resolver.
 
 Registered on import (idempotent), so that every entry point that composes ``configs/``
-(train.py, evaluate.py, ``python -m embodied_tactile.data.prepare_cli``, the tests) imports this
+(train.py, evaluate.py, ``python -m embodied_tactile.run.prepare_cli``, the tests) imports this
 module first:
 
 * ``model: schema`` (:class:`ModelNode`): the LightningModule's options
@@ -40,7 +40,7 @@ from embodied_tactile.options.data import DataOptions, PendulumOptions
 from embodied_tactile.options.emulation import EmulationOptions
 from embodied_tactile.options.report import ReportOptions
 from embodied_tactile.model.options import ContextOptions, LatentFilterOptions, ModuleOptions, OptimizerOptions
-from embodied_tactile.run.paths import config_dir
+from embodied_tactile.paths import config_dir
 
 
 @dataclass

@@ -14,7 +14,8 @@
   trials of the run's ``split.json`` or puts a trial on two sides is refused the same way.
   The length too (:func:`check_length`): fewer epochs than the checkpoint's are refused;
   the same command on a finished run raises :class:`RunFinished` (train.py: says so, exit
-  0, no file touched, ``.lock`` included); more epochs continue it.
+  0, no file touched, ``.lock`` included); more epochs continue it. The resume checkpoint
+  must fit the run's model (:func:`check_checkpoint_fits`): a misfit is refused the same way.
 * :class:`StopSignals` -- SIGTERM / SIGINT stop the training at the next step:
   ``last.ckpt`` is saved, ``metrics.json`` says ``interrupted``, the exit status is 143 /
   130 (128 + signal number), so that a scheduler can requeue the job.
@@ -72,6 +73,7 @@ class CheckpointWriteError(OSError):
 
 # ----------------------------------------------------------------------------- lock
 _held: dict[str, int] = {}  # resolved run folder -> fd of its lock, for this process
+_created: set[str] = set()  # resolved run folders this process created (lock): discard_new may remove them
 
 
 def _is_rank_zero() -> bool:
@@ -119,6 +121,8 @@ def lock(run_dir: str | os.PathLike, record: bool = True) -> None:
     run_dir = Path(run_dir).resolve()
     if str(run_dir) in _held or not _is_rank_zero():
         return
+    if not run_dir.exists():
+        _created.add(str(run_dir))
     run_dir.mkdir(parents=True, exist_ok=True)
     fd, holder = try_lock(run_dir / LOCK_FILE)
     if fd is None:
@@ -152,6 +156,36 @@ def training_holder(run_dir: str | os.PathLike) -> dict | None:
     if fd >= 0:
         os.close(fd)  # drops the probe's shared lock
     return None
+
+
+def discard_new(run_dir: str | os.PathLike) -> bool:
+    """Remove ``run_dir`` whole when this process created it (:func:`lock`) and it holds no
+    run: a start refused before training leaves nothing behind (Hydra's ``.hydra/`` and log
+    included). False (nothing removed) for a folder that existed before, e.g. a multirun
+    job's, which Hydra creates and whose reason the sweep's table reads."""
+    import shutil
+
+    key = str(Path(run_dir).resolve())
+    if key not in _created or holds_run(run_dir):
+        return False
+    release(run_dir)
+    shutil.rmtree(key, ignore_errors=True)
+    _created.discard(key)
+    return True
+
+
+def refuse(run_dir: str | os.PathLike, err: Exception, resuming: bool) -> None:
+    """A start refused before training (a bad setting, a dead channel, another run's split
+    or data): one line and exit 2 (:func:`~embodied_tactile.run.settings.fail`). A new run's
+    folder is removed when this process created it (:func:`discard_new`), else it gets
+    ``metrics.json`` ``failed`` with the reason (a multirun job); a folder that holds a run
+    is left byte-identical."""
+    from embodied_tactile.jsonio import write_json
+    from embodied_tactile.run.settings import fail
+
+    if not resuming and not discard_new(run_dir):
+        write_json(Path(run_dir) / "metrics.json", {"status": "failed", "error": str(err)})
+    fail(err)
 
 
 def release(run_dir: str | os.PathLike) -> None:
@@ -339,7 +373,7 @@ def keep_split(run_dir: str | os.PathLike, datamodule: Any, resuming: bool) -> N
     if resuming:
         check_same_split(run_dir, split, f"the split this start would train on ({source or 'drawn anew'})")
     elif source and Path(source).is_file() and Path(source).resolve() != own.resolve():
-        from embodied_tactile.run.jsonio import write_json
+        from embodied_tactile.jsonio import write_json
 
         write_json(own, json.loads(Path(source).read_text()), indent=1)
 
@@ -372,7 +406,7 @@ def checkpoint_progress(ck: Mapping[str, Any]) -> tuple[int, int]:
 
 
 def resume_candidate(run_dir: str | os.PathLike) -> tuple[Path, dict] | None:
-    """The checkpoint a restart would continue from (:func:`runtime.find_resume_checkpoint`'s
+    """The checkpoint a restart would continue from (:func:`~embodied_tactile.run.resume.find_resume_checkpoint`'s
     order: ``last.ckpt``, else the newest readable) and its header, without renaming anything."""
     folder = Path(run_dir) / "checkpoints"
     found = [p for p in folder.glob("*.ckpt") if p.is_file()]
@@ -421,6 +455,60 @@ def check_length(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
             f"python evaluate.py {run_dir}")
 
 
+def checkpoint_misfit(model: Any, checkpoint: Mapping[str, Any]) -> str | None:
+    """How a checkpoint's weights do not fit ``model`` (a LightningModule built from the
+    run's config), in one phrase: the modality the checkpoint was trained on where it differs,
+    the number of tensors of another shape (the first named, both shapes), missing and
+    unexpected keys; None when every tensor fits. Checkpoints of earlier layouts are read
+    as the model reads them (its ``on_load_checkpoint`` renames)."""
+    from embodied_tactile.model.compat import upgrade_state_dict
+
+    state = dict(checkpoint.get("state_dict") or {})
+    observation = getattr(getattr(model, "model", None), "observation", None)
+    if observation is not None:
+        from embodied_tactile.model.fusion import LateFusion
+
+        state = upgrade_state_dict(state, late=isinstance(observation, LateFusion))
+    own = model.state_dict()
+    shapes = [f"{k}: checkpoint {list(v.shape)}, model {list(own[k].shape)}" for k, v in state.items()
+              if k in own and hasattr(v, "shape") and tuple(v.shape) != tuple(own[k].shape)]
+    missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+    if not (shapes or missing or unexpected):
+        return None
+    parts = []
+    ck_mod = ((checkpoint.get("hyper_parameters") or {}).get("net") or {}).get("modality") or {}
+    own_mod = (getattr(model, "hparams", {}).get("net") or {}).get("modality") or {}
+    if ck_mod.get("name") != own_mod.get("name") or ck_mod.get("channels") != own_mod.get("channels"):
+        parts.append(f"modality {ck_mod.get('name', '?')} {list(ck_mod.get('channels') or [])} in the checkpoint, "
+                     f"{own_mod.get('name', '?')} {list(own_mod.get('channels') or [])} in the run")
+    if shapes:
+        parts.append(f"{len(shapes)} tensor(s) of another shape (first {shapes[0]})")
+    if missing:
+        parts.append(f"{len(missing)} missing (first {missing[0]})")
+    if unexpected:
+        parts.append(f"{len(unexpected)} unexpected (first {unexpected[0]})")
+    return "; ".join(parts)
+
+
+def check_checkpoint_fits(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
+    """RunFolderError naming the file and the mismatch (:func:`checkpoint_misfit`) when the
+    checkpoint a resume would continue from does not fit the model the run's config builds
+    (e.g. a ``last.ckpt`` copied from a run of another modality): refused before a file is
+    written, where loading it in ``fit`` would fail after ``metrics.json`` was rewritten."""
+    if not _is_rank_zero() or not bool(cfg.get("resume", True)) or not holds_run(run_dir):
+        return
+    found = resume_candidate(run_dir)
+    if found is None or OmegaConf.select(cfg, "model._target_", default=None) is None:
+        return
+    from hydra.utils import instantiate
+
+    path, ck = found
+    misfit = checkpoint_misfit(instantiate(cfg.model), ck)
+    if misfit:
+        raise RunFolderError(f"{path}: does not fit this run's model ({misfit}); refusing to resume from it, every "
+                             "file kept (remove or replace that checkpoint, or give another hydra.run.dir)")
+
+
 def claim(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
     """Lock the run folder, then check that this start may continue what it holds
     (:func:`check_resume`, :func:`check_split_file`, :func:`check_length`); only then
@@ -432,8 +520,10 @@ def claim(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
         check_resume(cfg, run_dir)
         check_split_file(cfg, run_dir)
         check_length(cfg, run_dir)
+        check_checkpoint_fits(cfg, run_dir)
     except (RunFolderError, RunFinished):
         release(run_dir)
+        discard_new(run_dir)  # a folder made only to be refused goes again
         raise
     record_holder(run_dir)
     if _is_rank_zero():
@@ -474,20 +564,25 @@ class StopRequested(BaseException):
 
 
 class StopSignals(_Callback):
-    """SIGTERM / SIGINT stop a training fast and cleanly. :meth:`install` at the start of
-    train.py; as a Lightning callback (first in the trainer's list, so that its hooks run
-    before any other callback's) it takes the signals over from Lightning's own SIGTERM
-    handler (which raises out of the loop without a checkpoint) between ``on_train_start``
-    and ``on_train_end``. There a signal is recorded and the optimiser step under way
-    finishes; at the next hook (the end of that step, or the start of a validation, of an
-    epoch's end or of the next step) ``last_path`` (``last.ckpt``) is saved and
-    :class:`StopRequested` ends the fit: no validation, KRR check or final read-out runs
-    after a signal (a KRR check already under way ends first). Outside the training
-    (data preparation, set-up) the signal raises :class:`StopRequested` at once. A second
-    signal ends the process at once with the default action. :meth:`exit_code` is 128 +
-    the signal number (130 SIGINT, 143 SIGTERM); :attr:`saved` / :attr:`step` say what was
-    saved."""
+    """SIGTERM / SIGINT stop a training within seconds, in every phase. :meth:`install` at
+    the start of train.py; as a Lightning callback (first in the trainer's list, so that its
+    hooks run before any other callback's) it takes the signals over from Lightning's own
+    SIGTERM handler (which raises out of the loop without a checkpoint). While the training
+    steps run (from the first ``on_train_batch_start`` to ``on_train_end``) a signal is
+    recorded and the optimiser step under way finishes; at the next hook (the end of that
+    step, or the start of a validation, of an epoch's end or of the next step) ``last_path``
+    (``last.ckpt``) is saved and :class:`StopRequested` ends the fit: no validation, KRR check
+    or final read-out runs after a signal (a periodic KRR check already under way ends
+    first). In every other phase -- data preparation and set-up, the check before the first
+    step (the KRR callback's step-0 check), the final read-out after the last step -- the
+    signal raises :class:`StopRequested` at once: the check or read-out under way is
+    abandoned. :attr:`phase` says where the signal found the run (:data:`PHASES`); after the
+    last step, :meth:`settle` saves ``last_path`` (the weights of that step). A second signal
+    ends the process at once with the default action. :meth:`exit_code` is 128 + the signal
+    number (130 SIGINT, 143 SIGTERM); :attr:`saved` / :attr:`step` say what was saved."""
 
+    #: where a run can be when the signal comes (metrics.json ``stopped_in``)
+    PHASES = ("set-up", "check before training", "training", "final read-out")
     SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
     def __init__(self, last_path: str | os.PathLike | None = None) -> None:
@@ -497,6 +592,9 @@ class StopSignals(_Callback):
         self.step: int | None = None
         self._trainer = None
         self._deferred = False
+        self._phase = "set-up"  # the phase now (PHASES); :attr:`phase` keeps the one the signal came in
+        self.phase: str | None = None
+        self._ended = None  # the trainer whose steps are all done (on_train_end), for settle()
 
     def install(self) -> "StopSignals":
         for sig in self.SIGNALS:
@@ -508,13 +606,15 @@ class StopSignals(_Callback):
             signal.signal(sig, signal.SIG_DFL if sig == signal.SIGTERM else signal.default_int_handler)
 
     def on_train_start(self, trainer, pl_module) -> None:
-        self._trainer = trainer
         self.install()  # over Lightning's SIGTERM handler (Lightning restores ours at teardown)
+        self._phase = "check before training"  # until the first step: a signal raises at once
         if self.received is not None:
-            trainer.should_stop = True
+            raise StopRequested(self.received)
 
-    def on_train_end(self, trainer, pl_module) -> None:
+    def on_train_end(self, trainer, pl_module) -> None:  # first of the callbacks: before the final read-out
         self._trainer = None
+        self._ended = trainer
+        self._phase = "final read-out"
 
     def _stop_now(self, trainer) -> None:
         """After a signal: save ``last_path`` as the weights are now, and end the fit."""
@@ -526,6 +626,7 @@ class StopSignals(_Callback):
         raise StopRequested(self.received)
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self._trainer, self._phase = trainer, "training"
         self._stop_now(trainer)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:  # after the optimiser step
@@ -551,12 +652,19 @@ class StopSignals(_Callback):
         written; what is left is its final validation and metrics.json)."""
         self._deferred = True
 
+    def settle(self) -> None:
+        """After :class:`StopRequested` in the final read-out: save ``last_path`` with the
+        weights of the last step (nothing to save when the signal came before the first)."""
+        if self.received is not None and self.saved is None and self._ended is not None and self.last_path:
+            self._ended.save_checkpoint(str(self.last_path))
+            self.saved, self.step = str(self.last_path), int(self._ended.global_step)
+
     def _handle(self, signum: int, frame) -> None:
         if self.received is not None:  # asked twice: stop now
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
             return
-        self.received = signum
+        self.received, self.phase = signum, self._phase
         if self._deferred:
             return
         if self._trainer is None:
@@ -570,6 +678,28 @@ class StopSignals(_Callback):
 
     def exit_code(self) -> int | None:
         return None if self.received is None else 128 + int(self.received)
+
+
+def finish_fit(trainer, pl_module, callbacks: Sequence[Any], stop: StopSignals) -> None:
+    """After ``trainer.fit`` returned: the callbacks' final read-out where the fit did not run
+    it (``ensure_final``: a run resumed at its own length, which Lightning does not train),
+    a stop signal raising :class:`StopRequested` at once while it runs."""
+    if trainer.interrupted or stop.received is not None:
+        return
+    stop._phase = "final read-out"
+    for cb in callbacks:
+        if hasattr(cb, "ensure_final"):
+            cb.ensure_final(trainer, pl_module)
+
+
+def run_outcome(trainer, callbacks: Sequence[Any], stop: StopSignals) -> tuple[str, bool]:
+    """(metrics.json ``status``, ``final_readout``) of a fit that returned: ``finished`` only
+    when the training reached its length (Lightning's fit loop is done, no stop asked) and
+    the final read-out ran (where a callback makes one: ``final``); ``interrupted`` else."""
+    readers = [cb for cb in callbacks if hasattr(cb, "ensure_final") and getattr(cb, "run_on_train_end", True)]
+    readout = bool(readers) and all(getattr(cb, "final", None) for cb in readers)
+    done = bool(trainer.fit_loop.done) and not trainer.interrupted and stop.received is None
+    return ("finished" if done and (readout or not readers) else "interrupted"), readout
 
 
 # ----------------------------------------------------------------------------- checkpoints

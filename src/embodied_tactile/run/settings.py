@@ -13,6 +13,7 @@ runs them before Hydra creates the run folder and exits with status :data:`EXIT_
 
 from __future__ import annotations
 
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -22,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from embodied_tactile.options.alignment import AlignmentOptions
 from embodied_tactile.options.checks import SettingsError, check_options
-from embodied_tactile.options.data import DataOptions, PendulumOptions, scene_defaults
+from embodied_tactile.options.data import DataOptions, PendulumOptions, scene_defaults, scene_values
 from embodied_tactile.options.run import RunKeys, TrainerKeys
 from embodied_tactile.run.config import AlignmentCallbackNode, ModelNode, PendulumNode
 
@@ -80,6 +81,7 @@ def check_train_config(cfg: DictConfig) -> None:
             options = PendulumOptions  # the pendulum scene's data (experiment=pendulum)
         if isinstance(node, DictConfig):
             check_options(options, node, key)
+    _check_threads(cfg)
     _check_design(cfg)
     _check_population(cfg)
     _check_context_features(cfg)
@@ -154,6 +156,15 @@ def _check_design(cfg: DictConfig) -> None:
                                     f"split leaves no training object with {name} = {sorted(levels - kept)}")
 
 
+def _check_threads(cfg: DictConfig) -> None:
+    """``threads``: ``auto`` (or null) or a ceiling >= 1 (:func:`~embodied_tactile.run.threads.thread_budget`)."""
+    present, v = config_value(cfg, "threads")
+    if not present or v is None or v == "auto":
+        return
+    if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+        raise SettingsError(f"threads={v!r} ({type(v).__name__}): expected auto or an integer >= 1")
+
+
 def _check_population(cfg: DictConfig) -> None:
     """A population scene larger than ``prepare.POPULATION_MAX_TRIALS`` trials needs
     ``data.allow_large_population=true``: SettingsError with its disk and time estimate."""
@@ -163,11 +174,15 @@ def _check_population(cfg: DictConfig) -> None:
     from embodied_tactile import constants as C
     from embodied_tactile.data.prepare import check_population_size, fields_for_channels
 
-    scene = scene_defaults()  # a key the config does not hold: the data module's default
+    given = {}
+    for name in scene_defaults():
+        present, value = config_value(cfg, f"data.{name}")
+        if present:
+            given[name] = value
+    scene = scene_values(given)  # a key the config does not hold: the data module's default
 
     def get(name: str) -> Any:
-        present, value = config_value(cfg, f"data.{name}")
-        return value if present and value is not None else scene[name]
+        return scene[name]
 
     actions = get("actions")
     try:
@@ -180,8 +195,9 @@ def _check_population(cfg: DictConfig) -> None:
 
 
 def check_writable_dir(key: str, value: Any) -> Path:
-    """Create the folder if needed and write a probe file into it; SettingsError naming the
-    key, the path and the OS reason otherwise."""
+    """Create the folder if needed and write a probe file of one block into it (synced: a
+    full disk fails as a read-only folder does); SettingsError naming the key, the path and
+    the OS reason otherwise."""
     if value is None or str(value) == "":
         raise SettingsError(f"{key} is empty: give a folder")
     p = Path(str(value)).expanduser()
@@ -189,8 +205,10 @@ def check_writable_dir(key: str, value: Any) -> Path:
         if p.exists() and not p.is_dir():
             raise SettingsError(f"{key}={value}: exists and is not a folder")
         p.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=p):
-            pass
+        with tempfile.TemporaryFile(dir=p) as probe:  # a block written and synced: a full disk fails here
+            probe.write(b"\0" * 4096)
+            probe.flush()
+            os.fsync(probe.fileno())
     except OSError as err:
         raise SettingsError(f"{key}={value}: cannot create or write this folder ({err.strerror or err})") from None
     return p

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from ..constants import FACTOR_NAMES
-from .jsonio import read_json
+from embodied_tactile.jsonio import read_json
 from ..model.compat import UNSAVED_OPTIONS, UNSAVED_PRIOR_OPTIONS
 from ..model.options import LatentFilterOptions, PriorOptions
 
@@ -323,7 +323,7 @@ OUTCOME = ".hydra/outcome.json"
 def record_outcome(job_dir: str | os.PathLike, status: str, reason: str = "") -> None:
     """Write a multirun job's outcome to ``<job>/.hydra/outcome.json`` (nothing when Hydra
     keeps no ``.hydra/`` there): what the sweep's table says of it."""
-    from .jsonio import write_json
+    from embodied_tactile.jsonio import write_json
 
     d = Path(job_dir) / Path(OUTCOME).parent
     if d.is_dir():

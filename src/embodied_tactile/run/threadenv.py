@@ -1,6 +1,6 @@
 """The thread environment of a training, importing nothing heavy: how long OpenMP's threads
 spin at a barrier, set before torch loads OpenMP, and the registry of the trainings running
-on this machine (``runtime.ThreadShare`` divides the cores among them).
+on this machine (``run.threads.ThreadShare`` divides the cores among them).
 
 torch's intra-op pool (ATen parallel backend: OpenMP; the pip wheels bundle GNU libgomp)
 keeps a waiting thread spinning for about 3 ms by default (300,000 spins). When two
@@ -130,3 +130,15 @@ class TrainingRegistry:
 
 
 spin_briefly()
+
+
+def set_threads(n: int) -> int:
+    """The one place that sets the intra-op threads: torch, and OMP / MKL / OpenBLAS for
+    processes started later (DataLoader workers, numba, BLAS in sklearn). Returns ``n``."""
+    n = int(n)
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(n)
+    import torch
+
+    torch.set_num_threads(n)
+    return n

@@ -97,7 +97,7 @@ def study_sources(page: Path) -> tuple[dict[str, Any], list[Path]]:
 
 def results_page(docs: Path) -> str:
     """Regenerates ``results.md`` from its evaluation folders, or says why it is left."""
-    from . import study_report
+    from embodied_tactile.eval import study_report
 
     page = docs / "results.md"
     opts, folders = study_sources(page)
@@ -112,12 +112,12 @@ def results_page(docs: Path) -> str:
 def write_generalisation(sources: Sequence[str], out: str | Path) -> str:
     """``generalisation.md``, its scores and figures in ``out`` from ``sources`` (evaluated
     population runs or scores files); the line that says so."""
-    from . import generalisation
+    from embodied_tactile.eval import generalisation
 
     rows = generalisation.collect(sources)
     if not rows:
         raise ValueError(f"no evaluated population runs (evaluation/results.json of experiment=population) under {list(sources)}")
-    from .study_report import override
+    from embodied_tactile.eval.study_report import override
 
     page = generalisation.write_page(rows, out, command=" ".join(
         ["embodied-tactile report page=generalisation", override("roots", list(map(str, sources))), override("out", str(out))]))
@@ -149,7 +149,7 @@ def regenerate_all(docs: Path = GENERATED, roots: Sequence[str] = ()) -> list[st
 
 def results(cfg: DictConfig) -> str:
     """``page=results``: the page of ``evaluation`` (printed unless ``out``), or ``paper_units``'s page converted."""
-    from . import study_report
+    from embodied_tactile.eval import study_report
 
     if cfg.paper_units:
         page = Path(cfg.paper_units)
