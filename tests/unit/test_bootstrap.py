@@ -40,3 +40,16 @@ def test_objects_as_units_are_wider_than_sequences_when_an_objects_errors_agree(
     by_object = bootstrap_overall(f, p, np.repeat(np.arange(24), 4), n_boot=400)[:, 0].std()
     by_sequence = bootstrap_overall(f, p, np.arange(len(f)), n_boot=400)[:, 0].std()
     assert by_object > 1.4 * by_sequence
+
+
+def test_the_closing_block_states_the_interval_of_the_final_read_out():
+    from embodied_tactile.run.summary import nmse_lines
+
+    row = {"step": 960, "n_test": 128, "nmse_overall": 0.0812, "nmse_last_overall": 0.0481,
+           "nmse": {"spatial_frequency": 0.1}, "bootstrap_objects": {"resamples": 1000, "overall_ci95": [0.061, 0.104],
+                                                                    "last_overall_ci95": [0.031, 0.069]}}
+    lines = nmse_lines(row)
+    assert "overall 0.0812" in lines[0]
+    assert lines[-1] == ("  95 % interval over resampled test objects (the test sample's own noise; another seed adds "
+                         "its own): whole [0.061, 0.104], last frame 0.0481 [0.031, 0.069]")
+    assert not any("interval" in ln for ln in nmse_lines({k: v for k, v in row.items() if k != "bootstrap_objects"}))

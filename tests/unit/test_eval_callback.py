@@ -93,6 +93,12 @@ def test_callback_writes_history_and_logs(tmp_path):
     assert rows[0]["initial"] and rows[0]["train_wall_time_s"] == 0 and rows[0]["step"] == 0
     assert rows[-1]["val_frame_stride"] == 1 and rows[-1]["alignment"]["frames_per_sequence"] == 4
     assert rows[-1]["alignment"]["cv_folds"] == 2 and cb.final == rows[-1]
+    # the final row's interval: the test objects resampled, around the run's own number
+    boot = rows[-1]["bootstrap_objects"]
+    assert boot["resamples"] == 1000 and all("bootstrap_objects" not in r for r in rows[:-1])
+    for key, value in (("overall_ci95", rows[-1]["nmse_overall"]), ("last_overall_ci95", rows[-1]["nmse_last_overall"])):
+        lo, hi = boot[key]
+        assert 0 <= lo < hi and lo <= value * 1.1 and value <= hi * 1.1
     for r in rows:
         assert r["n_train"] == (48 if r["final"] else 40) and r["n_test"] == 16
         assert all(np.isfinite(r["nmse"][f]) for f in FACTOR_NAMES)

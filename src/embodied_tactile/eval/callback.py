@@ -62,7 +62,7 @@ from ..options.alignment import CHECK_ALIGNMENT, AlignmentCheckOptions, alignmen
 from .latents import (LATENT_KEYS, cache_batches, collect_latents, collect_split_latents, count_sequences,
                       factor_names, rebatch, split_at)
 from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
-from .metrics import nmse_over_time, nmse_trajectory, overall
+from .metrics import bootstrap_overall, nmse_over_time, nmse_trajectory, overall
 from .results import select_latents
 
 try:  # lightning is a dependency of the package, but keep the eval core importable without it
@@ -243,11 +243,11 @@ class KRRAlignmentCallback(Callback):
         names = factor_names(trainer.datamodule)
         t_inf = time.perf_counter()
         split = str(getattr(trainer.datamodule, "split", "trial"))
-        tr, te, align, curve, per_factor = self._score(*latents, base_kw, split, stride)
+        tr, te, align, curve, per_factor, pred = self._score(*latents, base_kw, split, stride)
         floor = None
         if initial:  # the untrained network read by the final alignment's read-out: the run's floor
             whole = latents if self._inputs[2] else self._latents(trainer, pl_module, True)
-            _, _, f_align, f_curve, f_per = self._score(*whole, self.final_kw, split, 1)
+            _, _, f_align, f_curve, f_per, _ = self._score(*whole, self.final_kw, split, 1)
             floor = {**_nmse_fields(names, f_per, f_curve[-1]),
                      "alignment": {k: f_align.params.get(k) for k in ("readout", "method", "alpha", "gamma")}}
         # the mean predictor: the training targets' mean at every frame (the same at every frame,
@@ -289,7 +289,9 @@ class KRRAlignmentCallback(Callback):
         }
         if floor is not None:
             row["floor"] = floor
-        if final:
+        if final:  # the test sample's own noise around the run's number: objects resampled
+            row["bootstrap_objects"] = _interval_fields(bootstrap_overall(te["factors"], pred, te["object_id"],
+                                                                          n_boot=BOOTSTRAP_RESAMPLES))
             self.final = row
         self.history.append(row)
         if trainer.is_global_zero:
@@ -306,7 +308,8 @@ class KRRAlignmentCallback(Callback):
     def _score(self, tr: dict, te: dict, base_kw: Mapping[str, Any], split: str, stride: int):
         """Fit the alignment ``base_kw`` on the training latents ``tr`` and read the held-out
         ``te``: (tr, te with encoded targets, the fitted alignment, the NMSE curve over the
-        scored frames (T', K), the NMSE per factor over the trajectory). Every frame is read
+        scored frames (T', K), the NMSE per factor over the trajectory, the predictions of the
+        scored frames (n, T', K)). Every frame is read
         (a per-time read-out reads a frame by its place in the trial); every ``stride``-th is
         scored, the last one kept."""
         assert_disjoint(tr.get("seq_id"), te.get("seq_id"))
@@ -315,7 +318,7 @@ class KRRAlignmentCallback(Callback):
         align = fit_alignment(select_latents(tr, self.latent), tr["factors"], ids=tr.get("seq_id"), **align_kw)
         pred = align.predict(select_latents(te, self.latent), ids=te.get("seq_id"))[:, ::-1][:, ::stride][:, ::-1]
         curve = nmse_over_time(te["factors"], pred)  # (T', K)
-        return tr, te, align, curve, nmse_trajectory(te["factors"], pred)  # the latter == the curve's mean
+        return tr, te, align, curve, nmse_trajectory(te["factors"], pred), pred  # per factor == the curve's mean
 
     def history_path(self, trainer) -> Path:
         """``<run folder>/krr_history.jsonl``: the trainer's root dir (the Hydra run folder),
@@ -339,6 +342,18 @@ def _nmse_fields(names: Sequence[str], per_factor, last) -> dict[str, Any]:
     at the last scored frame (``last``), non-finite values as None."""
     return {"nmse": {f: _fin(v) for f, v in zip(names, per_factor)}, "nmse_overall": _fin(overall(per_factor)),
             "nmse_last": {f: _fin(v) for f, v in zip(names, last)}, "nmse_last_overall": _fin(overall(last))}
+
+
+#: resamples of the held-out objects behind the final row's interval (about a second at 128 sequences)
+BOOTSTRAP_RESAMPLES = 1000
+
+
+def _interval_fields(draws: np.ndarray) -> dict[str, Any]:
+    """Percentile 95 % intervals of bootstrap draws (n, 2: whole trajectory, last frame)."""
+    with np.errstate(invalid="ignore"):
+        lo, hi = np.nanpercentile(draws, [2.5, 97.5], axis=0)
+    return {"resamples": int(len(draws)), "overall_ci95": [_fin(lo[0]), _fin(hi[0])],
+            "last_overall_ci95": [_fin(lo[1]), _fin(hi[1])]}
 
 
 def _fin(v) -> float | None:

@@ -150,9 +150,16 @@ def nmse_lines(row: Mapping | None) -> list[str]:
         where.append(f"{duration(row['train_wall_time_s'])} into training")
     if row.get("n_test") is not None:
         where.append(f"{row['n_test']} held-out sequences")
-    return [f"held-out NMSE (last KRR alignment: {', '.join(where) or 'krr_history.jsonl'}): "
-            f"overall {_fmt(row.get('nmse_overall'))}",
-            f"  per factor: {parts}"]
+    lines = [f"held-out NMSE (last KRR alignment: {', '.join(where) or 'krr_history.jsonl'}): "
+             f"overall {_fmt(row.get('nmse_overall'))}",
+             f"  per factor: {parts}"]
+    boot = row.get("bootstrap_objects")
+    if boot and None not in (boot.get("overall_ci95") or [None]):
+        (lo, hi), (llo, lhi) = boot["overall_ci95"], boot.get("last_overall_ci95") or (None, None)
+        lines.append(f"  95 % interval over resampled test objects (the test sample's own noise; another seed adds "
+                     f"its own): whole [{_fmt(lo)}, {_fmt(hi)}], last frame {_fmt(row.get('nmse_last_overall'))} "
+                     f"[{_fmt(llo)}, {_fmt(lhi)}]")
+    return lines
 
 
 #: what each split's held-out NMSE measures (the last lines of ``python train.py``)
