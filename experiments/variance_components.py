@@ -138,7 +138,7 @@ def analyse_run(run_dir: Path, n_boot: int, n_seeds: int) -> dict:
     from embodied_tactile.eval.targets import encode_split
     from embodied_tactile.eval.pipeline import run_targets
     from embodied_tactile.eval.runs import load_module
-    from embodied_tactile.run.runtime import set_threads
+    from embodied_tactile.run.threadenv import set_threads
 
     warnings.simplefilter("ignore", NMSEUndefinedWarning)
     set_threads(1)
