@@ -29,9 +29,9 @@ REPO = Path(__file__).resolve().parents[1]
 #: name -> train.py overrides on top of the default (the typed defaults, no experiment)
 VARIANTS: dict[str, list[str]] = {
     "default": [],  # direct y posterior, 6 x 50-frame windows, y_weight 10
-    "previous_default": ["data.train_window=null", "data.windows_per_trial=1", "annealing.schedule.y_weight=1.0"],
-    "whole_trials": ["data.train_window=null", "data.windows_per_trial=1"],
-    "evidence_whole": ["model.net.y_update=evidence", "data.train_window=null", "data.windows_per_trial=1"],
+    "previous_default": ["data.train_window=null", "data.windows_per_trial=1", "data.windows_per_epoch=null", "annealing.schedule.y_weight=1.0"],
+    "whole_trials": ["data.train_window=null", "data.windows_per_trial=1", "data.windows_per_epoch=null"],
+    "evidence_whole": ["model.net.y_update=evidence", "data.train_window=null", "data.windows_per_trial=1", "data.windows_per_epoch=null"],
     "evidence_windows": ["model.net.y_update=evidence"],
     "y_weight_1": ["annealing.schedule.y_weight=1.0"],
     "prior_no_action": ["model.net.prior.action_term=false"],

@@ -68,7 +68,7 @@ def tiny_datamodule(data_dir: Path, channels, **kw):
     args = dict(
         data_dir=str(data_dir), source="simulated", skin="soft", primitive="pressing", channels=list(channels),
         objects=TINY_OBJECTS, actions=TINY_ACTIONS, repetitions=2, sim_workers=1, preprocess_workers=1,
-        batch_size=4, num_workers=0, train_window=None, windows_per_trial=1,  # whole trials
+        batch_size=4, num_workers=0, train_window=None, windows_per_trial=1, windows_per_epoch=None,  # whole trials
     )
     args.update(kw)
     return TactileDataModule.from_config(**args)

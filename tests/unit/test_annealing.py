@@ -209,7 +209,8 @@ def test_every_annealing_reaches_full_weight_before_training_ends(annealing, exp
     # the experiment's own optimiser steps (32 objects x its actions, 25 % test, 12.5 % validation)
     n_trials = 32 * len(cfg.data.actions or range(16))
     n_train = n_trials - n_trials // 4 - round(0.125 * n_trials)
-    per_epoch = -(-n_train * int(cfg.data.windows_per_trial) // int(cfg.data.batch_size))
+    windows = cfg.data.windows_per_epoch or n_train * int(cfg.data.windows_per_trial)
+    per_epoch = -(-int(windows) // int(cfg.data.batch_size))
     for total in (per_epoch * int(cfg.trainer.max_epochs), 2, 7):
         s.set_total_steps(total)
         assert _full_weight(s, total - 1), (annealing, experiment, total)

@@ -95,13 +95,14 @@ def test_the_default_run_is_the_typed_defaults(tmp_path):
     loader, scene = LoaderOptions(), SceneOptions()
     for key in ("batch_size", "train_window", "windows_per_trial", "windows_per_epoch", "num_workers"):
         assert default.data[key] == getattr(loader, key), key
-    assert list(default.data.actions) == scene.actions == [2, 6, 10, 14]
+    assert default.data.actions is None and scene.actions is None  # all 16 parameter sets
+    assert (default.data.windows_per_trial, default.data.windows_per_epoch) == (None, 480)
     assert default.model.weight_average == ModuleOptions().weight_average == 0.99
     assert default.trainer.max_epochs == 32 and "experiment" not in OmegaConf.to_container(default)
     assert paper.data.actions is None and paper.model.weight_average is None
-    assert paper.data.train_window is None and paper.data.windows_per_trial == 1
+    assert paper.data.train_window is None and paper.data.windows_per_trial == 1 and paper.data.windows_per_epoch is None
     assert Scene.from_config(OmegaConf.to_container(paper.data, resolve=True)).actions is None
-    assert Scene.from_config(OmegaConf.to_container(default.data, resolve=True)).actions == (2, 6, 10, 14)
+    assert Scene.from_config(OmegaConf.to_container(default.data, resolve=True)).actions is None
 
 
 def test_ablation_sweep_composes_all_24_jobs(tmp_path):

@@ -58,7 +58,7 @@ def test_a_new_modality_is_one_yaml_file(tmp_path, tiny_data_dir):
         f"hydra.searchpath=[file://{extra}]", "modality=acc_bottom_l",
         f"data.objects={TINY_OBJECTS}", f"data.actions={TINY_ACTIONS}",
         "data.repetitions=2", "data.sim_workers=1", "data.preprocess_workers=1", "data.batch_size=4",
-        "data.train_window=null", "data.windows_per_trial=1",
+        "data.train_window=null", "data.windows_per_trial=1", "data.windows_per_epoch=null",
         "model.net.encoder.widths=[4,8]", "model.net.encoder.hidden=16", "model.net.transition_hidden=16",
         "model.net.lstm_hidden=16"], tmp_path)
     cfg.data.data_dir = str(tiny_data_dir)

@@ -53,7 +53,7 @@ def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
         data_dir=str(tmp_path / "data"), source="recorded", raw_files=[str(recorded_file)], skin="soft",
         primitive="pressing", channels=["acc", "fsr_t", "fsr_b"], preprocess={"n_frames": 30},
         preprocess_workers=1, batch_size=2, split_file=str(tmp_path / "split.json"), train_window=None,
-        windows_per_trial=1,  # whole 30-frame trials
+        windows_per_trial=1, windows_per_epoch=None,  # whole 30-frame trials
     )
     dm.prepare_data()
     dm.setup()

@@ -38,7 +38,7 @@ def _recorded(tmp_path, files, channels=("acc", "fsr_t"), **kw):
     return TactileDataModule.from_config(
         data_dir=str(tmp_path / "data"), source="recorded", raw_files=[str(f) for f in files], skin="soft",
         primitive="pressing", channels=list(channels), preprocess=FAST, preprocess_workers=1, batch_size=2,
-        actions=None, train_window=None, windows_per_trial=1, **kw,  # every recorded trial, whole
+        actions=None, train_window=None, windows_per_trial=1, windows_per_epoch=None, **kw,  # every recorded trial, whole
     )
 
 

@@ -109,7 +109,7 @@ DROPPED_CONFIG_KEYS = ("modality.module", "model.net.modality.module", "model.co
 #: and the weight average are options added after the first runs, whose defaults are now the
 #: default scene's)
 ADDED_CONFIG_KEYS = {"data.pin_memory": False, "data.train_window": None, "data.windows_per_trial": 1,
-                     "model.weight_average": None}
+                     "data.windows_per_epoch": None, "model.weight_average": None}
 
 #: ``_target_`` strings that saved configs hold -> today's (the DataModule is built from its
 #: flat config keys by ``from_config``, its constructor taking the grouped options)

@@ -34,7 +34,7 @@ class SceneOptions:
     n_test_objects: int = field(default=64, metadata=at_least(1))  # population: test objects (evaluation only)
     population_seed: int = field(default=0, metadata=at_least(0))  # population: which objects are drawn
     n_unlabelled_objects: int = field(default=0, metadata=at_least(0))  # population: objects after the training objects, trained on without property labels (NaN factors)
-    actions: Optional[List[int]] = field(default_factory=lambda: [2, 6, 10, 14])  # the 4 sets at 0.6 Hz (amplitudes 2-8 mm); null = all 16
+    actions: Optional[List[int]] = None   # null = all 16 parameter sets (the default scene: 512 trials, 128 held out); a list of indices of the action table
     repetitions: int = field(default=SimulationOptions.repetitions, metadata=at_least(1))
     sim_seed: int = SimulationOptions.seed
     sim_workers: int = field(default=SimulationOptions.workers, metadata=at_least(1))
@@ -62,16 +62,18 @@ class SplitOptions:
 @dataclass
 class LoaderOptions:
     """How the split is served. The defaults are the CPU budget of ``python train.py``: each
-    epoch 6 random 50-frame windows (1.7 s, one pressing cycle) of every training trial, in
-    batches of 16 (docs/experiments/default_budget.md); held-out data and the KRR alignment
-    always use whole trials. ``experiment=paper``: batch 48, whole trials."""
+    epoch 480 random 50-frame windows (1.7 s, one pressing cycle) drawn over the training
+    trials, in batches of 16: 30 optimiser steps an epoch whatever the number of trials
+    (docs/experiments/default_budget.md, docs/experiments/variance_components.md); held-out
+    data and the KRR alignment always use whole trials. ``experiment=paper``: batch 48, whole
+    trials."""
 
     batch_size: int = field(default=16, metadata=at_least(1))
     num_workers: int = field(default=0, metadata=at_least(0))
     seq_len: Optional[int] = field(default=None, metadata=at_least(1))  # null = the full trial
     train_window: Optional[int] = field(default=50, metadata=at_least(2))  # training crops of this many frames (null = whole trials; >= 2: the recursion needs a transition)
-    windows_per_trial: Optional[int] = field(default=6, metadata=at_least(1))  # random crops per training trial and epoch
-    windows_per_epoch: Optional[int] = field(default=None, metadata=at_least(1))  # instead of windows_per_trial (then null): crops per epoch
+    windows_per_trial: Optional[int] = field(default=None, metadata=at_least(1))  # random crops per training trial and epoch (instead of windows_per_epoch, then null)
+    windows_per_epoch: Optional[int] = field(default=480, metadata=at_least(1))  # random crops per epoch, drawn over the training trials
     context: Optional[str] = None            # the context objective's pairing: null | trial | window
     context_touches: int = 1                 # context=trial: other trials of the object per context
     context_features: bool = False           # serve target_features, the target crop's standardised hand-crafted features (model.context.physical)
