@@ -86,7 +86,7 @@ def test_installed_package_trains_from_any_folder(tmp_path, fast_data_dir):
     env.update(PYTHONPATH=str(lib), WANDB_MODE="disabled")  # the built package before the editable checkout
     where = subprocess.run([sys.executable, "-c", "import embodied_tactile.paths as p; print(p.__file__, p.config_dir())"],
                            cwd=work, env=env, capture_output=True, text=True, check=True).stdout.split()
-    assert where == [str(lib / "embodied_tactile" / "run" / "paths.py"), str(lib / "embodied_tactile" / "configs")]
+    assert where == [str(lib / "embodied_tactile" / "paths.py"), str(lib / "embodied_tactile" / "configs")]
 
     def train() -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, "-m", "embodied_tactile", "train", "debug=fast", "threads=1",
