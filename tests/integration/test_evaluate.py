@@ -208,8 +208,8 @@ def test_checkpoint_of_an_older_network_layout_is_a_clear_error(trained, tmp_pat
     torch.save(state, ckpt)
     assert cli.main([str(ckpt), "baselines=[mean]", "figures=false"]) == 2
     err = capsys.readouterr().err
-    assert "weights do not fit this code's" in err and str(run / "checkpoints") in err
-    assert "model.observation." in err or "model.encoders_v0." in err  # the first mismatching key
+    assert "does not fit the model of its run" in err and str(run / "checkpoints") in err and "not evaluated" in err
+    assert "model.observation." in err and "model.encoders_v0." in err  # the first missing and unexpected keys
 
 
 def test_folder_without_checkpoint_is_a_clear_error(trained, tmp_path, capsys):

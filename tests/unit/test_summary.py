@@ -231,13 +231,14 @@ def test_train_ends_with_the_summary(tmp_path, fast_data_dir):
     assert res.returncode == 0, res.stderr[-3000:]
     out = res.stdout.strip().splitlines()
     start = out.index("run finished: run") - 1
-    tail, protocol = out[start:start + 10], out[start + 10:]
+    tail, protocol = out[start:start + 11], out[start + 11:]
     hist = [json.loads(x) for x in (run / "krr_history.jsonl").read_text().splitlines()]
     assert tail[0].startswith("-----") and tail[-1].startswith("-----")
     assert f"overall {hist[-1]['nmse_overall']:.4g}" in tail[2]
     assert tail[3].startswith("  per factor: spatial freq. ")
-    assert tail[4].startswith("training time: ")
-    assert tail[5].startswith("checkpoint:    run/checkpoints/")
+    assert tail[4].startswith("  95 % interval over resampled test objects")
+    assert tail[5].startswith("training time: ")
+    assert tail[6].startswith("checkpoint:    run/checkpoints/")
     assert tail[-2] == "next:          python evaluate.py run"
     # then what the number means, closing the output
     assert protocol[-1].startswith("-----") and "held-out trials of the training objects" in protocol[0]
