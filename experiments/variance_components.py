@@ -46,8 +46,8 @@ REPO = Path(__file__).resolve().parents[1]
 #: design -> train.py overrides on top of the default scene (the typed defaults). Every
 #: design trains 960 optimiser steps (32 epochs of 480 windows at batch 16).
 DESIGNS: dict[str, list[str]] = {
-    "sets4": [],  # the default scene: 4 parameter sets at 0.6 Hz, one touch (128 trials)
-    "sets16": ["data.actions=null", "data.windows_per_trial=null", "data.windows_per_epoch=480"],  # all 16 (512)
+    "sets4": ["data.actions=[2,6,10,14]", "data.windows_per_trial=6", "data.windows_per_epoch=null"],  # 4 sets at 0.6 Hz, one touch (128 trials)
+    "sets16": ["data.actions=null", "data.windows_per_trial=null", "data.windows_per_epoch=480"],  # all 16 (512): the default scene
     "sets16_rep2": ["data.actions=null", "data.repetitions=2", "data.windows_per_trial=null",
                     "data.windows_per_epoch=480"],  # all 16, two touches each (1,024)
     "sets16_steps2x": ["data.actions=null", "data.windows_per_trial=null", "data.windows_per_epoch=480",

@@ -170,10 +170,11 @@ def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
     assert len(small) == 10 * 3
     minimum = cells(small)
     assert minimum == {c for c in full if c[2] == "pressing"} | {("multi_l", "soft", p) for p in ("precession", "sliding")}
-    # the study runs at the budget its results were measured at; the default scene at the
-    # one chosen on its validation trials; the population at its own
-    assert _compose_job(["sweep=study"], tmp_path).trainer.max_epochs == 16
-    assert _compose_job([], tmp_path).trainer.max_epochs == 32
+    # the study runs at the default scene and budget (all 16 parameter sets, 960 steps) with
+    # the dataset's noise seeded per job; the population at its own budget
+    study_job, default = _compose_job(["sweep=study", "seed=2"], tmp_path), _compose_job([], tmp_path)
+    assert study_job.trainer.max_epochs == default.trainer.max_epochs == 32
+    assert study_job.data.actions is None and study_job.data.sim_seed == 2
     assert _compose_job(["experiment=population"], tmp_path).trainer.max_epochs == 16
 
 
