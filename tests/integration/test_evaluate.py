@@ -196,6 +196,36 @@ def test_study_parts_are_merged(trained, tmp_path):
     assert {r["modality"] for r in res["runs"] if r["method"] == "latent_filter"} == {"acc", "fsr_t"}
 
 
+def test_a_study_evaluated_again_reuses_the_runs_scored_before_and_scores_the_rest(trained, tmp_path):
+    """A study that grows part by part: evaluating it again scores only the new runs; the
+    reused run's numbers are those of its first scoring; an option that decides the numbers,
+    or a changed checkpoint, scores a run again."""
+    study, fast = tmp_path / "study", [*FAST, "baselines=[mean]", "umap=false", "figures=false"]
+    shutil.copytree(trained / "multi" / "modality=acc", study / "part0" / "modality=acc")
+    first = ev.evaluate(study, fast)
+    assert json.loads((study / "evaluation" / "evaluation.json").read_text())["runs_reused"] == 0
+    nmse = lambda: {r["modality"]: r["nmse_trajectory_overall"]  # noqa: E731
+                    for r in json.loads((study / "evaluation" / "results.json").read_text())["runs"]
+                    if r["method"] == "latent_filter"}
+    acc_first = nmse()["acc"]
+    shutil.copytree(trained / "multi" / "modality=fsr_t", study / "part1" / "modality=fsr_t")
+    ev.evaluate(study, fast)
+    assert json.loads((study / "evaluation" / "evaluation.json").read_text())["runs_reused"] == 1
+    assert nmse()["acc"] == acc_first and set(nmse()) == {"acc", "fsr_t"}
+    assert len(list((study / "evaluation" / ev.PER_RUN).glob("*.pkl"))) == 2
+    ev.evaluate(study, [*fast, "alignment.cv=3"])
+    assert json.loads((study / "evaluation" / "evaluation.json").read_text())["runs_reused"] == 0
+    ckpt = study / "part0" / "modality=acc" / "checkpoints" / "last.ckpt"
+    import torch
+
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    state["note"] = "saved again"  # other bytes, same weights: not the checkpoint scored before
+    torch.save(state, ckpt)
+    ev.evaluate(study, [*fast, "alignment.cv=3"])
+    assert json.loads((study / "evaluation" / "evaluation.json").read_text())["runs_reused"] == 1
+    assert first["out"] == str(study / "evaluation")
+
+
 def test_checkpoint_of_an_older_network_layout_is_a_clear_error(trained, tmp_path, capsys):
     import torch
 

@@ -320,3 +320,18 @@ def test_both_splits_inferred_in_one_pass_give_each_splits_own_latents():
             np.testing.assert_allclose(joint[k], alone[k], rtol=1e-5, atol=1e-6)
         for k in ("factors", "object_id", "action_index"):
             np.testing.assert_array_equal(joint[k], alone[k])
+
+
+def test_a_check_capped_below_the_training_set_reads_sequences_spread_over_all_objects():
+    """The check's cap on training sequences keeps every object's share: the dataset runs
+    object by object, and the first sequences alone would hold only the first objects."""
+    from embodied_tactile.eval.latents import cache_batches
+
+    ds = FakeData(64, 0)
+    ds.obj = np.repeat(np.arange(16), 4)  # object by object, as the scenes' datasets are ordered
+    loader = torch.utils.data.DataLoader(ds, batch_size=10)
+    batches, whole = cache_batches(loader, 16)
+    objects = torch.cat([b["object_id"] for b in batches]).tolist()
+    assert len(objects) == 16 and not whole
+    assert set(objects) == set(range(16))  # every object, not objects 0-3
+    assert cache_batches(loader, 64)[1] and cache_batches(loader, None)[1]

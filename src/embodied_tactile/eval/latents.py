@@ -44,11 +44,29 @@ def rebatch(batches, batch_size: int) -> list[dict]:
     return out
 
 
+def spread_subset(loader, max_sequences: int | None):
+    """``loader``, or where its dataset holds more than ``max_sequences`` sequences, a loader
+    of ``max_sequences`` of them evenly spaced over the dataset's order (which runs object by
+    object): every object and parameter set keeps its share, where the first ``max_sequences``
+    would hold only the first objects and leave the read-out to extrapolate to the others."""
+    from torch.utils.data import DataLoader, Subset
+
+    dataset = getattr(loader, "dataset", None)
+    if max_sequences is None or dataset is None or not hasattr(dataset, "__len__") or len(dataset) <= max_sequences:
+        return loader
+    keep = np.unique(np.linspace(0, len(dataset) - 1, int(max_sequences)).round().astype(int))
+    return DataLoader(Subset(dataset, keep.tolist()), batch_size=loader.batch_size, shuffle=False,
+                      num_workers=loader.num_workers, collate_fn=loader.collate_fn, worker_init_fn=loader.worker_init_fn)
+
+
 def cache_batches(loader, max_sequences: int | None) -> tuple[list[dict], bool]:
-    """The first ``max_sequences`` sequences of ``loader`` as CPU batches with the
-    :data:`CACHED_KEYS` only -> (batches, whether they are the whole loader)."""
+    """``max_sequences`` sequences of ``loader`` (all if None; evenly spaced over its dataset
+    where it has more: :func:`spread_subset`) as CPU batches with the :data:`CACHED_KEYS` only
+    -> (batches, whether they are the whole loader)."""
     import torch
 
+    full = getattr(loader, "dataset", None)
+    loader = spread_subset(loader, max_sequences)
     batches, n = [], 0
     for batch in loader:
         take = len(batch["factors"]) if max_sequences is None else min(len(batch["factors"]), max_sequences - n)
@@ -56,8 +74,7 @@ def cache_batches(loader, max_sequences: int | None) -> tuple[list[dict], bool]:
                         for k, v in batch.items() if k in CACHED_KEYS})
         n += take
         if max_sequences is not None and n >= max_sequences:
-            dataset = getattr(loader, "dataset", None)
-            return batches, dataset is not None and hasattr(dataset, "__len__") and len(dataset) == n
+            return batches, full is not None and hasattr(full, "__len__") and len(full) == n
     return batches, True
 
 
@@ -139,5 +156,5 @@ def split_at(joint: dict[str, np.ndarray], n: int) -> tuple[dict[str, np.ndarray
     return {k: v[:n] for k, v in joint.items()}, {k: v[n:] for k, v in joint.items()}
 
 
-__all__ = ["CACHED_KEYS", "INFER_BATCH_SIZE", "LATENT_KEYS", "cache_batches", "collect_latents", "collect_split_latents",
+__all__ = ["CACHED_KEYS", "INFER_BATCH_SIZE", "LATENT_KEYS", "cache_batches", "spread_subset", "collect_latents", "collect_split_latents",
            "count_sequences", "factor_names", "rebatch", "split_at"]

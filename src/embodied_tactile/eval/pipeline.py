@@ -346,9 +346,72 @@ def output_folder(target: Path, runs: list[Run], kind: str, opts: DictConfig, se
 
 
 def _written_by_evaluation(path: Path) -> bool:
-    """What an evaluation writes in its output folder (:func:`write_report`, evaluation.json)."""
-    return (path.name in ("results.json", "evaluation.json") or (path.name == "figures" and path.is_dir())
+    """What an evaluation writes in its output folder (:func:`write_report`, evaluation.json,
+    the per-run results it reuses: :data:`PER_RUN`)."""
+    return (path.name in ("results.json", "evaluation.json") or (path.name in ("figures", PER_RUN) and path.is_dir())
             or (path.name.startswith("table_") and path.suffix in (".md", ".csv", ".tex")))
+
+
+#: the evaluation folder's store of each run's scored results (``<key>.pkl``), reused by the
+#: next evaluation into that folder when nothing that decides them changed (:func:`reuse_key`)
+PER_RUN = "per_run"
+
+
+def _code_digest() -> str:
+    """Digest of the package's Python sources: any change of code invalidates reused results."""
+    import hashlib
+
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()
+
+
+def reuse_key(run: Run, opts: DictConfig, baselines: Sequence[str], code: str) -> str:
+    """What decides a run's scored results: its folder, the checkpoint's bytes, its config,
+    split and metrics, the size and time of every data file it names, the evaluation's
+    options (but those of the report only), the baselines and the package's code."""
+    import hashlib
+
+    h = hashlib.sha256()
+    report_only = {"figures", "umap", "print_tables", "out", "distance_mode"}
+    options = {k: v for k, v in OmegaConf.to_container(opts, resolve=True).items() if k not in report_only}
+    h.update(json.dumps([str(run.run_dir), list(baselines), code, options], sort_keys=True, default=str).encode())
+    with open(run.ckpt, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    for name in ("config_resolved.yaml", "split.json", "metrics.json", "krr_history.jsonl"):
+        f = run.run_dir / name
+        h.update(f.read_bytes() if f.exists() else b"-")
+    data = (read_json(run.run_dir / "metrics.json").get("data") or {})
+    files = list(data.get("raw_files") or []) + list((data.get("cache_files") or {}).values())
+    for f in map(Path, files):
+        st = f.stat() if f.exists() else None
+        h.update(f"{f}:{st.st_size if st else -1}:{st.st_mtime_ns if st else -1}".encode())
+    return h.hexdigest()[:24]
+
+
+def _store(path: Path, scored: tuple) -> None:
+    import pickle
+
+    with open(path, "wb") as fh:
+        pickle.dump(scored, fh, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _reused(out: Path, key: str):
+    """(results, history, info) an earlier evaluation into ``out`` stored under ``key``, or None."""
+    import pickle
+
+    f = out / PER_RUN / f"{key}.pkl"
+    try:
+        with open(f, "rb") as fh:
+            return pickle.load(fh)
+    except FileNotFoundError:
+        return None
+    except Exception as err:  # noqa: BLE001 -- a damaged store is scored again, never trusted
+        log.warning("%s: unreadable (%s); the run is scored again", f, type(err).__name__)
+        return None
 
 
 class OwnedOutput:
@@ -483,10 +546,21 @@ def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, sele
     data_keys = [DataCache.key(data_config(r, opts)) for r in runs]
     order = sorted(range(len(runs)), key=lambda i: (data_keys.index(data_keys[i]), i))
     per_run: dict[int, tuple] = {}
+    code, n_reused = _code_digest(), 0
+    (tmp / PER_RUN).mkdir()
     for n, i in enumerate(order):
         run = runs[i]
         log.info("[%d/%d] %s (%s)", n + 1, len(runs), run.run_dir, run.ckpt.name)
-        results, history, info = evaluate_run(run, opts, cache, baselines)
+        key = reuse_key(run, opts, baselines, code)
+        stored = _reused(out, key)
+        if stored is None:
+            stored = evaluate_run(run, opts, cache, baselines)
+        else:
+            n_reused += 1
+            log.info("    reused: scored by an earlier evaluation into %s with the same checkpoint, data, "
+                     "options and code", out)
+        _store(tmp / PER_RUN / f"{key}.pkl", stored)
+        results, history, info = stored
         info["run_state"] = states[str(run.run_dir)]
         seed = run.cfg.get("seed")
         for r in results:
@@ -521,7 +595,7 @@ def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, sele
     summary = {"kind": kind, "target": str(target), "out": str(out), "options": OmegaConf.to_container(opts),
                "baselines": baselines, "runs": infos,
                "skipped": [{"run_dir": str(d), "reason": r} for d, r in skipped],
-               "selection": selection, "datamodule_reuse": cache.hits,
+               "selection": selection, "datamodule_reuse": cache.hits, "runs_reused": n_reused,
                "timings": {"evaluate_s": t_eval - t0, "report_s": t_rep - t_eval},
                "peak_rss_bytes": peak_rss_bytes()}
     (tmp / "evaluation.json").write_text(json.dumps(summary, indent=1, default=str))
