@@ -240,6 +240,55 @@ def test_verdicts_unpaired_skins_and_fewer_than_three_seeds():
     assert two["n"] == 2 and two["verdict"] == "inconclusive" and np.isnan(two["ci95_low"])
 
 
+def _sets_run(primitive, seed, err_of_set, *, per_set=8, t=30, slow_of_set=None):
+    """multi_l soft with per_set held-out trials of each of the 16 parameter sets; the error of
+    set a is err_of_set(a) x the factor's std at the last frames, slow_of_set(a) times it early on."""
+    from embodied_tactile.constants import ACTIONS
+
+    rng = np.random.default_rng([seed, 11])
+    act = np.repeat(np.arange(16), per_set)
+    obj = np.arange(len(act)) % 32
+    f = np.array([OBJECTS[o].factors() for o in obj])
+    sd = f.std(axis=0)
+    err = np.array([err_of_set(ACTIONS[primitive][a].params) for a in act])
+    slow = np.ones(len(act)) if slow_of_set is None else np.array([slow_of_set(ACTIONS[primitive][a].params) for a in act])
+    decay = 1.0 + (slow[:, None] - 1.0) * np.exp(-np.arange(t) / 5.0)[None, :]  # early error x slow, then err
+    pred = f[:, None, :] + (err[:, None] * decay)[:, :, None] * sd * rng.normal(size=(len(act), t, 4))
+    return Results(pred=pred, factors=f, object_id=obj, action_index=act, modality="multi_l", skin="soft",
+                   primitive=primitive, seed=seed, n_train=96)
+
+
+def test_the_parameter_set_findings_read_the_runs_trials_by_set():
+    """(g) 0.6 Hz best, (h) deeper better, (i) pressing's sets change convergence more than the
+    final error, (j) the sets matter more in sliding than in pressing: read from each run's
+    held-out trials grouped by parameter set, paired within the run."""
+    from embodied_tactile.eval.verdicts import evaluate_findings, summarise
+
+    def press(p):  # every set converges to the same error, some much later
+        return 0.2
+
+    def press_slow(p):
+        return 1.0 + 6.0 * (p["omega_z_hz"] == 0.2)
+
+    def slide(p):  # 0.6 Hz and the longest stroke best; the sets differ a lot
+        return 0.15 + 1.5 * abs(p["omega_xy_gamma_hz"] - 0.6) + 0.1 * (8.0 - p["A_xy_mm"])
+
+    rs = ([_sets_run("pressing", s, press, slow_of_set=press_slow) for s in range(3)]
+          + [_sets_run("sliding", s, slide) for s in range(3)])
+    rows = summarise(comps := evaluate_findings(rs))
+    g = [c for c in comps if c.finding == "g" and c.better.primitive == "sliding"]
+    assert len(g) == 2 and all(c.verdict == "reproduced" and c.stats["pairing"] == "paired by seed" for c in g)
+    assert next(c for c in comps if c.finding == "h" and c.better.primitive == "sliding").verdict == "reproduced"
+    assert next(c for c in comps if c.finding == "h" and c.better.primitive == "pressing").verdict == "inconclusive"
+    assert _claim(rows, "i")["verdict"] == "reproduced"
+    j = next(c for c in comps if c.finding == "j" and c.worse.primitive == "sliding")
+    assert j.verdict == "reproduced"
+    assert next(c for c in comps if c.finding == "j" and c.worse.primitive == "precession").verdict == "not measured"
+    flat = [_sets_run("sliding", s, lambda p: 0.3) for s in range(3)]  # no set better than another
+    assert all(c.verdict == "inconclusive" for c in evaluate_findings(flat) if c.finding in "gh"
+               and c.better.primitive == "sliding")
+
+
 def test_paper_best_primitive_from_table2():
     from embodied_tactile.eval.verdicts import paper_all_objects, paper_best_primitive
 

@@ -18,6 +18,9 @@ Table 2 convention). Per comparison:
 * ``detectable``: the smallest true mean difference the design would detect with 80 % power
   at the 5 % level, (t_0.975 + t_0.80) x standard error, at the observed spread and n.
 
+The findings of the paper's Table 1, (g)-(j), compare the held-out trials of parameter sets
+within each run of multi_l on the soft e-Skin (paired), or the spread over a run's 16 sets
+(:data:`SET_SPREADS`) between primitives.
 A claim (one finding, per factor / group where the paper states it so) is ``contradicted`` if
 any of its comparisons is, ``reproduced`` if every measured comparison is, ``inconclusive``
 otherwise, ``not measured`` if none is measured. Every claim is listed, whatever its verdict.
@@ -31,7 +34,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..constants import FACTOR_NAMES, HETEROGENEOUS_OBJECTS, N_OBJECTS, PRIMITIVES, SOFT_OBJECTS
+from ..constants import ACTIONS, FACTOR_NAMES, HETEROGENEOUS_OBJECTS, N_OBJECTS, N_ACTIONS, PRIMITIVES, SOFT_OBJECTS
 from .metrics import overall
 from .results import Results
 from .tables import MISSING, Table, fmt_cell, seed_stats
@@ -89,16 +92,20 @@ def paper_best_primitive(score: str) -> str:
 # ----------------------------------------------------------------------------- one comparison
 @dataclass(frozen=True)
 class Side:
-    """One side of a comparison: a cell (modality, skin, primitive) and, optionally, an object group."""
+    """One side of a comparison: a cell (modality, skin, primitive) and, optionally, an object
+    group or the parameter sets with one action parameter at one value (``action``: the
+    parameter's name in ``constants.ACTIONS``, its value)."""
 
     modality: str
     skin: str
     primitive: str
     group: str | None = None
+    action: tuple[str, float] | None = None
 
     @property
     def label(self) -> str:
-        return f"{self.modality}/{self.skin}/{self.primitive}" + (f" [{self.group} objects]" if self.group else "")
+        return (f"{self.modality}/{self.skin}/{self.primitive}" + (f" [{self.group} objects]" if self.group else "")
+                + (f" [{self.action[0]}={self.action[1]:g}]" if self.action else ""))
 
 
 @dataclass
@@ -107,19 +114,59 @@ class Comparison:
     claim: str  # the statement the verdict is about
     better: Side  # A: the side the paper says is better (lower NMSE)
     worse: Side  # B
-    score: str  # factor name or 'overall'
+    score: str  # factor name, 'overall' or a spread over parameter sets (SET_SPREADS)
     paper_d: float = float("nan")  # the paper's NMSE_B - NMSE_A where its Table 2 gives both
     stats: dict = field(default_factory=dict)
+    score_worse: str | None = None  # B's score where it is not A's (a spread against another)
 
     @property
     def verdict(self) -> str:
         return self.stats.get("verdict", "not measured")
 
 
-def run_score(r: Results, score: str, group: str | None = None) -> float:
-    """Held-out whole-trajectory NMSE of one run (the group's sequences with the run's total
-    variance when ``group`` is given), one factor or the overall mean."""
-    v = r.subset_nmse(None if group is None else r.group == group)
+#: each primitive's frequency and amplitude ("depth": the indentation of pressing, the tilt of
+#: precession, the stroke of sliding) among the action parameters (constants.ACTIONS)
+FREQUENCY = {"pressing": "omega_z_hz", "precession": "omega_alpha_beta_hz", "sliding": "omega_xy_gamma_hz"}
+DEPTH = {"pressing": "A_z_mm", "precession": "A_alpha_beta_deg", "sliding": "A_xy_mm"}
+#: scores over a run's 16 parameter sets (each set: its held-out trials' overall NMSE, the run's
+#: total variance): the standard deviation over the sets of the whole-trajectory NMSE, of the
+#: last frame's, and of their difference (the error spent converging: how fast a set converges)
+SET_SPREADS = ("set_spread_whole", "set_spread_last", "set_spread_convergence")
+
+
+def action_mask(r: Results, action: tuple[str, float]) -> np.ndarray:
+    """The run's held-out trials whose parameter set has ``action``'s parameter at its value."""
+    name, value = action
+    return np.array([ACTIONS[r.primitive][int(a)].params[name] == value for a in r.action_index], bool)
+
+
+def set_spread(r: Results, score: str) -> float:
+    """A :data:`SET_SPREADS` score of one run (NaN with fewer than 3 parameter sets held out)."""
+    whole, last = [], []
+    for a in range(N_ACTIONS):
+        m = r.action_index == a
+        if m.any():
+            whole.append(overall(r.subset_nmse(m)))
+            last.append(overall(r.curve(m)[-1]))
+    if len(whole) < 3:
+        return float("nan")
+    w, l_ = np.asarray(whole), np.asarray(last)
+    v = {"set_spread_whole": w, "set_spread_last": l_, "set_spread_convergence": w - l_}[score]
+    return float(np.std(v, ddof=1))
+
+
+def run_score(r: Results, score: str, group: str | None = None, action: tuple[str, float] | None = None) -> float:
+    """Held-out whole-trajectory NMSE of one run (the group's sequences, or those of the
+    parameter sets with ``action``, with the run's total variance), one factor or the overall
+    mean; or a spread over the run's parameter sets (:data:`SET_SPREADS`)."""
+    if score in SET_SPREADS:
+        return set_spread(r, score)
+    m = np.ones(r.n_test, bool) if group is None else r.group == group
+    if action is not None:
+        m &= action_mask(r, action)
+    if not m.any():
+        return float("nan")
+    v = r.subset_nmse(m)
     return overall(v) if score == "overall" else float(v[FACTOR_NAMES.index(score)])
 
 
@@ -221,7 +268,28 @@ def _comparisons() -> list[Comparison]:
                 out.append(Comparison("f", f"best primitive for {s}: {best} (multi_l, soft e-Skin)",
                                       Side("multi_l", "soft", best), Side("multi_l", "soft", q), s,
                                       paper_all_objects("soft", q, s) - paper_all_objects("soft", best, s)))
+    for p in PRIMITIVES:  # (g)-(j): the paper's Table 1, within the runs of multi_l on the soft e-Skin
+        f, lo, hi = FREQUENCY[p], min(DEPTH_VALUES[p]), max(DEPTH_VALUES[p])
+        for other in (0.2, 0.8):
+            out.append(Comparison("g", "about 0.6 Hz is the best frequency, the highest is worse (multi_l, soft e-Skin)",
+                                  Side("multi_l", "soft", p, action=(f, 0.6)), Side("multi_l", "soft", p, action=(f, other)),
+                                  "overall"))
+        out.append(Comparison("h", "deeper contact (the larger amplitude) is better (multi_l, soft e-Skin)",
+                              Side("multi_l", "soft", p, action=(DEPTH[p], hi)),
+                              Side("multi_l", "soft", p, action=(DEPTH[p], lo)), "overall"))
+    out.append(Comparison("i", "pressing: the parameter sets change the speed of convergence more than the final "
+                               "error (multi_l, soft e-Skin)",
+                          Side("multi_l", "soft", "pressing"), Side("multi_l", "soft", "pressing"),
+                          "set_spread_last", score_worse="set_spread_convergence"))
+    for q in ("precession", "sliding"):
+        out.append(Comparison("j", "the parameter sets matter more in precession and sliding than in pressing "
+                                   "(multi_l, soft e-Skin)",
+                              Side("multi_l", "soft", "pressing"), Side("multi_l", "soft", q), "set_spread_whole"))
     return out
+
+
+#: the amplitudes ("depths") of each primitive's parameter sets
+DEPTH_VALUES = {p: sorted({a.params[DEPTH[p]] for a in ACTIONS[p]}) for p in PRIMITIVES}
 
 
 def evaluate_findings(results: Sequence[Results], method: str = "latent_filter") -> list[Comparison]:
@@ -236,8 +304,8 @@ def evaluate_findings(results: Sequence[Results], method: str = "latent_filter")
     comps = _comparisons()
     for c in comps:
         c.stats = difference(runs(c.better), runs(c.worse),
-                             lambda r, c=c: run_score(r, c.score, c.better.group),
-                             lambda r, c=c: run_score(r, c.score, c.worse.group))
+                             lambda r, c=c: run_score(r, c.score, c.better.group, c.better.action),
+                             lambda r, c=c: run_score(r, c.score_worse or c.score, c.worse.group, c.worse.action))
     return comps
 
 
@@ -274,7 +342,8 @@ def verdict_tables(results: Sequence[Results], method: str = "latent_filter") ->
             st = c.stats
             ci = (MISSING if not (math.isfinite(st["ci95_low"]) and math.isfinite(st["ci95_high"]))
                   else f"[{fmt_cell(st['ci95_low'])}, {fmt_cell(st['ci95_high'])}]")
-            c_rows.append([*tag, f"({c.finding})", c.better.label, c.worse.label, c.score, st["pairing"],
+            score = c.score if c.score_worse is None else f"{c.score} vs {c.score_worse}"
+            c_rows.append([*tag, f"({c.finding})", c.better.label, c.worse.label, score, st["pairing"],
                            f"{st['n_a']}/{st['n_b']}", st["mean"], ci, st["detectable"], c.paper_d, c.verdict])
     head = ["axes"] if ctx_col else []
     n_note = (f"d = NMSE(worse) - NMSE(better) per the paper (positive = the paper's direction), held-out "
