@@ -353,6 +353,27 @@ def test_study_report_table2_intervals_verdicts_and_what_was_not_run(tmp_path):
     assert "- Note: parts ran on two commits" in out.read_text()
 
 
+def test_study_report_table1_gives_each_parameter_sets_nmse_with_its_interval_over_seeds(tmp_path):
+    from scipy.stats import t as student_t
+
+    from embodied_tactile.eval.report import write_report
+    from embodied_tactile.eval.study_report import load, render
+
+    rs = [_sets_run("sliding", s, lambda p: 0.1 + p["omega_xy_gamma_hz"]) for s in range(3)]
+    write_report(rs, tmp_path / "evaluation", figures=False)
+    text = render(load(tmp_path / "evaluation"))
+    assert "## table1 multi l soft" in text
+    m = rs[0].action_index == 2  # set 3: A_xy 2 mm at 0.6 Hz
+    vals = np.array([rs[i].summary()["nmse_by_action"]["3"]["trajectory"] for i in range(3)])
+    assert vals[0] == pytest.approx(float(np.mean(rs[0].subset_nmse(m))))
+    h = student_t.ppf(0.975, 2) * vals.std(ddof=1) / np.sqrt(3)
+    row = next(ln for ln in text.splitlines() if ln.startswith("| 3 |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1] == "A_xy_mm=2, A_gamma_deg=3, omega_xy_gamma_hz=0.6"
+    assert float(cells[2]) == pytest.approx(vals.mean(), abs=1e-4)
+    assert cells[3] == f"[{vals.mean() - h:.3f}, {vals.mean() + h:.3f}]" and cells[6] == "3 x 8"
+
+
 def test_study_report_objects_section_takes_object_split_runs_only(tmp_path):
     from embodied_tactile.eval.report import write_report
     from embodied_tactile.eval.study_report import StudyReportError, load, render, write_results

@@ -37,7 +37,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..options.data import SceneOptions, SplitOptions
-from ..constants import FACTOR_NAMES, OBJECT_GROUPS, PRIMITIVES
+from ..constants import ACTIONS, FACTOR_NAMES, N_ACTIONS, OBJECT_GROUPS, PRIMITIVES
 from .metrics import SCALED_MSE_DEFINITION, reference_variance, scaled_mse_from_nmse
 from .results import scored_on_validation
 from .tables import FACTOR_LABELS, MISSING, Table, fmt_cell, seed_stats
@@ -208,6 +208,37 @@ def table2_with_intervals(runs: Sequence[Mapping], modality: str = "multi_l", sc
                f"seeds, 95 % Student t interval (n >= {MIN_SEEDS}, {MISSING} otherwise), n = seeds; paper = {paper}.")
         tables.append(Table(f"table2_{modality}_{skin}" + ("" if scenes is None else "_code_convention"), cap, cols, rows))
     return tables
+
+
+def table1_with_intervals(runs: Sequence[Mapping], modality: str = "multi_l", skin: str = "soft") -> Table | None:
+    """Table 1 analogue: per parameter set (action index 1-16) and primitive, the set's
+    parameters and its held-out whole-trajectory and last-frame overall NMSE, 'mean [95 % CI]'
+    over the seeds of the cell (each run: its own trials of that set, the run's total
+    variance). None when no run of the cell reports its sets."""
+    rs = [r for r in _latent_runs(runs, modality) if r.get("skin") == skin and not r.get("axes")
+          and r.get("nmse_by_action")]
+    prims = [p for p in PRIMITIVES if any(r.get("primitive") == p for r in rs)]
+    if not prims:
+        return None
+    rows = []
+    for a in range(N_ACTIONS):
+        row: list[Any] = [a + 1]
+        for p in prims:
+            sets = [r["nmse_by_action"].get(str(a + 1)) for r in rs if r.get("primitive") == p]
+            whole = seed_stats([np.nan if v is None else v["trajectory"] for v in sets])
+            last = seed_stats([np.nan if v is None else v["last"] for v in sets])
+            params = ", ".join(f"{k}={v:g}" for k, v in ACTIONS[p][a].params.items())
+            trials = sorted({v["n"] for v in sets if v is not None})
+            row += [params, whole["mean"], _ci(whole), last["mean"], _ci(last),
+                    f"{whole['n']} x {'/'.join(map(str, trials)) or MISSING}"]
+        rows.append(row)
+    cols = ["set"] + [c for p in prims for c in (f"{p} parameters", f"{p} whole", f"{p} whole 95% CI", f"{p} last",
+                                                   f"{p} last 95% CI", f"{p} seeds x trials")]
+    cap = (f"Table 1 analogue, {modality.upper().replace('_', '-')} on the {skin} e-Skin: held-out overall NMSE of each "
+           f"parameter set's trials (whole trajectory, last frame; the run's total variance), mean over seeds, 95 % "
+           f"Student t interval over seeds (n >= {MIN_SEEDS}, {MISSING} otherwise); seeds x held-out trials of the "
+           "set per run.")
+    return Table(f"table1_{modality}_{skin}", cap, cols, rows)
 
 
 def _factor_pairs(tables: Sequence[Table]) -> list[tuple[float, float]]:
@@ -584,6 +615,9 @@ def render(blob: Mapping, command: str = "", notes: Sequence[str] = (), objects:
         r0 = next(r for r in _latent_runs(runs) if run_variance(r, scenes) is not None)
         out += paper_units_section(nmse_tables, code_tables, run_variance(r0, scenes), r0.get("targets") or DEFAULT_TARGETS,
                                    "run by run from each run's NMSE, then averaged over seeds")
+    table1 = table1_with_intervals(runs)
+    if table1 is not None:
+        out += ["## " + table1.name.replace("_", " "), "", table1.to_markdown()]
     agg = _json_table(blob, "aggregate")
     if agg is not None:
         out += ["## Every cell (all methods), statistics over seeds", "", agg.to_markdown()]
