@@ -77,23 +77,16 @@ def plan(designs: list[str], levels: int) -> list[tuple[str, str, list[str]]]:
     return out
 
 
-def claim(run_dir: Path) -> bool:
-    """Take ``run_dir`` for this lane: a claim file naming this process, made atomically; a
-    claim of a process that no longer runs is taken over (a lane of an earlier session)."""
-    mark = run_dir.with_name(run_dir.name + ".claimed")
-    mark.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        fd = os.open(mark, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-    except FileExistsError:
-        try:
-            os.kill(int(mark.read_text() or 0), 0)
-            return False  # another lane holds it
-        except (ValueError, ProcessLookupError, PermissionError):
-            mark.unlink(missing_ok=True)
-            return claim(run_dir)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(str(os.getpid()))
-    return True
+def claim(run_dir: Path) -> int | None:
+    """Take ``run_dir`` for this lane: an fd holding ``flock`` on ``<run>.claim`` (closing it,
+    or the lane's end however it ends, releases it), or None when another lane holds it."""
+    from embodied_tactile.run.runfolder import try_lock, write_holder
+
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    fd, _ = try_lock(run_dir.with_name(run_dir.name + ".claim"))
+    if fd is not None:
+        write_holder(fd)
+    return fd
 
 
 def finished(run_dir: Path) -> bool:
@@ -106,7 +99,10 @@ def train(args) -> None:
     work = Path(args.work).resolve()
     for design, name, overrides in plan(args.designs, args.levels):
         run_dir = work / "runs" / design / name
-        if finished(run_dir) or not claim(run_dir):
+        if finished(run_dir):
+            continue
+        fd = claim(run_dir)
+        if fd is None:
             continue
         cmd = [sys.executable, str(REPO / "train.py"), "threads=1", "logger=none", f"paths.data_dir={work / 'data'}",
                f"hydra.run.dir={run_dir}", *overrides]
@@ -117,6 +113,7 @@ def train(args) -> None:
         print(f"  rc {proc.returncode} in {time.perf_counter() - t0:.0f} s", flush=True)
         if proc.returncode != 0:
             print(proc.stderr[-2000:], flush=True)
+        os.close(fd)
 
 
 # ----------------------------------------------------------------------------- analysis

@@ -28,13 +28,19 @@ def test_each_factor_changes_one_seed_and_the_main_factor_comes_before_the_furth
     assert all(o in ov for _, _, ov in runs for o in vc.DESIGNS["sets16"])
 
 
-def test_a_lane_claims_a_run_once_and_takes_over_a_dead_lanes_claim(tmp_path):
+def test_a_lane_claims_a_run_once_and_a_lane_that_stopped_holds_nothing(tmp_path):
     run = tmp_path / "runs" / "sets4" / "base"
-    assert vc.claim(run) and not vc.claim(run)  # this process holds it now
-    mark = run.with_name("base.claimed")
-    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
-    mark.write_text(dead.stdout.strip())  # a lane that has exited
-    assert vc.claim(run) and mark.read_text() == str(os.getpid())
+    fd = vc.claim(run)
+    assert fd is not None and vc.claim(run) is None  # this lane holds it now
+    os.close(fd)  # the run ended
+    code = ("import importlib.util, os, sys; s = importlib.util.spec_from_file_location('vc', sys.argv[1]); "
+            "m = importlib.util.module_from_spec(s); s.loader.exec_module(m); "
+            "from pathlib import Path; assert m.claim(Path(sys.argv[2])) is not None; os._exit(0)")
+    lane = subprocess.run([sys.executable, "-c", code, _spec.origin, str(run)], capture_output=True, text=True)
+    assert lane.returncode == 0, lane.stderr  # another lane took it, then stopped without letting go
+    fd = vc.claim(run)
+    assert fd is not None
+    os.close(fd)
 
 
 def test_the_seeds_a_paired_difference_needs_follow_its_spread():

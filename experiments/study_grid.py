@@ -1,0 +1,117 @@
+"""The study grid (``sweep=study``) in resumable parts, run by lanes side by side.
+
+    python experiments/study_grid.py train --study STUDY [--data DATA] &   # one lane (threads=1)
+    python experiments/study_grid.py train --study STUDY [--data DATA] &   # a second lane beside it
+    python experiments/study_grid.py status --study STUDY                  # finished seeds per part
+    python evaluate.py STUDY baselines=[untrained,handcrafted,mean]        # merges the finished parts
+    embodied-tactile report page=results evaluation=STUDY/evaluation out=docs/generated/results.md
+
+A part is one of the paper's 24 cells (a ``configs/combo/`` x a primitive) with its seeds:
+``python train.py -m sweep=study combo=C primitive=P threads=1 logger=none
+hydra.sweep.dir=STUDY/C_P``. Lanes take the parts in :data:`PARTS` order (the Table 1
+analogue's cells first, then the rest of pressing, then the rest), each holding a lock on
+``STUDY/.C_P.lock`` while it runs (released when the lane stops, however it stops). A part whose
+seeds all finished is skipped; one that has a job in training (its run folder's lock is held)
+is left to the process training it; an interrupted one resumes (train.py leaves a finished job
+as it is and continues an interrupted one from its ``last.ckpt``). evaluate.py scores each run
+once: a later evaluation of the growing study reuses what the earlier ones scored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "src"))
+
+from embodied_tactile.run.runfolder import training_holder, try_lock, write_holder  # noqa: E402
+
+COMBOS = ("acc_soft", "fsr_t_soft", "fsr_b_soft", "fsr_tb_soft", "multi_e_soft", "multi_l_soft", "fsr_tb_hard",
+          "multi_l_hard")
+PRIMITIVES = ("pressing", "precession", "sliding")
+SEEDS = (0, 1, 2)
+#: the order lanes take the parts in: MULTI-L soft on every primitive (Table 1 analogue, the
+#: findings (f)-(j)), then every cell on pressing (findings (a)-(e)), then the rest
+PARTS: tuple[tuple[str, str], ...] = (
+    *(("multi_l_soft", p) for p in PRIMITIVES),
+    *((c, "pressing") for c in COMBOS if c != "multi_l_soft"),
+    *((c, p) for p in PRIMITIVES[1:] for c in COMBOS if c != "multi_l_soft"),
+)
+
+
+def part_dir(study: Path, combo: str, primitive: str) -> Path:
+    return study / f"{combo}_{primitive}"
+
+
+def finished_seeds(folder: Path) -> list[int]:
+    """The seeds of ``folder``'s jobs whose metrics.json says finished."""
+    out = []
+    for m in sorted(folder.glob("*/metrics.json")):
+        try:
+            state = json.loads(m.read_text())
+            cfg = (m.parent / ".hydra" / "overrides.yaml").read_text()
+        except (OSError, ValueError):
+            continue
+        seed = next((int(line.split("=", 1)[1]) for line in cfg.splitlines() if line.strip("- ").startswith("seed=")),
+                    0)
+        if state.get("status") == "finished":
+            out.append(seed)
+    return sorted(out)
+
+
+def in_training(folder: Path) -> bool:
+    return any(training_holder(j) is not None for j in folder.iterdir() if j.is_dir()) if folder.is_dir() else False
+
+
+def train(args) -> None:
+    study = Path(args.study).resolve()
+    for combo, primitive in PARTS:
+        folder = part_dir(study, combo, primitive)
+        if set(SEEDS) <= set(finished_seeds(folder)) or in_training(folder):
+            continue
+        study.mkdir(parents=True, exist_ok=True)
+        fd, _ = try_lock(study / f".{folder.name}.lock")  # held until the part ends or the lane stops
+        if fd is None:
+            continue
+        write_holder(fd)
+        cmd = [sys.executable, str(REPO / "train.py"), "-m", "sweep=study", f"combo={combo}", f"primitive={primitive}",
+               f"seed={','.join(map(str, SEEDS))}", "threads=1", "logger=none", f"hydra.sweep.dir={folder}",
+               *([f"paths.data_dir={Path(args.data).resolve()}"] if args.data else [])]
+        print(time.strftime("%H:%M:%S"), "part", folder.name, flush=True)
+        t0 = time.perf_counter()
+        rc = subprocess.run(cmd, cwd=REPO, env=dict(os.environ, WANDB_MODE="disabled"), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL).returncode
+        print(time.strftime("%H:%M:%S"), f"part {folder.name}: rc {rc} in {time.perf_counter() - t0:.0f} s, "
+              f"seeds finished {finished_seeds(folder)}", flush=True)
+        os.close(fd)
+
+
+def status(args) -> None:
+    study = Path(args.study).resolve()
+    done = 0
+    for combo, primitive in PARTS:
+        folder = part_dir(study, combo, primitive)
+        seeds = finished_seeds(folder) if folder.is_dir() else []
+        done += len(seeds)
+        state = "training" if in_training(folder) else ""
+        print(f"{folder.name:28s} {len(seeds)}/{len(SEEDS)} {state}")
+    print(f"{done} of {len(PARTS) * len(SEEDS)} jobs finished")
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("command", choices=["train", "status"])
+    ap.add_argument("--study", required=True, help="the study folder (one sub-folder per part)")
+    ap.add_argument("--data", default=None, help="paths.data_dir of the trainings (default: the config's)")
+    args = ap.parse_args(argv)
+    {"train": train, "status": status}[args.command](args)
+
+
+if __name__ == "__main__":
+    main()
