@@ -6,15 +6,16 @@
     python evaluate.py STUDY baselines=[untrained,handcrafted,mean]        # merges the finished parts
     embodied-tactile report page=results evaluation=STUDY/evaluation out=docs/generated/results.md
 
-A part is one of the paper's 24 cells (a ``configs/combo/`` x a primitive) with its seeds:
-``python train.py -m sweep=study combo=C primitive=P threads=1 logger=none
-hydra.sweep.dir=STUDY/C_P``. Lanes take the parts in :data:`PARTS` order (the Table 1
-analogue's cells first, then the rest of pressing, then the rest), each holding a lock on
-``STUDY/.C_P.lock`` while it runs (released when the lane stops, however it stops). A part whose
-seeds all finished is skipped; one that has a job in training (its run folder's lock is held)
-is left to the process training it; an interrupted one resumes (train.py leaves a finished job
-as it is and continues an interrupted one from its ``last.ckpt``). evaluate.py scores each run
-once: a later evaluation of the growing study reuses what the earlier ones scored.
+A part is one of the paper's 24 cells (a ``configs/combo/`` x a primitive) with the sweep's
+seeds: ``python train.py -m sweep=study combo=C primitive=P threads=1 logger=none
+hydra.sweep.dir=STUDY/C_P`` (the same command again resumes it). Lanes take the parts in
+:data:`PARTS` order (the Table 1 analogue's cells first, then the rest of pressing, then the
+rest), each holding a lock on ``STUDY/.C_P.lock`` while it runs (released when the lane stops,
+however it stops). A part whose seeds all finished is skipped; one that has a job in training
+(its run folder's lock is held) is left to the process training it; an interrupted one resumes
+(train.py leaves a finished job as it is and continues an interrupted one from its
+``last.ckpt``). evaluate.py scores each run once: a later evaluation of the growing study
+reuses what the earlier ones scored.
 """
 
 from __future__ import annotations
@@ -30,12 +31,16 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
+from omegaconf import OmegaConf  # noqa: E402
+
 from embodied_tactile.run.runfolder import training_holder, try_lock, write_holder  # noqa: E402
 
 COMBOS = ("acc_soft", "fsr_t_soft", "fsr_b_soft", "fsr_tb_soft", "multi_e_soft", "multi_l_soft", "fsr_tb_hard",
           "multi_l_hard")
 PRIMITIVES = ("pressing", "precession", "sliding")
-SEEDS = (0, 1, 2)
+#: the seeds of every part: those of the sweep (configs/sweep/study.yaml)
+SEEDS = tuple(int(s) for s in str(OmegaConf.load(REPO / "configs" / "sweep" / "study.yaml")
+                                  .hydra.sweeper.params.seed).split(","))
 #: the order lanes take the parts in: MULTI-L soft on every primitive (Table 1 analogue, the
 #: findings (f)-(j)), then every cell on pressing (findings (a)-(e)), then the rest
 PARTS: tuple[tuple[str, str], ...] = (
@@ -81,7 +86,7 @@ def train(args) -> None:
             continue
         write_holder(fd)
         cmd = [sys.executable, str(REPO / "train.py"), "-m", "sweep=study", f"combo={combo}", f"primitive={primitive}",
-               f"seed={','.join(map(str, SEEDS))}", "threads=1", "logger=none", f"hydra.sweep.dir={folder}",
+               "threads=1", "logger=none", f"hydra.sweep.dir={folder}",
                *([f"paths.data_dir={Path(args.data).resolve()}"] if args.data else [])]
         print(time.strftime("%H:%M:%S"), "part", folder.name, flush=True)
         t0 = time.perf_counter()
