@@ -3,6 +3,7 @@
     python experiments/study_grid.py train --study STUDY [--data DATA] &   # one lane (threads=1)
     python experiments/study_grid.py train --study STUDY [--data DATA] &   # a second lane beside it
     python experiments/study_grid.py status --study STUDY                  # finished seeds per part
+    python experiments/study_grid.py train --study STUDY trainer=gpu &     # a lane on the GPU (start several)
     python evaluate.py STUDY baselines=[untrained,handcrafted,mean]        # merges the finished parts
     embodied-tactile report page=results evaluation=STUDY/evaluation out=docs/generated/results.md
 
@@ -87,7 +88,7 @@ def train(args) -> None:
         write_holder(fd)
         cmd = [sys.executable, str(REPO / "train.py"), "-m", "sweep=study", f"combo={combo}", f"primitive={primitive}",
                "threads=1", "logger=none", f"hydra.sweep.dir={folder}",
-               *([f"paths.data_dir={Path(args.data).resolve()}"] if args.data else [])]
+               *([f"paths.data_dir={Path(args.data).resolve()}"] if args.data else []), *args.overrides]
         print(time.strftime("%H:%M:%S"), "part", folder.name, flush=True)
         t0 = time.perf_counter()
         rc = subprocess.run(cmd, cwd=REPO, env=dict(os.environ, WANDB_MODE="disabled"), stdout=subprocess.DEVNULL,
@@ -114,6 +115,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("command", choices=["train", "status"])
     ap.add_argument("--study", required=True, help="the study folder (one sub-folder per part)")
     ap.add_argument("--data", default=None, help="paths.data_dir of the trainings (default: the config's)")
+    ap.add_argument("overrides", nargs="*", help="train.py overrides of every part (e.g. trainer=gpu); a part "
+                    "resumes only with the overrides it started with")
     args = ap.parse_args(argv)
     {"train": train, "status": status}[args.command](args)
 
