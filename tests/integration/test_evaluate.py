@@ -226,6 +226,26 @@ def test_a_study_evaluated_again_reuses_the_runs_scored_before_and_scores_the_re
     assert first["out"] == str(study / "evaluation")
 
 
+def test_a_study_with_a_run_in_training_scores_the_others_and_names_it(trained, tmp_path):
+    """A study evaluated while its lanes still train: the run being trained is skipped and
+    named (a run folder given alone is refused, tests/integration/test_run_folder.py)."""
+    from embodied_tactile.run.runfolder import LOCK_FILE, try_lock, write_holder
+
+    study = tmp_path / "study"
+    for part, job in (("part0", "modality=acc"), ("part1", "modality=fsr_t")):
+        shutil.copytree(trained / "multi" / job, study / part / job)
+    busy = study / "part1" / "modality=fsr_t"
+    fd, _ = try_lock(busy / LOCK_FILE)  # a lane's training holds the folder
+    write_holder(fd)
+    try:
+        out = ev.evaluate(study, [*FAST, "baselines=[mean]", "umap=false", "figures=false"])
+        assert [i["modality"] for i in out["runs"]] == ["acc"]
+        assert len(out["skipped"]) == 1 and out["skipped"][0]["run_dir"] == str(busy)
+        assert "is being trained" in out["skipped"][0]["reason"]
+    finally:
+        os.close(fd)
+
+
 def test_checkpoint_of_an_older_network_layout_is_a_clear_error(trained, tmp_path, capsys):
     import torch
 

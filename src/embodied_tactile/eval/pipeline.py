@@ -493,7 +493,19 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     baselines = list(opts.baselines) if opts.baselines is not None else list(
         BASELINES if kind == "run" else MULTIRUN_BASELINES)
     out = output_folder(target, runs, kind, opts, selection)
-    states = {str(r.run_dir): run_state(r, bool(opts.allow_running)) for r in runs}  # a run in training: refused
+    states = {}
+    for r in list(runs):  # a run in training: refused alone, skipped (and named) in a folder of runs
+        try:
+            states[str(r.run_dir)] = run_state(r, bool(opts.allow_running))
+        except EvaluationError as err:
+            if kind == "run":
+                raise
+            runs.remove(r)
+            skipped.append((r.run_dir, str(err)))
+            log.warning("skipping %s", err)
+    if not runs:
+        raise EvaluationError(f"{target}: every run in it is being trained; wait for one to end, or "
+                              "allow_running=true evaluates them as they are now")
     for st in states.values():  # a run that is not finished says so first, with the checkpoint evaluated
         if st.get("line"):
             print(st["line"], flush=True)
