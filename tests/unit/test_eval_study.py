@@ -451,3 +451,22 @@ def test_study_report_puts_each_cells_untrained_floor_beside_the_trained_filter(
     assert trained_l == pytest.approx(0.3) and untrained_l == pytest.approx(0.8)
     assert below == "2 of 3"  # seed 2 is above its floor on the whole trajectory
     assert floor_table({"_evaluation": {"runs": runs[3:]}}) is None
+
+
+def test_the_pages_commands_name_parts_of_the_study_not_the_machines_folders(tmp_path):
+    from embodied_tactile.eval.study_report import _command_lines
+
+    study = tmp_path / "somewhere" / "study"
+    files = []
+    for part in ("multi_l_soft_pressing", "acc_soft_pressing"):
+        (study / part).mkdir(parents=True)
+        (study / part / "multirun.yaml").write_text("{}")
+        for seed in (0, 1):
+            files.append({"run_dir": study / part / f"seed={seed}",
+                          "overrides": [f"combo={part.rsplit('_', 1)[0]}", f"seed={seed}", "sweep=study",
+                                        f"paths.data_dir={tmp_path}/data"]})
+    lines = _command_lines(files)
+    assert lines[1] == ("- `multi_l_soft_pressing` (2 jobs): `python train.py -m combo=multi_l_soft sweep=study "
+                        "paths.data_dir=<data_dir> hydra.sweep.dir=<study>/multi_l_soft_pressing`, varying: "
+                        "`seed=0`, `seed=1`")
+    assert not any(str(tmp_path) in ln for ln in lines)

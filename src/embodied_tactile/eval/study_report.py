@@ -466,19 +466,35 @@ def _budget_lines(files: Sequence[Mapping], blob: Mapping) -> list[str]:
     return lines
 
 
+def _portable(override: str) -> str:
+    """A ``paths.*`` override with its machine's folder replaced by the key's name
+    (``paths.data_dir=<data_dir>``): a page names commands, not where a machine keeps files."""
+    key, _, value = override.partition("=")
+    return f"{key}=<{key.rsplit('.', 1)[-1]}>" if key.startswith("paths.") and value else override
+
+
 def _command_lines(files: Sequence[Mapping]) -> list[str]:
-    """One `python train.py ...` line per part (runs grouped by their sweep folder), with the
-    overrides the jobs of that part share and those that vary listed."""
+    """One `python train.py ...` line per part (runs grouped by their sweep folder, named
+    relative to the study folder that holds them), with the overrides the jobs of that part
+    share and those that vary listed."""
     parts: dict[str, list[list[str]]] = defaultdict(list)
     for f in files:
         if f.get("overrides") is not None:
             parts[str(Path(f["run_dir"]).parent)].append(f["overrides"])
+    import os
+
+    study = Path(os.path.commonpath(list(parts))) if parts else Path()
+    if len(parts) == 1:
+        study = study.parent
     lines = []
     for part, ovs in sorted(parts.items()):
+        ovs = [[_portable(o) for o in ov] for ov in ovs]
         common = [o for o in ovs[0] if all(o in other for other in ovs[1:])]
         varying = sorted({o for ov in ovs for o in ov if o not in common})
+        name = Path(part).relative_to(study).as_posix()
         multirun = " -m" if (Path(part) / "multirun.yaml").exists() else ""
-        lines.append(f"- `{part}` ({len(ovs)} jobs): `python train.py{multirun} {' '.join(common)}`"
+        where = f" hydra.sweep.dir=<study>/{name}" if multirun else f" hydra.run.dir=<study>/{name}"
+        lines.append(f"- `{name}` ({len(ovs)} jobs): `python train.py{multirun} {' '.join(common)}{where}`"
                      + (f", varying: {', '.join(f'`{v}`' for v in varying)}" if varying else ""))
     return lines
 
