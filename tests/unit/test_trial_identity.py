@@ -106,6 +106,59 @@ def test_trial_bad_in_every_field_is_counted_once(tiny_data_dir, names, tmp_path
     assert "skipped 1 bad trial(s)" in caplog.text
 
 
+@pytest.mark.parametrize("dataset, layer", [("tactile/fsr", 1), ("tactile/acc", None)])
+def test_a_dead_channel_in_one_trial_is_skipped_naming_file_trial_and_layer(tiny_data_dir, names, tmp_path, caplog,
+                                                                            dataset, layer):
+    """Fault: one trial of four reads one value in a channel (its bottom FSR layer at 512
+    counts, or every accelerometer at 0 g: a layer dead in that recording only). Before: the
+    trial was trained on with no word. Now: the preparation skips it with a warning naming
+    file, trial and channel, and lists it in ``skipped`` (field: the raw dataset and layer);
+    a scene that does not read the dead channel keeps the trial."""
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    a = _copy_trials(raw, tmp_path / "a.h5", names[:4])
+    bad = names[1]
+    with h5py.File(a, "a") as f:
+        if layer is None:
+            f["trials"][bad][dataset][...] = 0.0
+        else:
+            f["trials"][bad][dataset][:, layer] = 512
+    channel = "fsr_b" if layer is not None else "acc"
+    dm = _recorded(tmp_path, [a], channels=("acc", "fsr_t", "fsr_b"))
+    with caplog.at_level("WARNING"):
+        dm.prepare_data()
+        dm.setup()
+    assert _used(dm) == set(names[:4]) - {bad}
+    field = dataset + ("" if layer is None else f" layer {layer}")
+    assert [(e["file"], e["trial"], e["field"]) for e in dm.skipped] == [(str(a), bad, field)]
+    assert dm.skipped[0]["problem"].startswith(f"channel {channel} (")
+    assert "reads one value" in dm.skipped[0]["problem"] and "3 other trial(s) of the scene vary" in dm.skipped[0]["problem"]
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("skipping")]
+    assert len(warned) == 1 and str(a) in warned[0] and f"channel {channel} (" in warned[0]
+    assert "1 skipped" in dm.prepared.summary()
+    if layer is not None:  # a scene without the dead layer (top layer only) keeps the trial
+        kept = _recorded(tmp_path, [a], channels=("fsr_t",))
+        kept.prepare_data()
+        kept.setup()
+        assert _used(kept) == set(names[:4]) and kept.skipped == []
+
+
+def test_a_channel_dead_in_every_trial_is_still_refused_whole(tiny_data_dir, names, tmp_path):
+    """The same dead layer in every trial is no trial's fault: nothing is skipped, and the
+    training set-up refuses the channel (ConstantChannelError), as before."""
+    from embodied_tactile.data.datamodule import ConstantChannelError
+
+    raw = tiny_data_dir / "raw" / "soft_pressing.h5"
+    a = _copy_trials(raw, tmp_path / "a.h5", names[:4])
+    with h5py.File(a, "a") as f:
+        for n in names[:4]:
+            f["trials"][n]["tactile/fsr"][:, 1] = 512
+    dm = _recorded(tmp_path, [a], channels=("fsr_t", "fsr_b"))
+    dm.prepare_data()
+    assert dm.skipped == [] and len(dm.prepared.trials) == 4
+    with pytest.raises(ConstantChannelError, match=r"^channel fsr_b \(layer 1 of cached field fsr"):
+        dm.setup("fit")
+
+
 def test_fields_of_one_trial_from_different_files_are_refused(tiny_data_dir, names, tmp_path):
     """The preparation stage's trial listing checks that every cached field of a trial came
     from the same raw file (a guard behind the cache builder's duplicate check)."""

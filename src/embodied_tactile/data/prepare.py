@@ -452,8 +452,8 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequenc
     """Trials present in every needed cache and matching the scene.
 
     Returns ``(trials, skipped, excluded_incomplete)``: the usable trials, every trial left
-    out as bad, once each (listed by a cache, or absent from one: see :func:`_whole_trials`;
-    :func:`_one_per_trial`), and the
+    out as bad, once each (listed by a cache, absent from one: see :func:`_whole_trials`;
+    mislabelled; or dead in one channel: :func:`_without_dead_channels`; :func:`_one_per_trial`), and the
     interrupted recordings left out (``complete=False``; used with ``include_incomplete``).
     RuntimeError when no trial is usable."""
     fields = scene.fields
@@ -520,6 +520,8 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequenc
                              skin=str(a["skin"]), primitive=str(a["primitive"]),
                              factors=(UNLABELLED if roles.get(int(a["object_id"])) == "unlabelled"
                                       else tuple(float(a[k]) for k in C.FACTOR_NAMES))))
+    refs = _without_dead_channels(scene, cache_files, refs, per_field[0], skipped)
+    skipped = _one_per_trial(skipped)  # a trial dead in two channels is one skipped trial
     if incomplete and not scene.include_incomplete:
         log.warning("excluded %d incomplete recording(s) (complete=False: interrupted), e.g. %s; "
                     "data.include_incomplete=true uses them", len(incomplete), incomplete[:3])
@@ -531,6 +533,49 @@ def list_trials(scene: Scene, cache_files: Mapping[str, str], raw_paths: Sequenc
             f"actions={scene.actions} in {dict(cache_files)} (skipped: {skipped[:5]})"
         )
     return refs, skipped, (incomplete if not scene.include_incomplete else [])
+
+
+def _without_dead_channels(scene: Scene, cache_files: Mapping[str, str], refs: list[TrialRef],
+                           attrs: Mapping[str, Mapping[str, Any]], skipped: list[dict[str, str]]) -> list[TrialRef]:
+    """``refs`` less the trials in which a channel of the scene is dead: its cached array (every
+    frame and taxel of the trial's window; one layer of the FSR) holds one value while the channel
+    varies in another trial of the scene (a dead or unplugged layer in one recording). Each is
+    added to ``skipped`` (field: the raw dataset and layer) with a warning naming file, trial
+    and channel. A channel constant in every trial skips nothing here: that is the dead
+    layer of the whole scene, refused by the DataModule's statistics check
+    (``ConstantChannelError``)."""
+    from embodied_tactile.data.modality import CHANNELS
+
+    constant: dict[str, dict[str, float]] = {}  # channel -> {trial: its one value}
+    for fld in dict.fromkeys(CHANNELS[c][0] for c in scene.channels):
+        chans = [(c, CHANNELS[c][1]) for c in scene.channels if CHANNELS[c][0] == fld]
+        with h5py.File(cache_files[fld], "r") as f:
+            for ref in refs:
+                arr = f["trials"][ref.name][fld][()]
+                for c, layer in chans:
+                    x = arr if layer is None else arr[:, layer]
+                    lo, hi = x.min(), x.max()
+                    if lo == hi:
+                        constant.setdefault(c, {})[ref.name] = float(lo)
+    dead: dict[str, list[str]] = {}  # trial -> its dead channels, in the scene's order
+    for c in scene.channels:
+        flat = constant.get(c, {})
+        if not flat or len(flat) == len(refs):
+            continue
+        fld, layer, dataset = CHANNELS[c]
+        for ref in refs:
+            if ref.name not in flat:
+                continue
+            src = str(attrs[ref.name].get("source_file"))
+            entry = {"file": src, "trial": ref.name, "field": dataset + ("" if layer is None else f" layer {layer}"),
+                     "problem": f"channel {c} ({'layer ' + str(layer) + ' of ' if layer is not None else ''}cached "
+                                f"field {fld}) reads one value ({flat[ref.name]:.6g}) in every cached frame of the trial while "
+                                f"{len(refs) - len(flat)} other trial(s) of the scene vary: a dead or unplugged "
+                                "sensor layer in this trial; left out"}
+            log.warning("skipping %s / %s: %s", src, ref.name, entry["problem"])
+            skipped.append(entry)
+            dead.setdefault(ref.name, []).append(c)
+    return [r for r in refs if r.name not in dead]
 
 
 def recording_sets(attrs: Mapping[str, Mapping[str, Any]], names: Sequence[str]) -> dict[str, tuple[str, str]]:
