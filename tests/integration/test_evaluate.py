@@ -227,21 +227,28 @@ def test_a_study_evaluated_again_reuses_the_runs_scored_before_and_scores_the_re
 
 
 def test_a_study_with_a_run_in_training_scores_the_others_and_names_it(trained, tmp_path):
-    """A study evaluated while its lanes still train: the run being trained is skipped and
-    named (a run folder given alone is refused, tests/integration/test_run_folder.py)."""
+    """A study evaluated while its lanes still train, one lane stopped: the run being trained
+    and the interrupted one are skipped and named (a run folder given alone is refused, or
+    scored with its state: tests/integration/test_run_folder.py)."""
     from embodied_tactile.run.runfolder import LOCK_FILE, try_lock, write_holder
 
     study = tmp_path / "study"
     for part, job in (("part0", "modality=acc"), ("part1", "modality=fsr_t")):
         shutil.copytree(trained / "multi" / job, study / part / job)
+    shutil.copytree(trained / "multi" / "modality=acc", study / "part2" / "modality=acc")
+    stopped = study / "part2" / "modality=acc"  # a lane stopped by a signal: resumable, not finished
+    metrics = json.loads((stopped / "metrics.json").read_text())
+    (stopped / "metrics.json").write_text(json.dumps({**metrics, "status": "interrupted", "stopped_by": "SIGTERM"}))
     busy = study / "part1" / "modality=fsr_t"
     fd, _ = try_lock(busy / LOCK_FILE)  # a lane's training holds the folder
     write_holder(fd)
     try:
         out = ev.evaluate(study, [*FAST, "baselines=[mean]", "umap=false", "figures=false"])
-        assert [i["modality"] for i in out["runs"]] == ["acc"]
-        assert len(out["skipped"]) == 1 and out["skipped"][0]["run_dir"] == str(busy)
-        assert "is being trained" in out["skipped"][0]["reason"]
+        assert [i["run_dir"] for i in out["runs"]] == [str(study / "part0" / "modality=acc")]
+        reasons = {s["run_dir"]: s["reason"] for s in out["skipped"]}
+        assert set(reasons) == {str(busy), str(stopped)}
+        assert "is being trained" in reasons[str(busy)]
+        assert "is interrupted (stopped by SIGTERM" in reasons[str(stopped)] and "not finished" in reasons[str(stopped)]
     finally:
         os.close(fd)
 

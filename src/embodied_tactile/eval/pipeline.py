@@ -493,19 +493,25 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     baselines = list(opts.baselines) if opts.baselines is not None else list(
         BASELINES if kind == "run" else MULTIRUN_BASELINES)
     out = output_folder(target, runs, kind, opts, selection)
+    # a run in training: refused alone, skipped (and named) in a folder of runs; so is a run that
+    # did not finish there (interrupted, killed, failed): a folder's tables average finished runs
     states = {}
-    for r in list(runs):  # a run in training: refused alone, skipped (and named) in a folder of runs
+    for r in list(runs):
         try:
-            states[str(r.run_dir)] = run_state(r, bool(opts.allow_running))
+            states[str(r.run_dir)] = st = run_state(r, bool(opts.allow_running))
+            if kind != "run" and st["status"] not in ("finished", "training"):
+                raise EvaluationError(f"{r.run_dir} is {st['status']} ({st['reason']}): not finished, so not "
+                                      f"averaged with the others (python evaluate.py {r.run_dir} scores it alone)")
         except EvaluationError as err:
             if kind == "run":
                 raise
             runs.remove(r)
+            states.pop(str(r.run_dir), None)
             skipped.append((r.run_dir, str(err)))
             log.warning("skipping %s", err)
     if not runs:
-        raise EvaluationError(f"{target}: every run in it is being trained; wait for one to end, or "
-                              "allow_running=true evaluates them as they are now")
+        raise EvaluationError(f"{target}: no run in it is finished (every one is being trained, interrupted or "
+                              "failed); wait for one to end, or evaluate a run alone")
     for st in states.values():  # a run that is not finished says so first, with the checkpoint evaluated
         if st.get("line"):
             print(st["line"], flush=True)
