@@ -439,11 +439,15 @@ def _budget_lines(files: Sequence[Mapping], blob: Mapping) -> list[str]:
     if cfgs:
         budgets = sorted({(c.get("trainer", {}).get("max_epochs"), c.get("data", {}).get("batch_size"),
                            str(c.get("data", {}).get("actions")), c.get("data", {}).get("train_window"),
-                           c.get("data", {}).get("windows_per_trial"), c.get("data", {}).get("split"))
+                           c.get("data", {}).get("windows_per_trial"), c.get("data", {}).get("windows_per_epoch"),
+                           c.get("data", {}).get("split"))
                           for c in cfgs}, key=str)
-        for ep, bs, acts, win, wpt, split in budgets:
-            lines.append(f"- Budget: {ep} epochs, batch {bs}, action indices {acts}, {wpt} windows of {win} frames "
-                         f"per training trial and epoch, split `{split}`"
+        for ep, bs, acts, win, wpt, wpe, split in budgets:
+            sets = "all 16 parameter sets" if acts == "None" else f"action indices {acts}"
+            windows = (f"{wpt} windows of {win} frames per training trial and epoch" if wpt is not None
+                       else f"{wpe} windows of {win} frames per epoch" if wpe is not None
+                       else f"whole trials")
+            lines.append(f"- Budget: {ep} epochs, batch {bs}, {sets}, {windows}, split `{split}`"
                          + (" (every run)." if len(budgets) == 1 else "."))
     sizes = sorted({(r.get("n_train"), r.get("n_test")) for r in _latent_runs(blob["runs"])}, key=str)
     if sizes:

@@ -353,7 +353,7 @@ def verdict_tables(results: Sequence[Results], method: str = "latent_filter") ->
               "or there is no interval. detectable: the mean difference the design detects with 80 % power at the "
               "observed spread and n. Group comparisons use the group's NMSE with the run's total variance "
               "(Table 2's convention).")
-    findings = Table("findings", "The paper's findings (a)-(f), one row per claim, with their verdicts: contradicted "
+    findings = Table("findings", "The paper's findings (a)-(j), one row per claim, with their verdicts: contradicted "
                      "if any comparison is, reproduced if every measured one is, inconclusive otherwise; the "
                      "counts are the claim's comparisons (table 'comparisons'). " + n_note,
                      head + ["finding", "claim", "verdict", *VERDICTS], f_rows)
