@@ -29,10 +29,9 @@ The recipe, per run (docs/reference/evaluation.md):
    beside the baselines and, for a study, the paper's findings with a measured comparison.
 """
 
-import sys
-
+from embodied_tactile.cli import process_exit
 from embodied_tactile.eval.command import main
 from embodied_tactile.eval.pipeline import evaluate  # noqa: F401  in-process: evaluate(path, overrides)
 
 if __name__ == "__main__":
-    sys.exit(main())
+    process_exit(main())

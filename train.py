@@ -20,10 +20,8 @@ says why).
 
 from __future__ import annotations
 
-import sys
-
 import embodied_tactile.run.threadenv  # noqa: F401  OpenMP's spin count before torch loads it
-from embodied_tactile.cli import train_main  # = embodied-tactile train; the recipe: embodied_tactile.run.training
+from embodied_tactile.cli import process_exit, train_main  # = embodied-tactile train; the recipe: embodied_tactile.run.training
 
 if __name__ == "__main__":
-    sys.exit(train_main())
+    process_exit(train_main())

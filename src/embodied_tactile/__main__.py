@@ -72,5 +72,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return exit_status(exc)
 
 
+def console() -> None:
+    """The ``embodied-tactile`` script: :func:`main` on the command line, then the process's
+    end (:func:`embodied_tactile.cli.process_exit`: quick after a stop signal)."""
+    from embodied_tactile.cli import process_exit
+
+    process_exit(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

@@ -96,6 +96,31 @@ def train_main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+#: exit statuses of a stop signal (128 + SIGINT / SIGTERM)
+STOP_STATUSES = (130, 143)
+
+
+def process_exit(code: int) -> typing.NoReturn:
+    """The end of a command's process with ``code`` (train.py, evaluate.py, ``embodied-tactile``).
+    After a stop signal (:data:`STOP_STATUSES`) the exit handlers run (``atexit``: log files
+    flushed and closed, temporary folders removed), the standard streams are flushed and the
+    process ends without the interpreter's teardown of every module and object: 1.6 CPU s
+    with torch and Lightning loaded, tens of seconds on a loaded machine, and nothing of the
+    run is left to write by then (docs/experiments/stop_latency.md)."""
+    if code in STOP_STATUSES:
+        import atexit
+        import os
+
+        atexit._run_exitfuncs()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    sys.exit(code)
+
+
 def exit_status(exc: SystemExit) -> int:
     """The exit status of a ``SystemExit`` (a message as its code: printed, status 1, as Python does)."""
     if exc.code is None or isinstance(exc.code, int):
@@ -342,5 +367,5 @@ class EntryCallback(Callback):
             fail(err)
 
 
-__all__ = ["EntryCallback", "check_composes", "check_overrides", "check_typed_overrides", "exit_status", "hydra_command",
-           "train_main"]
+__all__ = ["EntryCallback", "STOP_STATUSES", "check_composes", "check_overrides", "check_typed_overrides", "exit_status",
+           "hydra_command", "process_exit", "train_main"]

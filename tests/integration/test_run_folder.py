@@ -810,6 +810,57 @@ def test_stop_saves_after_the_step_under_way_before_any_validation_or_check(tmp_
     assert torch.equal(ck["state_dict"]["lin.weight"], model.lin.weight.detach())
 
 
+def test_stop_at_an_epochs_end_after_the_stop_hook_skips_the_final_readout(tmp_path):
+    """Fault: SIGTERM while a later callback works at an epoch's end (a checkpoint save, after
+    the stop callback's own epoch-end hook). Before: Lightning's should_stop ended the fit
+    quietly and the final read-out ran (minutes of KRR on a real run) before the process
+    could exit. Now: the stop callback's on_train_end, first of the callbacks', saves
+    last.ckpt and ends the fit with StopRequested: no read-out."""
+    import lightning as L
+
+    from embodied_tactile.run.runfolder import StopRequested, StopSignals
+
+    class Tiny(L.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.lin = torch.nn.Linear(2, 1)
+
+        def training_step(self, batch, batch_idx):
+            return self.lin(batch[0]).pow(2).mean()
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    class Late(L.Callback):  # after StopSignals in the list: the signal comes after its epoch-end hook
+        def __init__(self) -> None:
+            self.calls: list[str] = []
+
+        def on_train_epoch_end(self, trainer, pl_module):
+            self.calls.append(f"epoch {trainer.current_epoch} end")
+            if trainer.current_epoch == 0:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+        def on_train_end(self, trainer, pl_module):
+            self.calls.append("final read-out")
+
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(8, 2)), batch_size=2)
+    old = {s: signal.getsignal(s) for s in StopSignals.SIGNALS}
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    stop, late = StopSignals(last_path=last).install(), Late()
+    trainer = L.Trainer(max_epochs=3, limit_train_batches=4, limit_val_batches=0, num_sanity_val_steps=0,
+                        callbacks=[stop, late], logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, accelerator="cpu")
+    try:
+        with pytest.raises(StopRequested, match="stopped by SIGTERM"):
+            trainer.fit(Tiny(), data)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    assert late.calls == ["epoch 0 end"]
+    assert stop.phase == "training" and stop.saved == str(last) and stop.step == 4
+    assert torch.load(last, map_location="cpu", weights_only=False)["global_step"] == 4
+
+
 def test_evaluation_refuses_a_split_with_a_trial_on_two_sides(tmp_path):
     """Fault: a run's split.json edited so that a test trial is also a training trial.
     Before: evaluated, its scores including a trial the alignment was fitted on. Now:

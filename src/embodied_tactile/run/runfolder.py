@@ -605,16 +605,26 @@ class StopSignals(_Callback):
         for sig in self.SIGNALS:
             signal.signal(sig, signal.SIG_DFL if sig == signal.SIGTERM else signal.default_int_handler)
 
+    def enter(self, phase: str) -> None:
+        """The run is in ``phase`` (:data:`PHASES`) from now on; its first entry is logged
+        (``phase: <name>``), so that the log says where a run was when it stopped."""
+        if phase != self._phase:
+            self._phase = phase
+            log.info("phase: %s", phase)
+
     def on_train_start(self, trainer, pl_module) -> None:
         self.install()  # over Lightning's SIGTERM handler (Lightning restores ours at teardown)
-        self._phase = "check before training"  # until the first step: a signal raises at once
+        self.enter("check before training")  # until the first step: a signal raises at once
         if self.received is not None:
             raise StopRequested(self.received)
 
     def on_train_end(self, trainer, pl_module) -> None:  # first of the callbacks: before the final read-out
         self._trainer = None
         self._ended = trainer
-        self._phase = "final read-out"
+        # a signal after the last hook of the steps that stops (during an epoch's end: the
+        # checkpoints' saves) ended the fit through should_stop: saved and stopped here, no read-out
+        self._stop_now(trainer)
+        self.enter("final read-out")
 
     def _stop_now(self, trainer) -> None:
         """After a signal: save ``last_path`` as the weights are now, and end the fit."""
@@ -626,7 +636,8 @@ class StopSignals(_Callback):
         raise StopRequested(self.received)
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
-        self._trainer, self._phase = trainer, "training"
+        self._trainer = trainer
+        self.enter("training")
         self._stop_now(trainer)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:  # after the optimiser step
@@ -686,7 +697,7 @@ def finish_fit(trainer, pl_module, callbacks: Sequence[Any], stop: StopSignals) 
     a stop signal raising :class:`StopRequested` at once while it runs."""
     if trainer.interrupted or stop.received is not None:
         return
-    stop._phase = "final read-out"
+    stop.enter("final read-out")
     for cb in callbacks:
         if hasattr(cb, "ensure_final"):
             cb.ensure_final(trainer, pl_module)
