@@ -33,9 +33,8 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
     ``sys.argv[1:]``) are its ``key=value`` overrides. With ``options`` (the dataclass the
     config composes), the overrides are checked before Hydra composes (:func:`check_overrides`)
     and the composed config after (:func:`~embodied_tactile.options.checks.check_options`).
-    A group option or key that does not exist is one line before Hydra runs
-    (:func:`check_composes`, as train's). A bad option or an exception of ``errors`` prints
-    ``<prog>: error: <message>`` and exits 2; ``--help`` / ``--cfg`` exit 0."""
+    A bad option or an exception of ``errors`` prints ``<prog>: error: <message>`` and exits
+    2; so does a config composition error (Hydra's own exit 1); ``--help`` / ``--cfg`` exit 0."""
     code: list[int | None] = [None]
 
     @hydra.main(version_base="1.3", config_path=config_dir(), config_name=config_name)
@@ -56,7 +55,6 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
         try:
             if options is not None:
                 check_overrides(options, sys.argv[1:], prog)
-            check_composes(sys.argv[1:], config_name, prog)  # a group option or key that does not exist
             app()
         except SystemExit as exc:
             if code[0] is None and exc.code not in (0, None):

@@ -50,14 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from embodied_tactile.cli import check_composes, exit_status
     from embodied_tactile.data.prepare import prepare_scene
     from embodied_tactile.data.rawformat import TrialFormatError
 
-    try:
-        check_composes(argv, "train", "prepare")  # train's check: one line for a group option or key that does not exist
-    except SystemExit as exc:
-        return exit_status(exc)
     try:
         scene = scene_from_train_config(argv)
         scene.raw_paths  # a recorded pattern matching nothing fails here, before anything is written
