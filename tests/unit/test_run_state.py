@@ -297,6 +297,7 @@ def test_ctrl_c_in_evaluate_exits_130_in_every_phase(evaluated_run, monkeypatch,
                           ("report", (report, "write_report"))):
         with monkeypatch.context() as patch:
             _interrupt_at(patch, *target)
+            patch.setattr(pipeline, "_reused", lambda out, key: None)  # scored afresh: its data are prepared
             capsys.readouterr()
             assert _evaluate(str(evaluated_run), *EVAL_FAST) == 130, phase
         err = capsys.readouterr().err.strip().splitlines()
