@@ -46,8 +46,10 @@ def test_results_page_names_missing_folders_and_reruns_the_header_command(docs, 
     before = page.read_text()
     opts, folders = pages.study_sources(page)  # the page's header names the module and flags (before 2026-11-27)
     assert folders == [Path(opts["evaluation"])] + ([Path(opts["objects"])] if opts["objects"] else []) and opts["notes"]
-    line = pages.results_page(docs)  # the study's evaluation folders are not on a test machine
-    assert "left as it is" in line and str(folders[0]) in line and page.read_text() == before
+    absent = before.replace(str(folders[0]), str(tmp_path / "absent"))  # hermetic: the study's folder may exist here
+    page.write_text(absent)
+    line = pages.results_page(docs)
+    assert "left as it is" in line and str(tmp_path / "absent") in line and page.read_text() == absent
 
     for f in (tmp_path / "trial", tmp_path / "object"):
         f.mkdir()
