@@ -21,6 +21,7 @@ from omegaconf import DictConfig
 
 from embodied_tactile.options.checks import check_options, field_spec
 from embodied_tactile.run.config import config_dir
+from embodied_tactile.run.overrides import check_composes, parse_overrides
 from embodied_tactile.run.settings import (EXIT_BAD_SETTINGS, SettingsError, check_paths, check_sweep_folder,
                                            check_train_config, config_value, fail)
 
@@ -33,8 +34,10 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
     ``sys.argv[1:]``) are its ``key=value`` overrides. With ``options`` (the dataclass the
     config composes), the overrides are checked before Hydra composes (:func:`check_overrides`)
     and the composed config after (:func:`~embodied_tactile.options.checks.check_options`).
-    A bad option or an exception of ``errors`` prints ``<prog>: error: <message>`` and exits
-    2; so does a config composition error (Hydra's own exit 1); ``--help`` / ``--cfg`` exit 0."""
+    A group option or key that does not exist is one line before Hydra runs
+    (:func:`~embodied_tactile.run.overrides.check_composes`, as train's). A bad option or an
+    exception of ``errors`` prints ``<prog>: error: <message>`` and exits 2; ``--help`` /
+    ``--cfg`` exit 0."""
     code: list[int | None] = [None]
 
     @hydra.main(version_base="1.3", config_path=config_dir(), config_name=config_name)
@@ -55,6 +58,7 @@ def hydra_command(config_name: str, run: Callable[[DictConfig], int], prog: str,
         try:
             if options is not None:
                 check_overrides(options, sys.argv[1:], prog)
+            check_composes(sys.argv[1:], config_name, prog)  # a group option or key that does not exist
             app()
         except SystemExit as exc:
             if code[0] is None and exc.code not in (0, None):
@@ -132,7 +136,7 @@ def check_overrides(options: type, args: Sequence[str], prog: str) -> None:
     checked before Hydra composes: a key the options do not declare, a value of the wrong type
     or out of its bounds prints one line naming the key and exits 2 (Hydra's own error is
     several lines). ``hydra.*`` keys are left to Hydra."""
-    for o in _parse_overrides(args):
+    for o in parse_overrides(args):
         key = o.key_or_group
         if key == "hydra" or key.startswith(("hydra.", "hydra/")) or o.is_delete():
             continue
@@ -144,16 +148,6 @@ def check_overrides(options: type, args: Sequence[str], prog: str) -> None:
                 check_options(options, node, "")
             except SettingsError as err:
                 fail(err, prog)
-
-
-def _parse_overrides(args: Sequence[str]) -> list:
-    """Hydra's parse of the ``key=value`` arguments ([] for a malformed one: Hydra names it itself)."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    try:
-        return OverridesParser.create().parse_overrides([a for a in args if not a.startswith("-")])
-    except Exception:
-        return []
 
 
 def _values(override: Any) -> list:
@@ -239,7 +233,7 @@ def check_typed_overrides(args: Sequence[str]) -> None:
     declare is left to Hydra. A scene's data group chosen without its scene (``data=pendulum``
     without ``experiment=pendulum``) is one line naming the scene."""
     nodes = _typed_nodes()
-    overrides = _parse_overrides(args)
+    overrides = parse_overrides(args)
     groups = {o.key_or_group: o.value() for o in overrides if not o.is_sweep_override()}
     for scene in SCENE_DATA:
         if groups.get("data") == scene and groups.get("experiment") != scene:
@@ -251,70 +245,6 @@ def check_typed_overrides(args: Sequence[str]) -> None:
             continue
         for value in _values(o):
             _typed_value(nodes[root], rest, o.key_or_group, value, "train.py")
-
-
-#: command-line flags after which Hydra does not compose the command's config as given (help,
-#: another config file or folder, shell completion): :func:`check_composes` leaves them to Hydra
-_OWN_FLAGS = ("-h", "--help", "--hydra-help", "-c", "--cfg", "-i", "--info", "-cp", "--config-path", "-cn",
-              "--config-name", "-cd", "--config-dir", "-sc", "--shell-completion", "--experimental-rerun")
-
-
-def check_composes(args: Sequence[str], config_name: str = "train", prog: str = "train.py") -> None:
-    """The command line's overrides composed as Hydra will compose them, before Hydra runs:
-    a group option that does not exist (``modality=mutli_l``) or a key the config does not
-    hold (``trainer.max_epoch=3``) prints one line naming it and what exists, exit 2
-    (Hydra's own report is several lines and exit 1). A sweep (``-m a=x,y``) is composed
-    with each override's first value; every value of a swept group is checked to exist."""
-    import os
-
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException, MissingConfigException
-    from omegaconf.errors import OmegaConfBaseException
-
-    if any(a.split("=", 1)[0] in _OWN_FLAGS for a in args):
-        return
-    overrides = _parse_overrides(args)
-    if not overrides and any(not a.startswith("-") for a in args):
-        return  # a malformed override: Hydra names it itself
-    first = []
-    for o in overrides:
-        if not o.is_sweep_override():
-            first.append(o.input_line)
-            continue
-        try:
-            values = list(o.sweep_string_iterator())
-        except Exception:  # noqa: BLE001 -- an interval sweep (a sweeper's): its values are the sweeper's
-            return
-        group = Path(config_dir()) / o.key_or_group.replace(".", "/")
-        names = sorted(q.stem for q in group.glob("*.yaml"))
-        for v in values:
-            if names and not o.key_or_group.startswith("hydra") and str(v) not in names:
-                fail(SettingsError(f"{o.key_or_group}={v}: no such option (configs/{o.key_or_group}/ holds "
-                                   f"{', '.join(names)})"), prog)
-        first.append(f"{o.get_key_element()}={values[0]}")
-    if GlobalHydra.instance().is_initialized():
-        return  # inside another Hydra app (a test): the app's own composition reports
-    try:
-        with initialize_config_dir(config_dir=os.path.abspath(config_dir()), version_base="1.3"):
-            compose(config_name=config_name, overrides=first, return_hydra_config=True)
-    except MissingConfigException as err:
-        missing = str(err).split("Could not find '", 1)[-1].split("'", 1)[0]
-        group, _, value = missing.rpartition("/")
-        options = ", ".join(getattr(err, "options", None) or [])
-        fail(SettingsError(f"{group.replace('/', '.')}={value}: no such option"
-                           + (f" (configs/{group}/ holds {options})" if options else "")), prog)
-    except (HydraException, OmegaConfBaseException) as err:
-        lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
-        cause = str(err.__cause__).splitlines()[0] if err.__cause__ is not None and str(err.__cause__) else ""
-        if lines and lines[0].startswith("Could not override '"):
-            key = lines[0].split("'")[1]
-            value = next((str(o.value()) for o in overrides if o.key_or_group == key), "")
-            fail(SettingsError(f"{key}={value}: no such key in the config ({cause or lines[0]}); a new key is added "
-                               f"with +{key}=..."), prog)
-        fail(SettingsError("; ".join(lines + ([cause] if cause else []))), prog)
-    finally:
-        GlobalHydra.instance().clear()
 
 
 class EntryCallback(Callback):
@@ -365,5 +295,5 @@ class EntryCallback(Callback):
             fail(err)
 
 
-__all__ = ["EntryCallback", "STOP_STATUSES", "check_composes", "check_overrides", "check_typed_overrides", "exit_status",
+__all__ = ["EntryCallback", "STOP_STATUSES", "check_overrides", "check_typed_overrides", "exit_status",
            "hydra_command", "process_exit", "train_main"]

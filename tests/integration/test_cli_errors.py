@@ -283,3 +283,28 @@ def test_hydra_command_exit_statuses(tmp_path, monkeypatch, capsys):
     assert status("no_such_key=1") == 2
     assert status("--cfg", "job") == 0 and status("--help") == 0
     assert seen == ["loop://", "bad"]
+
+
+@pytest.mark.parametrize("command", ["record", "palpate", "prepare"])
+@pytest.mark.parametrize("override, needles", [
+    ("modality=mutli_l", ("modality=mutli_l: no such",)),
+    ("trainer.max_epoch=3", ("trainer.max_epoch=3: no such key", "+trainer.max_epoch=")),
+])
+def test_every_hydra_entry_refuses_a_mistyped_option_or_key_in_one_line(tmp_path, monkeypatch, capsys,
+                                                                         restore_logging, command, override, needles):
+    """Fault: a mistyped group option or key given to a Hydra command other than train
+    (``embodied-tactile record|palpate|prepare``). Before: Hydra's several-line report (record,
+    palpate) or its first line alone (prepare: "Could not override 'trainer.max_epoch'."). Now:
+    train's check (run.overrides.check_composes) before Hydra runs: one line ``<command>: error: ...``
+    naming the override, exit 2, nothing written in the working folder."""
+    from embodied_tactile.__main__ import main
+
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    assert main([command, override]) == 2
+    out = capsys.readouterr()
+    err = out.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"{command}: error: "), err
+    for n in needles:
+        assert n in err[0], (n, err)
+    assert "Traceback" not in out.out + out.err and list(tmp_path.iterdir()) == []

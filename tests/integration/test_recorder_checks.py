@@ -65,19 +65,20 @@ def test_board_rate_other_than_declared_stops_in_the_first_second(tmp_path):
     assert attrs["complete"] is False and attrs["stop_reason"] == "rate_mismatch"
 
 
-def test_second_recorder_on_a_running_port_is_refused(tmp_path, trial3s):
+def test_second_recorder_on_a_running_port_is_refused(tmp_path):
     """Fault: a second recorder started on the port of a running one. Before: the first trial
     was cut (stop_reason=unplugged, exit 3) and the second ran. Now: the second exits 2
     without touching the line; the first completes with every packet."""
-    emu = Emulator(trial3s)
+    trial = synthetic_trial(8.0, seed=1)  # the first records while the second starts, even on a loaded machine
+    emu = Emulator(trial)
     port = emu.start()
     first_dir, second_dir = tmp_path / "first", tmp_path / "second"
     first_dir.mkdir()
     second_dir.mkdir()
     try:
-        # 2.5 s of the 3 s trial: a 3 s recording takes 2,100 or 2,101 packets by the clock's phase, and
-        # the 2,101st is the looped trial's first frame, which the genuineness check reads as out of order
-        first = _cli(first_dir, port, "duration_s=2.5")
+        # 7.5 s of the 8 s trial: an 8 s recording takes 5,600 or 5,601 packets by the clock's phase, and
+        # the 5,601st is the looped trial's first frame, which the genuineness check reads as out of order
+        first = _cli(first_dir, port, "duration_s=7.5")
         _wait_line(first, "trial started")
         requests = emu.stats.requests
         second = _cli(second_dir, port, "duration_s=3")
@@ -92,7 +93,7 @@ def test_second_recorder_on_a_running_port_is_refused(tmp_path, trial3s):
     assert "complete" in out1 and "lost 0, garbage 0" in out1
     rec = _read_cli(first_dir)
     assert rec.attrs["complete"] is True and emu.stats.requests > requests
-    _check_genuine(trial3s, rec)
+    _check_genuine(trial, rec)
 
 
 def test_output_folder_vanishing_during_a_trial_exits_3_with_one_line(tmp_path, trial3s, monkeypatch, capsys,

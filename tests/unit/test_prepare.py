@@ -67,7 +67,7 @@ def test_cli_simulates_missing_trials_and_reports_skipped_ones(tiny_data_dir, tm
 
 
 @pytest.mark.slow  # prepare CLI subprocess
-@pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])
+@pytest.mark.parametrize("override, needle", [("skin=bogus", "skin=bogus: no such option"), ("data=recorded", "raw_files")])
 def test_cli_bad_setting_is_one_line_exit_2(tmp_path, override, needle):
     res = _prepare_cli(tmp_path, tmp_path / "data", override)
     assert res.returncode == 2, (res.stdout[-2000:], res.stderr[-2000:])
@@ -160,7 +160,7 @@ def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp
     assert prepare.main(["--help"]) == 0 and "embodied-tactile prepare" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("override, needle", [("skin=bogus", "skin/bogus"), ("data=recorded", "raw_files")])
+@pytest.mark.parametrize("override, needle", [("skin=bogus", "skin=bogus: no such option"), ("data=recorded", "raw_files")])
 def test_main_in_process_bad_setting_is_one_line_exit_2(tmp_path, capsys, override, needle):
     from embodied_tactile.run import prepare_cli as prepare
 

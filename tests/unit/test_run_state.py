@@ -237,7 +237,7 @@ def test_threads_below_one_is_a_bad_setting(threads):
 def test_hydra_composition_errors_are_one_line_exit_2(args, needles, capsys):
     """Fault: a mistyped group option or key. Before: Hydra's several-line report and exit 1.
     Now: train.py's entry check prints one line, exit 2, before Hydra makes a folder."""
-    from embodied_tactile.cli import check_composes
+    from embodied_tactile.run.overrides import check_composes
 
     with pytest.raises(SystemExit) as info:
         check_composes(args)

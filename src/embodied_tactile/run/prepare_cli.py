@@ -52,7 +52,12 @@ def main(argv: list[str] | None = None) -> int:
 
     from embodied_tactile.data.prepare import prepare_scene
     from embodied_tactile.data.rawformat import TrialFormatError
+    from embodied_tactile.run.overrides import check_composes
 
+    try:
+        check_composes(argv, "train", "prepare")  # train's check: one line for a group option or key that does not exist
+    except SystemExit as exc:
+        return int(exc.code)
     try:
         scene = scene_from_train_config(argv)
         scene.raw_paths  # a recorded pattern matching nothing fails here, before anything is written
