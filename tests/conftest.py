@@ -86,6 +86,25 @@ def fast_data_dir(tiny_data_dir, tmp_path_factory) -> Path:
     return d
 
 
+@pytest.fixture(scope="session")
+def train_py_run(fast_data_dir, tmp_path_factory):
+    """``python train.py debug=fast trainer.max_epochs=2 hydra.run.dir=run`` on the tiny scene,
+    started in a folder of its own in a fresh interpreter, as a user starts it (the session's
+    one train.py subprocess of the default recipe; the other runs use train.py's entry point in
+    this process): (run folder ``<folder>/run``, ``subprocess.CompletedProcess`` with its
+    output). Tests only read it."""
+    import subprocess
+    import sys
+
+    folder = tmp_path_factory.mktemp("train_py")
+    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
+    res = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "trainer.max_epochs=2",
+                          f"paths.data_dir={fast_data_dir}", "hydra.run.dir=run"], cwd=folder, env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, f"train.py failed ({res.returncode}):\n{res.stdout[-3000:]}\n{res.stderr[-5000:]}"
+    return folder / "run", res
+
+
 @pytest.fixture()
 def restore_logging():
     """For a test that runs a Hydra app in this process (record / palpate main): Hydra's job
@@ -102,6 +121,70 @@ def restore_logging():
     root.handlers[:] = handlers
     root.setLevel(levels[0])
     pkg.setLevel(levels[1])
+
+
+def train_in_process(*args: str, cwd: Path | None = None):
+    """``python train.py <args>`` run by train.py's entry point (``cli.train_main``) in this
+    process: a ``subprocess.CompletedProcess`` with its exit status and what it printed
+    (Python's stdout / stderr: Hydra's console log, prints and warnings). A fresh interpreter
+    costs seconds of imports per run; what a run changes in the process is put back
+    afterwards: the working folder, environment, torch threads, SIGINT / SIGTERM handlers,
+    every logger's handlers and level (Hydra's job logging), warning filters and Hydra's
+    global state; and what the end of train.py's process would end: the run folders' locks
+    it took (held "for the rest of the process", run.runfolder.lock) and the files its
+    objects left open (a garbage collection)."""
+    import contextlib
+    import gc
+    import io
+    import logging
+    import signal
+    import subprocess
+    import warnings
+
+    import torch
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+
+    from embodied_tactile.cli import train_main
+    from embodied_tactile.run import runfolder
+
+    loggers = [logging.getLogger(), *(lg for lg in logging.root.manager.loggerDict.values()
+                                      if isinstance(lg, logging.Logger))]
+    logs = {lg: (lg.handlers[:], lg.level, lg.propagate, lg.disabled) for lg in loggers}
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    env, threads, here, filters = dict(os.environ), torch.get_num_threads(), os.getcwd(), warnings.filters[:]
+    held, created = set(runfolder._held), set(runfolder._created)
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        if cwd is not None:
+            os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = train_main(list(args))
+    finally:
+        os.chdir(here)
+        os.environ.clear()
+        os.environ.update(env)
+        torch.set_num_threads(threads)
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        for lg in [logging.getLogger(), *logging.root.manager.loggerDict.values()]:
+            if not isinstance(lg, logging.Logger):
+                continue
+            kept, level, propagate, disabled = logs.get(lg, ([], logging.NOTSET, True, False))
+            for h in lg.handlers:
+                if h not in kept:
+                    h.close()
+            lg.handlers[:] = kept
+            lg.setLevel(level)
+            lg.propagate, lg.disabled = propagate, disabled
+        warnings.filters[:] = filters
+        HydraConfig.instance().cfg = None
+        GlobalHydra.instance().clear()
+        for run_dir in set(runfolder._held) - held:
+            runfolder.release(run_dir)
+        runfolder._created.intersection_update(created)
+        gc.collect()
+    return subprocess.CompletedProcess(["train.py", *args], code, out.getvalue(), err.getvalue())
 
 
 def stable_seed(text: str, modulo: int = 1000) -> int:

@@ -14,21 +14,10 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO
-
-ENV = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
-
-
-def train(tmp_path: Path, *overrides: str, timeout: int = 240) -> subprocess.CompletedProcess:
-    flags = [o for o in overrides if o.startswith("-")]
-    cmd = [sys.executable, str(REPO / "train.py"), *flags, "debug=fast", f"paths.log_dir={tmp_path / 'logs'}",
-           *[o for o in overrides if not o.startswith("-")]]
-    return subprocess.run(cmd, cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=timeout)
-
 
 def train_here(tmp_path: Path, capsys, *overrides: str) -> subprocess.CompletedProcess:
-    """train.py's entry point (cli.train_main) in this process, as :func:`train` runs it:
-    its exit status and what it printed."""
+    """``train.py debug=fast paths.log_dir=<tmp_path>/logs <overrides>`` by train.py's entry
+    point (cli.train_main) in this process: its exit status and what it printed."""
     from embodied_tactile.cli import train_main
 
     flags = [o for o in overrides if o.startswith("-")]
@@ -127,10 +116,9 @@ def test_swept_bad_value_fails_its_job_and_the_sweep_says_so(tmp_path, capsys, r
     assert not (sweep / "seed=x" / "config_resolved.yaml").exists()
 
 
-@pytest.mark.slow  # train.py subprocess
-def test_failed_run_is_marked_failed(tmp_path):
-    res = train(tmp_path, f"paths.data_dir={tmp_path / 'data'}", "data=recorded",
-                f"data.raw_files=[{tmp_path / 'missing.h5'}]")
+def test_failed_run_is_marked_failed(tmp_path, capsys, restore_logging):
+    res = train_here(tmp_path, capsys, f"paths.data_dir={tmp_path / 'data'}", "data=recorded",
+                     f"data.raw_files=[{tmp_path / 'missing.h5'}]")
     assert res.returncode != 0
     (run,) = (tmp_path / "logs" / "train" / "runs").iterdir()
     m = json.loads((run / "metrics.json").read_text())
@@ -213,24 +201,43 @@ def test_known_third_party_warnings_are_silenced_project_warnings_kept():
                                               "some other torch deprecation"]
 
 
-@pytest.mark.slow  # numba compiles UMAP once per process (as test_eval's UMAP test)
-def test_real_umap_and_pytree_warnings_are_silenced():
-    """The filters match the libraries' real messages (not copies that could drift)."""
+@pytest.mark.slow  # importing umap loads (on a cold cache: compiles) its numba functions, ~30 s
+def test_real_umap_and_pytree_warnings_are_silenced(monkeypatch):
+    """The filters match the libraries' real messages (not copies that could drift). UMAP's
+    fit warns while it checks its parameters; it stops at its next stage (the fuzzy simplicial
+    set), whose numba compilation a real fit spends seconds on."""
     import numpy as np
+    import umap
+    import umap.umap_
 
     from embodied_tactile.run.quiet import silence_third_party
 
+    class Checked(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Checked
+
+    monkeypatch.setattr(umap.umap_, "fuzzy_simplicial_set", stop)
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
         silence_third_party()
         from lightning.pytorch.utilities._pytree import _tree_flatten
 
         _tree_flatten(1.0)  # builds torch's deprecated LeafSpec inside Lightning
-        import umap
-
-        umap.UMAP(n_components=2, n_neighbors=3, random_state=0, n_jobs=-1).fit(np.random.default_rng(0).normal(size=(12, 3)))
+        with pytest.raises(Checked):
+            umap.UMAP(n_components=2, n_neighbors=3, random_state=0, n_jobs=-1).fit(
+                np.random.default_rng(0).normal(size=(12, 3)))
     msgs = [str(w.message) for w in seen]
     assert not [m for m in msgs if "LeafSpec" in m or "n_jobs" in m], msgs
+    with warnings.catch_warnings(record=True) as unfiltered:  # the same calls warn without the filters
+        warnings.simplefilter("always")
+        _tree_flatten(1.0)
+        with pytest.raises(Checked):
+            umap.UMAP(n_components=2, n_neighbors=3, random_state=0, n_jobs=-1).fit(
+                np.random.default_rng(0).normal(size=(12, 3)))
+    msgs = [str(w.message) for w in unfiltered]
+    assert [m for m in msgs if "LeafSpec" in m] and [m for m in msgs if "n_jobs" in m], msgs
 
 
 def test_litlogger_tip_dropped_other_lightning_info_kept(caplog):
@@ -246,9 +253,9 @@ def test_litlogger_tip_dropped_other_lightning_info_kept(caplog):
     assert "litlogger" not in text and "GPU available" in text
 
 
-@pytest.mark.slow  # train.py subprocess
-def test_default_train_run_prints_none_of_the_known_messages(tmp_path, fast_data_dir):
-    res = train(tmp_path, f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={tmp_path / 'run'}")
+@pytest.mark.slow  # train_py_run: the session's train.py subprocess
+def test_default_train_run_prints_none_of_the_known_messages(train_py_run):
+    res = train_py_run[1]
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
     for noise in ("litlogger", "LeafSpec", "litmodels"):

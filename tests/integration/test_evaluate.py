@@ -1,6 +1,7 @@
-"""evaluate.py end to end on tiny trained runs (debug=fast): one run trained with a
-non-default modality (fsr_tb) from another working directory with a relative data_dir, and
-a two-job multirun (acc, fsr_t) sharing the data folder."""
+"""evaluate.py end to end on tiny trained runs (debug=fast, trained by train.py's entry point
+in this process): one run trained with a non-default modality (fsr_tb) from another working
+directory with a relative data_dir, and a two-job multirun (acc, fsr_t) sharing the data
+folder; evaluate.py itself runs once as a subprocess, as a user starts it."""
 
 from __future__ import annotations
 
@@ -22,16 +23,17 @@ import evaluate as cli  # noqa: E402  (the script: main())
 from embodied_tactile.eval import pipeline as ev  # noqa: E402
 from embodied_tactile.eval import runs  # noqa: E402
 
-# every test uses `trained`: train.py subprocesses (a run and a two-job multirun)
+# every test uses `trained`: three trainings (a run and a two-job multirun)
 pytestmark = pytest.mark.slow
 
 FAST = ["print_tables=false", "alignment.cv=2"]
 
 
 def _train(args, cwd, log):
-    env = dict(os.environ, WANDB_MODE="disabled", PYTHONUNBUFFERED="1")
-    p = subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=cwd, env=env,
-                       capture_output=True, text=True, timeout=240)
+    """``python train.py <args>`` started in ``cwd``, by its entry point in this process."""
+    from conftest import train_in_process
+
+    p = train_in_process(*args, cwd=cwd)
     log.write_text(p.stdout + p.stderr)
     assert p.returncode == 0, p.stderr[-3000:]
 

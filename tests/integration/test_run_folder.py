@@ -27,7 +27,7 @@ def _digests(run: Path, names=("metrics.json", "config_resolved.yaml", ".hydra/c
 
 @pytest.fixture(scope="module")
 def finished_run(fast_data_dir, tmp_path_factory) -> Path:
-    """A finished acc run of one epoch (the cheapest train.py run)."""
+    """A finished acc run of one epoch (the cheapest train.py run, in this process)."""
     run = tmp_path_factory.mktemp("owned") / "r"
     run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
               "callbacks.krr_alignment=null")
@@ -67,7 +67,7 @@ def test_check_resume_refuses_other_settings_before_writing(tmp_path):
         check_resume(OmegaConf.merge(cfg, {"resume": False}), run)
 
 
-@pytest.mark.slow  # finished_run: a train.py subprocess
+@pytest.mark.slow  # finished_run: a training by train.py's entry point
 def test_refused_restart_with_other_modality_keeps_the_finished_run(finished_run, fast_data_dir):
     """Fault: a finished run folder re-run with another modality, actions and seed. Before:
     state_dict mismatch, exit 1, metrics.json rewritten "failed", config_resolved.yaml
@@ -75,7 +75,7 @@ def test_refused_restart_with_other_modality_keeps_the_finished_run(finished_run
     before = _digests(finished_run)
     ckpts = {p.name: p.read_bytes() for p in (finished_run / "checkpoints").iterdir()}
     res = run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={finished_run}", "modality=fsr_t", "seed=3",
-                    "data.actions=[0,10]", "threads=1", check=False, timeout=120)
+                    "data.actions=[0,10]", "threads=1", check=False)
     assert res.returncode == 2, res.stderr[-2000:]
     err = res.stderr.strip().splitlines()[-1]
     assert err.startswith("train.py: error: run folder") and str(finished_run) in err
@@ -87,11 +87,11 @@ def test_refused_restart_with_other_modality_keeps_the_finished_run(finished_run
     assert json.loads((finished_run / "metrics.json").read_text())["status"] == "finished"
 
 
-@pytest.mark.slow  # finished_run: a train.py subprocess
+@pytest.mark.slow  # finished_run: a training by train.py's entry point
 def test_bad_setting_in_a_finished_run_folder_keeps_its_metrics(finished_run, fast_data_dir):
     before = _digests(finished_run)
     res = run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={finished_run}", "modality=acc", "data.batch_size=0",
-                    check=False, timeout=120)
+                    check=False)
     assert res.returncode == 2 and "data.batch_size=0" in res.stderr
     assert _digests(finished_run) == before
 
@@ -146,7 +146,7 @@ def test_lock_refuses_a_second_holder_and_frees_on_exit(tmp_path):
     runfolder.release(run)
 
 
-@pytest.mark.slow  # finished_run: a train.py subprocess
+@pytest.mark.slow  # finished_run: a training by train.py's entry point
 def test_second_training_in_a_running_folder_is_refused(finished_run, fast_data_dir):
     """Fault: two trainings in one run folder at once. Before: both exit 0, every step twice
     in the CSV, best-epoch003.ckpt beside best-epoch003-v1.ckpt. Now: the second exits 2
@@ -156,7 +156,7 @@ def test_second_training_in_a_running_folder_is_refused(finished_run, fast_data_
     holder = _hold_lock(finished_run)
     try:
         res = run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={finished_run}", "modality=acc",
-                        "trainer.max_epochs=3", check=False, timeout=120)
+                        "trainer.max_epochs=3", check=False)
     finally:
         holder.kill()
         holder.wait()
@@ -210,7 +210,7 @@ def _start_and_wait_for_epoch(overrides: tuple[str, ...], last: Path, epoch: int
     pytest.fail(f"no checkpoint of epoch >= {epoch} appeared")
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # a train.py subprocess stopped by the signal
 @pytest.mark.parametrize("sig,code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_stop_signal_saves_last_checkpoint_and_exits_nonzero(fast_data_dir, tmp_path, sig, code):
     """Fault: SIGTERM (a cluster's pre-emption) or SIGINT during training. Before: exit 0,
@@ -265,7 +265,7 @@ def _file_size_limit(limit: int):
     return pre
 
 
-@pytest.mark.slow  # finished_run: a train.py subprocess
+@pytest.mark.slow  # finished_run, and a train.py subprocess under a file size limit
 def test_full_disk_leaves_previous_checkpoints_and_one_line(finished_run, fast_data_dir, tmp_path):
     """Fault: the disk fills while a checkpoint is written. Before: OSError traceback and a
     truncated best-epoch001.ckpt that evaluation and resume then picked. Now: exit 74, one
@@ -290,7 +290,7 @@ def test_full_disk_leaves_previous_checkpoints_and_one_line(finished_run, fast_d
     assert find_checkpoint(run, "best").read_bytes() in before.values()
 
 
-@pytest.mark.slow  # finished_run: a train.py subprocess
+@pytest.mark.slow  # finished_run: a training by train.py's entry point
 def test_evaluation_skips_a_truncated_checkpoint(finished_run, tmp_path, caplog):
     import shutil
 
@@ -331,7 +331,7 @@ def evaluate_cli():
 EVAL_FAST = ["baselines=[mean]", "figures=false", "umap=false", "alignment.cv=2", "print_tables=false"]
 
 
-@pytest.mark.slow  # finished_run: a train.py subprocess
+@pytest.mark.slow  # finished_run: a training by train.py's entry point
 def test_copied_run_folder_never_reads_the_original_checkpoints(finished_run, tmp_path, evaluate_cli, capsys):
     """Fault: a copy of a run folder whose checkpoints were deleted. Before: exit 0, "same
     weights", the original's checkpoint read through metrics.json's absolute path. Now: the
@@ -351,7 +351,7 @@ def test_copied_run_folder_never_reads_the_original_checkpoints(finished_run, tm
     assert not (copy / "evaluation").exists()
 
 
-@pytest.mark.slow  # finished_run: a train.py subprocess
+@pytest.mark.slow  # finished_run: a training by train.py's entry point
 def test_unreadable_split_and_checkpoints_are_one_line_errors(finished_run, tmp_path, evaluate_cli, capsys):
     """Faults: split.json that is not JSON; a truncated checkpoint given by path; a
     checkpoint of another model. Before: tracebacks. Now: exit 2, one line naming the file."""
@@ -380,7 +380,7 @@ def test_unreadable_split_and_checkpoints_are_one_line_errors(finished_run, tmp_
     assert err.count("\n") == 1 and str(other) in err
 
 
-@pytest.mark.slow
+@pytest.mark.slow  # trainings by train.py's entry point
 def test_changed_raw_data_is_refused_or_named_at_evaluation(fast_data_dir, tmp_path, evaluate_cli, capsys):
     """Fault: the raw data changed after training. Before: exit 0, "same weights, settings
     and sequences". Now: exit 2 naming the raw file and field; a resume on them exit 2 too;
@@ -406,7 +406,7 @@ def test_changed_raw_data_is_refused_or_named_at_evaluation(fast_data_dir, tmp_p
     # a resume on the changed data is refused too, the run's files as they were
     before = _digests(run, ("metrics.json", "config_resolved.yaml", "provenance.json"))
     res = run_train(f"paths.data_dir={data}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
-                    "trainer.max_epochs=2", check=False, timeout=240)
+                    "trainer.max_epochs=2", check=False)
     assert res.returncode == 2, res.stderr[-2000:]
     last = res.stderr.strip().splitlines()[-1]  # named per trial of the run, with its raw file
     assert last.startswith(f"train.py: error: run folder {run} was trained on other data: trial obj") and str(raw) in last
@@ -505,7 +505,7 @@ def test_claim_of_a_finished_run_says_finished_refuses_fewer_epochs_and_continue
     runfolder.release(interrupted)
 
 
-@pytest.mark.slow  # finished_run: train.py subprocesses
+@pytest.mark.slow  # finished_run and trainings by train.py's entry point
 def test_same_command_on_a_finished_run_rewrites_nothing(finished_run, fast_data_dir, tmp_path):
     """The same command on a finished run: one line saying so, exit 0, every file of the
     folder bit for bit (.hydra/, train.log and .lock included). Fewer epochs: exit 2, one
@@ -517,14 +517,14 @@ def test_same_command_on_a_finished_run_rewrites_nothing(finished_run, fast_data
     args = (f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={run}", "modality=acc", "threads=1",
             "callbacks.krr_alignment=null")
     before = _every_file(run)
-    res = run_train(*args, timeout=120)
+    res = run_train(*args)
     assert res.stdout.strip().splitlines()[-1].startswith(f"train.py: run folder {run} is finished (1 epoch(s)")
     assert _every_file(run) == before
-    res = run_train(*args, "trainer.max_epochs=0", check=False, timeout=120)
+    res = run_train(*args, "trainer.max_epochs=0", check=False)
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr[-2000:]
     assert res.stderr.startswith(f"train.py: error: run folder {run} holds a run trained for 1 epoch(s)")
     assert _every_file(run) == before
-    run_train(*args, "trainer.max_epochs=2", timeout=240)
+    run_train(*args, "trainer.max_epochs=2")
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["status"] == "finished" and metrics["resumed_from"] == "checkpoints/last.ckpt"
     assert int(torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["epoch"]) == 1
@@ -633,7 +633,7 @@ def test_checkpoint_states_of_a_moved_folder_point_into_it():
         "last_model_path": "", "other": "/old/run/checkpoints-not/x"}
 
 
-@pytest.mark.slow  # finished_run: train.py subprocesses and an evaluation
+@pytest.mark.slow  # finished_run, a training by train.py's entry point and an evaluation
 def test_moved_run_folder_resumes_and_evaluates_as_the_original(finished_run, fast_data_dir, tmp_path, evaluate_cli,
                                                                  capsys):
     """Fault: a run folder moved, then resumed and evaluated. Before: metrics.json named the
@@ -650,7 +650,7 @@ def test_moved_run_folder_resumes_and_evaluates_as_the_original(finished_run, fa
     moved.parent.mkdir()
     shutil.move(first, moved)
     res = run_train(f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={moved}", "modality=acc", "threads=1",
-                    "callbacks.krr_alignment=null", "trainer.max_epochs=2", timeout=240)
+                    "callbacks.krr_alignment=null", "trainer.max_epochs=2")
     assert "dirpath has changed" not in res.stdout + res.stderr
     metrics = json.loads((moved / "metrics.json").read_text())
     assert metrics["status"] == "finished" and metrics["resumed_from"] == "checkpoints/last.ckpt"
@@ -709,7 +709,7 @@ def test_evaluation_output_is_owned_and_published_whole(tmp_path):
     assert [p.name for p in mine.iterdir()] == ["notes.txt"]
 
 
-@pytest.mark.slow  # finished_run: a train.py subprocess, then evaluations
+@pytest.mark.slow  # finished_run: a training by train.py's entry point, then evaluations
 def test_evaluation_knows_the_runs_state(finished_run, tmp_path, evaluate_cli, capsys):
     """Faults: evaluating a run while its training holds the folder; evaluating an
     interrupted run. Before: both exit 0 and read like a finished run's numbers. Now: the

@@ -1,5 +1,7 @@
 """train.py end to end: run folder, resume after SIGKILL, multirun, DDP, the ablation grid,
-and the non-finite-loss guard. Each run is a subprocess on the tiny debug scene."""
+and the non-finite-loss guard, on the tiny debug scene. train.py's entry point runs in this
+process (conftest.train_in_process) unless a test needs a process of its own (killed, DDP,
+the joblib launcher); ``one_run`` is the train.py subprocess the other runs are checked against."""
 
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO
+from conftest import REPO, train_in_process
 
 ENV = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
 
@@ -26,9 +28,18 @@ def train_cmd(*overrides: str) -> list[str]:
     return [sys.executable, str(REPO / "train.py"), *flags, "debug=fast", *[o for o in overrides if not o.startswith("-")]]
 
 
-def run_train(*overrides: str, timeout: int = 300, check: bool = True) -> subprocess.CompletedProcess:
-    res = subprocess.run(train_cmd(*overrides), cwd=REPO, env=ENV, capture_output=True, text=True, timeout=timeout)
+def run_train(*overrides: str, check: bool = True) -> subprocess.CompletedProcess:
+    """``train.py debug=fast <overrides>`` in this process: its exit status and output."""
+    res = train_in_process(*train_cmd(*overrides)[2:])
     if check and res.returncode != 0:
+        raise AssertionError(f"train.py failed ({res.returncode}):\n{res.stdout[-3000:]}\n{res.stderr[-5000:]}")
+    return res
+
+
+def run_train_subprocess(*overrides: str, timeout: int = 300) -> subprocess.CompletedProcess:
+    """``train.py debug=fast <overrides>`` in a fresh interpreter; a failure raises."""
+    res = subprocess.run(train_cmd(*overrides), cwd=REPO, env=ENV, capture_output=True, text=True, timeout=timeout)
+    if res.returncode != 0:
         raise AssertionError(f"train.py failed ({res.returncode}):\n{res.stdout[-3000:]}\n{res.stderr[-5000:]}")
     return res
 
@@ -39,10 +50,9 @@ def data_dir(fast_data_dir) -> Path:
 
 
 @pytest.fixture(scope="module")
-def one_run(data_dir, tmp_path_factory) -> Path:
-    run = tmp_path_factory.mktemp("run") / "r"
-    run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "trainer.max_epochs=2")
-    return run
+def one_run(train_py_run) -> Path:
+    """The session's train.py subprocess run (debug=fast, 2 epochs; conftest.train_py_run)."""
+    return train_py_run[0]
 
 
 @pytest.mark.slow  # one_run: a train.py subprocess
@@ -89,7 +99,8 @@ def test_checkpoint_round_trip(one_run):
 @pytest.mark.slow  # one_run: a train.py subprocess
 def test_same_seed_same_weights_and_alignment(one_run, data_dir, tmp_path):
     """A run repeated with the same seed on the same data trains the same weights and scores
-    the same held-out NMSE: two runs of one command differ only where the code changed."""
+    the same held-out NMSE: two runs of one command differ only where the code changed (here
+    the train.py subprocess and the same command in this process)."""
     again = tmp_path / "again"
     run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={again}", "trainer.max_epochs=2")
     a = torch.load(one_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["state_dict"]
@@ -105,7 +116,7 @@ def _ckpt_epoch(path: Path) -> int:
     return int(torch.load(path, map_location="cpu", weights_only=False)["epoch"])
 
 
-@pytest.mark.slow  # trains with train.py in a subprocess
+@pytest.mark.slow  # trains with train.py in a subprocess (killed), then resumes in this process
 def test_resume_after_sigkill(data_dir, tmp_path):
     run = tmp_path / "run"
     overrides = (f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "trainer.max_epochs=40", "callbacks.krr_alignment=null")
@@ -151,7 +162,7 @@ def _csv_rows(path: Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
-@pytest.mark.slow  # trains with train.py in a subprocess
+@pytest.mark.slow  # trains with train.py's entry point (in this process)
 def test_resume_continues_csv_history_and_krr_wall_time(data_dir, tmp_path):
     """Train 2 epochs, restart in the same folder up to 4: csv/metrics.csv holds the rows of
     all 4 epochs, and krr_history.jsonl's training wall time keeps increasing."""
@@ -264,7 +275,7 @@ def test_find_resume_checkpoint_skips_unreadable_files(tmp_path, caplog):
     assert (ck / "last.ckpt.unreadable").read_bytes() == data[: len(data) // 2]
 
 
-@pytest.mark.slow  # trains with train.py in a subprocess
+@pytest.mark.slow  # trains with train.py's entry point (in this process)
 def test_corrupt_last_checkpoint_falls_back_or_starts_fresh(one_run, data_dir, tmp_path):
     """A truncated last.ckpt: the restart continues from the newest readable checkpoint and
     names the bad file; with no readable checkpoint it starts afresh, never crashes."""
@@ -299,13 +310,12 @@ def test_corrupt_last_checkpoint_falls_back_or_starts_fresh(one_run, data_dir, t
     assert len(list((run / "checkpoints").glob("*.unreadable*"))) == 1 + len(corrupted)
 
 
-@pytest.mark.slow  # train.py -m (Hydra multirun)
+@pytest.mark.slow  # train.py -m (Hydra multirun, in this process)
 def test_multirun_two_modalities(data_dir, tmp_path):
     # logger=none as well: the default callbacks include a LearningRateMonitor, which
     # Lightning refuses without a logger; train.py must drop it
     sweep = tmp_path / "multi"
-    run_train("-m", "modality=acc,fsr_t", "logger=none", f"paths.data_dir={data_dir}", f"hydra.sweep.dir={sweep}",
-              timeout=400)
+    run_train("-m", "modality=acc,fsr_t", "logger=none", f"paths.data_dir={data_dir}", f"hydra.sweep.dir={sweep}")
     subdirs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
     names = ["logger=none,modality=acc", "logger=none,modality=fsr_t"]
     assert subdirs == names
@@ -318,13 +328,14 @@ def test_multirun_two_modalities(data_dir, tmp_path):
 @pytest.mark.slow  # train.py with DDP (two processes)
 def test_ddp_two_cpu_processes(data_dir, tmp_path):
     run = tmp_path / "ddp"
-    res = run_train("trainer=ddp", f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "callbacks.krr_alignment=null", timeout=400)
+    res = run_train_subprocess("trainer=ddp", f"paths.data_dir={data_dir}", f"hydra.run.dir={run}", "callbacks.krr_alignment=null",
+                               timeout=400)
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["status"] == "finished" and np.isfinite(metrics["final_val"]["val/elbo"])
     assert "world_size=2" in res.stdout + res.stderr or "distributed_backend=gloo" in res.stdout + res.stderr
 
 
-@pytest.mark.slow  # trains with train.py in a subprocess
+@pytest.mark.slow  # trains with train.py's entry point (in this process)
 def test_nonfinite_loss_stops_and_keeps_last_checkpoint(data_dir, tmp_path):
     """Overflowing (finite) inputs make the loss non-finite: the run stops, names step and
     term, and last.ckpt from the previous epoch survives unchanged."""
@@ -361,14 +372,15 @@ def test_joblib_launcher_parallel_jobs_share_a_fresh_data_dir(tmp_path):
     """Two sweep jobs in parallel (joblib) on an empty data folder: both prepare the same raw
     file; the data-folder lock serialises that, and both runs finish."""
     sweep = tmp_path / "multi"
-    run_train("-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "modality=acc,fsr_t", "trainer.max_epochs=1",
-              f"paths.data_dir={tmp_path / 'data'}", f"hydra.sweep.dir={sweep}", "callbacks.krr_alignment=null", timeout=400)
+    run_train_subprocess("-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "modality=acc,fsr_t",
+                         "trainer.max_epochs=1", f"paths.data_dir={tmp_path / 'data'}", f"hydra.sweep.dir={sweep}",
+                         "callbacks.krr_alignment=null", timeout=400)
     for name in ("modality=acc", "modality=fsr_t"):
         (job,) = [p for p in sweep.iterdir() if name in p.name.split(",")]  # folder named after its overrides
         assert json.loads((job / "metrics.json").read_text())["status"] == "finished"
 
 
-@pytest.mark.slow  # trains with train.py in a subprocess
+@pytest.mark.slow  # trains with train.py's entry point (in this process)
 def test_last_checkpoint_follows_every_epoch_even_when_validation_worsens(data_dir, tmp_path):
     """last.ckpt is the last epoch's state whatever val/elbo did (Lightning 2.6's save_last
     refreshes it only together with a best checkpoint), so a resume never repeats epochs."""

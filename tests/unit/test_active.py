@@ -213,31 +213,46 @@ def _palpate(args, cwd=REPO, timeout=240):
                           capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.mark.slow  # palpate CLI subprocesses
+@pytest.mark.slow  # a palpate CLI subprocess (the same errors in this process: the test above)
 def test_cli_errors_clearly_on_a_missing_run(tmp_path):
     p = _palpate([f"run={tmp_path / 'nope'}", "object=3", "budget=2"])
     assert p.returncode == 2
     assert f"palpate: error: no such run folder: {tmp_path / 'nope'}" in p.stderr
-    p = _palpate(["object=3"])
-    assert p.returncode == 2 and "run=<folder of a trained run> is required" in p.stderr
-    (tmp_path / "empty").mkdir()
-    p = _palpate([f"run={tmp_path / 'empty'}"])
-    assert p.returncode == 2 and "holds no training run" in p.stderr
 
 
-@pytest.mark.slow
-def test_cli_runs_an_episode_on_a_tiny_trained_run(tmp_path, fast_data_dir):
-    env = dict(os.environ, WANDB_MODE="disabled", OMP_NUM_THREADS="1")
-    t = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "modality=fsr_tb", "threads=1",
-                        f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={tmp_path}/run"],
-                       cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+def _palpate_here(argv, tmp_path, monkeypatch, capsys) -> subprocess.CompletedProcess:
+    """``python -m embodied_tactile.active.palpate <argv>`` by its main() in this process (the
+    threads it sets put back afterwards): its exit status and what it printed."""
+    from embodied_tactile.active import palpate
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["palpate", f"hydra.run.dir={tmp_path / 'hydra'}", *argv])
+    env, threads = dict(os.environ), torch.get_num_threads()
+    capsys.readouterr()
+    try:
+        with pytest.raises(SystemExit) as exc:
+            palpate.main()
+    finally:
+        os.environ.clear()
+        os.environ.update(env)
+        torch.set_num_threads(threads)
+    out = capsys.readouterr()
+    return subprocess.CompletedProcess(argv, exc.value.code, out.out, out.err)
+
+
+@pytest.mark.slow  # trains a tiny run (train.py's entry point in this process)
+def test_cli_runs_an_episode_on_a_tiny_trained_run(tmp_path, fast_data_dir, monkeypatch, capsys, restore_logging):
+    from conftest import train_in_process
+
+    t = train_in_process("debug=fast", "modality=fsr_tb", "threads=1", f"paths.data_dir={fast_data_dir}",
+                         f"hydra.run.dir={tmp_path}/run")
     assert t.returncode == 0, t.stderr[-3000:]
-    p = _palpate([f"run={tmp_path}/run", "object=8", "budget=2", "first_action=10", "active.n_rollouts=2",
-                  "active.n_y_samples=8", "n_factor_samples=8", "evaluate.policies=[active]",
-                  f"out={tmp_path}/pal"])
+    p = _palpate_here([f"run={tmp_path}/run", "object=8", "budget=2", "first_action=10", "active.n_rollouts=2",
+                       "active.n_y_samples=8", "n_factor_samples=8", "evaluate.policies=[active]",
+                       f"out={tmp_path}/pal"], tmp_path, monkeypatch, capsys)
     assert p.returncode == 0, p.stderr[-3000:]
     assert "touch 1/2 action 10" in p.stdout and "touch 2/2 action" in p.stdout
     assert "+-" in p.stdout and "decision latency:" in p.stdout
     assert (tmp_path / "pal" / "episode_obj08_active_s0.png").stat().st_size > 0
-    bad = _palpate([f"run={tmp_path}/run", "object=8", "first_action=14"])
+    bad = _palpate_here([f"run={tmp_path}/run", "object=8", "first_action=14"], tmp_path, monkeypatch, capsys)
     assert bad.returncode == 2 and "first_action=14 is not an action of the run" in bad.stderr

@@ -154,11 +154,18 @@ def _sweep_jobs(name: str, tmp_path) -> list[dict]:
     return [dict(zip(keys, vals)) for vals in itertools.product(*(str(params[k]).split(",") for k in keys))]
 
 
-@pytest.mark.slow  # composes every job of the study and study_min sweeps (~100 Hydra compositions)
+@pytest.mark.slow  # composes each scene of the study and study_min sweeps (~40 Hydra compositions)
 def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
-    cells = lambda jobs: {(c.modality.name, c.skin.name, c.primitive.name)  # noqa: E731
-                          for c in (_compose_job([f"combo={j['combo']}"] + ([f"primitive={j['primitive']}"]
-                                                 if "primitive" in j else []), tmp_path) for j in jobs)}
+    composed: dict[tuple, tuple] = {}  # the jobs differ by seed beyond their scene: each scene composed once
+
+    def cell(job: dict) -> tuple:
+        scene = [f"combo={job['combo']}"] + ([f"primitive={job['primitive']}"] if "primitive" in job else [])
+        if tuple(scene) not in composed:
+            c = _compose_job(scene, tmp_path)
+            composed[tuple(scene)] = (c.modality.name, c.skin.name, c.primitive.name)
+        return composed[tuple(scene)]
+
+    cells = lambda jobs: {cell(j) for j in jobs}  # noqa: E731
     study = _sweep_jobs("study", tmp_path)
     assert len(study) == 24 * 3 and {j["seed"] for j in study} == {"0", "1", "2"}
     full = cells(study)

@@ -5,10 +5,6 @@ nothing written."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import pytest
 from omegaconf import OmegaConf
 
@@ -61,13 +57,12 @@ def test_the_check_runs_with_the_typed_checks_of_train_py():
         check_train_config(data(actions=[16]))
 
 
-@pytest.mark.slow  # train.py subprocess
 def test_train_py_refuses_a_bad_design_in_one_line_and_writes_nothing(tmp_path):
-    cmd = [sys.executable, str(REPO / "train.py"), "debug=fast", "data.actions=[0,5,16]",
-           f"paths.log_dir={tmp_path / 'logs'}", f"paths.data_dir={tmp_path / 'data'}",
-           f"hydra.run.dir={tmp_path / 'run'}"]
-    res = subprocess.run(cmd, cwd=tmp_path, env={**os.environ, "WANDB_MODE": "disabled"}, capture_output=True,
-                         text=True, timeout=240)
+    """train.py's entry point in this process, started in tmp_path."""
+    from conftest import train_in_process
+
+    res = train_in_process("debug=fast", "data.actions=[0,5,16]", f"paths.log_dir={tmp_path / 'logs'}",
+                           f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert res.returncode == 2, res.stderr[-2000:]
     assert res.stderr.strip().splitlines() == [
         "train.py: error: data.actions=[0, 5, 16]: parameter sets are integers 0..15 of the action table "

@@ -25,8 +25,8 @@ def _prepare_cli(tmp_path, data_dir, *overrides):
     return subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
 
 
-@pytest.mark.slow  # prepare CLI subprocess
-def test_cli_prepares_the_tiny_scene_and_a_second_call_is_a_cache_hit(tiny_data_dir, tmp_path):
+@pytest.mark.slow  # a prepare CLI subprocess (the command's one; the tests below run its main in this process)
+def test_cli_prepares_the_tiny_scene_and_a_second_call_is_a_cache_hit(tiny_data_dir, tmp_path, capsys):
     d = tmp_path / "data"
     shutil.copytree(tiny_data_dir / "raw", d / "raw")
     first = _prepare_cli(tmp_path, d)
@@ -37,19 +37,23 @@ def test_cli_prepares_the_tiny_scene_and_a_second_call_is_a_cache_hit(tiny_data_
     built = dict(re.findall(r"^  (\w+): (\S+) \(built\)$", out, re.M))
     assert sorted(built) == ["acc", "actions"], out  # acc-only: no fsr cache
     assert all(os.path.exists(p) for p in built.values())
-    second = _prepare_cli(tmp_path, d)
-    assert second.returncode == 0, second.stderr[-3000:]
-    assert f"trials: {N_TINY} usable, 0 skipped" in second.stdout
-    hits = dict(re.findall(r"^  (\w+): (\S+) \(cache hit\)$", second.stdout, re.M))
-    assert hits == built, second.stdout
+    from embodied_tactile.run import prepare_cli as prepare
+
+    capsys.readouterr()
+    assert prepare.main(_prepare_args(d)) == 0  # the second call: the command's main in this process
+    second = capsys.readouterr().out
+    assert f"trials: {N_TINY} usable, 0 skipped" in second
+    hits = dict(re.findall(r"^  (\w+): (\S+) \(cache hit\)$", second, re.M))
+    assert hits == built, second
 
 
-@pytest.mark.slow  # prepare CLI subprocess
-def test_cli_simulates_missing_trials_and_reports_skipped_ones(tiny_data_dir, tmp_path):
-    """Trials absent from the raw file are simulated; a bad one is listed with its reason."""
+def test_cli_simulates_missing_trials_and_reports_skipped_ones(tiny_data_dir, tmp_path, capsys):
+    """Trials absent from the raw file are simulated; a bad one is listed with its reason (the
+    command's main in this process)."""
     import h5py
 
     from embodied_tactile.data import rawformat as rf
+    from embodied_tactile.run import prepare_cli as prepare
 
     d = tmp_path / "data"
     shutil.copytree(tiny_data_dir / "raw", d / "raw")
@@ -59,21 +63,12 @@ def test_cli_simulates_missing_trials_and_reports_skipped_ones(tiny_data_dir, tm
     with h5py.File(raw, "a") as f:
         del f["trials"][names[0]]  # missing: simulated again
         f["trials"][names[1]]["tactile/acc"][3, 0, 0, 0] = float("nan")  # bad: skipped, named
-    res = _prepare_cli(tmp_path, d, "+data.preprocess.n_frames=30")
-    assert res.returncode == 0, res.stderr[-3000:]
-    assert "simulated: 1 new trial(s)" in res.stdout
-    assert f"trials: {N_TINY - 1} usable, 1 skipped" in res.stdout
-    assert re.search(rf"skipped \S*{raw.name} / {names[1]} \(\S+\): .*tactile/acc", res.stdout), res.stdout
-
-
-@pytest.mark.slow  # prepare CLI subprocess
-@pytest.mark.parametrize("override, needle", [("skin=bogus", "skin=bogus: no such option"), ("data=recorded", "raw_files")])
-def test_cli_bad_setting_is_one_line_exit_2(tmp_path, override, needle):
-    res = _prepare_cli(tmp_path, tmp_path / "data", override)
-    assert res.returncode == 2, (res.stdout[-2000:], res.stderr[-2000:])
-    err = res.stderr.strip()
-    assert len(err.splitlines()) == 1 and err.startswith("prepare: error: ") and needle in err, err
-    assert not (tmp_path / "data").exists()  # nothing prepared
+    capsys.readouterr()
+    assert prepare.main(_prepare_args(d, "+data.preprocess.n_frames=30")) == 0
+    out = capsys.readouterr().out
+    assert "simulated: 1 new trial(s)" in out
+    assert f"trials: {N_TINY - 1} usable, 1 skipped" in out
+    assert re.search(rf"skipped \S*{raw.name} / {names[1]} \(\S+\): .*tactile/acc", out), out
 
 
 def test_datamodule_after_the_stage_does_no_simulation(tiny_prepared, monkeypatch):
@@ -139,7 +134,7 @@ def test_each_simulator_seed_has_its_own_raw_file(tmp_path):
 
 
 # ----------------------------------------------------------------------------- the entry point in this process
-# (the CLI tests above start it in a subprocess and are marked slow; these keep its logic in -m "not slow")
+# (the first CLI test above starts it in a subprocess and is marked slow; these keep its logic in -m "not slow")
 def _prepare_args(data_dir, *overrides):
     return [f"paths.data_dir={data_dir}", "modality=acc", f"data.objects=[{','.join(map(str, TINY_OBJECTS))}]",
             f"data.actions=[{','.join(map(str, TINY_ACTIONS))}]", "data.repetitions=2", "data.sim_workers=1",

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from test_training_inprocess import composed  # noqa: F401  the fixture
+from test_training_inprocess import composed, composing, tiny_overrides  # noqa: F401  composed: the fixture
 
 EVAL_FAST = ["baselines=[mean]", "figures=false", "umap=false", "alignment.cv=2", "print_tables=false"]
 
@@ -32,6 +32,24 @@ def _no_handlers_on_closed_streams():
         for h in list(getattr(logger, "handlers", [])):
             if isinstance(h, logging.StreamHandler) and getattr(h.stream, "closed", False):
                 logger.removeHandler(h)
+
+
+@pytest.fixture(scope="module")
+def finished_tiny(fast_data_dir, tmp_path_factory) -> Path:
+    """A finished run of ``composed``'s job, trained once for the tests that start from one."""
+    from embodied_tactile.run.training import train
+
+    with composing(tmp_path_factory.mktemp("finished"), fast_data_dir) as (cfg, run):
+        train(cfg, str(run))
+    return run
+
+
+@pytest.fixture()
+def finished(composed, finished_tiny):
+    """``composed`` whose run folder holds a copy of ``finished_tiny``."""
+    cfg, run = composed
+    shutil.copytree(finished_tiny, run)
+    return cfg, run
 
 
 def _every_file(run: Path) -> dict[str, str]:
@@ -142,7 +160,7 @@ def _misfit(run: Path) -> None:
         torch.save(ck, path)
 
 
-def test_a_checkpoint_of_another_model_is_refused_and_every_file_kept(composed, capsys, tmp_path):
+def test_a_checkpoint_of_another_model_is_refused_and_every_file_kept(finished, capsys, tmp_path):
     """Fault: a finished run whose checkpoints come from another modality, resumed for more
     epochs, then evaluated alone and in a folder beside a good run. Before: the resume failed
     with a traceback (exit 1) and rewrote metrics.json "failed"; evaluate failed with a
@@ -152,8 +170,7 @@ def test_a_checkpoint_of_another_model_is_refused_and_every_file_kept(composed, 
     from embodied_tactile.eval.command import main as evaluate_main
     from embodied_tactile.run.training import compose, train
 
-    cfg, run = composed
-    train(cfg, str(run))
+    cfg, run = finished
     folder = tmp_path / "sweep"
     good, bad = folder / "0", folder / "1"
     shutil.copytree(run, good)
@@ -162,7 +179,7 @@ def test_a_checkpoint_of_another_model_is_refused_and_every_file_kept(composed, 
     before = _every_file(bad)
     capsys.readouterr()
 
-    longer = compose([f"{o}" for o in _overrides(cfg)] + ["trainer.max_epochs=2"], str(bad))
+    longer = compose(tiny_overrides(cfg.paths.data_dir, cfg.paths.log_dir) + ["trainer.max_epochs=2"], str(bad))
     with pytest.raises(SystemExit) as info:
         train(longer, str(bad))
     assert info.value.code == 2
@@ -181,13 +198,6 @@ def test_a_checkpoint_of_another_model_is_refused_and_every_file_kept(composed, 
     assert f"SKIPPED {bad}" in out and "does not fit" in out
     assert "evaluated 1 run(s) (1 skipped)" in out
     assert _every_file(bad) == before
-
-
-def _overrides(cfg) -> list[str]:
-    """The overrides the ``composed`` fixture used (its run folder aside)."""
-    return ["debug=fast", "modality=acc", "threads=1", "seed=0", "plain_progress=true", "logger=csv",
-            "callbacks.krr_alignment.points=1", f"paths.data_dir={cfg.paths.data_dir}",
-            f"paths.log_dir={cfg.paths.log_dir}"]
 
 
 def test_a_dead_channel_refuses_a_new_run_and_leaves_no_folder(composed, monkeypatch, capsys):
@@ -250,16 +260,27 @@ def test_hydra_composition_errors_are_one_line_exit_2(args, needles, capsys):
 
 
 # ----------------------------------------------------------------------------- evaluate: one line, nothing written
-@pytest.fixture()
-def evaluated_run(composed):
-    """A finished run of the tiny scene with one evaluation of it (``<run>/evaluation``)."""
+@pytest.fixture(scope="module")
+def evaluated_tiny(finished_tiny, tmp_path_factory) -> Path:
+    """A copy of ``finished_tiny`` with one evaluation of it (``<run>/evaluation``)."""
     from embodied_tactile.eval.command import main as evaluate_main
-    from embodied_tactile.run.training import train
 
-    cfg, run = composed
-    train(cfg, str(run))
+    run = tmp_path_factory.mktemp("evaluated") / "run"
+    shutil.copytree(finished_tiny, run)
+    handler = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a fresh evaluate.py process
+    try:
+        assert evaluate_main([str(run), *EVAL_FAST]) == 0
+    finally:
+        signal.signal(signal.SIGINT, handler)
+    return run
+
+
+@pytest.fixture()
+def evaluated_run(composed, evaluated_tiny):
+    """A finished run of the tiny scene with one evaluation of it (a copy of ``evaluated_tiny``)."""
+    run = composed[1]
+    shutil.copytree(evaluated_tiny, run)
     signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a fresh evaluate.py process
-    assert evaluate_main([str(run), *EVAL_FAST]) == 0
     return run
 
 
@@ -345,7 +366,7 @@ def test_evaluate_on_a_full_or_read_only_folder_is_one_line(evaluated_run, monke
 
 
 # ----------------------------------------------------------------------------- sweeps
-def test_a_finished_job_run_again_leaves_every_file_unchanged_train_log_included(composed, capsys):
+def test_a_finished_job_run_again_leaves_every_file_unchanged_train_log_included(finished, capsys):
     """Fault: the same multirun again on a finished sweep: each job's train() finds its run
     finished. Before: one line appended to each job's train.log (the README promises every
     file unchanged). Now: it says so on stdout and no byte of the folder changes."""
@@ -353,8 +374,7 @@ def test_a_finished_job_run_again_leaves_every_file_unchanged_train_log_included
 
     from embodied_tactile.run.training import train
 
-    cfg, run = composed
-    train(cfg, str(run))
+    cfg, run = finished
     handler = logging.FileHandler(run / "train.log")  # as Hydra's job logging: the root logger into the job's log
     root = logging.getLogger()
     root.addHandler(handler)

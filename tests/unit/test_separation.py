@@ -72,6 +72,7 @@ def checked() -> dict[str, tuple[int, str]]:
     return out
 
 
+@pytest.mark.slow  # fresh interpreters importing torch and Lightning
 @pytest.mark.parametrize("modules", _interpreters(), ids=lambda ms: ms[0])
 def test_modules_do_not_import(modules, checked):
     status, output = checked[modules[0]]

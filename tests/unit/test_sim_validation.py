@@ -8,9 +8,6 @@ quantisation step never turns a non-finite value into an ADC count.
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -130,7 +127,7 @@ def test_cli_in_process_exit_2_for_every_bad_physics(tmp_path, capsys):
     out = tmp_path / "x.h5"
     for field, value in BAD_PHYSICS:
         if isinstance(value, str) or (isinstance(value, float) and not math.isfinite(value)):
-            continue  # dotlist spelling differs; the subprocess test covers NaN
+            continue  # dotlist spelling differs; test_cli_exits_2_with_one_line covers NaN
         rc = simulate_main([f"out={out}", "objects=[0]", "actions=[0]", "duration=0.5", "workers=1",
                             f"physics.{field}={str(value).lower()}"])
         err = capsys.readouterr().err.strip()
@@ -139,19 +136,20 @@ def test_cli_in_process_exit_2_for_every_bad_physics(tmp_path, capsys):
         assert not out.exists()
 
 
-@pytest.mark.slow  # simulate CLI subprocess
 @pytest.mark.parametrize("arg,name", [
     ("physics.youngs_modulus=-1e5", "physics.youngs_modulus"),
     ("physics.relaxation_time=.nan", "physics.relaxation_time"),
     ("duration=0", "duration"),
     ("physics.primitive_frequency_hz=60", "physics.primitive_frequency_hz"),
 ])
-def test_cli_subprocess_exits_2_with_one_line(tmp_path, arg, name):
+def test_cli_exits_2_with_one_line(tmp_path, capsys, arg, name):
+    """The command's arguments as typed (``python -m embodied_tactile.sim.simulate ...``: its
+    main in this process; test_simulator's CLI test starts it in a subprocess)."""
     out = tmp_path / "cli.h5"
-    cmd = [sys.executable, "-m", "embodied_tactile.sim.simulate", f"out={out}", "objects=[0]", "actions=[0]",
-           "duration=0.5", "workers=1", arg]
-    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    assert res.returncode == 2, (res.returncode, res.stderr)
-    lines = res.stderr.strip().splitlines()
-    assert len(lines) == 1 and name in lines[0] and "allowed" in lines[0], res.stderr
+    capsys.readouterr()
+    rc = simulate_main([f"out={out}", "objects=[0]", "actions=[0]", "duration=0.5", "workers=1", arg])
+    err = capsys.readouterr().err
+    assert rc == 2, (rc, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and name in lines[0] and "allowed" in lines[0], err
     assert not out.exists()

@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, train_in_process
 
 sys.path.insert(0, str(REPO))
 import evaluate as ev  # noqa: E402
@@ -20,8 +19,6 @@ from embodied_tactile.eval import command  # noqa: E402  (evaluate.py's main: wh
 
 from embodied_tactile.run.summary import (latest_run, multirun_summary_lines,  # noqa: E402
                                       run_summary_lines)
-
-ENV = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
 
 
 def _row(step, overall, per):
@@ -203,15 +200,15 @@ def test_folder_names_from_overrides_hold_no_path_separator():
     assert OmegaConf.to_container(cfg.hydra.sweep)["subdir"] == "${folder_name:${hydra:job.override_dirname}}"
 
 
-@pytest.mark.slow  # train.py -m: two jobs
+@pytest.mark.slow  # train.py -m: two jobs (its entry point in this process)
 def test_a_failed_job_does_not_stop_the_sweep_and_the_table_says_why(tmp_path, fast_data_dir):
     """Fault: one job of a sweep with a bad swept value. Before: its SystemExit ended the
     sweep (the next jobs never ran), exit 2, no table. Now: every job runs, the table names
     the failed job, its overrides, status and reason, exit 1."""
     sweep = tmp_path / "sweep"
-    res = subprocess.run([sys.executable, str(REPO / "train.py"), "-m", "debug=fast", f"paths.data_dir={fast_data_dir}",
-                          f"hydra.sweep.dir={sweep}", "modality=acc", "threads=1", "callbacks.krr_alignment=null",
-                          "data.batch_size=0,4"], cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
+    res = train_in_process("-m", "debug=fast", f"paths.data_dir={fast_data_dir}", f"hydra.sweep.dir={sweep}",
+                           "modality=acc", "threads=1", "callbacks.krr_alignment=null", "data.batch_size=0,4",
+                           cwd=tmp_path)
     assert res.returncode == 1, res.stderr[-3000:]
     out = res.stdout.splitlines()
     bad = next(ln for ln in out if ln.strip().startswith("callbacks.krr_alignment=null,data.batch_size=0"))
@@ -222,13 +219,9 @@ def test_a_failed_job_does_not_stop_the_sweep_and_the_table_says_why(tmp_path, f
                       .read_text())["status"] == "finished"
 
 
-@pytest.mark.slow  # train.py subprocess
-def test_train_ends_with_the_summary(tmp_path, fast_data_dir):
-    run = tmp_path / "run"
-    res = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "trainer.max_epochs=2",
-                          f"paths.data_dir={fast_data_dir}", f"hydra.run.dir={run}"],
-                         cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr[-3000:]
+@pytest.mark.slow  # train_py_run: the session's train.py subprocess (debug=fast, 2 epochs, run folder "run")
+def test_train_ends_with_the_summary(train_py_run):
+    run, res = train_py_run
     out = res.stdout.strip().splitlines()
     start = out.index("run finished: run") - 1
     tail, protocol = out[start:start + 11], out[start + 11:]
@@ -247,12 +240,11 @@ def test_train_ends_with_the_summary(tmp_path, fast_data_dir):
     assert "measures recognition" in protocol[5] and protocol[6].startswith("Objects never touched: python train.py")
 
 
-@pytest.mark.slow  # train.py -m (Hydra multirun) subprocess
+@pytest.mark.slow  # train.py -m (Hydra multirun; its entry point in this process)
 def test_multirun_ends_with_its_folder_and_evaluate_command(tmp_path, fast_data_dir):
     sweep = tmp_path / "multi"
-    res = subprocess.run([sys.executable, str(REPO / "train.py"), "-m", "debug=fast", "modality=acc",
-                          "callbacks.krr_alignment=null", f"paths.data_dir={fast_data_dir}", f"hydra.sweep.dir={sweep}"],
-                         cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
+    res = train_in_process("-m", "debug=fast", "modality=acc", "callbacks.krr_alignment=null",
+                           f"paths.data_dir={fast_data_dir}", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     out = res.stdout.strip().splitlines()
     assert out[-2] == "next: python evaluate.py multi"

@@ -4,6 +4,7 @@ in-process :func:`~embodied_tactile.eval.pipeline.evaluate` on that folder."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import signal
@@ -11,26 +12,39 @@ import signal
 import pytest
 
 
-@pytest.fixture()
-def composed(tmp_path, fast_data_dir):
-    """A job config of the tiny scene (debug=fast, acc only, one thread), its
-    ``${hydra:runtime.output_dir}`` the run folder in tmp_path; Hydra's and the signal
-    handlers' state put back afterwards."""
+def tiny_overrides(data_dir, log_dir) -> list[str]:
+    """The overrides of :func:`composed`'s job (its run folder aside)."""
+    return ["debug=fast", "modality=acc", "threads=1", "seed=0", "plain_progress=true", "logger=csv",
+            "callbacks.krr_alignment.points=1", f"paths.data_dir={data_dir}", f"paths.log_dir={log_dir}"]
+
+
+@contextlib.contextmanager
+def composing(folder, data_dir):
+    """(job config of the tiny scene, run folder ``<folder>/run``), as :func:`composed` makes it."""
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.hydra_config import HydraConfig
 
     from embodied_tactile.run.training import compose
 
-    run = tmp_path / "run"
-    cfg = compose(["debug=fast", "modality=acc", "threads=1", "seed=0", "plain_progress=true", "logger=csv",
-                   "callbacks.krr_alignment.points=1", f"paths.data_dir={fast_data_dir}",
-                   f"paths.log_dir={tmp_path / 'logs'}"], str(run))
+    run = folder / "run"
+    cfg = compose(tiny_overrides(data_dir, folder / "logs"), str(run))
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    yield cfg, run
-    for s, h in handlers.items():
-        signal.signal(s, h)
-    HydraConfig.instance().cfg = None
-    GlobalHydra.instance().clear()
+    try:
+        yield cfg, run
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        HydraConfig.instance().cfg = None
+        GlobalHydra.instance().clear()
+
+
+@pytest.fixture()
+def composed(tmp_path, fast_data_dir):
+    """A job config of the tiny scene (debug=fast, acc only, one thread), its
+    ``${hydra:runtime.output_dir}`` the run folder in tmp_path; Hydra's and the signal
+    handlers' state put back afterwards."""
+    with composing(tmp_path, fast_data_dir) as job:
+        yield job
 
 
 def test_train_in_process_and_evaluate_reproduces_its_nmse(composed, capsys):

@@ -228,17 +228,14 @@ def test_trial_absent_from_one_cache_without_reason_is_reported(tiny_data_dir, n
     assert "absent from the cache" in dm.skipped[0]["problem"] and names[2] in caplog.text
 
 
-@pytest.mark.slow  # train.py subprocess
+@pytest.mark.slow  # trains a tiny run (train.py's entry point in this process)
 def test_evaluation_takes_each_trials_object_from_its_attributes_not_its_name(tiny_data_dir, names, tmp_path):
     """A group named ``obj05_...`` that holds object 0, and one named ``session2_trial7``:
     both train as their attributes say, and evaluate.py scores them as the same objects
     (before, the first was listed as test object 5 and the second stopped evaluate.py)."""
     import json
-    import os
-    import subprocess
-    import sys
 
-    from conftest import REPO
+    from conftest import train_in_process
 
     from embodied_tactile.eval import pipeline
 
@@ -250,10 +247,8 @@ def test_evaluation_takes_each_trials_object_from_its_attributes_not_its_name(ti
     rename = {liar: "obj05_soft_pressing_a00_r00", free: "session2_trial7"}
     data = _copy_trials(raw, tmp_path / "renamed.h5", names, rename=rename)
     run = tmp_path / "run"
-    env = dict(os.environ, WANDB_MODE="disabled", PYTHONUNBUFFERED="1")
-    p = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "data=recorded", f"data.raw_files=[{data}]",
-                        "data.objects=null", "data.actions=null", f"paths.data_dir={tmp_path / 'data'}",
-                        f"hydra.run.dir={run}"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    p = train_in_process("debug=fast", "data=recorded", f"data.raw_files=[{data}]", "data.objects=null",
+                         "data.actions=null", f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}")
     assert p.returncode == 0, p.stderr[-3000:]
     out = pipeline.evaluate(run, ["alignment.cv=2", "baselines=[mean]", "umap=false", "figures=false"])
     split = json.loads((run / "split.json").read_text())
