@@ -125,7 +125,7 @@ def prepare(args) -> int:
     """The data of the largest N (every smaller scene reads subsets of it)."""
     work = Path(args.work).resolve()
     n = max(args.sizes)
-    cmd = [sys.executable, "-m", "embodied_tactile.data.prepare_cli", "experiment=population",
+    cmd = [sys.executable, "-m", "embodied_tactile", "prepare", "experiment=population",
            f"data.n_objects={args.labelled}", f"data.n_unlabelled_objects={n - args.labelled}",
            *[o for o in _common(work, args.smoke) if not o.startswith(("threads", "logger"))]]
     return _run(cmd)
