@@ -6,6 +6,9 @@ from __future__ import annotations
 import json
 import warnings
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -351,6 +354,32 @@ def test_study_report_table2_intervals_verdicts_and_what_was_not_run(tmp_path):
     assert out.read_text().replace(f"out={out}`", "out=docs/generated/results.md`") == text
     write_results(str(tmp_path / "evaluation"), notes=["parts ran on two commits"], out=str(out))
     assert "- Note: parts ran on two commits" in out.read_text()
+
+
+def test_results_page_shows_the_evaluations_figures_copied_beside_it(tmp_path):
+    """The page links the evaluation's figures (over interaction time, distances of seed 0), copied
+    next to it with their captions' first sentence; a figure of an earlier page does not linger."""
+    from embodied_tactile.eval.report import write_report
+    from embodied_tactile.eval.study_report import write_results
+
+    rs = [_run("multi_l", "soft", "pressing", s, 0.2) for s in range(3)]
+    write_report(rs, tmp_path / "evaluation", umap=False)
+    for seed in (0, 1):  # these runs carry no latents: matrices as evaluate.py names them
+        (tmp_path / "evaluation" / "figures" / f"distances_latent_filter_multi_l_soft_pressing_seed_{seed}.png").write_bytes(b"m")
+    stale = tmp_path / "docs" / "figures" / "results" / "nmse_time_by_old.png"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"old")
+    out = tmp_path / "docs" / "results.md"
+    text = write_results(str(tmp_path / "evaluation"), out=str(out))
+    figures = text.split("## Figures", 1)[1].split("\n## ", 1)[0]
+    links = re.findall(r"!\[[^]]*\]\(([^)]+)\)", figures)
+    assert links[0] == "figures/results/nmse_time_by_modality.png"
+    assert "figures/results/distances_latent_filter_multi_l_soft_pressing_seed_0.png" in links
+    assert not any("seed_1" in link for link in links)  # one matrix per cell
+    for link in links:
+        assert (out.parent / link).read_bytes() == (tmp_path / "evaluation" / "figures" / Path(link).name).read_bytes()
+    assert "*nmse_time_by_modality.png*: Held-out NMSE per frame against interaction time (s), by modality;" in figures
+    assert not stale.exists()
 
 
 def test_study_report_table1_gives_each_parameter_sets_nmse_with_its_interval_over_seeds(tmp_path):

@@ -21,6 +21,10 @@ present, ``evaluation.json`` and each evaluated run's ``config_resolved.yaml`` /
 * the paper's findings with their verdicts and every comparison behind them;
 * with ``objects=<evaluation folder>``: the held-out-object runs' statistics over seeds;
   with ``extra={TITLE: <evaluation folder>}`` (one or more): any further evaluation (an ablation);
+* the figures of the evaluation folder (:data:`PAGE_FIGURES`: the error over interaction time
+  per modality, e-Skin, method and the best and worst parameter sets, the error against
+  training time, and each cell's class-distance matrix and UMAP of seed 0), copied next to the
+  page into ``figures/results/`` with the first sentence of their captions;
 * what was not run: every cell of the paper's 24 (8 modality x e-Skin combinations x 3
   primitives) with fewer than the protocol's 3 seeds.
 """
@@ -48,6 +52,12 @@ from .verdicts import MIN_SEEDS, PAPER_TABLE2, SCORES, SOFT_SKIN_MODALITIES
 PAPER_COMBOS: tuple[tuple[str, str], ...] = (*((m, "soft") for m in SOFT_SKIN_MODALITIES),
                                              ("fsr_tb", "hard"), ("multi_l", "hard"))
 METHOD = "latent_filter"
+
+
+#: figures of an evaluation folder's ``figures/`` that the page shows, in this order (glob patterns)
+PAGE_FIGURES = ("nmse_time_by_modality.png", "nmse_time_by_skin.png", "nmse_time_by_best_worst_action.png",
+                "nmse_time_by_method.png", "error_vs_runtime.png", f"distances_{METHOD}_*_seed_0.png",
+                f"umap_{METHOD}_*_seed_0.png")
 
 
 class StudyReportError(ValueError):
@@ -603,18 +613,43 @@ def write_results(evaluation: str, objects: str | None = None, extras: Sequence[
     of ``objects`` and each (title, folder) of ``extras`` as sections, ``notes`` under "What
     was run"), written to ``out`` when given; returns the page. :class:`StudyReportError`
     names a folder that cannot be read."""
+    figures = copy_figures(Path(evaluation) / "figures", Path(out).parent / "figures" / "results") if out else []
     text = render(load(evaluation), command=results_command(evaluation, objects, extras, out), notes=notes,
                   objects=load(objects) if objects else None,
-                  extras=[(title, load(folder)) for title, folder in extras], out_path=out)
+                  extras=[(title, load(folder)) for title, folder in extras], out_path=out,
+                  figures=[(str(Path("figures") / "results" / f.name), caption) for f, caption in figures])
     if out:
         Path(out).write_text(text)
     return text
 
 
+def copy_figures(source: Path, target: Path) -> list[tuple[Path, str]]:
+    """The :data:`PAGE_FIGURES` of ``source`` (an evaluation's ``figures/``) copied into
+    ``target``, which is emptied first (a figure of an earlier evaluation does not linger):
+    (copied file, the first sentence of its caption in ``captions.md``)."""
+    import shutil
+
+    captions = {}
+    if (source / "captions.md").is_file():
+        for m in re.finditer(r"^\*\*(.+?)\*\*: (.+?\.)(?: |$)", (source / "captions.md").read_text(), re.M):
+            captions[m.group(1)] = m.group(2)
+    found = [f for pattern in PAGE_FIGURES for f in sorted(source.glob(pattern))]
+    if target.is_dir():
+        shutil.rmtree(target)
+    out = []
+    for f in found:
+        target.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(f, target / f.name)
+        out.append((target / f.name, captions.get(f.name, "")))
+    return out
+
+
 def render(blob: Mapping, command: str = "", notes: Sequence[str] = (), objects: Mapping | None = None,
-           extras: Sequence[tuple[str, Mapping]] = (), out_path: str | None = "docs/generated/results.md") -> str:
+           extras: Sequence[tuple[str, Mapping]] = (), out_path: str | None = "docs/generated/results.md",
+           figures: Sequence[tuple[str, str]] = ()) -> str:
     """The results page; its header names ``command`` (default: the command that writes the
-    page of ``blob`` alone to ``out_path``; None: printed)."""
+    page of ``blob`` alone to ``out_path``; None: printed); ``figures``: (path relative to the
+    page, caption) of each figure shown."""
     runs = blob["runs"]
     files = _run_files(blob)
     out = ["# Simulated study: results", "",
@@ -649,6 +684,10 @@ def render(blob: Mapping, command: str = "", notes: Sequence[str] = (), objects:
         out += [f"## {head}", ""]
         out += [t.to_markdown()] if t is not None else [
             "Not measured: no comparison of the findings had runs on both sides in this evaluation.", ""]
+    if figures:
+        out += ["## Figures", ""]
+        for path, caption in figures:
+            out += [f"![{Path(path).stem}]({path})", "", f"*{Path(path).name}*: {caption}", ""]
     if objects is not None:
         out += objects_section(objects)
     for title, extra in extras:
