@@ -24,6 +24,8 @@ from embodied_tactile.hardware.pose import ReplayPoseSource, StaticPoseSource, l
 from embodied_tactile.hardware.recorder import Recorder, RecorderSettings, finish, open_port
 from embodied_tactile.data import rawformat as R
 
+pytestmark = pytest.mark.realtime  # the emulator and the recorder keep the board's pace: no other test beside them
+
 LSB = 1.0 / C.ACC_COUNTS_PER_G
 V1 = {"name": "eskin_v1", "acc_repair": [{"sensor": 6, "axis": "z"}], "fsr_repair": [{"layer": 1, "cols": [6, 7]}]}
 

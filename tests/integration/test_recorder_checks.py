@@ -14,7 +14,7 @@ from embodied_tactile.data import rawformat as R
 from test_acquisition import _check_genuine, _cli, _read_cli, _wait_line
 
 # every test starts the recorder CLI (embodied-tactile record) in a subprocess
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime]
 
 
 @pytest.fixture(scope="module")

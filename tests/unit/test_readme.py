@@ -43,7 +43,7 @@ def test_readme_starts_with_what_and_how():
 def test_ci_runs_the_readmes_test_command():
     train, tests = _bash_blocks((REPO / "README.md").read_text())[:2]
     assert tests == _ci_commands()
-    assert tests[-1] == "python -m pytest -n auto --dist loadfile"  # one worker per core, a test file per worker
+    assert tests[-1] == "python -m pytest -n auto --dist worksteal"  # one worker per core; an idle one takes tests from the other
     # the main job is the same set-up without -q and the dev extra, then train.py
     assert [c.replace(" -q", "").replace('".[dev]"', ".") for c in tests[:-1]] == train[:-1]
     assert train[-1] == "python train.py"
