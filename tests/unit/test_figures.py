@@ -202,3 +202,33 @@ def test_umap_colours_are_physical_levels_and_curves_in_paper_order():
                   object_id=np.array([0, 8, 17, 27]), action_index=np.zeros(4, int), pred=np.repeat(fac[:, None], 3, 1))
           for m in ("multi_l", "fsr_b", "acc", "fsr_t")]
     assert list(F.curves_by(rs, "modality")) == ["acc", "fsr_t", "fsr_b", "multi_l"]
+
+
+def test_curves_by_modality_shade_the_range_over_seeds():
+    """Each seed's runs pooled into its own curve; the figure shades their range around the
+    pooled line (the paper's bands), and a label with one seed gets no band."""
+    from matplotlib.collections import PolyCollection
+
+    from embodied_tactile.eval import Results
+
+    rng = np.random.default_rng(0)
+    y = rng.normal(size=(6, 4))
+
+    def run(modality, seed, noise):
+        return Results(method="latent_filter", modality=modality, skin="soft", primitive="pressing", seed=seed,
+                       factors=y, object_id=np.arange(6), action_index=np.zeros(6, int), var_ref=np.ones(4),
+                       pred=y[:, None] + noise * rng.normal(size=(6, 20, 4)))
+
+    rs = [run("multi_l", 0, 0.1), run("multi_l", 1, 0.5), run("acc", 0, 0.3)]
+    bands = F.seed_curves_by(rs, "modality")
+    assert list(bands) == ["multi_l"] and bands["multi_l"].shape == (2, 20, 4)
+    from embodied_tactile.eval.tables import pooled_nmse
+
+    np.testing.assert_allclose(bands["multi_l"][1], pooled_nmse([rs[1]], curve=True))
+    assert (bands["multi_l"][0] < bands["multi_l"][1]).mean() > 0.9  # the noisier seed reads worse
+    fig = F.nmse_curves_figure(F.curves_by(rs, "modality"), bands=bands)
+    try:
+        shaded = [sum(isinstance(c, PolyCollection) for c in ax.collections) for ax in fig.axes[:5]]
+        assert shaded == [1] * 5  # multi_l's band in every panel, none for acc
+    finally:
+        plt.close(fig)

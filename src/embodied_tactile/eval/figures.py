@@ -112,22 +112,38 @@ def _save(fig, path: Path, *, tight: bool = True) -> Path:
     plt.close(fig)
     return path
 
-def nmse_curves_figure(curves: Mapping[str, np.ndarray], *, title: str = "", frame_rate: float = FRAME_RATE_HZ):
+def _panels(c: np.ndarray) -> list[np.ndarray]:
+    """(T, 4) NMSE over time -> the five panels' curves: each factor, then their mean."""
+    c = np.asarray(c, dtype=float)
+    with np.errstate(all="ignore"):
+        return [c[:, k] for k in range(4)] + [np.nanmean(c, axis=1)]
+
+
+def nmse_curves_figure(curves: Mapping[str, np.ndarray], *, title: str = "", frame_rate: float = FRAME_RATE_HZ,
+                       bands: Mapping[str, np.ndarray] | None = None):
     """curves: label -> (T, 4) NMSE over time -> Figure: one panel per factor + the mean,
-    log NMSE axis, one legend below (labels made readable)."""
+    log NMSE axis, one legend below (labels made readable). ``bands``: label -> (n seeds, T, 4),
+    each seed's curve; the range over seeds is shaded around the label's line."""
     fig, axes = plt.subplots(1, 5, figsize=(16, 3.9), sharex=True, sharey=True)
     drawn = []
     for label, c in curves.items():
         c = np.asarray(c, dtype=float)
         t = np.arange(c.shape[0]) / frame_rate
-        with np.errstate(all="ignore"):
-            cols = [c[:, k] for k in range(4)] + [np.nanmean(c, axis=1)]
-        drawn.append((label, t, cols))
-    floor = log_nmse_axes(axes, [y for _, _, cols in drawn for y in cols])
-    for label, t, cols in drawn:
-        for ax, y in zip(axes, cols):
+        per_seed = [_panels(b[-c.shape[0]:]) for b in (bands or {}).get(label, ())]
+        drawn.append((label, t, _panels(c), per_seed))
+    floor = log_nmse_axes(axes, [y for _, _, cols, _ in drawn for y in cols])
+    for label, t, cols, per_seed in drawn:
+        for k, (ax, y) in enumerate(zip(axes, cols)):
             y = np.where(y > 0, y, np.nan)
-            ax.plot(t, y if floor is None else np.maximum(y, floor), label=readable(label), lw=1.3)
+            line, = ax.plot(t, y if floor is None else np.maximum(y, floor), label=readable(label), lw=1.3)
+            if len(per_seed) > 1:
+                seeds = np.stack([panels[k] for panels in per_seed])
+                with np.errstate(all="ignore"):
+                    lo, hi = np.nanmin(seeds, axis=0), np.nanmax(seeds, axis=0)
+                if floor is not None:
+                    lo, hi = np.maximum(lo, floor), np.maximum(hi, floor)
+                ax.fill_between(t, np.where(lo > 0, lo, np.nan), np.where(hi > 0, hi, np.nan),
+                                color=line.get_color(), alpha=0.2, lw=0)
     for k, ax in enumerate(axes):
         ax.set_title(FACTOR_LABELS[FACTOR_NAMES[k]] if k < 4 else "Mean over factors", fontsize=9)
         ax.set_xlabel("interaction time (s)")
@@ -140,9 +156,10 @@ def nmse_curves_figure(curves: Mapping[str, np.ndarray], *, title: str = "", fra
     return fig
 
 
-def plot_nmse_curves(curves: Mapping[str, np.ndarray], path, *, title: str = "", frame_rate: float = FRAME_RATE_HZ) -> Path:
+def plot_nmse_curves(curves: Mapping[str, np.ndarray], path, *, title: str = "", frame_rate: float = FRAME_RATE_HZ,
+                     bands: Mapping[str, np.ndarray] | None = None) -> Path:
     """:func:`nmse_curves_figure` saved as PNG."""
-    return _save(nmse_curves_figure(curves, title=title, frame_rate=frame_rate), Path(path), tight=False)
+    return _save(nmse_curves_figure(curves, title=title, frame_rate=frame_rate, bands=bands), Path(path), tight=False)
 
 
 def curves_by(results: Sequence[Results], key: str) -> dict[str, np.ndarray]:
@@ -153,6 +170,20 @@ def curves_by(results: Sequence[Results], key: str) -> dict[str, np.ndarray]:
     out = {}
     for v in sorted({getattr(r, key) for r in results}, key=lambda v: (order.index(v) if v in order else len(order), v)):
         out[str(v)] = pooled_nmse([r for r in results if getattr(r, key) == v], curve=True)
+    return out
+
+
+def seed_curves_by(results: Sequence[Results], key: str) -> dict[str, np.ndarray]:
+    """:func:`curves_by`, seed by seed: label -> (n seeds, T, 4), each seed's runs pooled
+    (truncated to the shortest, aligned on the end of the interaction); labels with one seed
+    are left out (no spread to draw)."""
+    out = {}
+    for label in curves_by(results, key):
+        rs = [r for r in results if str(getattr(r, key)) == label]
+        per_seed = [pooled_nmse([r for r in rs if r.seed == s], curve=True) for s in sorted({r.seed for r in rs}, key=str)]
+        if len(per_seed) > 1:
+            t_min = min(c.shape[0] for c in per_seed)
+            out[label] = np.stack([c[-t_min:] for c in per_seed])
     return out
 
 
@@ -437,6 +468,8 @@ def figure_caption(name: str, note: str, *, distance_mode: str = "pairwise") -> 
                 "hand-crafted baseline would otherwise squash the other curves. When a few near-zero frames would "
                 "stretch it over many decades, it is clipped one decade below the 5th percentile of the values "
                 "(the axis label gives the clip; values below are drawn at it).")
+        if by in ("modality", "skin"):
+            what += " Shaded: the range over seeds (each seed's runs pooled), where a label has several."
         if by == "modality":
             what += " Soft skin only when the runs include it (the paper's multi-modality figure)."
         if by == "best worst action":

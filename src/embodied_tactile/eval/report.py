@@ -11,7 +11,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .figures import (best_worst_action_curves, class_distances, curves_by, physical_factors, plot_distance_matrix,
-                      plot_error_vs_runtime, plot_nmse_curves, plot_umap, readable, write_captions)
+                      plot_error_vs_runtime, plot_nmse_curves, plot_umap, readable, seed_curves_by, write_captions)
 from .metrics import NMSE_DEFINITION, overall
 from ..jsonio import to_jsonable
 from .results import Results
@@ -75,8 +75,10 @@ def write_report(
     curves: dict[str, dict] = {}
     if figures and results:
         figs = out / "figures"
+        soft = [r for r in main if r.skin == "soft"] or main
+        bands = {"modality": seed_curves_by(soft, "modality"), "skin": seed_curves_by(main, "skin")}
         sets = {
-            "modality": curves_by([r for r in main if r.skin == "soft"] or main, "modality"),
+            "modality": curves_by(soft, "modality"),
             "skin": curves_by(main, "skin"),
             "method": curves_by(results, "method"),
             "best_worst_action": best_worst_action_curves(main),
@@ -85,7 +87,7 @@ def write_report(
             if cv:
                 by = "best and worst action set per primitive" if name == "best_worst_action" else name
                 p = plot_nmse_curves(cv, figs / f"nmse_time_by_{name}.png",  # definitions: figures/captions.md
-                                     title=f"Held-out NMSE vs interaction time, by {by}")
+                                     title=f"Held-out NMSE vs interaction time, by {by}", bands=bands.get(name))
                 written["figures"].append(str(p))
                 curves[name] = {k: v for k, v in cv.items()}
         for r in main:
