@@ -112,6 +112,22 @@ def test_same_seed_same_weights_and_alignment(one_run, data_dir, tmp_path):
     assert final[0]["nmse"] == final[1]["nmse"]
 
 
+@pytest.mark.slow  # one_run: a train.py subprocess
+def test_checks_during_training_leave_the_weights_as_they_are(one_run, data_dir, tmp_path):
+    """The KRR checks only read: a run checked once, on its final weights, with no row at
+    t = 0 trains the same weights as the default's checks at t = 0 and over the epochs. Before,
+    each check's loaders drew their seeds from torch's generator and moved the training's."""
+    fewer = tmp_path / "fewer"
+    run_train(f"paths.data_dir={data_dir}", f"hydra.run.dir={fewer}", "trainer.max_epochs=2",
+              "callbacks.krr_alignment.initial=false", "callbacks.krr_alignment.points=1")
+    rows = [json.loads(line) for line in (one_run / "krr_history.jsonl").read_text().splitlines()]
+    assert rows[0]["epoch"] == -1 and len(rows) > len((fewer / "krr_history.jsonl").read_text().splitlines())
+    a = torch.load(one_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+    b = torch.load(fewer / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+
+
 def _ckpt_epoch(path: Path) -> int:
     return int(torch.load(path, map_location="cpu", weights_only=False)["epoch"])
 

@@ -231,6 +231,22 @@ class KRRAlignmentCallback(Callback):
             return split_at(collect_latents(pl_module, batches, latent=self.latent), n_train)
 
     def _evaluate(self, trainer, pl_module, final: bool = False, initial: bool = False) -> dict[str, float]:
+        """One check (:meth:`_check`) that leaves the global random states as it found them:
+        its loaders draw their seeds from torch's generator, so without this a run's weights
+        would depend on when and how often it is checked."""
+        import random
+
+        import torch
+
+        states = random.getstate(), np.random.get_state()
+        with torch.random.fork_rng(devices=list(range(torch.cuda.device_count()))):
+            try:
+                return self._check(trainer, pl_module, final=final, initial=initial)
+            finally:
+                random.setstate(states[0])
+                np.random.set_state(states[1])
+
+    def _check(self, trainer, pl_module, final: bool = False, initial: bool = False) -> dict[str, float]:
         import torch
 
         t0 = time.perf_counter()
