@@ -283,15 +283,15 @@ def plain_run(remedy_and_plain):
 
 
 @pytest.mark.slow  # remedy_run, plain_run: train the Latent Filter 300 steps each
-def test_remedies_put_the_velocity_into_z(remedy_run, plain_run):
-    """Angular velocity is in no single frame: z holds it only if the transition carries it.
-    Same data, seed 0 and 300 steps of the pendulum scene (docs/experiments/pendulum.md): the
-    remedies' z carries more of it than the plain ELBO's, and their model predicts the next
-    frames better than the last one."""
+def test_remedies_make_the_model_predict(remedy_run, plain_run):
+    """Observation dropout makes the model predict: same data, seed 0 and 300 steps of the
+    pendulum scene, the remedies' open-loop prediction beats the plain ELBO's and the last
+    frame at every horizon up to 10. (At 300 steps the remedies' z carries the angular
+    velocity in 2 of 3 seeds only, seed 0 not among them: docs/experiments/pendulum.md,
+    "300 steps, 3 seeds"; the velocity claim rests on the 2,500-step measurements.)"""
     r, ol = remedy_run["readouts"], remedy_run["open_loop"]
     assert r["z_angle"][1] >= 0.9, r
-    assert r["z_velocity"][1] >= 0.1 and r["z_velocity"][1] > 2 * plain_run["readouts"]["z_velocity"][1], (
-        r, plain_run["readouts"])
+    assert np.all(ol["model"][:10] < plain_run["open_loop"]["model"][:10]), (ol, plain_run["open_loop"])
     assert np.all(ol["model"][:10] < ol["last_clean"][:10]), ol
 
 
