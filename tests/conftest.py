@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import zlib
 from pathlib import Path
@@ -105,21 +106,20 @@ def train_py_run(fast_data_dir, tmp_path_factory):
     return folder / "run", res
 
 
-@pytest.fixture(autouse=True)
-def _realtime_alone(request, tmp_path_factory):
-    """Under pytest-xdist, a test marked ``realtime`` (a recorder polling an emulated board at
-    700 packets/s) runs while no other worker runs a test: a readers-writer lock over the
-    workers' shared temporary folder, with a turnstile so that a waiting ``realtime`` test is
-    not starved. On 2 cores a training beside the recorder drops over 10 % of its packets
-    and the trial is rightly stored incomplete. Without xdist: nothing to do."""
-    if "PYTEST_XDIST_WORKER" not in os.environ:
+@contextlib.contextmanager
+def machine_share(alone: bool):
+    """Under pytest-xdist, a readers-writer lock shared by the run's workers: ``alone`` waits
+    until no other worker runs a test and keeps them waiting, else it runs beside the others
+    (a turnstile keeps a waiting ``alone`` from being starved). Without xdist: nothing to do."""
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if run is None:
         yield
         return
     import fcntl
+    import tempfile
 
-    shared = tmp_path_factory.getbasetemp().parent
-    alone = request.node.get_closest_marker("realtime") is not None
-    with open(shared / "realtime.turnstile", "a") as turnstile, open(shared / "realtime.lock", "a") as lock:
+    base = Path(tempfile.gettempdir()) / f"embodied_tactile_tests_{run}"
+    with open(f"{base}.turnstile", "a") as turnstile, open(f"{base}.lock", "a") as lock:
         fcntl.flock(turnstile, fcntl.LOCK_EX)
         try:
             fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
@@ -129,6 +129,16 @@ def _realtime_alone(request, tmp_path_factory):
             yield
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """A test marked ``realtime`` (the recorder polling an emulated board at 700 packets/s)
+    runs, with the set-up and tear-down of its fixtures, while no other worker runs a test or
+    sets up a fixture (:func:`machine_share`): on 2 cores a training or a simulation beside
+    the recorder drops over 10 % of its packets, and the trial is rightly stored incomplete."""
+    with machine_share(item.get_closest_marker("realtime") is not None):
+        yield
 
 
 @pytest.fixture()

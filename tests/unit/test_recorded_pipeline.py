@@ -16,6 +16,8 @@ from embodied_tactile.data.datamodule import TactileDataModule
 from embodied_tactile.data import rawformat as rf
 from embodied_tactile.sim import simulate_trial
 
+pytestmark = pytest.mark.realtime  # the recording fixture keeps the board's pace: no other test beside it
+
 DURATION = 1.0  # s per recorded trial; preprocessing configured for 30 frames at 30 Hz
 
 
