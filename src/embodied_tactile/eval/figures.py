@@ -162,15 +162,18 @@ def plot_nmse_curves(curves: Mapping[str, np.ndarray], path, *, title: str = "",
     return _save(nmse_curves_figure(curves, title=title, frame_rate=frame_rate, bands=bands), Path(path), tight=False)
 
 
+def _values_in_order(results: Sequence[Results], key: str) -> list:
+    """The values of one attribute over ``results``, in the paper's order (modalities ACC,
+    FSR_t, FSR_b, FSR_tb, MULTI-E, MULTI-L; methods Latent Filter first), else alphabetical."""
+    order = list(MODALITY_LABELS) + list(METHOD_LABELS)
+    return sorted({getattr(r, key) for r in results}, key=lambda v: (order.index(v) if v in order else len(order), v))
+
+
 def curves_by(results: Sequence[Results], key: str) -> dict[str, np.ndarray]:
     """Pool runs by one attribute ('modality', 'skin', 'primitive', 'method') -> label -> (T, 4),
-    in the paper's order (modalities ACC, FSR_t, FSR_b, FSR_tb, MULTI-E, MULTI-L; methods
-    Latent Filter first), else alphabetical."""
-    order = list(MODALITY_LABELS) + list(METHOD_LABELS)
-    out = {}
-    for v in sorted({getattr(r, key) for r in results}, key=lambda v: (order.index(v) if v in order else len(order), v)):
-        out[str(v)] = pooled_nmse([r for r in results if getattr(r, key) == v], curve=True)
-    return out
+    in :func:`_values_in_order`'s order."""
+    return {str(v): pooled_nmse([r for r in results if getattr(r, key) == v], curve=True)
+            for v in _values_in_order(results, key)}
 
 
 def seed_curves_by(results: Sequence[Results], key: str) -> dict[str, np.ndarray]:
@@ -178,12 +181,12 @@ def seed_curves_by(results: Sequence[Results], key: str) -> dict[str, np.ndarray
     (truncated to the shortest, aligned on the end of the interaction); labels with one seed
     are left out (no spread to draw)."""
     out = {}
-    for label in curves_by(results, key):
-        rs = [r for r in results if str(getattr(r, key)) == label]
+    for v in _values_in_order(results, key):
+        rs = [r for r in results if getattr(r, key) == v]
         per_seed = [pooled_nmse([r for r in rs if r.seed == s], curve=True) for s in sorted({r.seed for r in rs}, key=str)]
         if len(per_seed) > 1:
             t_min = min(c.shape[0] for c in per_seed)
-            out[label] = np.stack([c[-t_min:] for c in per_seed])
+            out[str(v)] = np.stack([c[-t_min:] for c in per_seed])
     return out
 
 

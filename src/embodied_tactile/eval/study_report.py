@@ -636,12 +636,11 @@ def copy_figures(source: Path, target: Path) -> list[tuple[Path, str]]:
     found = [f for pattern in PAGE_FIGURES for f in sorted(source.glob(pattern))]
     if target.is_dir():
         shutil.rmtree(target)
-    out = []
+    if found:
+        target.mkdir(parents=True)
     for f in found:
-        target.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(f, target / f.name)
-        out.append((target / f.name, captions.get(f.name, "")))
-    return out
+    return [(target / f.name, captions.get(f.name, "")) for f in found]
 
 
 def render(blob: Mapping, command: str = "", notes: Sequence[str] = (), objects: Mapping | None = None,
