@@ -244,11 +244,12 @@ def touches(run_dir: Path, checkpoint: str, prior: str = "start", held_out: str 
       one per object, its trials combined) and applied to the validation objects' y at that K.
     """
     from embodied_tactile.eval.krr import alignment_kwargs, fit_alignment
+    from embodied_tactile.options.alignment import alignment_options
     from embodied_tactile.eval.metrics import nmse, overall, reference_variance
     from embodied_tactile.eval.results import evaluate_latents
 
     run, net, tr, te = split_posteriors(run_dir, checkpoint, held_out)
-    align_opts = {"readout": "final_segment"}  # one alignment of the final tenth, read at the last frame
+    align_opts = alignment_options({"readout": "final_segment"})  # one alignment of the final tenth, read at the last frame
     _, align = evaluate_latents(tr, te, latent="y", alignment=align_opts, split="object")
     if prior == "marginal":
         with torch.no_grad():

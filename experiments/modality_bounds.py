@@ -57,6 +57,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from embodied_tactile.options.alignment import alignment_options
 from embodied_tactile.run.threadenv import set_threads
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -134,9 +135,9 @@ def raw_acc_features(acc: np.ndarray, fs: float, n_frames: int = 300, frame_rate
     return feats
 
 
-def raw_probe(train, test, raw_paths, *, magnitude: bool, alignment: dict, meta: dict, targets: str):
+def raw_probe(train, test, raw_paths, *, magnitude: bool, alignment, meta: dict, targets: str):
     from embodied_tactile.eval.results import Results
-    from embodied_tactile.eval.krr import fit_alignment
+    from embodied_tactile.eval.krr import alignment_kwargs, fit_alignment
     from embodied_tactile.data.rawformat import read_trial
 
     def feats(split):
@@ -155,7 +156,7 @@ def raw_probe(train, test, raw_paths, *, magnitude: bool, alignment: dict, meta:
         return np.stack(out)
 
     f_tr, f_te = feats(train), feats(test)
-    align = fit_alignment(f_tr, train["factors"], ids=train["seq_id"], **alignment)
+    align = fit_alignment(f_tr, train["factors"], ids=train["seq_id"], **alignment_kwargs(alignment, "trial", None))
     pred = align.predict(f_te, ids=test["seq_id"])
     return Results(pred, test["factors"], test["object_id"], test["action_index"],
                    method="raw_mag_krr" if magnitude else "raw_xyz_krr", n_train=len(f_tr),
@@ -219,7 +220,7 @@ def main(argv=None) -> None:
     print(f"# scene skin={args.skin} primitive={args.primitive} actions={actions}: {len(train['seq_id'])} train / "
           f"{len(test['seq_id'])} test trials (split seed {args.seed}); data {time.perf_counter() - t0:.0f} s",
           file=sys.stderr)
-    alignment = dict(final_segment=0.1, frames_per_sequence=4, cv=5, n_threads=1)  # evaluate.yaml's
+    alignment = alignment_options(dict(final_segment=0.1, frames_per_sequence=4, cv=5, n_threads=1))  # evaluate.yaml's
     gru_window = None if args.gru_window.lower() == "none" else int(args.gru_window)
     gru = dict(epochs=args.gru_epochs, window=gru_window, windows_per_trial=args.gru_windows_per_trial, batch_size=16,
                hidden=64, lr=1e-3, seed=args.seed, input_standardize=args.gru_standardize,

@@ -42,6 +42,7 @@ from embodied_tactile.eval.results import first_below
 from embodied_tactile.eval.runs import (DataCache, collect_split, data_config, discover, load_module, trial_names,
                                         untrained_module)
 from embodied_tactile.eval.targets import encode_split
+from embodied_tactile.options.alignment import AlignmentOptions, alignment_options
 from embodied_tactile.data.modality import Modality
 from embodied_tactile.run.threadenv import set_threads
 
@@ -92,11 +93,11 @@ def _reader_inputs(run_dir: Path, held_out: str) -> tuple[dict, dict, dict, str]
     return sides["train"], sides[held_out], run_alignment(run.cfg, opts), str(dm.split)
 
 
-def read(candidate: dict, x_tr, f_tr, x_te, alignment: dict, split: str, objects) -> np.ndarray:
+def read(candidate: dict, x_tr, f_tr, x_te, alignment: AlignmentOptions, split: str, objects) -> np.ndarray:
     """Predictions (n_te, T, K) of one candidate read-out."""
     cand = dict(candidate)
     bounded = cand.pop("bounded", False)
-    align = fit_alignment(x_tr, f_tr, **alignment_kwargs({**alignment, **cand}, split, objects))
+    align = fit_alignment(x_tr, f_tr, **alignment_kwargs(alignment_options(alignment, cand), split, objects))
     pred = align.predict(x_te)
     if bounded:
         pred = np.clip(pred, np.nanmin(f_tr, axis=0), np.nanmax(f_tr, axis=0))

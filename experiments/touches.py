@@ -16,6 +16,7 @@ held-out targets' variance. K larger than an object's number of trials is skippe
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -53,7 +54,7 @@ def score(run_dir: Path, held_out: str, ks, seed: int) -> dict:
 
     run, net, tr, te = split_posteriors(run_dir, "last", held_out)
     opts = parse_options([])
-    align = {k: v for k, v in run_alignment(run.cfg, opts).items()
+    align = {k: v for k, v in dataclasses.asdict(run_alignment(run.cfg, opts)).items()
              if k in ("cv", "alphas", "gammas", "nystroem_threshold", "n_components", "seed", "n_threads")}
     prior = net.touch_prior()
     out = {"run": run_dir.name, "seed": int(run.cfg.seed), "held_out": held_out}

@@ -32,6 +32,7 @@ the test sample alone would produce. Prints Markdown tables (docs/experiments/va
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import subprocess
@@ -151,14 +152,14 @@ def analyse_run(run_dir: Path, n_boot: int, n_seeds: int) -> dict:
     targets = run_targets(run.cfg, opts)
     tr, te = encode_split(tr, targets), encode_split(te, targets)
     split = run_split(run, data_config(run, opts)["split_file"], trial_objects(dm))["kind"]
-    align = dict(run_alignment(run.cfg, opts))
+    align = run_alignment(run.cfg, opts)
     res, _ = evaluate_latents(tr, te, alignment=align, split=split)
     whole, last = _overall(res)
     out = {"run": str(run_dir), "n_train": len(tr["factors"]), "n_test": len(te["factors"]),
            "whole": whole, "last": last,
            "train_s": json.loads((run_dir / "metrics.json").read_text()).get("train_wall_s")}
     # the read-out's noise: other CV seeds, and half the training sequences
-    out["readout_seed"] = [_overall(evaluate_latents(tr, te, alignment={**align, "seed": s}, split=split)[0])
+    out["readout_seed"] = [_overall(evaluate_latents(tr, te, alignment=dataclasses.replace(align, seed=s), split=split)[0])
                            for s in range(1, n_seeds + 1)]
     rng = np.random.default_rng(0)
     n = len(tr["factors"])

@@ -151,6 +151,8 @@ def test_settings_spec_unit():
     check_train_config(OmegaConf.create({"data": {"test_fraction": 0.25, "val_fraction": 0.125, "train_window": 2}}))
     # the alignment's and the KRR callback's bounds are their options' too
     for bad, match in [({"alignment": {"time_bins": 0}}, r"alignment.time_bins=0 \(int\): expected an integer >= 1"),
+                       ({"alignment": {"readout": "per_frame"}}, "alignment.readout='per_frame' .* one of per_time, final_segment"),
+                       ({"alignment": {"groups": "objects"}}, "alignment.groups='objects' .* one of auto, sequence, object"),
                        ({"callbacks": {"krr_alignment": {"points": 0}}}, r"callbacks.krr_alignment.points=0 .* >= 1"),
                        ({"callbacks": {"krr_alignment": {"every_n_epochs": "x"}}}, "an integer >= 0 or null"),
                        ({"seed": 1.5}, r"seed=1.5 \(float\): expected an integer"),
@@ -170,7 +172,7 @@ def test_wrongly_typed_data_override_is_one_line(capsys):
     for arg, line in [("data.batch_size=many", "data.batch_size='many' (str): expected an integer >= 1"),
                       ("data.seq_len=x", "data.seq_len='x' (str): expected an integer >= 1 or null"),
                       ("data.batch_size=4,x", "data.batch_size='x' (str): expected an integer >= 1"),
-                      ("alignment.cv=x", "alignment.cv='x' (str): expected an integer")]:
+                      ("alignment.cv=x", "alignment.cv='x' (str): expected an integer >= 2")]:
         with pytest.raises(SystemExit) as info:
             check_typed_overrides([arg])
         assert info.value.code == 2

@@ -22,6 +22,7 @@ sys.path.insert(0, str(REPO))
 import evaluate as cli  # noqa: E402  (the script: main())
 from embodied_tactile.eval import pipeline as ev  # noqa: E402
 from embodied_tactile.eval import runs  # noqa: E402
+from embodied_tactile.options.alignment import alignment_options  # noqa: E402
 
 # every test uses `trained`: three trainings (a run and a two-job multirun)
 pytestmark = pytest.mark.slow
@@ -130,7 +131,7 @@ def test_saved_split_reused_and_leakage_guard(trained):
     assert not set(tr["seq_id"]) & set(te["seq_id"])  # scored ids disjoint from fitted ids
     assert tr["obs"].shape[2] == 2  # fsr_tb: two channels, from the run's config
     with pytest.raises(LeakageError):  # scoring a fitted sequence is refused
-        evaluate_latents(tr, {k: v[:2] for k, v in tr.items()}, latent="y", alignment={"cv": 2})
+        evaluate_latents(tr, {k: v[:2] for k, v in tr.items()}, latent="y", alignment=alignment_options({"cv": 2}))
 
 
 def test_checkpoint_path(trained, tmp_path):

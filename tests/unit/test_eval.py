@@ -26,6 +26,7 @@ from embodied_tactile.constants import OBJECTS  # noqa: E402
 from embodied_tactile.eval import (LeakageError, NMSE_DEFINITION, NMSEUndefinedWarning, Results,  # noqa: E402
                                    evaluate_latents, fit_alignment, nmse, nmse_over_time, nmse_trajectory, overall)
 from embodied_tactile.eval.krr import final_segment_rows  # noqa: E402
+from embodied_tactile.options.alignment import alignment_options  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -122,7 +123,7 @@ def test_cv_uses_training_rows_only(monkeypatch):
         return orig(xs, ys, folds, *a, **k)
 
     monkeypatch.setattr(krr, "_grid_cv", spy)
-    res, align = evaluate_latents(tr, te, alignment={"cv": 3, "frames_per_sequence": 2, "readout": "final_segment"})
+    res, align = evaluate_latents(tr, te, alignment=alignment_options({"cv": 3, "frames_per_sequence": 2, "readout": "final_segment"}))
     (xs, folds), = seen
     assert xs.shape[0] == 50 * 2  # 2 final-segment frames per training sequence
     raw = xs * align.x_scale + align.x_mean
@@ -172,7 +173,7 @@ def test_object_split_alignment_chooses_its_hyperparameters_on_unseen_objects():
     train, test = split(np.arange(24)), split(np.arange(24, 32))
     scores = {}
     for groups in ("sequence", "auto"):
-        res, align = evaluate_latents(train, test, alignment={"groups": groups, "cv": 4, "readout": "final_segment"},
+        res, align = evaluate_latents(train, test, alignment=alignment_options({"groups": groups, "cv": 4, "readout": "final_segment"}),
                                            split="object")
         scores[groups] = (res.summary()["nmse_trajectory_overall"], align.params["alpha"])
     mean_pred = np.broadcast_to(train["factors"].mean(0), (len(test["factors"]), t, 4))
@@ -180,8 +181,8 @@ def test_object_split_alignment_chooses_its_hyperparameters_on_unseen_objects():
     assert scores["sequence"][1] <= 1e-2 and scores["sequence"][0] > mean_nmse + 0.03
     assert scores["auto"][1] >= 10.0 and abs(scores["auto"][0] - mean_nmse) < 0.02
     assert resolve_cv_grouping("auto", "trial") == "sequence" and resolve_cv_grouping("auto", "object") == "object"
-    with pytest.raises(ValueError, match="groups must be one of"):
-        evaluate_latents(train, test, alignment={"groups": "objects"})
+    with pytest.raises(ValueError, match=r"alignment.groups='objects' \(str\): expected one of auto, sequence, object"):
+        alignment_options({"groups": "objects"})
 
 
 def test_final_segment_rows():
@@ -203,7 +204,7 @@ def test_nystroem_path_for_large_n():
 
 def test_latent_both_concatenates():
     tr, te = synthetic_split(40, seed=9), synthetic_split(20, seed=10, offset=1000)
-    res, align = evaluate_latents(tr, te, latent="both", alignment={"cv": 2, "readout": "final_segment"})
+    res, align = evaluate_latents(tr, te, latent="both", alignment=alignment_options({"cv": 2, "readout": "final_segment"}))
     assert align.x_mean.shape == (32,) and res.latents_last.shape == (20, 32)
 
 
@@ -244,7 +245,7 @@ def test_handcrafted_features_and_krr_baseline():
         assert k in names
     only_acc, names_acc = handcrafted_features(tr["obs"][:, :, :1], tr["actions"], ("acc",))
     assert all(n.startswith("acc_") for n in names_acc)
-    res = evaluate_handcrafted(tr, te, ("acc", "fsr_t", "fsr_b"), alignment={"cv": 3}, modality="multi_l")
+    res = evaluate_handcrafted(tr, te, ("acc", "fsr_t", "fsr_b"), alignment=alignment_options({"cv": 3}), modality="multi_l")
     assert res.pred.shape == (20, 16, 4) and np.isfinite(res.pred).all()
     assert res.curve()[-1][2] < 0.3  # stiffness is encoded in the force amplitude (whole-sequence features)
 
@@ -361,7 +362,7 @@ def test_code_regression_recognises_objects_by_a_random_code_and_refuses_other_a
     lf = dict(arch="latent_filter", modality="fsr_t", epochs=12, batch_size=8, lr=3e-3, **WHOLE, seed=0,
               latent_filter={"n_z": 4, "n_y": 4, "encoder": {"widths": [4, 8], "hidden": 16},
                              "transition_hidden": 16, "lstm_hidden": 16})
-    res = evaluate_code_regression(tr, te, gru=lf, alignment={"cv": 2, "alphas": (1e-2,), "gammas": (0.3, 1.0)},
+    res = evaluate_code_regression(tr, te, gru=lf, alignment=alignment_options({"cv": 2, "alphas": (1e-2,), "gammas": (0.3, 1.0)}),
                                    modality="fsr_t", skin="soft", primitive="pressing")
     assert res.method == "latent_filter_codes"
     assert res.params["gru"]["n_out"] == 4
@@ -378,7 +379,7 @@ def _results_set():
             tr = synthetic_split(80, t=20, seed=_stable_seed(prim, skin))
             te = synthetic_split(40, t=20, seed=_stable_seed(prim, skin, 1), offset=10_000)
             res, _ = evaluate_latents(tr, te, modality="multi_l", skin=skin, primitive=prim, source="simulated",
-                                      alignment={"cv": 2, "alphas": (1e-2,), "gammas": (0.3, 1.0)},
+                                      alignment=alignment_options({"cv": 2, "alphas": (1e-2,), "gammas": (0.3, 1.0)}),
                                       params={"train_time_s": 12.0})
             out.append(res)
     return out
@@ -653,7 +654,7 @@ def test_hybrid_reader_reads_what_the_features_and_the_latents_each_carry():
         y = 0.05 * rng.normal(size=(n, t, 4))
         y[:, :, 0] += ((split["factors"][:, 0] - mu) / sd)[:, None]
         split["y"] = y.astype(np.float32)
-    kw = dict(alignment={"cv": 3, "readout": "final_segment"}, modality="multi_l")
+    kw = dict(alignment=alignment_options({"cv": 3, "readout": "final_segment"}), modality="multi_l")
     hybrid = evaluate_hybrid(tr, te, channels, **kw)
     alone, _ = evaluate_latents(tr, te, **kw)
     features = evaluate_handcrafted(tr, te, channels, **kw)

@@ -13,6 +13,7 @@ L = pytest.importorskip("lightning")
 
 from embodied_tactile.constants import FACTOR_NAMES, OBJECTS  # noqa: E402
 from embodied_tactile.eval.callback import KRRAlignmentCallback  # noqa: E402
+from embodied_tactile.options.alignment import alignment_options  # noqa: E402
 
 T, C, D = 12, 1, 8
 
@@ -122,7 +123,7 @@ def test_collect_latents_feeds_evaluate_latents():
     te = collect_latents(model, dm.val_dataloader(), latent="both")
     assert model.training  # mode restored
     assert tr["z"].shape == (20, T, D) and tr["y"].shape == (20, T, D) and te["factors"].shape == (16, 4)
-    res, align = evaluate_latents(tr, te, latent="both", alignment={"cv": 2, "readout": "final_segment"})
+    res, align = evaluate_latents(tr, te, latent="both", alignment=alignment_options({"cv": 2, "readout": "final_segment"}))
     assert align.x_mean.shape == (2 * D,) and res.pred.shape == (16, T, 4)
     assert np.isfinite(res.subset_nmse()).all()
 

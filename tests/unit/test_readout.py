@@ -7,10 +7,13 @@ which drift over time without carrying the factors, read about 1 at every frame.
 
 from __future__ import annotations
 
+import dataclasses
+import re
+
 import numpy as np
 import pytest
 
-from embodied_tactile.eval.krr import TimeResolvedAlignment, fit_alignment, time_spans
+from embodied_tactile.eval.krr import TimeResolvedAlignment, alignment_kwargs, fit_alignment, time_spans
 from embodied_tactile.eval.metrics import nmse_over_time
 from embodied_tactile.eval.results import evaluate_latents, first_below
 from embodied_tactile.options.alignment import AlignmentOptions, alignment_options
@@ -115,12 +118,23 @@ def test_untrained_network_reads_about_one_at_every_frame():
 
 
 def test_options_have_one_default_and_refuse_unknown_keys():
-    assert alignment_options()["readout"] == AlignmentOptions.readout
-    assert alignment_options({"readout": "final_segment"}, None, {"cv": 2})["cv"] == 2
+    assert alignment_options().readout == AlignmentOptions.readout
+    built = alignment_options({"readout": "final_segment"}, None, {"cv": 2})
+    assert isinstance(built, AlignmentOptions) and (built.readout, built.cv) == ("final_segment", 2)
+    assert alignment_options(built, {"seed": 3}) == dataclasses.replace(built, seed=3)  # a typed layer
     with pytest.raises(ValueError, match="unknown alignment option"):
         alignment_options({"final_segmnet": 0.2})
-    with pytest.raises(ValueError, match="readout must be one of"):
-        alignment_options({"readout": "per_frame"})
+    for bad, message in (({"readout": "per_frame"}, "alignment.readout='per_frame' (str): expected one of per_time, final_segment"),
+                         ({"cv": 1}, "alignment.cv=1 (int): expected an integer >= 2"),
+                         ({"time_bins": 0}, "alignment.time_bins=0 (int): expected an integer >= 1")):
+        with pytest.raises(ValueError, match=re.escape(message)):
+            alignment_options(bad)
+
+
+def test_the_read_out_takes_the_options_typed():
+    with pytest.raises(TypeError, match="takes an AlignmentOptions"):
+        alignment_kwargs({"cv": 2}, "trial", None)
+    assert alignment_kwargs(alignment_options({"groups": "auto"}), "trial", None)["groups"] is None
 
 
 def test_evaluate_latents_reports_the_curve_and_its_first_frame_below_half():
@@ -135,7 +149,7 @@ def test_evaluate_latents_reports_the_curve_and_its_first_frame_below_half():
         return {"y": lat, "factors": f, "object_id": np.arange(n) % 32, "action_index": np.zeros(n, int),
                 "seq_id": np.arange(n) + offset}
 
-    res, _ = evaluate_latents(split(100, 0), split(40, 1000), alignment=FAST)
+    res, _ = evaluate_latents(split(100, 0), split(40, 1000), alignment=alignment_options(FAST))
     s = res.summary()
     assert len(s["nmse_curve_overall"]) == t
     assert s["nmse_curve_overall"][-1] == pytest.approx(s["nmse_last_step_overall"])

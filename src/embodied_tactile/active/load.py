@@ -7,13 +7,14 @@ evaluate.py reports for that run.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from embodied_tactile.eval import runs as R
-from embodied_tactile.eval.pipeline import parse_options, run_targets
+from embodied_tactile.eval.pipeline import parse_options, run_alignment, run_targets
 from embodied_tactile.run.threadenv import set_threads
 
 from .model import PalpationModel
@@ -61,9 +62,9 @@ def load_palpation_model(run: str | Path, *, checkpoint: str = "best", eval_over
     targets = run_targets(r.cfg, opts)
     tr = encode_split(tr, targets)
     split = str(data.get("split", "trial"))
-    # the state after whole touches is what a palpation reads: the final-segment alignment
-    align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"],
-                          **{**alignment_kwargs(opts.alignment, split, tr["object_id"]), "readout": "final_segment"})
+    # the state after whole touches is what a palpation reads: the run's alignment, final segment
+    final_segment = dataclasses.replace(run_alignment(r.cfg, opts), readout="final_segment")
+    align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"], **alignment_kwargs(final_segment, split, tr["object_id"]))
     nominal = {int(a): tr["actions"][tr["action_index"] == a].mean(axis=0) for a in np.unique(tr["action_index"])}
     from embodied_tactile import constants as C
     from embodied_tactile.data.prepare import Scene

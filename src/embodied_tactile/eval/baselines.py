@@ -22,6 +22,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from ..options.alignment import AlignmentOptions
 from ..options.evaluation import GRUOptions, HandcraftedOptions
 from ..model.options import LatentFilterOptions
 from ..data.features import handcrafted_features
@@ -32,7 +33,7 @@ from .results import Results, evaluate_latents
 
 # =========================================================================== (a) features
 def evaluate_handcrafted(train: Mapping[str, Any], test: Mapping[str, Any], channels: Sequence[str], *,
-                         alignment: Mapping[str, Any] | None = None, split: str = "trial",
+                         alignment: AlignmentOptions | None = None, split: str = "trial",
                          handcrafted: HandcraftedOptions | Mapping[str, Any] | None = None, **meta) -> Results:
     """Hand-crafted features -> the same KRR alignment -> Results (method 'handcrafted_krr').
     ``alignment`` and ``split``: as :func:`~embodied_tactile.eval.results.evaluate_latents`;
@@ -61,7 +62,7 @@ def evaluate_handcrafted(train: Mapping[str, Any], test: Mapping[str, Any], chan
 
 
 def evaluate_hybrid(train: Mapping[str, Any], test: Mapping[str, Any], channels: Sequence[str], *, latent: str = "y",
-                    alignment: Mapping[str, Any] | None = None, split: str = "trial",
+                    alignment: AlignmentOptions | None = None, split: str = "trial",
                     handcrafted: HandcraftedOptions | Mapping[str, Any] | None = None, **meta) -> Results:
     """The hybrid reader (method 'hybrid_krr'): the same KRR alignment on [hand-crafted
     features, the run's latents] frame by frame (features (n, T, k) then ``latent`` (n, T,
@@ -308,7 +309,7 @@ def evaluate_gru(train: Mapping[str, Any], test: Mapping[str, Any], *, gru: Mapp
 
 
 def evaluate_code_regression(train: Mapping[str, Any], test: Mapping[str, Any], *, gru: Mapping[str, Any],
-                             alignment: Mapping[str, Any] | None = None, code_sigma: float = 0.5,
+                             alignment: AlignmentOptions | None = None, code_sigma: float = 0.5,
                              split: str = "trial", **meta) -> Results:
     """What the label-conditioned prior could put into y at a budget, if its pull acted like a
     regression (method ``latent_filter_codes``; docs/experiments/object_codes.md).

@@ -52,13 +52,14 @@ import contextlib
 import json
 import logging
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, ContextManager, Mapping, Sequence
 
 import numpy as np
 
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment, resolve_cv_grouping
-from ..options.alignment import CHECK_ALIGNMENT, AlignmentCheckOptions, alignment_options
+from ..options.alignment import CHECK_ALIGNMENT, AlignmentCheckOptions, AlignmentOptions, alignment_options
 from .latents import (LATENT_KEYS, cache_batches, collect_latents, collect_split_latents, count_sequences,
                       factor_names, rebatch, split_at)
 from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
@@ -123,7 +124,7 @@ class KRRAlignmentCallback(Callback):
         # the periodic checks change only what CHECK_ALIGNMENT / `checks` name
         self.final_kw = alignment_options(alignment)
         self.align_kw = alignment_options(self.final_kw, CHECK_ALIGNMENT, checks)
-        self.groups = self.final_kw["groups"]
+        self.groups = self.final_kw.groups
         self.run_on_train_end = run_on_train_end
         self.history_name = history_name
         self.final: dict | None = None
@@ -300,7 +301,7 @@ class KRRAlignmentCallback(Callback):
             "alignment": {k: align.params.get(k) for k in ("readout", "time_bins", "method", "alpha", "gamma",
                                                            "n_train_rows", "fit_time_s", "final_segment",
                                                            "frames_per_sequence", "cv_folds", "seed")},
-            "alignment_settings": {**{k: v for k, v in base_kw.items() if k != "n_threads"},
+            "alignment_settings": {**{k: v for k, v in asdict(base_kw).items() if k != "n_threads"},
                                    "groups": resolve_cv_grouping(self.groups, split)},
         }
         if floor is not None:
@@ -321,7 +322,7 @@ class KRRAlignmentCallback(Callback):
                  metrics["krr/nmse_overall"], cb, 100 * metrics["krr/callback_fraction"])
         return metrics
 
-    def _score(self, tr: dict, te: dict, base_kw: Mapping[str, Any], split: str, stride: int):
+    def _score(self, tr: dict, te: dict, base_kw: AlignmentOptions, split: str, stride: int):
         """Fit the alignment ``base_kw`` on the training latents ``tr`` and read the held-out
         ``te``: (tr, te with encoded targets, the fitted alignment, the NMSE curve over the
         scored frames (T', K), the NMSE per factor over the trajectory, the predictions of the

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
@@ -44,32 +44,33 @@ from sklearn.linear_model import Ridge
 from sklearn.model_selection import GroupKFold
 from sklearn.pipeline import Pipeline
 
-from ..options.alignment import CV_GROUPINGS, DEFAULT_ALPHAS, DEFAULT_GAMMAS, READOUTS, AlignmentOptions, alignment_options
+from ..options.alignment import DEFAULT_ALPHAS, DEFAULT_GAMMAS, READOUTS, AlignmentOptions
 
 
-def resolve_cv_grouping(grouping: str | None, split: str) -> str:
+def resolve_cv_grouping(grouping: str, split: str) -> str:
     """'sequence' or 'object': how the alignment's CV folds group the training sequences.
 
-    ``grouping``: 'sequence' (None too) or 'object', or 'auto': 'object' on an object split
-    (the question is generalisation to objects never seen, so hyper-parameters are chosen on
-    folds whose objects the fit did not see), 'sequence' on the trial split (held-out trials
-    of objects the fit saw, the paper's question). ``split``: the run's split kind.
+    ``grouping`` (:attr:`AlignmentOptions.groups`): 'sequence' or 'object', or 'auto':
+    'object' on an object split (the question is generalisation to objects never seen, so
+    hyper-parameters are chosen on folds whose objects the fit did not see), 'sequence' on the
+    trial split (held-out trials of objects the fit saw, the paper's question). ``split``: the
+    run's split kind.
     """
-    grouping = "sequence" if grouping is None else str(grouping)
-    if grouping not in CV_GROUPINGS:
-        raise ValueError(f"alignment groups must be one of {CV_GROUPINGS}, got {grouping!r}")
     if grouping == "auto":
         return "object" if split == "object" else "sequence"
     return grouping
 
 
-def alignment_kwargs(alignment, split: str, object_ids) -> dict:
-    """:func:`fit_alignment`'s keywords from an ``alignment`` option mapping (the run's
-    ``alignment`` with evaluate.py's overrides; absent keys take
-    :class:`~embodied_tactile.options.alignment.AlignmentOptions`' defaults), with its ``groups``
-    name resolved to the object id per training sequence when :func:`resolve_cv_grouping`
-    says 'object', None (each sequence its own group) otherwise."""
-    kw = alignment_options(alignment)
+def alignment_kwargs(alignment: AlignmentOptions | None, split: str, object_ids) -> dict:
+    """:func:`fit_alignment`'s keywords from the typed ``alignment`` (built where it entered:
+    :func:`~embodied_tactile.options.alignment.alignment_options`; None: the defaults), with its ``groups`` name
+    resolved to the object id per training sequence when :func:`resolve_cv_grouping` says
+    'object', None (each sequence its own group) otherwise."""
+    alignment = AlignmentOptions() if alignment is None else alignment
+    if not isinstance(alignment, AlignmentOptions):
+        raise TypeError(f"alignment_kwargs takes an AlignmentOptions (alignment_options(...) at the entry), "
+                        f"got {type(alignment).__name__}")
+    kw = asdict(alignment)
     if resolve_cv_grouping(kw["groups"], split) == "sequence":
         kw["groups"] = None
     elif object_ids is None:

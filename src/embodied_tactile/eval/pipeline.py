@@ -30,6 +30,7 @@ from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect
                                         untrained_module)
 from embodied_tactile.eval.results import SPLIT_KINDS
 from embodied_tactile.jsonio import read_json
+from embodied_tactile.options.alignment import AlignmentOptions, alignment_options
 from embodied_tactile.paths import config_dir
 
 BASELINES = ("untrained", "handcrafted", "hybrid", "gru", "mean")
@@ -90,8 +91,6 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
         unknown = [b for b in opts.baselines if b not in BASELINES]
         if unknown:
             raise EvaluationError(f"unknown baseline(s) {unknown}; choose from {list(BASELINES)}")
-    from embodied_tactile.options.alignment import alignment_options
-
     try:  # the overrides alone: the run's own alignment is layered under them per run
         alignment_options(OmegaConf.to_container(opts.alignment, resolve=True))
     except ValueError as err:
@@ -167,10 +166,10 @@ def run_targets(cfg: DictConfig, opts: DictConfig) -> str:
     return str(opts.targets if opts.targets is not None else cfg.get("targets", DEFAULT_TARGETS))
 
 
-def run_alignment(cfg: DictConfig, opts: DictConfig) -> dict:
+def run_alignment(cfg: DictConfig, opts: DictConfig) -> AlignmentOptions:
     """The alignment to score with: the run's own ``alignment`` (the one its final check used;
-    the current defaults for a run that predates it) with ``opts.alignment``'s overrides."""
-    from embodied_tactile.options.alignment import alignment_options
+    the current defaults for a run that predates it) with ``opts.alignment``'s overrides,
+    built and checked here, once per run."""
 
     own = OmegaConf.to_container(cfg.alignment, resolve=True) if cfg.get("alignment") is not None else None
     try:

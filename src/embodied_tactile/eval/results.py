@@ -27,6 +27,7 @@ import numpy as np
 
 from ..constants import FACTOR_NAMES, N_OBJECTS, OBJECT_GROUPS, get_object
 from ..jsonio import to_jsonable
+from ..options.alignment import AlignmentOptions
 from .krr import Alignment, alignment_kwargs, assert_disjoint, fit_alignment
 from .metrics import balanced_accuracy, nmse_over_time, nmse_trajectory, overall, reference_variance, roc_auc
 
@@ -302,16 +303,15 @@ def evaluate_latents(
     skin: str = "unknown",
     primitive: str = "unknown",
     source: str = "simulated",
-    alignment: Mapping[str, Any] | None = None,
+    alignment: AlignmentOptions | None = None,
     params: Mapping[str, Any] | None = None,
     split: str = "trial",
 ) -> tuple[Results, Alignment]:
     """Fit the KRR alignment on ``train`` (final segments), predict every frame of ``test``.
 
-    ``alignment``: keyword arguments for :func:`fit_alignment` (final_segment, cv, grids,
-    nystroem_threshold, seed) and ``groups``: 'auto' (default), 'sequence' or 'object', the CV
-    grouping resolved by :func:`~embodied_tactile.eval.krr.resolve_cv_grouping` for the run's
-    ``split`` kind ('trial' | 'object'). Raises
+    ``alignment``: the typed read-out (None: the defaults); its ``groups`` ('auto', 'sequence'
+    or 'object') is resolved by :func:`~embodied_tactile.eval.krr.resolve_cv_grouping` for the
+    run's ``split`` kind ('trial' | 'object'). Raises
     :class:`~embodied_tactile.eval.krr.LeakageError` when both splits carry ``seq_id`` and
     they intersect.
     """

@@ -26,10 +26,10 @@ Read-outs (``readout``; docs/reference/evaluation.md, "The read-out over time"):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Dict, List, Optional
 
-from .checks import at_least
+from .checks import SettingsError, at_least, bounds, check_options, one_of
 
 #: ``alpha`` grid: reaches 100, where the fit on standardised targets is close to their mean
 DEFAULT_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
@@ -46,20 +46,22 @@ CV_GROUPINGS = ("auto", "sequence", "object")
 
 @dataclass
 class AlignmentOptions:
-    """``alignment``: the latent -> factor read-out (RBF kernel ridge regression)."""
+    """``alignment``: the latent -> factor read-out (RBF kernel ridge regression). Built and
+    checked once, where it enters (:func:`alignment_options`); the read-out's functions take it
+    typed and do not check it again."""
 
-    readout: str = "per_time"         # per_time | final_segment (the paper's protocol)
+    readout: str = field(default="per_time", metadata=one_of(*READOUTS))  # per_time | final_segment (the paper's protocol)
     time_bins: int = field(default=10, metadata=at_least(1))  # per_time: no span longer than 1/time_bins of the trial (eval.krr.time_spans)
-    final_segment: float = 0.1        # final_segment: the fitted tail (fraction of T, or frames if > 1)
-    frames_per_sequence: int = 4      # rows per training sequence (per span for per_time)
-    cv: int = 5                       # grouped folds of the grid search
-    groups: str = "auto"              # CV folds: auto (by object on an object split) | sequence | object
+    final_segment: float = field(default=0.1, metadata=bounds(0, lo_open=True))  # final_segment: the fitted tail (fraction of T, or frames if > 1)
+    frames_per_sequence: int = field(default=4, metadata=at_least(1))  # rows per training sequence (per span for per_time)
+    cv: int = field(default=5, metadata=at_least(2))  # grouped folds of the grid search
+    groups: str = field(default="auto", metadata=one_of(*CV_GROUPINGS))  # CV folds: auto (by object on an object split) | sequence | object
     alphas: List[float] = field(default_factory=lambda: list(DEFAULT_ALPHAS))
     gammas: List[float] = field(default_factory=lambda: list(DEFAULT_GAMMAS))
-    nystroem_threshold: int = 2000    # above this many rows: Nystroem features + ridge
-    n_components: int = 500
+    nystroem_threshold: int = field(default=2000, metadata=at_least(1))  # above this many rows: Nystroem features + ridge
+    n_components: int = field(default=500, metadata=at_least(1))
     seed: int = 0
-    n_threads: Optional[int] = 1      # BLAS threads of the fit (1: much faster on a loaded small machine)
+    n_threads: Optional[int] = field(default=1, metadata=at_least(1))  # BLAS threads of the fit (1: much faster on a loaded small machine)
 
 
 @dataclass
@@ -83,28 +85,32 @@ class AlignmentCheckOptions:
     checks: Optional[Dict[str, Any]] = None  # alignment options of the periodic checks
 
 
-def alignment_options(*layers) -> dict:
-    """The defaults of :class:`AlignmentOptions` updated by each mapping in ``layers`` (None
-    skipped), checked: an unknown key or readout raises ``ValueError`` naming it."""
-    from dataclasses import asdict, fields
-
+def alignment_options(*layers) -> AlignmentOptions:
+    """The typed alignment: :class:`AlignmentOptions`' defaults updated by each layer in order
+    (a mapping, a config node or an :class:`AlignmentOptions`; None skipped), checked by the one checker
+    (:func:`~embodied_tactile.options.checks.check_options`, the fields' metadata): an unknown
+    key or a value of the wrong type or range raises :class:`SettingsError` naming
+    ``alignment.<key>``. The entry points build it (the KRR callback from the run's
+    ``alignment``, evaluate.py from the run's own with its overrides); what reads it below
+    takes it as it is."""
     known = {f.name for f in fields(AlignmentOptions)}
-    out = asdict(AlignmentOptions())
+    merged = asdict(AlignmentOptions())
     for layer in layers:
         if layer is None:
             continue
+        if isinstance(layer, AlignmentOptions):
+            layer = asdict(layer)
+        else:
+            from omegaconf import OmegaConf
+
+            layer = OmegaConf.to_container(layer, resolve=True) if OmegaConf.is_config(layer) else dict(layer)
         unknown = sorted(set(layer) - known)
         if unknown:
-            raise ValueError(f"unknown alignment option(s) {unknown}; known: {sorted(known)}")
-        out.update(dict(layer))
-    if out["readout"] not in READOUTS:
-        raise ValueError(f"alignment.readout must be one of {READOUTS}, got {out['readout']!r}")
-    if out["groups"] not in CV_GROUPINGS:
-        raise ValueError(f"alignment.groups must be one of {CV_GROUPINGS}, got {out['groups']!r}")
-    if int(out["time_bins"]) < 1:
-        raise ValueError(f"alignment.time_bins must be >= 1, got {out['time_bins']}")
-    out["alphas"], out["gammas"] = [float(a) for a in out["alphas"]], [float(g) for g in out["gammas"]]
-    return out
+            raise SettingsError(f"unknown alignment option(s) {unknown}; known: {sorted(known)}")
+        merged.update(layer)
+    check_options(AlignmentOptions, merged, "alignment")
+    merged["alphas"], merged["gammas"] = [float(a) for a in merged["alphas"]], [float(g) for g in merged["gammas"]]
+    return AlignmentOptions(**merged)
 
 
 __all__ = ["AlignmentCheckOptions", "AlignmentOptions", "CHECK_ALIGNMENT", "CV_GROUPINGS", "DEFAULT_ALPHAS", "DEFAULT_GAMMAS", "READOUTS",
