@@ -131,14 +131,36 @@ def machine_share(alone: bool):
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
+def _realtime(item) -> bool:
+    return item is not None and item.get_closest_marker("realtime") is not None
+
+
+class _Share:
+    """This worker's :func:`machine_share`, kept from one ``realtime`` test to the next one it
+    runs: a run of them waits once for the other worker's test in progress, not once each."""
+
+    stack = contextlib.ExitStack()
+    alone: bool | None = None
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     """A test marked ``realtime`` (the recorder polling an emulated board at 700 packets/s)
     runs, with the set-up and tear-down of its fixtures, while no other worker runs a test or
     sets up a fixture (:func:`machine_share`): on 2 cores a training or a simulation beside
-    the recorder drops over 10 % of its packets, and the trial is rightly stored incomplete."""
-    with machine_share(item.get_closest_marker("realtime") is not None):
+    the recorder drops over 10 % of its packets, and the trial is rightly stored incomplete.
+    The share is kept while the next test of this worker is realtime too."""
+    alone = _realtime(item)
+    if not (alone and _Share.alone):
+        _Share.stack.close()
+        _Share.stack.enter_context(machine_share(alone))
+        _Share.alone = alone
+    try:
         yield
+    finally:
+        if not (alone and _realtime(nextitem)):
+            _Share.stack.close()
+            _Share.alone = None
 
 
 @pytest.fixture()
