@@ -105,6 +105,7 @@ def test_the_default_run_is_the_typed_defaults(tmp_path):
     assert Scene.from_config(OmegaConf.to_container(default.data, resolve=True)).actions is None
 
 
+@pytest.mark.slow
 def test_ablation_sweep_composes_all_24_jobs(tmp_path):
     """What `python train.py -m sweep=ablation trainer.fast_dev_run=true` launches: 8 modality x
     skin combos x 3 primitives = 24 jobs, each composing its scene and instantiating its data

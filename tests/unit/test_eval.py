@@ -82,6 +82,7 @@ def test_nmse_zero_variance_is_nan_with_warning():
 
 
 # ------------------------------------------------------------------ KRR
+@pytest.mark.slow
 def test_krr_recovers_smooth_nonlinear_mapping_and_not_shuffled():
     tr, te = synthetic_split(240, seed=1), synthetic_split(80, seed=2, offset=10_000)
     align = fit_alignment(tr["y"], tr["factors"], ids=tr["seq_id"], readout="final_segment")
@@ -415,6 +416,7 @@ def test_pooled_nmse_equals_nmse_for_one_run():
     np.testing.assert_allclose(pooled_nmse([r], lambda x: x.action_index < 8), r.subset_nmse(m))
 
 
+@pytest.mark.slow
 def test_report_writes_everything(tmp_path):
     from embodied_tactile.eval.figures import class_distances
     from embodied_tactile.eval.report import write_report

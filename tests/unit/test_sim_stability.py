@@ -45,6 +45,7 @@ def _check(tr):
 
 
 @pytest.mark.filterwarnings("error")
+@pytest.mark.slow
 def test_extreme_grid_finite_and_in_range():
     saturated = 0
     with warnings.catch_warnings():

@@ -47,6 +47,7 @@ def composed(tmp_path, fast_data_dir):
         yield job
 
 
+@pytest.mark.slow
 def test_train_in_process_and_evaluate_reproduces_its_nmse(composed, capsys):
     """One training in this process finishes, prints its summary and records a finite NMSE;
     evaluate on its folder (the final weights, the run's own alignment) gives the same number

@@ -142,6 +142,7 @@ def test_a_dead_channel_in_one_trial_is_skipped_naming_file_trial_and_layer(tiny
         assert _used(kept) == set(names[:4]) and kept.skipped == []
 
 
+@pytest.mark.slow
 def test_a_channel_dead_in_every_trial_is_still_refused_whole(tiny_data_dir, names, tmp_path):
     """The same dead layer in every trial is no trial's fault: nothing is skipped, and the
     training set-up refuses the channel (ConstantChannelError), as before."""

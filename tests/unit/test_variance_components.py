@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 _spec = importlib.util.spec_from_file_location(
     "variance_components", Path(__file__).parents[2] / "experiments" / "variance_components.py")
@@ -28,6 +29,7 @@ def test_each_factor_changes_one_seed_and_the_main_factor_comes_before_the_furth
     assert all(o in ov for _, _, ov in runs for o in vc.DESIGNS["sets16"])
 
 
+@pytest.mark.slow
 def test_a_lane_claims_a_run_once_and_a_lane_that_stopped_holds_nothing(tmp_path):
     run = tmp_path / "runs" / "sets4" / "base"
     fd = vc.claim(run)
