@@ -154,6 +154,7 @@ def test_settings_spec_unit():
                        ({"alignment": {"readout": "per_frame"}}, "alignment.readout='per_frame' .* one of per_time, final_segment"),
                        ({"alignment": {"groups": "objects"}}, "alignment.groups='objects' .* one of auto, sequence, object"),
                        ({"callbacks": {"krr_alignment": {"points": 0}}}, r"callbacks.krr_alignment.points=0 .* >= 1"),
+                       ({"callbacks": {"krr_alignment": {"latent": "w"}}}, "callbacks.krr_alignment.latent='w' .* one of y, z, both"),
                        ({"callbacks": {"krr_alignment": {"every_n_epochs": "x"}}}, "an integer >= 0 or null"),
                        ({"seed": 1.5}, r"seed=1.5 \(float\): expected an integer"),
                        # the budget is the experiment's: trainer groups leave it ??? (~experiment)

@@ -155,3 +155,13 @@ def test_evaluate_latents_reports_the_curve_and_its_first_frame_below_half():
     assert s["nmse_curve_overall"][-1] == pytest.approx(s["nmse_last_step_overall"])
     k = s["first_frame_below_half"]
     assert k is not None and s["nmse_curve_overall"][k] <= 0.5 and all(v > 0.5 for v in s["nmse_curve_overall"][:k])
+
+
+def test_the_callbacks_latent_choices_are_the_readers_latents():
+    from dataclasses import fields
+
+    from embodied_tactile.eval.latents import LATENT_KEYS
+    from embodied_tactile.options.alignment import AlignmentCheckOptions
+
+    latent = next(f for f in fields(AlignmentCheckOptions) if f.name == "latent")
+    assert set(latent.metadata["choices"]) == set(LATENT_KEYS)

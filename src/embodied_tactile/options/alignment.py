@@ -79,7 +79,7 @@ class AlignmentCheckOptions:
     points: int = field(default=8, metadata=at_least(1))
     initial: bool = True
     infer_batch_size: int = field(default=128, metadata=at_least(1))  # sequences per latent-inference batch
-    latent: str = "y"                       # y | z | both
+    latent: str = field(default="y", metadata=one_of("y", "z", "both"))  # eval.latents.LATENT_KEYS
     max_train_sequences: Optional[int] = 512
     val_frame_stride: int = 2
     checks: Optional[Dict[str, Any]] = None  # alignment options of the periodic checks
