@@ -21,13 +21,14 @@ os.environ.setdefault("EMBODIED_TACTILE_TRAININGS_DIR", str(TEST_TRAININGS_DIR))
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="session", autouse=True)
-def _test_trainings_registry():
-    """The tests' training registry folder goes when the session ends."""
-    yield
-    import shutil
+def pytest_sessionfinish(session, exitstatus):
+    """The tests' training registry folder goes when the run ends. Under pytest-xdist the
+    workers inherit the controller's folder (the variable is set before they start), so the
+    controller removes it, after every worker has finished."""
+    if not hasattr(session.config, "workerinput") and os.environ.get("EMBODIED_TACTILE_TRAININGS_DIR") == str(TEST_TRAININGS_DIR):
+        import shutil
 
-    shutil.rmtree(TEST_TRAININGS_DIR, ignore_errors=True)
+        shutil.rmtree(TEST_TRAININGS_DIR, ignore_errors=True)
 
 
 #: The tiny scene: 4 objects (soft, hard, PLA-high-frequency, heterogeneous) x 2 actions x 2 reps.
