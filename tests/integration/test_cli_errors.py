@@ -52,6 +52,19 @@ def test_typed_check_covers_the_optional_context_group(capsys):
     assert "model.context.initial_frames='many' (str): expected an integer" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("override, needle", [
+    ("targets=si", "callbacks.krr_alignment.targets='si' (str): expected one of design_rank, physical"),
+    ("callbacks.krr_alignment.latent=w", "callbacks.krr_alignment.latent='w' (str): expected one of y, z, both"),
+    ("callbacks.krr_alignment.points=0", "callbacks.krr_alignment.points=0 (int): expected an integer >= 1"),
+])
+def test_the_krr_callbacks_settings_are_refused_at_the_entry(tmp_path, capsys, override, needle):
+    """The KRR callback takes its settings as train.py's entry checked them (its fields'
+    metadata, run.config.AlignmentCallbackNode): a value it cannot use stops train.py there,
+    before any folder is made."""
+    _one_line_exit_2(train_here(tmp_path, capsys, override), needle)
+    assert not (tmp_path / "logs").exists()
+
+
 @pytest.mark.parametrize("override, needles", [
     ("trainer.max_epochs=abc", ("trainer.max_epochs='abc'", "integer")),
     ("data.batch_size=0", ("data.batch_size=0", ">= 1")),

@@ -614,9 +614,10 @@ def test_evaluation_options_and_run_selection_without_a_trained_run(tmp_path):
 
     opts = ev.parse_options(["checkpoint=last", "alignment.cv=2", "baselines=[mean]"])
     assert opts.checkpoint == "last" and opts.alignment.cv == 2 and list(opts.baselines) == ["mean"]
-    for bad, match in [(["checkpoint=middle"], "checkpoint must be 'best' or 'last'"), (["latent=w"], "latent must be"),
-                       (["held_out=train"], "held_out must be"), (["no_such_key=1"], "unknown evaluation option"),
-                       (["cv"], "options must be key=value"), (["baselines=[knn]"], r"unknown baseline\(s\) \['knn'\]")]:
+    for bad, match in [(["checkpoint=middle"], "checkpoint='middle' .*one of best, last"),
+                       (["latent=w"], "latent='w' .*one of y, z, both"), (["held_out=train"], "held_out='train' .*one of test, val"),
+                       (["targets=si"], "targets='si' .*one of design_rank, physical or null"), (["no_such_key=1"], "unknown evaluation option"),
+                       (["cv"], "options must be key=value"), (["baselines=[knn]"], r"baselines=\['knn'\] .*a list of untrained, handcrafted")]:
         with pytest.raises(ev.EvaluationError, match=match):
             ev.parse_options(bad)
     options, selection = ev.split_overrides(["alignment.cv=2", "modality=[acc,fsr_t]", "seed=0", "annealing.name=dvbf"])

@@ -60,9 +60,9 @@ import numpy as np
 
 from .krr import alignment_kwargs, assert_disjoint, fit_alignment, resolve_cv_grouping
 from ..options.alignment import CHECK_ALIGNMENT, AlignmentCheckOptions, AlignmentOptions, alignment_options
-from .latents import (LATENT_KEYS, cache_batches, collect_latents, collect_split_latents, count_sequences,
+from .latents import (cache_batches, collect_latents, collect_split_latents, count_sequences,
                       factor_names, rebatch, split_at)
-from .targets import DEFAULT_TARGETS, TARGET_ENCODINGS, encode_split
+from .targets import DEFAULT_TARGETS, encode_split
 from .metrics import bootstrap_overall, nmse_over_time, nmse_trajectory, overall
 from .results import select_latents
 
@@ -103,15 +103,9 @@ class KRRAlignmentCallback(Callback):
                  run_on_train_end: bool = True, history_name: str = "krr_history.jsonl",
                  targets: str = DEFAULT_TARGETS, points: int = _OPTIONS.points, initial: bool = _OPTIONS.initial,
                  infer_batch_size: int = _OPTIONS.infer_batch_size):
-        if latent not in LATENT_KEYS:
-            raise ValueError(f"latent must be one of {sorted(LATENT_KEYS)}, got {latent!r}")
-        if targets not in TARGET_ENCODINGS:
-            raise ValueError(f"targets must be one of {TARGET_ENCODINGS}, got {targets!r}")
+        # train.py checks these settings at its entry (run.settings: AlignmentCallbackNode's fields)
         self.targets = targets  # the factors' encoding (eval.targets), as evaluate.py's `targets`
         self.every_n_epochs = None if every_n_epochs is None else int(every_n_epochs)
-        if int(points) < 1 or int(infer_batch_size) < 1:
-            raise ValueError(f"KRRAlignmentCallback points and infer_batch_size must be >= 1, "
-                             f"got points={points}, infer_batch_size={infer_batch_size}")
         self.points, self.initial, self.infer_batch_size = int(points), bool(initial), int(infer_batch_size)
         # inputs kept between checks (per fit): merged batches of both splits, the number of
         # training sequences, whether both splits are whole; None until the first check
@@ -124,7 +118,6 @@ class KRRAlignmentCallback(Callback):
         # the periodic checks change only what CHECK_ALIGNMENT / `checks` name
         self.final_kw = alignment_options(alignment)
         self.align_kw = alignment_options(self.final_kw, CHECK_ALIGNMENT, checks)
-        self.groups = self.final_kw.groups
         self.run_on_train_end = run_on_train_end
         self.history_name = history_name
         self.final: dict | None = None
@@ -302,7 +295,7 @@ class KRRAlignmentCallback(Callback):
                                                            "n_train_rows", "fit_time_s", "final_segment",
                                                            "frames_per_sequence", "cv_folds", "seed")},
             "alignment_settings": {**{k: v for k, v in asdict(base_kw).items() if k != "n_threads"},
-                                   "groups": resolve_cv_grouping(self.groups, split)},
+                                   "groups": resolve_cv_grouping(self.final_kw.groups, split)},
         }
         if floor is not None:
             row["floor"] = floor

@@ -31,10 +31,11 @@ from embodied_tactile.eval.runs import (DataCache, EvaluationError, Run, collect
 from embodied_tactile.eval.results import SPLIT_KINDS
 from embodied_tactile.jsonio import read_json
 from embodied_tactile.options.alignment import AlignmentOptions, alignment_options
+from embodied_tactile.options.checks import SettingsError, check_options
+from embodied_tactile.options.evaluation import BASELINES, EvaluationOptions
 from embodied_tactile.paths import config_dir
 
-BASELINES = ("untrained", "handcrafted", "hybrid", "gru", "mean")
-MULTIRUN_BASELINES = ("untrained", "handcrafted", "hybrid", "mean")
+MULTIRUN_BASELINES = tuple(b for b in BASELINES if b != "gru")
 SELECT_ALIASES = {"modality": "modality.name", "skin": "skin.name", "primitive": "primitive.name"}
 
 log = logging.getLogger("evaluate")
@@ -50,8 +51,6 @@ def evaluation_keys() -> list[str]:
     """evaluate.py's option names (:class:`~embodied_tactile.options.evaluation.EvaluationOptions`)."""
     from dataclasses import fields
 
-    from embodied_tactile.options.evaluation import EvaluationOptions
-
     return [f.name for f in fields(EvaluationOptions)]
 
 
@@ -60,8 +59,6 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
     + ``key=value`` overrides (unknown top-level keys rejected;
     ``alignment.*`` takes the keys of :class:`~embodied_tactile.options.alignment.AlignmentOptions`,
     ``gru.*`` any keyword of GRURegressor)."""
-    from embodied_tactile.options.evaluation import EvaluationOptions
-
     base = OmegaConf.merge(OmegaConf.structured(EvaluationOptions), OmegaConf.load(defaults_file()))
     OmegaConf.set_struct(base, True)
     for open_key in ("alignment", "gru"):
@@ -77,26 +74,15 @@ def parse_options(overrides: Sequence[str] = ()) -> DictConfig:
     except ValidationError as err:  # a value of the wrong type: one line naming the key
         raise EvaluationError(f"{err.full_key}={err.msg.split(chr(39))[1] if chr(39) in err.msg else '?'}: "
                               f"{err.msg.splitlines()[0]}") from None
-    if opts.checkpoint not in ("best", "last"):
-        raise EvaluationError(f"checkpoint must be 'best' or 'last', got {opts.checkpoint!r}")
-    if opts.latent not in ("y", "z", "both"):
-        raise EvaluationError(f"latent must be 'y', 'z' or 'both', got {opts.latent!r}")
-    if opts.held_out not in ("test", "val"):
-        raise EvaluationError(f"held_out must be 'test' or 'val', got {opts.held_out!r}")
-    from embodied_tactile.eval.targets import TARGET_ENCODINGS
-
-    if opts.targets is not None and opts.targets not in TARGET_ENCODINGS:
-        raise EvaluationError(f"targets must be null (the run's own) or one of {list(TARGET_ENCODINGS)}, got {opts.targets!r}")
-    if opts.baselines is not None:
-        unknown = [b for b in opts.baselines if b not in BASELINES]
-        if unknown:
-            raise EvaluationError(f"unknown baseline(s) {unknown}; choose from {list(BASELINES)}")
+    try:  # each value by its field's type and choices (options.evaluation)
+        check_options(EvaluationOptions, opts, "")
+    except SettingsError as err:
+        raise EvaluationError(str(err)) from None
     try:  # the overrides alone: the run's own alignment is layered under them per run
         alignment_options(OmegaConf.to_container(opts.alignment, resolve=True))
     except ValueError as err:
         raise EvaluationError(str(err)) from None
     return opts
-
 
 
 def split_overrides(overrides: Sequence[str]) -> tuple[list[str], dict[str, list[str]]]:

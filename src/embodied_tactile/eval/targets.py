@@ -29,8 +29,8 @@ from typing import Mapping
 import numpy as np
 
 from ..constants import AMPLITUDES_MM, FACTOR_NAMES, FACTOR_UNITS, MATERIALS, OBJECT_MATERIALS, SPATIAL_FREQUENCIES
+from ..options.alignment import TARGET_ENCODINGS
 
-TARGET_ENCODINGS = ("design_rank", "physical")
 DEFAULT_TARGETS = "design_rank"
 
 #: the paper's design levels of each ordinal factor, in the catalogue's units (ascending)

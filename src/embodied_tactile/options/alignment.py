@@ -42,6 +42,10 @@ CHECK_ALIGNMENT = {"frames_per_sequence": 2, "cv": 3, "nystroem_threshold": 1024
                    "alphas": [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0], "gammas": [0.3, 1.0, 3.0]}
 READOUTS = ("per_time", "final_segment")
 CV_GROUPINGS = ("auto", "sequence", "object")
+#: what the alignment reads (eval.latents.LATENT_KEYS) and the factors' encodings it scores
+#: (eval.targets: the catalogue's design levels, or physical units for populations)
+LATENTS = ("y", "z", "both")
+TARGET_ENCODINGS = ("design_rank", "physical")
 
 
 @dataclass
@@ -79,7 +83,7 @@ class AlignmentCheckOptions:
     points: int = field(default=8, metadata=at_least(1))
     initial: bool = True
     infer_batch_size: int = field(default=128, metadata=at_least(1))  # sequences per latent-inference batch
-    latent: str = field(default="y", metadata=one_of("y", "z", "both"))  # eval.latents.LATENT_KEYS
+    latent: str = field(default="y", metadata=one_of(*LATENTS))
     max_train_sequences: Optional[int] = 512
     val_frame_stride: int = 2
     checks: Optional[Dict[str, Any]] = None  # alignment options of the periodic checks
@@ -113,5 +117,5 @@ def alignment_options(*layers) -> AlignmentOptions:
     return AlignmentOptions(**merged)
 
 
-__all__ = ["AlignmentCheckOptions", "AlignmentOptions", "CHECK_ALIGNMENT", "CV_GROUPINGS", "DEFAULT_ALPHAS", "DEFAULT_GAMMAS", "READOUTS",
-           "alignment_options"]
+__all__ = ["AlignmentCheckOptions", "AlignmentOptions", "CHECK_ALIGNMENT", "CV_GROUPINGS", "DEFAULT_ALPHAS", "DEFAULT_GAMMAS", "LATENTS",
+           "READOUTS", "TARGET_ENCODINGS", "alignment_options"]

@@ -36,7 +36,7 @@ def at_least(lo: float) -> dict[str, Any]:
 
 
 def one_of(*values: Any) -> dict[str, Any]:
-    """Field metadata: the value is one of ``values``."""
+    """Field metadata: the value is one of ``values`` (a list field: each of its items is)."""
     return {"choices": tuple(values)}
 
 
@@ -61,7 +61,8 @@ class Spec:
     def describe(self) -> str:
         names = {"int": "an integer", "float": "a number", "bool": "true/false", "str": "a string", "list": "a list"}
         if self.choices is not None:
-            return "one of " + ", ".join(map(str, self.choices)) + (" or null" if self.nullable else "")
+            what = "a list of " if self.kinds == ("list",) else "one of "
+            return what + ", ".join(map(str, self.choices)) + (" or null" if self.nullable else "")
         s = " or ".join(names[k] for k in self.kinds)
         if self.lo is not None and self.hi is not None:
             s += f" in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
@@ -69,11 +70,16 @@ class Spec:
             s += f" {'>' if self.lo_open else '>='} {self.lo:g}"
         return s + (" or null" if self.nullable else "")
 
+    def _choice(self, v: Any) -> bool:
+        return v in self.choices and type(v) in {type(c) for c in self.choices}
+
     def accepts(self, v: Any) -> bool:
         if v is None:
             return self.nullable
         if self.choices is not None:
-            return v in self.choices and type(v) in {type(c) for c in self.choices}
+            if self.kinds == ("list",):  # a list whose every item is a choice
+                return isinstance(v, (list, tuple)) and all(self._choice(x) for x in v)
+            return self._choice(v)
         if isinstance(v, bool):
             return "bool" in self.kinds
         if isinstance(v, int):

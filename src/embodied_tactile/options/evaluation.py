@@ -8,6 +8,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
+from .alignment import LATENTS, TARGET_ENCODINGS
+from .checks import one_of
+
+#: the readers evaluate.py can put beside the run's (eval.baselines); a multirun's
+#: evaluation skips the GRU, which trains per run
+BASELINES = ("untrained", "handcrafted", "hybrid", "gru", "mean")
+
 
 @dataclass
 class GRUOptions:
@@ -55,13 +62,13 @@ class EvaluationLoaderOptions:
 class EvaluationOptions:
     """evaluate.py's options (``configs/evaluate.yaml`` documents each)."""
 
-    checkpoint: str = "last"
-    held_out: str = "test"
-    latent: str = "y"
+    checkpoint: str = field(default="last", metadata=one_of("best", "last"))
+    held_out: str = field(default="test", metadata=one_of("test", "val"))
+    latent: str = field(default="y", metadata=one_of(*LATENTS))
     allow_changed_data: bool = False
     allow_running: bool = False
-    targets: Optional[str] = None
-    baselines: Optional[List[str]] = None
+    targets: Optional[str] = field(default=None, metadata=one_of(*TARGET_ENCODINGS))  # null: the run's own
+    baselines: Optional[List[str]] = field(default=None, metadata=one_of(*BASELINES))
     out: Optional[str] = None
     figures: bool = True
     umap: bool = True
@@ -76,4 +83,4 @@ class EvaluationOptions:
     torch_threads: Optional[int] = None
 
 
-__all__ = ["EvaluationLoaderOptions", "EvaluationOptions", "GRUOptions", "HandcraftedOptions"]
+__all__ = ["BASELINES", "EvaluationLoaderOptions", "EvaluationOptions", "GRUOptions", "HandcraftedOptions"]

@@ -35,7 +35,8 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
-from embodied_tactile.options.alignment import AlignmentCheckOptions, AlignmentOptions
+from embodied_tactile.options.alignment import TARGET_ENCODINGS, AlignmentCheckOptions, AlignmentOptions
+from embodied_tactile.options.checks import one_of
 from embodied_tactile.options.data import DataOptions, PendulumOptions
 from embodied_tactile.options.emulation import EmulationOptions
 from embodied_tactile.options.report import ReportOptions
@@ -96,7 +97,7 @@ class AlignmentCallbackNode(AlignmentCheckOptions):
 
     _target_: str = "embodied_tactile.eval.callback.KRRAlignmentCallback"
     alignment: Any = "${alignment}"
-    targets: str = "${targets}"
+    targets: str = field(default="${targets}", metadata=one_of(*TARGET_ENCODINGS))
 
 
 def prior_rows(objects: Any, n_test: int, n_val: int, n_train: int) -> int:
