@@ -175,6 +175,7 @@ def _check_genuine(trial, rec):
     return k
 
 
+@pytest.mark.slow
 def test_emulator_recorder_roundtrip(tmp_path):
     trial = synthetic_trial(1.0, seed=3)
     res, stats, out, name = _record(tmp_path, trial, duration=1.0, baseline=0.3, device=P.DeviceMap())
@@ -199,6 +200,7 @@ def test_emulator_recorder_roundtrip(tmp_path):
     assert rec.lost_at.shape == (0,) and rec.lost_at.dtype == np.int64
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "kind, faults",
     [
@@ -245,6 +247,7 @@ def test_faults(tmp_path, trial3s, kind, faults):
     assert len(k) >= len(st.served) - 2 * n_injected
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("garbage", [0.3, 0.05])
 def test_garbage_answers_are_counted_as_missing_and_the_trial_is_not_complete(tmp_path, trial3s, garbage):
     """Fault: the board answers garbage to 30 % (and 5 %) of the requests
@@ -270,6 +273,7 @@ def test_garbage_answers_are_counted_as_missing_and_the_trial_is_not_complete(tm
     assert not good and errors[0].trial == name
 
 
+@pytest.mark.slow
 def test_a_clean_trial_at_the_declared_rate_stays_complete(tmp_path, trial3s):
     res, _, out, name = _record(tmp_path, trial3s, duration=1.0, device=P.DeviceMap(), declared_hz=700.0)
     assert res.status == "complete" and res.missing_share <= R.MAX_MISSING_SHARE, res.summary()
@@ -481,6 +485,7 @@ class _FailingWriter(R.IncrementalTrialWriter):
         super().append(fld, values)
 
 
+@pytest.mark.slow
 def test_failed_write_stops_the_trial_and_keeps_what_was_flushed(tmp_path, trial3s):
     emu = Emulator(trial3s)
     port = emu.start()
@@ -519,6 +524,7 @@ def _record_main(tmp_path, monkeypatch, port, *over):
     return exc.value.code
 
 
+@pytest.mark.slow
 def test_record_main_in_process_config_port_and_unplugged(tmp_path, trial3s, monkeypatch, capsys, restore_logging):
     """A bad trial setting and a missing port: exit 2, nothing written; a board unplugged
     after 500 packets: exit 3, the 500 frames stored intact with complete=False."""
@@ -551,6 +557,7 @@ def _emulate(*argv: str) -> int | None:
     return None
 
 
+@pytest.mark.slow
 def test_emulate_main_in_process_serves_packets_until_stopped(tmp_path, monkeypatch, capsys, restore_logging):
     """``emulate.main`` in a thread: its pty (through ``link``) answers requests with the
     synthetic trial's packets; its SIGTERM handler stops it, exit 0 with the count sent;

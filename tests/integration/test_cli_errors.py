@@ -52,6 +52,7 @@ def test_typed_check_covers_the_optional_context_group(capsys):
     assert "model.context.initial_frames='many' (str): expected an integer" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("override, needle", [
     ("targets=si", "callbacks.krr_alignment.targets='si' (str): expected one of design_rank, physical"),
     ("callbacks.krr_alignment.latent=w", "callbacks.krr_alignment.latent='w' (str): expected one of y, z, both"),
@@ -65,6 +66,7 @@ def test_the_krr_callbacks_settings_are_refused_at_the_entry(tmp_path, capsys, o
     assert not (tmp_path / "logs").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("override, needles", [
     ("trainer.max_epochs=abc", ("trainer.max_epochs='abc'", "integer")),
     ("data.batch_size=0", ("data.batch_size=0", ">= 1")),
@@ -81,6 +83,7 @@ def test_wrongly_typed_setting_names_key_and_value(tmp_path, capsys, restore_log
     assert not (runs.exists() and any(runs.iterdir())), "a bad setting must not leave a run folder"
 
 
+@pytest.mark.slow
 def test_log_dir_that_cannot_be_created(tmp_path, capsys, restore_logging):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
@@ -88,6 +91,7 @@ def test_log_dir_that_cannot_be_created(tmp_path, capsys, restore_logging):
     _one_line_exit_2(res, f"paths.log_dir={blocker}/logs", "cannot create or write")
 
 
+@pytest.mark.slow
 def test_data_dir_that_is_a_file(tmp_path, capsys, restore_logging):
     blocker = tmp_path / "data.txt"
     blocker.write_text("not a folder")
@@ -129,6 +133,7 @@ def test_swept_bad_value_fails_its_job_and_the_sweep_says_so(tmp_path, capsys, r
     assert not (sweep / "seed=x" / "config_resolved.yaml").exists()
 
 
+@pytest.mark.slow
 def test_failed_run_is_marked_failed(tmp_path, capsys, restore_logging):
     res = train_here(tmp_path, capsys, f"paths.data_dir={tmp_path / 'data'}", "data=recorded",
                      f"data.raw_files=[{tmp_path / 'missing.h5'}]")
@@ -278,6 +283,7 @@ def test_default_train_run_prints_none_of_the_known_messages(train_py_run):
         assert noise not in out, noise
 
 
+@pytest.mark.slow
 def test_hydra_command_exit_statuses(tmp_path, monkeypatch, capsys):
     """The one wrapper of the Hydra commands (record, palpate): run's status, a listed error
     as one line and 2, a bad override 2, ``--cfg job`` and ``--help`` 0."""

@@ -25,6 +25,7 @@ def command(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "embodied_tactile", *args], capture_output=True, text=True, timeout=180)
 
 
+@pytest.mark.slow
 def test_help_lists_one_line_per_subcommand():
     res = command("--help")
     assert res.returncode == 0, res.stderr
@@ -32,6 +33,7 @@ def test_help_lists_one_line_per_subcommand():
     assert listed == list(COMMANDS) == list(OWN_HELP)
 
 
+@pytest.mark.slow
 def test_unknown_or_missing_subcommand_exits_2():
     assert command("fly").returncode == 2
     assert command().returncode == 2
@@ -58,6 +60,7 @@ def test_subcommand_help(name, helps):
     assert OWN_HELP[name] in res.stdout, res.stdout[:2000]
 
 
+@pytest.mark.slow
 def test_subcommands_run_in_this_process(capsys):
     """The dispatcher calls each entry point's main(argv) here and returns its status."""
     assert main(["train", "data.batch_size=0"]) == 2
@@ -104,6 +107,7 @@ def test_installed_package_trains_from_any_folder(tmp_path, fast_data_dir):
     assert res.stderr.startswith("embodied-tactile: error: no configs found at ") and res.stderr.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_a_stopped_command_ends_without_the_interpreters_teardown(tmp_path):
     """Fault: train.py stopped by a signal spent 1.6 CPU s after its last line in the
     interpreter's teardown (every module and object freed): 38 s on the loaded 2-core machine

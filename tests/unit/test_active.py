@@ -141,6 +141,7 @@ def test_episode_is_deterministic_under_a_seed():
     assert not np.array_equal(a.estimates, c.estimates)  # another seed: other sensor data
 
 
+@pytest.mark.slow
 def test_touch_seed_stream_and_a_touch_is_the_trial_of_its_stream():
     """sim.episode: touch ``use`` of an action in episode s is the simulator's trial with
     repetition ``use`` and seed EPISODE_SEED_BASE + s; a bad episode seed is refused."""
@@ -179,6 +180,7 @@ def test_touches_to_reach_and_the_target_summary():
     assert table.rows[0][1:3] == [pytest.approx(0.85), pytest.approx(0.75)]  # random, active means
 
 
+@pytest.mark.slow
 def test_palpate_main_in_process_errors_clearly_on_a_missing_run(tmp_path, monkeypatch, capsys, restore_logging):
     """What test_cli_errors_clearly_on_a_missing_run checks of the CLI, through palpate.main
     in this process (the subprocess test is slow)."""

@@ -198,6 +198,7 @@ def _configured(annealing, experiment):
     return instantiate(cfg.annealing.schedule), cfg
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("experiment", [None, "paper"])  # None: the typed defaults
 @pytest.mark.parametrize("annealing", ["none", "linear", "dvbf", "geometric", "constrained"])
 def test_every_annealing_reaches_full_weight_before_training_ends(annealing, experiment):

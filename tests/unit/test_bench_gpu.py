@@ -42,6 +42,7 @@ def test_epoch_shape_follows_the_paper_and_population_scenes(bench_gpu):
     assert pop["context"]
 
 
+@pytest.mark.slow
 def test_cpu_dry_run_prints_every_figure(bench_gpu, capsys):
     threads = torch.get_num_threads()
     try:

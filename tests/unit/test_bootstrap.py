@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from embodied_tactile.eval.metrics import bootstrap_overall, nmse_over_time, nmse_trajectory, overall
 
@@ -23,6 +24,7 @@ def test_a_perfect_reader_has_no_sampling_noise_and_the_draws_repeat_with_the_se
     assert not np.array_equal(bootstrap_overall(f, p, g, n_boot=30, seed=3), bootstrap_overall(f, p, g, n_boot=30, seed=4))
 
 
+@pytest.mark.slow
 def test_the_resamples_centre_on_the_full_sets_value_and_narrow_with_more_objects():
     f, p, g = _sample(32, 4, 0.5)
     b = bootstrap_overall(f, p, g, n_boot=400)

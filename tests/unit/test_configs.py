@@ -45,6 +45,7 @@ def _compose_job(overrides: list[str], tmp_path: Path):
     return cfg
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in options(g)])
 def test_every_option_composes_and_instantiates(group, option, tmp_path):
     extra = {("data", "recorded"): ["data.raw_files=[x.h5]"],
@@ -84,6 +85,7 @@ def test_paper_experiment_settings(tmp_path):
     assert cfg.annealing.name == "dvbf"
 
 
+@pytest.mark.slow
 def test_the_default_run_is_the_typed_defaults(tmp_path):
     """``python train.py`` trains at the typed options' defaults (no experiment sets them), and
     the paper's settings override them: actions null there stays all 16 sets."""
@@ -186,6 +188,7 @@ def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
     assert _compose_job(["experiment=population"], tmp_path).trainer.max_epochs == 16
 
 
+@pytest.mark.slow
 def test_the_class_built_with_no_options_is_the_configured_filter_recipe(tmp_path):
     """One source of defaults: recipe=filter's network is LatentFilter(modality) with nothing
     else named (but the scene's code-table size), the composed config holds every field of
@@ -213,6 +216,7 @@ def test_the_class_built_with_no_options_is_the_configured_filter_recipe(tmp_pat
         _compose(["model.net.prior.no_such_option=1"], tmp_path)
 
 
+@pytest.mark.slow
 def test_recipes_name_the_objective(tmp_path):
     """recipe=paper (the default of the paper's scene) is the paper's model: the ELBO (kl_y
     weight 1) with the label-conditioned prior and learned object codes, y direct, no dropout;

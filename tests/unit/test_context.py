@@ -45,6 +45,7 @@ def paired(tiny_data_dir, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_window_context_is_a_disjoint_window_of_the_same_trial(paired):
     dm = paired["window"]
     ds = dm.train_crops
@@ -343,6 +344,7 @@ def test_swapping_y_between_objects_raises_the_target_error_of_a_trained_model()
 
 
 # ------------------------------------------------------------------ the config
+@pytest.mark.slow
 def test_recipe_context_sets_the_pairing_and_the_rungs(tmp_path):
     """recipe=context (A5, the population scene's default): the DataModule's pairing follows
     model.context.source, the module gets the rung's settings, y starts at the population

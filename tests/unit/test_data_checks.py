@@ -98,6 +98,7 @@ def _arrays(path) -> dict[str, np.ndarray]:
         return {f"{n}/{k}": ds[()] for n, g in f["trials"].items() for k, ds in g.items()}
 
 
+@pytest.mark.slow
 def test_finite_garbage_in_a_cache_chunk_is_detected_and_rebuilt(data_copy, caplog):
     """Fault: finite garbage written into a cached array. Before: not detected, every run
     died with "non-finite loss". Now: the checksum fails, the file is set aside (kept) and
@@ -120,6 +121,7 @@ def test_finite_garbage_in_a_cache_chunk_is_detected_and_rebuilt(data_copy, capl
     assert _arrays(acc.with_name(acc.name + ".corrupt"))[f"{name}/acc"][0, 0, 0] == 1e6
 
 
+@pytest.mark.slow
 def test_copied_data_folder_with_a_deleted_cache_file(data_copy):
     """Fault: a data folder copied elsewhere and one of its cache files deleted. Before:
     "cached fields ... come from different raw files" traceback. Now: the missing field is
@@ -195,6 +197,7 @@ def test_constant_statistics_name_the_channel_and_files(tiny_data_dir):
     dm._check_statistics(DataStatistics(np.array([0.0]), np.array([1.0]), 6))
 
 
+@pytest.mark.slow
 def test_a_constant_channel_is_named_with_its_layer_modality_and_file(tiny_data_dir, tmp_path):
     """Fault: the bottom FSR layer reads one value in every trial (a dead layer). Before:
     ValueError "input stats must be finite with std > 0, got mean [..], std [.., 0.0]" from
@@ -226,6 +229,7 @@ def test_a_constant_channel_is_named_with_its_layer_modality_and_file(tiny_data_
     assert str(raw) in msg and dm.statistics is None
 
 
+@pytest.mark.slow
 def test_stale_temporary_files_of_a_killed_preparation_are_removed(tiny_data_dir, tmp_path, caplog):
     """Fault: a cache build killed (kill -9) before its rename, leaving <field>-<key>.h5.tmp-<pid>-<id>
     in the cache folder. Before: the file stayed for good (hundreds of MB per field on the
@@ -255,6 +259,7 @@ def test_stale_temporary_files_of_a_killed_preparation_are_removed(tiny_data_dir
     assert prepared.trials
 
 
+@pytest.mark.slow
 def test_damaged_cache_copies_do_not_pile_up(data_copy):
     """Fault: a cache file fails its checksum three times. Before: three .corrupt-N copies,
     each as large as the cache (128 MB on the recorded data), kept for good. Now: once each

@@ -25,6 +25,7 @@ MODALITIES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("modality", sorted(MODALITIES))
 def test_batch_shapes_and_dtypes(tiny_data_dir, modality, tmp_path):
     channels = MODALITIES[modality]
@@ -46,6 +47,7 @@ def test_batch_shapes_and_dtypes(tiny_data_dir, modality, tmp_path):
             np.testing.assert_array_equal(dm.train_set[0]["obs"][:, 0].numpy(), f["trials"][name]["fsr"][:, 1])
 
 
+@pytest.mark.slow
 def test_training_windows_are_random_crops_and_evaluation_sees_whole_trials(tiny_data_dir, tmp_path):
     dm = tiny_datamodule(tiny_data_dir, ["fsr_t", "fsr_b"], split_file=str(tmp_path / "split.json"),
                          train_window=40, windows_per_trial=3)
@@ -74,6 +76,7 @@ def test_training_windows_are_random_crops_and_evaluation_sees_whole_trials(tiny
         bad.setup("fit")
 
 
+@pytest.mark.slow
 def test_split_is_stratified_stable_and_saved(tiny_data_dir, tmp_path):
     dm = tiny_datamodule(tiny_data_dir, ["fsr_t"], split_file=str(tmp_path / "split.json"))
     dm.prepare_data()
@@ -161,6 +164,7 @@ def test_object_split_never_puts_one_object_on_both_sides():
         {t.object_id for t in split_trials(refs, by="object", seed=1)[2]}
 
 
+@pytest.mark.slow
 def test_legacy_split_file_reads_val_as_test(tiny_data_dir, tmp_path, caplog):
     dm = tiny_datamodule(tiny_data_dir, ["fsr_t"], split_file=str(tmp_path / "split.json"))
     dm.prepare_data()
@@ -177,6 +181,7 @@ def test_legacy_split_file_reads_val_as_test(tiny_data_dir, tmp_path, caplog):
     assert "predates the train/val/test split" in caplog.text
 
 
+@pytest.mark.slow
 def test_acc_only_never_reads_fsr(tiny_data_dir, tmp_path, monkeypatch):
     """The acc-only pipeline works on raw files whose FSR datasets are gone, and the spy sees
     no FSR dataset opened in this process (cache building, listing and batches)."""
@@ -221,6 +226,7 @@ def test_dataset_pickles_without_handle(tiny_data_dir):
     torch.testing.assert_close(clone[0]["obs"], ds[0]["obs"])
 
 
+@pytest.mark.slow
 def test_bad_trial_is_skipped_and_named(tiny_data_dir, tmp_path, caplog):
     import shutil
 
@@ -295,6 +301,7 @@ def test_raw_file_pattern_matching_nothing_is_an_error_naming_it(tmp_path, monke
         _recorded_dm([str(tmp_path / "missing.h5")]).raw_paths
 
 
+@pytest.mark.slow
 def test_incomplete_recordings_excluded_unless_asked(tiny_data_dir, tmp_path, caplog):
     import logging
     import shutil

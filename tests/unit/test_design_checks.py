@@ -57,6 +57,7 @@ def test_the_check_runs_with_the_typed_checks_of_train_py():
         check_train_config(data(actions=[16]))
 
 
+@pytest.mark.slow
 def test_train_py_refuses_a_bad_design_in_one_line_and_writes_nothing(tmp_path):
     """train.py's entry point in this process, started in tmp_path."""
     from conftest import train_in_process

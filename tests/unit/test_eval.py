@@ -289,6 +289,7 @@ def _level_split(n: int, seed: int, *, offset: float, step: float, frames: int):
     return obs.astype(np.float32), rng.standard_normal((n, frames, 6)).astype(np.float32), f
 
 
+@pytest.mark.slow
 def test_standardised_gru_reads_a_small_level_on_a_large_offset():
     """The acc image at pressing: a per-trial level of +-0.01 on an offset of 0.5 under
     frame noise of 0.02. With input_standardize the GRU reads it; on the raw scale the same
@@ -312,6 +313,7 @@ def test_standardised_gru_reads_a_small_level_on_a_large_offset():
     np.testing.assert_allclose(m.in_scale_, [otr.astype(np.float64).std()], rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_supervised_latent_filter_arch_reads_a_level_through_its_y_pathway():
     """arch="latent_filter": the Latent Filter's inference path + a linear head on y, trained
     supervised, learns a per-trial level that only its y (through z and the LSTM) can carry;
@@ -343,6 +345,7 @@ def test_supervised_latent_filter_arch_reads_a_level_through_its_y_pathway():
 
 
 
+@pytest.mark.slow
 def test_code_regression_recognises_objects_by_a_random_code_and_refuses_other_archs():
     """evaluate_code_regression: the Latent Filter's inference path learns each training
     object's fixed random code from a per-object level, and the KRR maps the predicted codes

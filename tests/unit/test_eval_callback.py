@@ -74,6 +74,7 @@ class FakeModel(L.LightningModule):
         return torch.optim.SGD(self.parameters(), lr=1e-3)
 
 
+@pytest.mark.slow
 def test_callback_writes_history_and_logs(tmp_path):
     torch.set_num_threads(1)
     from lightning.pytorch.loggers import CSVLogger
@@ -139,6 +140,7 @@ class _Probe(L.Callback):
         self.seen.append(None if v is None else float(v))
 
 
+@pytest.mark.slow
 def test_krr_value_shows_only_in_its_epoch_and_final_is_the_result(tmp_path):
     torch.set_num_threads(1)
     cb = KRRAlignmentCallback(every_n_epochs=2, latent="y", alignment={"cv": 2}, checks={"cv": 2},
@@ -156,6 +158,7 @@ def test_krr_value_shows_only_in_its_epoch_and_final_is_the_result(tmp_path):
     assert float(trainer.callback_metrics["krr/nmse_overall"]) == pytest.approx(cb.final["nmse_overall"])
 
 
+@pytest.mark.slow
 def test_wall_time_continues_across_a_resume(tmp_path):
     """The elapsed training / callback time travels in the checkpoint (the callback's
     state_dict): a run resumed from it continues the clock instead of restarting at 0."""
@@ -235,6 +238,7 @@ class _BatchSizeModel(FakeModel):
         self.log("val/loss", (FakeModel.infer_latents(self, batch)["z_mean"] ** 2).mean())
 
 
+@pytest.mark.slow
 def test_points_give_a_t0_row_and_8_points_reading_inputs_once(tmp_path):
     """Error against run time: a row before training (t = 0, the untrained network), then
     `points` = 8 checks over an 8-epoch run, the last on the final weights, then the final
@@ -270,6 +274,7 @@ class _FrozenModel(_BatchSizeModel):
         return torch.optim.SGD(self.parameters(), lr=0.0)
 
 
+@pytest.mark.slow
 def test_step0_row_holds_the_floor_read_by_the_final_alignments_readout(tmp_path):
     """The untrained network's floor is the run's own read-out: with weights that never move,
     the step-0 row's ``floor`` equals the final alignment to the last bit, while the step-0

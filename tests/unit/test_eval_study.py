@@ -320,6 +320,7 @@ def test_group_summary_uses_the_runs_total_variance():
         assert row["n"] == int((r.group == name).sum())
 
 
+@pytest.mark.slow
 def test_study_report_table2_intervals_verdicts_and_what_was_not_run(tmp_path):
     from scipy.stats import t as student_t
 
@@ -356,6 +357,7 @@ def test_study_report_table2_intervals_verdicts_and_what_was_not_run(tmp_path):
     assert "- Note: parts ran on two commits" in out.read_text()
 
 
+@pytest.mark.slow
 def test_results_page_shows_the_evaluations_figures_copied_beside_it(tmp_path):
     """The page links the evaluation's figures (over interaction time, distances of seed 0), copied
     next to it with their captions' first sentence; a figure of an earlier page does not linger."""
@@ -403,6 +405,7 @@ def test_study_report_table1_gives_each_parameter_sets_nmse_with_its_interval_ov
     assert cells[3] == f"[{vals.mean() - h:.3f}, {vals.mean() + h:.3f}]" and cells[6] == "3 x 8"
 
 
+@pytest.mark.slow
 def test_study_report_objects_section_takes_object_split_runs_only(tmp_path):
     from embodied_tactile.eval.report import write_report
     from embodied_tactile.eval.study_report import StudyReportError, load, render, write_results

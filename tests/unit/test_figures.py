@@ -22,6 +22,7 @@ def _legend_labels(fig) -> list[str]:
     return out
 
 
+@pytest.mark.slow
 def test_nmse_curves_one_readable_legend_log_axis():
     curves = {k: np.abs(np.random.default_rng(0).normal(size=(30, 4))) + 0.01 for k in ("multi_l", "acc", "fsr_tb")}
     fig = F.nmse_curves_figure(curves, title="Held-out NMSE vs interaction time, by modality")
@@ -49,6 +50,7 @@ def _runs(modalities, skins, prims):
     return hist, points
 
 
+@pytest.mark.slow
 def test_error_vs_runtime_facets_per_modality_and_short_unique_legend():
     hist, points = _runs(["acc", "fsr_t", "fsr_b", "fsr_tb", "multi_e", "multi_l"], ["soft", "hard"],
                          ["pressing", "precession", "sliding"])
@@ -141,6 +143,7 @@ def test_readable(value, expected):
     assert F.readable(value) == expected
 
 
+@pytest.mark.slow
 def test_log_axis_clipped_when_a_few_values_are_near_zero_and_plain_tick_labels():
     c = np.full((30, 4), 0.5)
     c[1, 1] = 1e-11  # one frame of a tiny held-out set: would stretch the axis over ten decades

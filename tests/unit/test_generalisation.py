@@ -36,6 +36,7 @@ def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None, hel
     (d / "evaluation" / "results.json").write_text(json.dumps({"runs": runs}))
 
 
+@pytest.mark.slow
 def test_curve_page_aggregates_seeds_and_names_missing_cells(tmp_path):
     root = tmp_path / "runs"
     for seed, lf in ((0, 0.8), (1, 0.9), (2, 1.0)):
@@ -106,6 +107,7 @@ def test_recipe_names_the_settings_that_tell_recipes_apart():
                            "y from the population, cosine schedule")
 
 
+@pytest.mark.slow
 def test_parts_merge_through_the_scores_file_and_a_later_root_replaces_a_score(tmp_path):
     first, second = tmp_path / "part1", tmp_path / "part2"
     _run(first, 24, 0, 0.8)
@@ -137,6 +139,7 @@ def test_validation_side_scores_are_refused_with_the_file_named(tmp_path, capsys
     assert "n24_s1_True/evaluation/results.json: latent_filter scored on the validation side" in err
 
 
+@pytest.mark.slow
 def test_curves_over_time_are_tabled_and_drawn_and_read_outs_do_not_mix(tmp_path):
     """Rows carry evaluate.py's per-frame curve: the page tables frame 1, the highest frame
     and the first frame at or below 0.5 per seed, and draws the curves; a root evaluated with
@@ -165,6 +168,7 @@ def test_curves_over_time_are_tabled_and_drawn_and_read_outs_do_not_mix(tmp_path
         G.collect([root, tmp_path / "old"])
 
 
+@pytest.mark.slow
 def test_the_hybrid_reader_is_a_row_of_its_own_per_recipe(tmp_path):
     """evaluate.py's hybrid_krr (KRR on [hand-crafted features, y]) is its own row beside the
     Latent Filter's, named by the run's recipe, aggregated over seeds like it."""

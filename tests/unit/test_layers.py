@@ -12,6 +12,7 @@ import ast
 from collections import defaultdict
 from pathlib import Path
 
+import pytest
 from conftest import REPO
 
 PACKAGE = REPO / "src" / "embodied_tactile"
@@ -123,10 +124,12 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
+@pytest.mark.slow
 def test_every_module_has_a_layer():
     assert [m for m in sorted(import_graph()) if layer(m) is None] == []
 
 
+@pytest.mark.slow
 def test_no_import_circle_and_none_runs_back_up():
     graph = import_graph()
     assert cycles(graph) == []

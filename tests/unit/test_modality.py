@@ -46,6 +46,7 @@ def test_bad_modalities_are_named():
         Modality.from_config(["acc"])
 
 
+@pytest.mark.slow
 def test_a_new_modality_is_one_yaml_file(tmp_path, tiny_data_dir):
     """A late-fusion modality that exists only in a test config folder flows through Hydra
     into the DataModule (its fields only), the model (its pathways) and a training loss."""

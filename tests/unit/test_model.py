@@ -180,6 +180,7 @@ def test_fusion_models_refuse_bad_pathways():
         LateFusion([("a", [0]), ("b", [2])], 4, [4, 8], 16, 1e-3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", modality_names())
 def test_few_steps_decrease_loss(name):
     torch.manual_seed(0)
@@ -352,6 +353,7 @@ def test_bf16_autocast_keeps_probabilistic_parts_float32():
     assert all(torch.isfinite(p.grad).all() for p in m.parameters() if p.grad is not None)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["zeros", "ones", "spikes", "T1", "T1000"])
 def test_extreme_inputs_finite(case):
     torch.manual_seed(0)
@@ -534,6 +536,7 @@ def test_prior_without_labels_gives_every_sequence_the_population_marginal():
     assert float(p.embedding.weight.grad.abs().sum()) == 0.0  # no embedding row takes part
 
 
+@pytest.mark.slow
 def test_fixed_object_codes_stay_at_their_draws_while_the_rest_of_the_prior_learns(tmp_path):
     """prior.learn_embedding=False: training moves q(y), sigma, mu_0 and tau but never the
     object codes, which stay distinct draws of N(0, pop_sigma_init^2)."""
@@ -874,6 +877,7 @@ def test_weight_average_follows_its_recursion_and_becomes_the_runs_weights(tmp_p
         assert torch.allclose(p, expected[k], atol=1e-6), k
 
 
+@pytest.mark.slow
 def test_a_resumed_weight_averaged_fit_continues_both_the_weights_and_their_average(tmp_path):
     """Four steps in one fit equal two steps, a checkpoint and two more resumed from it:
     the optimiser's weights and the average both continue (the checkpoint's state_dict holds

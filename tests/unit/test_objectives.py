@@ -150,6 +150,7 @@ def test_the_terms_refuse_what_they_cannot_use():
         LatentFilterModule(LatentFilter("acc", **TINY), context={"source": "trial", "touches": 2, "invariance": 1.0})
 
 
+@pytest.mark.slow
 def test_recipes_set_the_weights_and_the_feature_targets(tmp_path):
     from hydra.utils import instantiate
 
@@ -166,6 +167,7 @@ def test_recipes_set_the_weights_and_the_feature_targets(tmp_path):
     assert _compose(["experiment=population"], tmp_path).model.context.invariance == 0.0
 
 
+@pytest.mark.slow
 def test_train_entry_refuses_the_physical_term_without_its_targets(tmp_path):
     from embodied_tactile.run.settings import SettingsError, check_train_config
     from tests.unit.test_configs import _compose

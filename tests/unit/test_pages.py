@@ -27,6 +27,7 @@ def docs(tmp_path):
     return out
 
 
+@pytest.mark.slow
 def test_regenerate_all_reproduces_the_pages_and_leaves_what_it_cannot(docs, monkeypatch):
     monkeypatch.setattr(pages, "results_page", lambda d: f"{d / 'results.md'}: left as it is: test")
     lines = pages.regenerate_all(docs)
@@ -94,6 +95,7 @@ def _report(*argv: str) -> int | None:
     return None
 
 
+@pytest.mark.slow
 def test_report_command_refuses_a_bad_option_or_a_missing_folder_in_one_line(tmp_path, capsys, monkeypatch,
                                                                              restore_logging):
     monkeypatch.chdir(tmp_path)
@@ -111,6 +113,7 @@ def test_report_command_refuses_a_bad_option_or_a_missing_folder_in_one_line(tmp
     assert not list(tmp_path.iterdir())  # Hydra made no output folder or log file
 
 
+@pytest.mark.slow
 def test_report_generalisation_rewrites_the_page_from_its_scores(tmp_path, capsys, restore_logging):
     """``report page=generalisation``: the same body from the committed scores; the header names the command."""
     scores = GENERATED / "generalisation_scores.json"

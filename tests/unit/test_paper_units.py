@@ -115,6 +115,7 @@ def test_runs_without_a_rebuildable_variance_are_not_converted(tmp_path):
     assert "## Table 2 in the convention" not in text and "**table2_multi_l_soft.**" in text
 
 
+@pytest.mark.slow
 def test_a_page_without_its_evaluation_folder_is_converted_from_its_own_tables(tmp_path, restore_logging):
     from embodied_tactile.pages import main
     from embodied_tactile.eval.study_report import PAPER_UNITS_HEADING, add_paper_units

@@ -64,6 +64,7 @@ def test_energy_is_conserved_undamped_and_decays_with_damping():
     assert np.all(decay(0.6) < decay(0.1))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("w0,d", [(2.0, 0.0), (5.0, 0.0), (3.0, 0.6)])
 def test_small_oscillation_frequency(w0, d):
     t_len = 1500  # 15 s: at least 3 periods of the slowest pendulum
@@ -308,6 +309,7 @@ def test_short_training_meets_the_pendulum_targets(remedy_run):
     assert u["y_damping"][1] >= 0.5, u
 
 
+@pytest.mark.slow
 def test_the_scene_trains_and_reads_out_every_part_after_a_few_steps(tmp_path):
     """The pendulum scene through run.training.train on a tiny budget (the read-out tests above
     train 150 steps and are slow): the steps asked, the run's KRR NMSE on (w0, d), and
@@ -336,6 +338,7 @@ def test_the_scene_trains_and_reads_out_every_part_after_a_few_steps(tmp_path):
         data_config(load_run(run, "last"), None)
 
 
+@pytest.mark.slow
 def test_remedies_are_config_switches(tmp_path):
     from hydra.utils import instantiate
     from test_configs import _compose_job
@@ -417,6 +420,7 @@ def test_context_pairing_draws_another_sequence_of_the_same_system():
         PendulumSequences(generate(1, seed=2, n_steps=12), context=True)
 
 
+@pytest.mark.slow
 def test_the_scene_trains_the_context_objective_after_a_few_steps(tmp_path):
     """recipe=context on the pendulum: the DataModule pairs sequences of a system, the module
     trains on context / target pairs, and the run's read-out is there."""

@@ -78,6 +78,7 @@ def _corner_objects():
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("error")
 def test_population_extremes_simulate_finite_and_in_range():
     objs = _corner_objects()
@@ -140,6 +141,7 @@ def test_object_split_keeps_train_val_and_test_objects_disjoint():
         split_trials(_refs(range(13)), by="object", seed=0, roles=roles)
 
 
+@pytest.mark.slow
 def test_population_scene_end_to_end(tmp_path):
     """A tiny population scene: simulated, cached, split by the population's roles, each
     trial carrying its own object's factors."""

@@ -47,6 +47,7 @@ def test_cli_prepares_the_tiny_scene_and_a_second_call_is_a_cache_hit(tiny_data_
     assert hits == built, second
 
 
+@pytest.mark.slow
 def test_cli_simulates_missing_trials_and_reports_skipped_ones(tiny_data_dir, tmp_path, capsys):
     """Trials absent from the raw file are simulated; a bad one is listed with its reason (the
     command's main in this process)."""
@@ -141,6 +142,7 @@ def _prepare_args(data_dir, *overrides):
             "data.preprocess_workers=1", *overrides]
 
 
+@pytest.mark.slow
 def test_main_in_process_lists_a_prepared_scene_as_cache_hits(tiny_data_dir, tmp_path, capsys):
     from embodied_tactile.run import prepare_cli as prepare
 

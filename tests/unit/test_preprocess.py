@@ -121,6 +121,7 @@ def _direct_librosa(acc_ij: np.ndarray, combine: str = "axes") -> np.ndarray:
     return ((db + 100.0) / 120.0).T
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("combine", ["axes", "magnitude"])
 def test_acc_channel_equals_direct_librosa(trial, combine):
     out = preprocess_trial(trial, PreprocessConfig(acc_combine=combine), fields=("acc",))["acc"]
@@ -275,6 +276,7 @@ def counter(monkeypatch):
     return calls
 
 
+@pytest.mark.slow
 def test_cache_build_layout_and_reuse(raw_file, tmp_path, cfg, counter):
     paths = build_cache([raw_file], tmp_path / "cache", cfg, workers=1)
     assert set(paths) == {"acc", "fsr", "actions"}
@@ -337,6 +339,7 @@ def test_corrupt_trial_is_skipped_and_named(raw_file, tmp_path, cfg):
     assert not (tmp_path / "strict").exists() or not any((tmp_path / "strict").iterdir())
 
 
+@pytest.mark.slow
 def test_acc_only_build_never_reads_fsr(raw_file, tmp_path, cfg, monkeypatch):
     seen = []
     real = rawformat.read_trial
@@ -357,6 +360,7 @@ def test_acc_only_build_never_reads_fsr(raw_file, tmp_path, cfg, monkeypatch):
     assert len(list_cached(fsr)) == 0 and len(cache_info(fsr)["skipped"]) == 3
 
 
+@pytest.mark.slow
 def test_process_pool_build_equals_in_process(raw_file, tmp_path, cfg):
     """The pool (fingerprints hashed per chunk in the workers, arrays handed back through
     shared slots that are reused across chunks, attrs from the scan) writes the same caches

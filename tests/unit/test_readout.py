@@ -51,6 +51,7 @@ def test_constant_latent_reads_the_mean_at_every_frame():
         assert np.all((curve > 0.9) & (curve < 1.15)), (readout, curve)
 
 
+@pytest.mark.slow
 def test_converging_latent_reads_a_curve_that_does_not_rise():
     """Latent = a smooth function of the factors plus noise that shrinks over the trial."""
     rng = np.random.default_rng(1)
@@ -73,6 +74,7 @@ def test_converging_latent_reads_a_curve_that_does_not_rise():
     assert first_below(curve, 0.5) is not None and first_below(np.ones(5), 0.5) is None
 
 
+@pytest.mark.slow
 def test_a_latent_the_final_segment_never_saw_reads_no_worse_than_the_mean():
     """Early latents far from the final ones (a drift the final-tenth fit never saw) read about
     1 with the per-time read-out, and its last frame is the paper protocol's."""

@@ -44,6 +44,7 @@ def recorded_file(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_recorded_trials_validate(recorded_file):
     good, errors = rf.scan_raw(recorded_file)
     assert errors == [] and len(good) == 4

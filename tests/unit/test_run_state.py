@@ -79,6 +79,7 @@ def _signal_in_check(monkeypatch, which: str, hold_s: float = 8.0) -> dict:
     return seen
 
 
+@pytest.mark.slow
 def test_sigterm_in_the_check_before_training_skips_it_and_the_final_readout(composed, monkeypatch):
     """Fault: SIGTERM during the KRR check before the first step. Before: the check ran to its
     end, then the final read-out, and only then exit 143 (12-26 s on a real run). Now: exit
@@ -99,6 +100,7 @@ def test_sigterm_in_the_check_before_training_skips_it_and_the_final_readout(com
     assert "krr_final" not in metrics
 
 
+@pytest.mark.slow
 def test_run_stopped_in_its_final_readout_resumes_at_its_length_into_the_readout(composed, monkeypatch):
     """Fault: SIGTERM during the final read-out, then the same command again (max_epochs equal
     to the epochs trained). Before: the resumed run trained nothing, ran no read-out, and said
@@ -160,6 +162,7 @@ def _misfit(run: Path) -> None:
         torch.save(ck, path)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_model_is_refused_and_every_file_kept(finished, capsys, tmp_path):
     """Fault: a finished run whose checkpoints come from another modality, resumed for more
     epochs, then evaluated alone and in a folder beside a good run. Before: the resume failed
@@ -239,6 +242,7 @@ def test_threads_below_one_is_a_bad_setting(threads):
         check_train_config(OmegaConf.create({"threads": ok}))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, needles", [
     (["modality=mutli_l"], ("modality=mutli_l: no such option", "multi_l")),
     (["trainer.max_epoch=3"], ("trainer.max_epoch=3: no such key", "+trainer.max_epoch=")),
@@ -307,6 +311,7 @@ def _interrupt_at(monkeypatch, target, name: str, sig=signal.SIGINT) -> None:
     monkeypatch.setattr(target, name, stopped)
 
 
+@pytest.mark.slow
 def test_ctrl_c_in_evaluate_exits_130_in_every_phase(evaluated_run, monkeypatch, capsys):
     """Fault: Ctrl-C while evaluate finds the runs, prepares the data, or writes the report.
     Before: a KeyboardInterrupt traceback out of main (exit 130 or 1 by phase). Now: one line,
@@ -328,6 +333,7 @@ def test_ctrl_c_in_evaluate_exits_130_in_every_phase(evaluated_run, monkeypatch,
         assert not list(evaluated_run.glob(".evaluation.tmp-*")), phase
 
 
+@pytest.mark.slow
 def test_evaluate_on_a_full_or_read_only_folder_is_one_line(evaluated_run, monkeypatch, capsys):
     """Fault: the disk fills while the report is written (Errno 28 from PIL); the run folder
     is read-only. Before: tracebacks, exit 1. Now: one line naming the folder and the OS

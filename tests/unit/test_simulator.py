@@ -136,6 +136,7 @@ def test_stiffer_object_gives_more_force_at_same_indentation():
     assert swings[0] < swings[1] < swings[2]
 
 
+@pytest.mark.slow
 def test_heterogeneous_objects_stiffen_and_bridge():
     d = np.linspace(0.5e-3, 4e-3, 10)
     for skin in C.SKINS:
@@ -165,6 +166,7 @@ def test_viscoelastic_relaxation_after_step():
 
 
 # --------------------------------------------------------------------------- vibration
+@pytest.mark.slow
 def test_sliding_vibration_grows_with_spatial_frequency_and_roughness():
     for skin in C.SKINS:
         e = {o: hf_energy(simulate_trial(o, skin, "sliding", SLIDE_FAST, duration=2.0)) for o in (2, 11, 20, 18, 26)}
@@ -187,6 +189,7 @@ def press_hf_z(trial, f_lo: float = 30.0, window=None) -> float:
     return float(np.sqrt((x[window if window is not None else slice(None)] ** 2).mean()))
 
 
+@pytest.mark.slow
 def test_pressing_contact_front_transients_follow_their_physical_drivers(monkeypatch):
     """Pressing: the printed layer lines engaging at the advancing contact front
     (physics.front_acceleration) put surface-dependent vibration on the skin normal."""
@@ -261,6 +264,7 @@ def test_soft_skin_attenuates_high_frequency_vibration():
 
 
 # --------------------------------------------------------------------------- FSR layers
+@pytest.mark.slow
 def test_bottom_map_is_smoother_than_top():
     for skin in C.SKINS:
         for oid, bound in ((0, 1.0), (11, 1.0), (20, 0.85), (24, 0.85)):
@@ -268,6 +272,7 @@ def test_bottom_map_is_smoother_than_top():
             assert map_roughness(m[:, 1]) < bound * map_roughness(m[:, 0]), (skin, oid)
 
 
+@pytest.mark.slow
 def test_shear_displaces_bottom_map_against_sliding_direction():
     """Same trial with and without friction (same seed: same noise, poses and contact).
     The top map does not change (an FSR senses normal force only); the bottom map is

@@ -86,6 +86,7 @@ def test_a_bad_setting_stops_train_before_the_data(composed, capsys):
     assert not run.exists()
 
 
+@pytest.mark.slow
 def test_train_in_process_on_the_pendulum_scene(tmp_path):
     """experiment=pendulum (configs/data/pendulum.yaml) through train(cfg) with tiny shapes: the
     run finishes, its final KRR read-out of the systems' (w0, d) is a finite NMSE in metrics.json,

@@ -106,6 +106,7 @@ def test_trial_bad_in_every_field_is_counted_once(tiny_data_dir, names, tmp_path
     assert "skipped 1 bad trial(s)" in caplog.text
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dataset, layer", [("tactile/fsr", 1), ("tactile/acc", None)])
 def test_a_dead_channel_in_one_trial_is_skipped_naming_file_trial_and_layer(tiny_data_dir, names, tmp_path, caplog,
                                                                             dataset, layer):
@@ -265,6 +266,7 @@ def test_evaluation_takes_each_trials_object_from_its_attributes_not_its_name(ti
     assert lf["n_test"] == len(split["test"])
 
 
+@pytest.mark.slow
 def test_data_identity_is_per_trial_of_the_run(tiny_data_dir, names, tmp_path):
     """Faults: a trial the run never used is added to its raw file; then one of the run's
     trials changes. Before: the identity was one digest per raw file, so the added trial
