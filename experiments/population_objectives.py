@@ -67,6 +67,9 @@ OBJECTIVES: dict[str, list[str]] = {
 }
 #: the population's labelled training objects (configs/experiment/population.yaml)
 LABELLED = 256
+#: the population default's objective (configs/experiment/population.yaml's recipe): its rows at
+#: N = LABELLED are marked ``population_default`` (the main job's closing line quotes them)
+DEFAULT_OBJECTIVE = "context"
 SIDES = {"val": "evaluation-val", "test": "evaluation"}
 TEST_BASELINES = "baselines=[untrained,handcrafted,hybrid,mean]"
 #: a toy size for a smoke run that shows the script works end to end and measures nothing
@@ -173,7 +176,8 @@ def evaluate(args) -> int:
 # ----------------------------------------------------------------------------- analysis
 def scores(work: Path, objectives: list[str], sizes: list[int], seeds: list[int], labelled: int,
            weight: float | None = None) -> list[dict]:
-    """One row per run, side and reader: last frame and whole trajectory (mean over factors)."""
+    """One row per run, side and reader: last frame and whole trajectory (mean over factors), and
+    whether the run is the population default as configured."""
     rows = []
     for obj, n, seed, _ in plan(objectives, sizes, seeds, labelled, weight):
         for side, folder in SIDES.items():
@@ -182,7 +186,8 @@ def scores(work: Path, objectives: list[str], sizes: list[int], seeds: list[int]
                 continue
             for r in json.loads(path.read_text())["runs"]:
                 rows.append({"objective": obj, "n": n, "seed": seed, "side": side, "reader": r["method"],
-                             "last": float(r["nmse_last_step_overall"]), "whole": float(r["nmse_trajectory_overall"])})
+                             "last": float(r["nmse_last_step_overall"]), "whole": float(r["nmse_trajectory_overall"]),
+                             "population_default": obj == DEFAULT_OBJECTIVE and n == labelled})
     return rows
 
 

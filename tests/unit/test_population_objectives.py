@@ -51,3 +51,30 @@ def test_a_weight_other_than_the_recipes_names_its_runs():
     assert "model.context.invariance=1000.0" in runs[1][3] and "model.context.physical=1000.0" not in runs[1][3]
     assert {"model.context.invariance=1000.0", "model.context.physical=1000.0"} <= set(runs[2][3])
     assert not any("model.context" in o for o in runs[0][3])
+
+
+def test_the_default_objectives_rows_at_the_labelled_size_are_marked_the_population_default(tmp_path):
+    """scores() marks the rows of the population default as configured (its recipe in
+    configs/experiment/population.yaml, at N = the labelled objects), which the main job's
+    closing line quotes (run.summary.population_scores)."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    recipe = next(d["override /recipe"] for d in OmegaConf.load(Path(po.REPO) / "configs" / "experiment" /
+                                                                  "population.yaml").defaults
+                  if "override /recipe" in d)
+    assert po.OBJECTIVES[po.DEFAULT_OBJECTIVE] == [f"recipe={recipe}"]
+    for obj, n in [("context", 256), ("context", 1024), ("invariance", 256)]:
+        folder = po.run_dir(tmp_path, obj, n, 0) / po.SIDES["test"]
+        folder.mkdir(parents=True)
+        (folder / "results.json").write_text(json.dumps({"runs": [
+            {"method": "latent_filter", "nmse_last_step_overall": 0.5, "nmse_trajectory_overall": 0.6}]}))
+    rows = po.scores(tmp_path, ["context", "invariance"], [256, 1024], [0], 256)
+    assert {(r["objective"], r["n"]): r["population_default"] for r in rows} == {
+        ("context", 256): True, ("context", 1024): False, ("invariance", 256): False}
+
+    from embodied_tactile.run import summary
+
+    (tmp_path / "rows.json").write_text(json.dumps(rows))
+    assert summary.population_scores(tmp_path / "rows.json") == {"latent_filter": (0.6, 0.5, 1)}

@@ -130,7 +130,7 @@ def test_the_last_lines_say_what_the_number_means(tmp_path, monkeypatch):
     (run / "krr_history.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (initial, final)))
     assert ("Objects never touched: python train.py experiment=population; measured: the population default: "
             "whole trajectory 1.100, last frame 0.750 (2 seed(s), 64 test objects; untrained 0.900 / 0.850)") in text
-    assert "docs/experiments/population_budget.md" in text
+    assert "docs/experiments/label_free_objectives.md" in text
     # the block closes the run's summary; another split says what it measures; an unmeasured recipe says so
     assert run_summary_lines(run, cwd=tmp_path)[-len(lines) - 1:-1] == lines
     (run / "config_resolved.yaml").write_text(PAPER_CONFIG.replace("trial", "object").replace("true", "false"))

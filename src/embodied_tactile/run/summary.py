@@ -179,10 +179,11 @@ OWN_READERS = {
                  "python experiments/pendulum_probes.py --load {run} --no-frames"),
 }
 POPULATION_COMMAND = "python train.py experiment=population"
-POPULATION_PAGE = "docs/experiments/population_budget.md"
-#: the population scene's measured rows (experiments/population_budget.py --json), each marked
-#: whether its run is the population default as configured
-POPULATION_SCORES = Path(__file__).resolve().parents[3] / "docs" / "experiments" / "population_budget.json"
+POPULATION_PAGE = "docs/experiments/label_free_objectives.md"
+#: the latest measurement of the population default: the label-free objectives' screen
+#: (experiments/population_objectives.py analyse --json), each row marked whether its run is
+#: the population default as configured
+POPULATION_SCORES = Path(__file__).resolve().parents[3] / "docs" / "experiments" / "label_free_objectives.json"
 
 
 def population_scores(path: str | os.PathLike | None = None) -> dict[str, tuple[float, float, int]]:
