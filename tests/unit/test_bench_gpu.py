@@ -31,6 +31,7 @@ def test_without_cuda_it_says_so_and_exits_non_zero(bench_gpu, capsys):
     assert "no CUDA device" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_epoch_shape_follows_the_paper_and_population_scenes(bench_gpu):
     paper = bench_gpu.epoch_shape(bench_gpu.compose(["experiment=paper", "trainer=gpu"]))
     # 32 objects x 16 sets = 512 trials: 128 test, 64 validation, 320 training -> 7 steps of 48
@@ -58,6 +59,7 @@ def test_cpu_dry_run_prints_every_figure(bench_gpu, capsys):
     assert "population scene (experiment=population" in out and "256 epochs x (30 steps" in out
 
 
+@pytest.mark.slow
 def test_trainer_gpu_precision_trains_the_paper_model_through_lightning(bench_gpu, tmp_path):
     """trainer=gpu's precision (bf16-mixed) on the CPU accelerator: Lightning's autocast around
     the paper's model (configs composed, a tiny network), finite loss, float32 parameters."""

@@ -34,6 +34,7 @@ def test_the_resamples_centre_on_the_full_sets_value_and_narrow_with_more_object
     assert bootstrap_overall(f4, p4, g4, n_boot=400)[:, 0].std() < 0.7 * b[:, 0].std()
 
 
+@pytest.mark.slow
 def test_objects_as_units_are_wider_than_sequences_when_an_objects_errors_agree():
     rng = np.random.default_rng(1)
     f = np.repeat(rng.normal(size=(24, 4)), 4, axis=0)

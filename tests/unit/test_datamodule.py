@@ -214,6 +214,7 @@ def test_acc_only_never_reads_fsr(tiny_data_dir, tmp_path, monkeypatch):
     assert "fsr" not in dm.cache_files
 
 
+@pytest.mark.slow
 def test_dataset_pickles_without_handle(tiny_data_dir):
     dm = tiny_datamodule(tiny_data_dir, ["acc", "fsr_t"])
     dm.prepare_data()

@@ -70,6 +70,7 @@ def _train_views(loss_of, steps=150):
         return lin(x).std(0)
 
 
+@pytest.mark.slow
 def test_the_variance_term_stops_collapse():
     """VICReg lifts every dimension's std above 0.9 of its hinge from a collapsed start;
     the invariance term alone leaves it collapsed."""

@@ -160,6 +160,7 @@ def test_lateral_vibration_reaches_the_acc_image():
     assert mag < 0.02, f"magnitude path: expected the lateral tone under the noise, got a rise of {mag:.3f}"
 
 
+@pytest.mark.slow
 def test_vectorised_equals_naive_loop(trial, cfg, processed):
     np.testing.assert_allclose(processed["acc"], acc_logmel_naive(trial.acc, cfg), atol=1e-5, rtol=0)
 

@@ -51,6 +51,7 @@ def test_recorded_trials_validate(recorded_file):
     assert all(g.attrs["source"] == "recorded" for g in good)
 
 
+@pytest.mark.slow
 def test_recorded_trials_preprocess_load_and_train(recorded_file, tmp_path):
     dm = TactileDataModule.from_config(
         data_dir=str(tmp_path / "data"), source="recorded", raw_files=[str(recorded_file)], skin="soft",

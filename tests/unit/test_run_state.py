@@ -203,6 +203,7 @@ def test_a_checkpoint_of_another_model_is_refused_and_every_file_kept(finished, 
     assert _every_file(bad) == before
 
 
+@pytest.mark.slow
 def test_a_dead_channel_refuses_a_new_run_and_leaves_no_folder(composed, monkeypatch, capsys):
     """Fault: every training frame of the modality's channel reads one value (a dead layer).
     Before: exit 2 with one line, but the run folder stayed behind (metrics.json "failed",
@@ -372,6 +373,7 @@ def test_evaluate_on_a_full_or_read_only_folder_is_one_line(evaluated_run, monke
 
 
 # ----------------------------------------------------------------------------- sweeps
+@pytest.mark.slow
 def test_a_finished_job_run_again_leaves_every_file_unchanged_train_log_included(finished, capsys):
     """Fault: the same multirun again on a finished sweep: each job's train() finds its run
     finished. Before: one line appended to each job's train.log (the README promises every
