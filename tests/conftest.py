@@ -21,14 +21,23 @@ os.environ.setdefault("EMBODIED_TACTILE_TRAININGS_DIR", str(TEST_TRAININGS_DIR))
 REPO = Path(__file__).resolve().parents[1]
 
 
+def share_files() -> tuple[Path, Path]:
+    """The lock files of :func:`machine_share`: named after the run's training registry folder,
+    which the workers inherit from the controller, so the controller can remove them."""
+    base = os.environ["EMBODIED_TACTILE_TRAININGS_DIR"]
+    return Path(f"{base}.share.turnstile"), Path(f"{base}.share.lock")
+
+
 def pytest_sessionfinish(session, exitstatus):
-    """The tests' training registry folder goes when the run ends. Under pytest-xdist the
-    workers inherit the controller's folder (the variable is set before they start), so the
-    controller removes it, after every worker has finished."""
+    """The tests' training registry folder and the workers' lock files go when the run ends.
+    Under pytest-xdist the workers inherit the controller's folder (the variable is set before
+    they start), so the controller removes them, after every worker has finished."""
     if not hasattr(session.config, "workerinput") and os.environ.get("EMBODIED_TACTILE_TRAININGS_DIR") == str(TEST_TRAININGS_DIR):
         import shutil
 
         shutil.rmtree(TEST_TRAININGS_DIR, ignore_errors=True)
+        for f in share_files():
+            f.unlink(missing_ok=True)
 
 
 #: The tiny scene: 4 objects (soft, hard, PLA-high-frequency, heterogeneous) x 2 actions x 2 reps.
@@ -112,15 +121,13 @@ def machine_share(alone: bool):
     """Under pytest-xdist, a readers-writer lock shared by the run's workers: ``alone`` waits
     until no other worker runs a test and keeps them waiting, else it runs beside the others
     (a turnstile keeps a waiting ``alone`` from being starved). Without xdist: nothing to do."""
-    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
-    if run is None:
+    if os.environ.get("PYTEST_XDIST_TESTRUNUID") is None:
         yield
         return
     import fcntl
-    import tempfile
 
-    base = Path(tempfile.gettempdir()) / f"embodied_tactile_tests_{run}"
-    with open(f"{base}.turnstile", "a") as turnstile, open(f"{base}.lock", "a") as lock:
+    turnstile_file, lock_file = share_files()
+    with open(turnstile_file, "a") as turnstile, open(lock_file, "a") as lock:
         fcntl.flock(turnstile, fcntl.LOCK_EX)
         try:
             fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
