@@ -27,7 +27,7 @@ import numpy as np
 
 from ..constants import FACTOR_NAMES, N_OBJECTS, OBJECT_GROUPS, get_object
 from ..jsonio import to_jsonable
-from ..options.alignment import AlignmentOptions
+from ..options.alignment import LATENTS, AlignmentOptions
 from .krr import Alignment, alignment_kwargs, assert_disjoint, fit_alignment
 from .metrics import balanced_accuracy, nmse_over_time, nmse_trajectory, overall, reference_variance, roc_auc
 
@@ -288,8 +288,8 @@ def select_latents(split: Mapping[str, Any], latent: str = "y") -> np.ndarray:
     """'y' | 'z' | 'both' (concatenated z then y on the last axis) -> (n, T, d)."""
     if latent == "both":
         return np.concatenate([np.asarray(split["z"]), np.asarray(split["y"])], axis=-1)
-    if latent not in ("y", "z"):
-        raise ValueError(f"latent must be 'y', 'z' or 'both', got {latent!r}")
+    if latent not in LATENTS:
+        raise ValueError(f"latent must be one of {', '.join(LATENTS)}, got {latent!r}")
     return np.asarray(split[latent])
 
 
