@@ -154,10 +154,14 @@ def test_resume_after_sigkill(data_dir, tmp_path):
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     killed_at = _ckpt_epoch(last)  # 0-based index of the last finished epoch
-    step_at_kill = int(torch.load(last, map_location="cpu", weights_only=False)["global_step"])
+    killed = torch.load(last, map_location="cpu", weights_only=False)
+    step_at_kill, wall_at_kill = int(killed["global_step"]), killed["fit_wall_s"]
     res = run_train(*overrides[:-2], "trainer.max_epochs=" + str(killed_at + 3), "callbacks.krr_alignment=null")
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["resumed_from"] and metrics["resumed_from"].endswith("last.ckpt")
+    # its training time counts the killed start up to its checkpoint, and this start
+    assert wall_at_kill > 0 and metrics["train_wall_s_this_start"] > 0
+    assert metrics["train_wall_s"] == pytest.approx(wall_at_kill + metrics["train_wall_s_this_start"])
     assert "resuming from" in res.stderr + res.stdout
     # it continued after the last finished epoch: exactly 2 more epochs, none repeated
     steps_per_epoch = step_at_kill // (killed_at + 1)

@@ -769,12 +769,16 @@ class AtomicCheckpointIO(_TorchIO):
 # ----------------------------------------------------------------------------- best checkpoint
 #: the entry of a checkpoint that holds the monitored value of its own weights
 MONITORED = "monitored"
+#: the entry of a checkpoint that holds the fit time (s) of every start up to it
+FIT_WALL_S = "fit_wall_s"
 
 
 class FolderCheckpoints(_Callback):
     """Checkpoints that belong to their folder, wherever it is.
 
-    Every checkpoint carries the monitored value of the weights it holds:
+    Every checkpoint carries the fit time of the run up to it, over all its starts
+    (``checkpoint["fit_wall_s"]``: a resumed run's metrics.json ``train_wall_s`` counts the
+    earlier starts too), and the monitored value of the weights it holds:
     ``checkpoint["monitored"] = {"key", "mode", "value", "step"}`` (key and mode of the
     trainer's monitored ModelCheckpoint, e.g. ``val/elbo`` / ``max``). ``value`` is None
     when these weights were not validated (a stop between validations), so "best" is
@@ -787,6 +791,18 @@ class FolderCheckpoints(_Callback):
 
     def __init__(self) -> None:
         self._validated: tuple[int, dict[str, float]] | None = None
+        self.earlier_wall_s: float | None = 0.0  # fit time of the starts before this one; None: not recorded
+        self._fit_t0: float | None = None
+
+    def on_fit_start(self, trainer, pl_module) -> None:
+        self._fit_t0 = time.perf_counter()
+
+    def wall_s(self) -> float | None:
+        """Fit time of the run so far: the earlier starts up to the checkpoint this start
+        resumed from, plus this start's (None when that checkpoint did not record its own)."""
+        if self.earlier_wall_s is None or self._fit_t0 is None:
+            return None
+        return self.earlier_wall_s + time.perf_counter() - self._fit_t0
 
     def on_validation_end(self, trainer, pl_module) -> None:  # before the checkpoint callbacks (Lightning runs them last)
         if trainer.sanity_checking:
@@ -795,6 +811,7 @@ class FolderCheckpoints(_Callback):
                                                        if getattr(v, "numel", lambda: 0)() == 1})
 
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        checkpoint[FIT_WALL_S] = self.wall_s()
         mon = next((cb for cb in trainer.checkpoint_callbacks if getattr(cb, "monitor", None)), None)
         if mon is None:
             return
@@ -804,6 +821,7 @@ class FolderCheckpoints(_Callback):
         checkpoint[MONITORED] = {"key": mon.monitor, "mode": mon.mode, "value": value, "step": int(trainer.global_step)}
 
     def on_load_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:  # before the callbacks' load_state_dict
+        self.earlier_wall_s = checkpoint.get(FIT_WALL_S)
         states = checkpoint.get("callbacks") or {}
         for cb in trainer.checkpoint_callbacks:
             st = states.get(getattr(cb, "state_key", None))
