@@ -42,6 +42,14 @@ def _recorded(tmp_path, files, channels=("acc", "fsr_t"), **kw):
     )
 
 
+def _set_layer(ds: h5py.Dataset, layer: int, value: float) -> None:
+    """``ds[:, layer] = value`` as one read and one whole write (h5py writes a strided
+    selection of a compressed dataset chunk by chunk: about 4 s a trial)."""
+    data = ds[()]
+    data[:, layer] = value
+    ds[...] = data
+
+
 def _refs(dm):
     """Every trial the DataModule serves, whatever the split."""
     sets = (getattr(dm, k, None) for k in ("train_set", "val_set", "test_set"))
@@ -120,9 +128,10 @@ def test_a_dead_channel_in_one_trial_is_skipped_naming_file_trial_and_layer(tiny
     bad = names[1]
     with h5py.File(a, "a") as f:
         if layer is None:
-            f["trials"][bad][dataset][...] = 0.0
+            ds = f["trials"][bad][dataset]
+            ds[...] = np.zeros(ds.shape, ds.dtype)  # a whole array: h5py broadcasts a scalar chunk by chunk
         else:
-            f["trials"][bad][dataset][:, layer] = 512
+            _set_layer(f["trials"][bad][dataset], layer, 512)
     channel = "fsr_b" if layer is not None else "acc"
     dm = _recorded(tmp_path, [a], channels=("acc", "fsr_t", "fsr_b"))
     with caplog.at_level("WARNING"):
@@ -153,7 +162,7 @@ def test_a_channel_dead_in_every_trial_is_still_refused_whole(tiny_data_dir, nam
     a = _copy_trials(raw, tmp_path / "a.h5", names[:4])
     with h5py.File(a, "a") as f:
         for n in names[:4]:
-            f["trials"][n]["tactile/fsr"][:, 1] = 512
+            _set_layer(f["trials"][n]["tactile/fsr"], 1, 512)
     dm = _recorded(tmp_path, [a], channels=("fsr_t", "fsr_b"))
     dm.prepare_data()
     assert dm.skipped == [] and len(dm.prepared.trials) == 4
