@@ -13,11 +13,13 @@ from embodied_tactile.run.summary import recipe
 
 
 def _run(root, n, seed, lf, labels=True, objects="population", gru_std=None, held_out=None, readout=None,
-         curve=None):
-    d = root / f"n{n}_s{seed}_{labels}"
+         curve=None, unlabelled=None):
+    d = root / f"n{n}_s{seed}_{labels}" / ("" if unlabelled is None else f"u{unlabelled}")
     (d / "evaluation").mkdir(parents=True)
     cfg = {"seed": seed, "modality": {"name": "multi_l"}, "model": {"net": {"prior": {"labels": labels}}},
            "data": {"objects": objects, "split": "object", "n_objects": n}}
+    if unlabelled is not None:  # configs saved before the option existed have no key
+        cfg["data"]["n_unlabelled_objects"] = unlabelled
     OmegaConf.save(OmegaConf.create(cfg), d / "config_resolved.yaml")
     (d / "provenance.json").write_text(json.dumps({"git_commit": "abcdef0123"}))
     runs = [{"method": m, "nmse_trajectory": {f: v for f in FACTOR_NAMES}, "nmse_trajectory_overall": v,
@@ -189,3 +191,27 @@ def test_the_hybrid_reader_is_a_row_of_its_own_per_recipe(tmp_path):
         assert agg[f"Latent Filter multi_l ({labels})"][24]["mean"] == pytest.approx(0.85)
     text = G.write_page(rows, tmp_path / "docs", command="test").read_text()
     assert "| hand-crafted + y of Latent Filter multi_l (labels), KRR |" in text
+
+
+def test_runs_with_unlabelled_objects_are_a_curve_of_their_own_and_replace_no_score(tmp_path):
+    """A run trained on 256 labelled and 768 unlabelled objects is read out on the same 256: it
+    is the point N = 1,024 of the unlabelled curve, beside the 256-object runs (which it must not
+    replace), and stays out of the curve over labelled objects."""
+    root = tmp_path / "runs"
+    for seed, lf in ((0, 0.6), (1, 0.7)):
+        _run(root, 256, seed, lf)
+    _run(root, 256, 0, 0.4, unlabelled=768)
+    _run(tmp_path / "again", 256, 1, 0.5, unlabelled=0)  # the option given at 0: the same run as without it
+    rows = G.collect([root, tmp_path / "again"])
+    lf = {(r["n_objects"], r["n_unlabelled"], r["seed"]): r["trajectory"]["overall"] for r in rows
+          if r["method"] == "Latent Filter multi_l (labels)"}
+    assert lf == {(256, 0, 0): 0.6, (256, 0, 1): 0.5, (256, 768, 0): 0.4}
+    text = G.write_page(rows, tmp_path / "docs", command="test").read_text()
+    labelled_curve = text.split("## Mean over factors, whole trajectory")[1].split("##")[0]
+    assert "| Latent Filter multi_l (labels) |" in labelled_curve and "0.550 [" in labelled_curve
+    unl = text.split("## Unlabelled objects: 256 labelled, N training objects in all")[1].split("### Mean over factors, last step")[0]
+    assert "| method | 256 | 1024 |" in unl
+    assert "| Latent Filter multi_l (labels) | 0.550 [" in unl and "| 0.400 (1) |" in unl
+    assert "| mean predictor | 1.000 [1.000, 1.000] (2) | 1.000 (1) |" in unl
+    # the scores file keeps the axis: read back, the same rows
+    assert G.collect([tmp_path / "docs" / "generalisation_scores.json"]) == rows

@@ -61,10 +61,11 @@ PAPER_READOUT = "final_segment"
 
 
 def collect(roots: Iterable[str | Path]) -> list[dict[str, Any]]:
-    """One row per (method, training objects, seed): ``{method, n_objects, seed, trajectory,
-    last_step, run_dir, commit, targets}`` from every evaluated population run under ``roots``;
-    ``trajectory`` / ``last_step``: ``{factor: NMSE, "overall": mean over factors}`` over every
-    frame / at the last frame; a later root's row replaces an earlier one's."""
+    """One row per (method, labelled training objects, seed, unlabelled training objects):
+    ``{method, n_objects, n_unlabelled, seed, trajectory, last_step, run_dir, commit, targets}``
+    from every evaluated population run under ``roots``; ``trajectory`` / ``last_step``:
+    ``{factor: NMSE, "overall": mean over factors}`` over every frame / at the last frame; a
+    later root's row replaces an earlier one's."""
     rows: dict[tuple, dict[str, Any]] = {}
     for root in roots:
         rows.update(_collect_root(Path(root)))
@@ -72,7 +73,11 @@ def collect(roots: Iterable[str | Path]) -> list[dict[str, Any]]:
     if len(kinds) > 1:
         raise ValueError("the scores mix read-outs (" + ", ".join(f"{k}: {v}" for k, v in sorted(kinds.items()))
                          + "): evaluate every run with one alignment.readout")
-    return sorted(rows.values(), key=lambda r: (r["method"], r["n_objects"], r["seed"]))
+    return sorted(rows.values(), key=lambda r: (r["method"], r["n_objects"], r["n_unlabelled"], r["seed"]))
+
+
+def _key(row: Mapping[str, Any]) -> tuple[str, int, int, int]:
+    return row["method"], int(row["n_objects"]), int(row["seed"]), int(row["n_unlabelled"])
 
 
 def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
@@ -84,7 +89,8 @@ def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
     if root.is_file():
         try:
             for r in json.loads(root.read_text()):
-                rows[(r["method"], int(r["n_objects"]), int(r["seed"]))] = r
+                r = {**r, "n_unlabelled": int(r.get("n_unlabelled", 0))}  # files written before the unlabelled axis
+                rows[_key(r)] = r
         except (ValueError, TypeError, KeyError) as e:
             raise ValueError(f"{root}: not a scores file written by the generalisation report ({type(e).__name__}: {e})") from None
         return rows
@@ -98,8 +104,11 @@ def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
             continue
         prov = run_dir / "provenance.json"
         commit = json.loads(prov.read_text()).get("git_commit", "unknown") if prov.exists() else "unknown"
-        recipe_ = recipe(cfg)
         n, seed, modality = int(cfg.data.n_objects), int(cfg.seed), str(cfg.modality.name)
+        unlabelled = int(cfg.data.get("n_unlabelled_objects") or 0)  # trained on without labels, never read out
+        if unlabelled:  # the page's own axis, not a part of the row's name: one row over N
+            OmegaConf.update(cfg, "data.n_unlabelled_objects", 0)
+        recipe_ = recipe(cfg)
         runs = json.loads(res_path.read_text())["runs"]
         val = scored_on_validation(runs)
         if val:
@@ -108,9 +117,10 @@ def _collect_root(root: Path) -> dict[tuple, dict[str, Any]]:
         readout = next((((r.get("params") or {}).get("alignment") or {}).get("readout") for r in runs
                         if r["method"] == "latent_filter"), None) or PAPER_READOUT
         for r in runs:
-            key = (_method_label(r["method"], modality, recipe_, r.get("params")), n, seed)
+            key = (_method_label(r["method"], modality, recipe_, r.get("params")), n, seed, unlabelled)
             if key not in rows:
-                rows[key] = {"method": key[0], "n_objects": n, "seed": seed, "run_dir": str(run_dir),
+                rows[key] = {"method": key[0], "n_objects": n, "n_unlabelled": unlabelled, "seed": seed,
+                             "run_dir": str(run_dir),
                              "commit": commit, "targets": r.get("targets"), "readout": readout,
                              "trajectory": {**r["nmse_trajectory"], "overall": float(r["nmse_trajectory_overall"])},
                              "last_step": {**r["nmse_last_step"], "overall": float(r["nmse_last_step_overall"])}}
@@ -296,6 +306,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
                sizes: Sequence[int] = (24, 64, 128, 256, 512)) -> Path:
     """docs page + figure from ``collect`` rows. Returns the page's path."""
     out = Path(out)
+    every, rows = rows, [r for r in rows if not r["n_unlabelled"]]
     figure(rows, out / "figures" / "generalisation_curve.png", sizes)
     commits = sorted({r["commit"][:7] if len(r["commit"]) == 40 else r["commit"] for r in rows})
     lines = [
@@ -332,6 +343,7 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
     ]
     for readout, title in READOUTS:
         lines += [f"## Mean over factors, {title}", "", *table(aggregate(rows, readout=readout), sizes), ""]
+    lines += unlabelled_section(every)
     curves = over_time(rows)
     if curves:
         time_figure(curves, out / "figures" / "generalisation_over_time.png")
@@ -345,12 +357,31 @@ def write_page(rows: Sequence[Mapping[str, Any]], out: str | Path, *, command: s
             lines += [f"## {f}, {title}", "", *table(aggregate(rows, f, readout), sizes), ""]
     head = " | ".join(FACTOR_NAMES)
     lines += ["## Scores (whole trajectory; last step)", "",
-              f"| method | training objects | seed | overall | {head} | overall (last) | {head} (last) |",
-              "|---" * (4 + 2 * len(FACTOR_NAMES) + 1) + "|"]
-    for r in rows:
+              f"| method | training objects | unlabelled | seed | overall | {head} | overall (last) | {head} (last) |",
+              "|---" * (5 + 2 * len(FACTOR_NAMES) + 1) + "|"]
+    for r in every:
         cells = [f"{r[ro][k]:.3f}" for ro in ("trajectory", "last_step") for k in ("overall", *FACTOR_NAMES)]
-        lines.append(f"| {r['method']} | {r['n_objects']} | {r['seed']} | " + " | ".join(cells) + " |")
+        lines.append(f"| {r['method']} | {r['n_objects']} | {r['n_unlabelled']} | {r['seed']} | " + " | ".join(cells) + " |")
     page = out / "generalisation.md"
     page.write_text("\n".join(lines) + "\n")
-    write_json(out / "generalisation_scores.json", list(rows), indent=1)
+    write_json(out / "generalisation_scores.json", list(every), indent=1)
     return page
+
+
+def unlabelled_section(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The curve over unlabelled objects: for each labelled count that runs with unlabelled
+    objects were trained at, every reader against N = labelled + unlabelled training objects
+    (the read-out fitted on the labelled ones at every N); no lines when there are none."""
+    lines: list[str] = []
+    for labelled in sorted({r["n_objects"] for r in rows if r["n_unlabelled"]}):
+        at = [{**r, "n_objects": labelled + r["n_unlabelled"]} for r in rows if r["n_objects"] == labelled]
+        sizes = sorted({r["n_objects"] for r in at})
+        lines += [f"## Unlabelled objects: {labelled} labelled, N training objects in all", "",
+                  f"The filter trained on N objects, the {labelled} labelled ones and N - {labelled} more that carry "
+                  f"no labels (`data.n_unlabelled_objects`); every reader's read-out is fitted on the {labelled} "
+                  "labelled training objects and scored on the same test objects at every N. The hand-crafted "
+                  "reader and the mean predictor see no unlabelled object: their values at each N are scored "
+                  "again in that N's evaluation, and stay the same.", ""]
+        for readout, title in READOUTS:
+            lines += [f"### Mean over factors, {title}", "", *table(aggregate(at, readout=readout), sizes), ""]
+    return lines
