@@ -260,6 +260,9 @@ def analyse(args) -> int:
     print(tables(rows, names, args.sizes))
     print("\nselection (validation objects, last frame):")
     for n in args.sizes:
+        if n != args.labelled:  # the rule decides the default at N = labelled only
+            print(f"  N={n}: a point of the learning curve; nothing is selected there")
+            continue
         chosen, notes = verdict(rows, n, names)
         for line in notes:
             print("  " + line)
