@@ -34,7 +34,8 @@ class RunFolderLifecycle:
     claim to its ``metrics.json``: :meth:`prepare` (data, resume checkpoint, ``running``),
     :meth:`fit`, :meth:`finish`. ``run.finished``: the folder already holds the finished run
     (a multirun job; a single run stops at entry), nothing to train. ``run.stop``: the stop
-    signals' callback, first of the trainer's."""
+    signals' callback, first of the trainer's; ``run.checkpoints``: the folder's checkpoint
+    callback (each checkpoint's monitored value and the run's fit time up to it)."""
 
     def __init__(self, cfg: DictConfig, run_dir: str) -> None:
         self.cfg, self.run_dir = cfg, str(run_dir)
@@ -45,7 +46,7 @@ class RunFolderLifecycle:
         self.metrics: dict | None = None  # from prepare(): what metrics.json says of the run
         self._fitting = False  # prepare() to the fit's end: a failure there is the folder's to record
         self._t0 = 0.0
-        self._callbacks: Sequence[Any] = ()  # the fit's (fit()): the run's fit time is FolderCheckpoints'
+        self.checkpoints = runfolder.FolderCheckpoints()
 
     def __enter__(self) -> "RunFolderLifecycle":
         cfg, run_dir = self.cfg, self.run_dir
@@ -110,11 +111,11 @@ class RunFolderLifecycle:
         """``trainer.fit`` from the resume checkpoint, then the callbacks' final read-out where
         the fit did not run it; a stop between steps saves ``last.ckpt`` and exits 130 / 143."""
         stop, run_dir = self.stop, self.run_dir
-        self._t0, self._callbacks = time.perf_counter(), callbacks
+        self._t0 = time.perf_counter()
         trainer.fit(model, datamodule=datamodule, ckpt_path=self.ckpt_path)
         runfolder.finish_fit(trainer, model, callbacks, stop)  # a run resumed at its own length: its final read-out
         self._fitting = False
-        self.metrics.update(self._wall_times(callbacks))
+        self.metrics.update(self._wall_times())
         stop.defer()
         if stop.received is not None:  # stopped between steps: the state of this step is the run's last.ckpt
             last = f"{run_dir}/checkpoints/last.ckpt"
@@ -130,14 +131,12 @@ class RunFolderLifecycle:
         # the run's NMSE: the KRR callback's final alignment (evaluate.py's settings, final weights)
         self.metrics["krr_final"] = next((c.final for c in callbacks if getattr(c, "final", None)), None)
 
-    def _wall_times(self, callbacks: Sequence[Any]) -> dict[str, float | None]:
+    def _wall_times(self) -> dict[str, float | None]:
         """``train_wall_s``: the run's fit time over all its starts (this start's, plus the
         earlier starts' up to the checkpoint it resumed from: the time of steps done again
         after a crash is not counted twice); ``train_wall_s_this_start``: this process's.
         A resume from a checkpoint that did not record its time: ``train_wall_s`` None."""
-        this = time.perf_counter() - self._t0
-        clock = next((c for c in callbacks if isinstance(c, runfolder.FolderCheckpoints)), None)
-        earlier = 0.0 if clock is None or not self.ckpt_path else clock.earlier_wall_s
+        this, earlier = time.perf_counter() - self._t0, self.checkpoints.earlier_wall_s
         return {"train_wall_s": None if earlier is None else earlier + this, "train_wall_s_this_start": this}
 
     def finish(self, trainer: Any, datamodule: Any, callbacks: Sequence[Any], final_val: dict | None,
@@ -179,7 +178,7 @@ class RunFolderLifecycle:
         stop.settle()  # a signal in the final read-out: last.ckpt holds the last step's weights
         status = "interrupted" if stop.received is not None else "failed"
         metrics.update(status=status, error=str(err) or type(err).__name__, error_type=type(err).__name__,
-                       **self._wall_times(self._callbacks))
+                       **self._wall_times())
         if stop.received is not None:
             metrics.update(stopped_by=stop.name, stopped_in=stop.phase, final_readout=False)
         if stop.saved is not None:

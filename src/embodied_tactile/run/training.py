@@ -108,7 +108,7 @@ def train(cfg: DictConfig, run_dir: str | None = None) -> float | None:
         plain = use_plain_progress(cfg.plain_progress)
         callbacks = [run.stop,  # its hooks first: a stop is saved before any other callback's work
                      HandOverStatistics(),  # the training split's statistics, from the data to the model
-                     runfolder.FolderCheckpoints(),  # each checkpoint stores its own val/elbo
+                     run.checkpoints,  # each checkpoint stores its own val/elbo and the run's fit time
                      *usable_with(configured, loggers), *progress_callbacks(cfg, plain),
                      share]  # re-counts the trainings on the machine at every epoch
         trainer: L.Trainer = instantiate(
