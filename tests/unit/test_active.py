@@ -258,3 +258,4 @@ def test_cli_runs_an_episode_on_a_tiny_trained_run(tmp_path, fast_data_dir, monk
     assert (tmp_path / "pal" / "episode_obj08_active_s0.png").stat().st_size > 0
     bad = _palpate_here([f"run={tmp_path}/run", "object=8", "first_action=14"], tmp_path, monkeypatch, capsys)
     assert bad.returncode == 2 and "first_action=14 is not an action of the run" in bad.stderr
+    assert not (tmp_path / "run" / "palpation").exists()  # refused before any calibration episode or output

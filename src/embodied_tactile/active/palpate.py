@@ -112,6 +112,12 @@ def run(cfg: DictConfig) -> int:
         model, info = load_palpation_model(str(cfg.run), checkpoint=str(cfg.checkpoint), threads=int(cfg.threads))
     except PalpationError as err:
         raise SettingError(str(err)) from err
+    used = [str(cfg.policy)] if cfg.mode == "episode" else [str(p) for p in cfg.evaluate.policies]
+    checks = ([("first_action", int(cfg.first_action))] if cfg.first_action is not None else []) \
+        + ([("single_action", int(cfg.single_action))] if "single" in used else [])
+    for name, a in checks:  # before the calibration episodes (the fixed order's first action is one of the run's)
+        if a not in model.actions:
+            raise SettingError(f"{name}={a} is not an action of the run (trained on actions {list(model.actions)})")
     out = Path(cfg.out) if cfg.out else Path(info["run_dir"]) / "palpation"
     out.mkdir(parents=True, exist_ok=True)
     active = OmegaConf.to_container(cfg.active, resolve=True)
@@ -129,11 +135,6 @@ def run(cfg: DictConfig) -> int:
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
     del calib
     first = int(cfg.first_action) if cfg.first_action is not None else fixed[0]
-    used = [str(cfg.policy)] if cfg.mode == "episode" else [str(p) for p in cfg.evaluate.policies]
-    checks = [("first_action", first)] + ([("single_action", int(cfg.single_action))] if "single" in used else [])
-    for name, a in checks:
-        if a not in model.actions:
-            raise SettingError(f"{name}={a} is not an action of the run (trained on actions {list(model.actions)})")
 
     if cfg.mode == "episode":
         pol = make_policy(str(cfg.policy), model=model, first_action=first, single_action=int(cfg.single_action),
