@@ -184,7 +184,7 @@ def test_study_sweeps_compose_to_the_protocols_jobs(tmp_path):
     # the dataset's noise seeded per job; the population at its own budget
     study_job, default = _compose_job(["sweep=study", "seed=2"], tmp_path), _compose_job([], tmp_path)
     assert study_job.trainer.max_epochs == default.trainer.max_epochs == 32
-    assert study_job.data.actions is None and study_job.data.sim_seed == 2
+    assert study_job.data.actions is None and study_job.data.sim_seed == 2 and study_job.data.keep_raw is False
     assert _compose_job(["experiment=population"], tmp_path).trainer.max_epochs == 16
 
 

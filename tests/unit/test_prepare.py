@@ -201,3 +201,41 @@ def test_a_trial_whose_attributes_disagree_with_its_file_is_named_and_skipped(ti
     lines = [r.getMessage() for r in caplog.records if first in r.getMessage()]
     assert lines and "skin=hard primitive=pressing in a recording set of soft/pressing" in lines[0]
     assert not any("_elsewhere" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.slow  # preprocesses the tiny scene's three fields and simulates one trial
+def test_keep_raw_false_deletes_the_raw_file_and_its_record_finds_the_caches(tiny_data_dir, tmp_path, caplog):
+    """keep_raw=false: every field is cached, the raw file is deleted and a record beside it
+    finds the caches again, for another modality too, with the same per-trial digests (a
+    run's data identity) and nothing simulated; a scene the record does not cover simulates
+    its raw file again; a recording cannot be deleted."""
+    import json
+
+    from embodied_tactile.data.prepare import dropped_record_path, prepare_scene
+    from embodied_tactile.run.provenance import data_identity
+
+    d = tmp_path / "data"
+    shutil.copytree(tiny_data_dir / "raw", d / "raw")
+    kept = prepare_scene(tiny_scene(d, channels=("acc",)))  # keep_raw: true, the default
+    raw = d / "raw" / "soft_pressing.h5"
+    size = raw.stat().st_size
+    first = prepare_scene(tiny_scene(d, channels=("acc",), keep_raw=False))
+    assert not raw.exists() and first.raw_dropped and len(first.trials) == N_TINY
+    record = json.loads(dropped_record_path(raw).read_text())
+    assert record["raw_bytes"] == size and len(record["trials"]) == N_TINY
+    assert sorted(record["fields"]) == ["acc", "actions", "fsr"]  # every field, before the raw file went
+    assert first.cache_files == kept.cache_files and sorted(first.cache_files) == ["acc", "actions"]
+    assert first.trial_digests == kept.trial_digests
+    for channels in (("acc",), ("fsr_t", "fsr_b")):  # the record finds them whatever keep_raw says now
+        again = prepare_scene(tiny_scene(d, channels=channels))
+        assert not raw.exists() and again.simulated == 0 and again.raw_dropped and len(again.trials) == N_TINY
+    assert data_identity(again.cache_files, again.trial_digests)["fsr"]["trials"] == record["fields"]["fsr"]["trial_digests"]
+    same = prepare_scene(tiny_scene(d, channels=("acc",)))
+    assert data_identity(same.cache_files, same.trial_digests) == data_identity(kept.cache_files, kept.trial_digests)
+    # a trial the record does not list: the raw file is simulated again (the record goes with it)
+    caplog.set_level("WARNING")
+    more = prepare_scene(tiny_scene(d, channels=("acc",), objects=[TINY_OBJECTS[0]], actions=[5], repetitions=1))
+    assert more.simulated == 1 and raw.exists() and not dropped_record_path(raw).exists()
+    assert "the scene asks for 1 trial(s) it does not list" in caplog.text
+    with pytest.raises(ValueError, match="keep_raw=false needs the simulator"):
+        tiny_scene(d, source="recorded", raw_files=[str(raw)], keep_raw=False)

@@ -197,6 +197,7 @@ class Scene:
     strict: bool
     include_incomplete: bool
     allow_large_population: bool = field(compare=False)
+    keep_raw: bool = field(compare=False)  # how the files are kept, not what the trials are
 
     def __post_init__(self) -> None:
         if self.source not in C.SOURCES:
@@ -226,6 +227,10 @@ class Scene:
                                   self.n_unlabelled_objects)
         elif self.n_unlabelled_objects:
             raise ValueError(f"n_unlabelled_objects={self.n_unlabelled_objects} needs objects='population'")
+        if not isinstance(self.keep_raw, bool):
+            raise ValueError(f"keep_raw must be true or false, got {self.keep_raw!r}")
+        if not self.keep_raw and self.source != "simulated":
+            raise ValueError("keep_raw=false needs the simulator (source='simulated'): recordings are never deleted")
         norm = {
             "data_dir": str(self.data_dir),
             "raw_files": tuple(str(f) for f in (self.raw_files or ())),
@@ -341,13 +346,16 @@ class PreparedData:
     #: ``{field: {trial: digest}}`` of every valid raw trial (its name, attributes and the
     #: bytes that field reads): a run's data identity per trial (run.provenance.data_identity)
     trial_digests: dict[str, dict[str, str]] = field(default_factory=dict)
+    #: the raw file was deleted (``keep_raw=False``): now, or by an earlier preparation
+    raw_dropped: bool = False
 
     def summary(self) -> str:
         """Multi-line report (printed by the CLI)."""
         s = self.scene
         lines = [f"prepared {s.source} scene skin={s.skin} primitive={s.primitive} channels={list(s.channels)} "
                  f"in {s.data_dir}",
-                 f"raw files: {', '.join(self.raw_files)}"]
+                 f"raw files: {', '.join(self.raw_files)}"
+                 + (" (deleted, keep_raw=false: the caches stand for it)" if self.raw_dropped else "")]
         if s.source == "simulated":
             lines.append(f"simulated: {self.simulated} new trial(s)")
         lines.append(f"trials: {len(self.trials)} usable, {len(self.skipped)} skipped, "
@@ -375,11 +383,27 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
     the temporary files a killed build left: :func:`remove_stale_temporaries`).
 
     ``simulate=False`` (a DDP rank whose rank 0 prepared the scene) only finds the caches:
-    their keys are deterministic, so nothing is recomputed when they exist."""
+    their keys are deterministic, so nothing is recomputed when they exist.
+
+    ``keep_raw=False`` (simulated): every field is cached, then the raw file is deleted and a
+    record beside it (:func:`dropped_record_path`) keeps what finds the caches again: the raw
+    file's trials and, per field, its digests. A later preparation whose trials the record
+    covers uses the caches it names; one it does not cover (other trials, another preprocessing
+    configuration, another physics version, a damaged cache) simulates the raw file again from
+    its seed first."""
     from embodied_tactile.data.cache import build_cache, verify_cache
+    from embodied_tactile.data.preprocess import FIELDS
 
     with data_dir_lock(Path(scene.data_dir)):
         remove_stale_temporaries(scene.cache_dir)
+        found = _from_dropped(scene)
+        if found is not None:
+            cache_files, digests = found
+            raw_paths = [str(p) for p in scene.raw_paths]
+            trials, skipped, incomplete = list_trials(scene, cache_files, raw_paths)
+            return PreparedData(scene=scene, raw_files=raw_paths, cache_files=cache_files, trials=trials,
+                                skipped=skipped, excluded_incomplete=incomplete, trial_digests=digests,
+                                raw_dropped=True)
         simulated = 0
         if scene.source == "simulated" and simulate:
             from embodied_tactile.sim import generate_dataset
@@ -387,21 +411,18 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
             raw = scene.raw_paths[0]
             raw.parent.mkdir(parents=True, exist_ok=True)
             before = _n_raw_trials(raw)
-            if scene.is_population:
-                objects = [o for objs in scene.population_objects().values() for o in objs]
-            else:
-                objects = scene.objects if scene.objects is not None else range(C.N_OBJECTS)
             generate_dataset(
-                raw, skin=scene.skin, primitive=scene.primitive,
-                objects=objects,
+                raw, skin=scene.skin, primitive=scene.primitive, objects=_scene_objects(scene),
                 actions=scene.actions if scene.actions is not None else range(C.N_ACTIONS),
                 repetitions=scene.repetitions, seed=scene.sim_seed, workers=scene.sim_workers,
             )
             simulated = _n_raw_trials(raw) - before
+            dropped_record_path(raw).unlink(missing_ok=True)  # the raw file is here again: the record is history
         raw_paths = [str(p) for p in scene.raw_paths]  # recorded: raises for a missing file or an empty pattern
+        fields = tuple(scene.fields) if scene.keep_raw else FIELDS  # before dropping the raw file: every field
         existing = set(scene.cache_dir.glob("*.h5")) if scene.cache_dir.exists() else set()
         digests: dict[str, dict[str, str]] = {}
-        files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=tuple(scene.fields),
+        files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=fields,
                             workers=scene.preprocess_workers, strict=scene.strict, trial_digests=digests)
         # a cache found (not built now) is checked once per preparation: each array against its crc32
         damaged = {fld: bad for fld, path in files.items() if Path(path) in existing and (bad := verify_cache(path))}
@@ -411,15 +432,125 @@ def prepare_scene(scene: Scene, *, simulate: bool = True) -> PreparedData:
                 asides[fld] = _set_aside(Path(files[fld]))
                 log.warning("%s: %d cached array(s) fail their checksum (e.g. %s); moved to %s, rebuilding %s from "
                             "the raw files", files[fld], len(bad), ", ".join(bad[:3]), asides[fld].name, fld)
-            files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=tuple(scene.fields),
+            files = build_cache(raw_paths, scene.cache_dir, scene.preprocess_config(), fields=fields,
                                 workers=scene.preprocess_workers, strict=scene.strict)
             for aside in asides.values():  # rebuilt: the newest damaged copy is kept for inspection, no older one
                 _prune_set_aside(aside)
-    cache_files = {k: str(v) for k, v in files.items()}
-    trials, skipped, incomplete = list_trials(scene, cache_files, raw_paths)
+        built = [k for k, v in files.items() if Path(v) not in existing and k in scene.fields]
+        cache_files = {k: str(v) for k, v in files.items() if k in scene.fields}
+        trials, skipped, incomplete = list_trials(scene, cache_files, raw_paths)
+        dropped = not scene.keep_raw and simulate and _drop_raw(scene, {k: Path(v) for k, v in files.items()}, digests)
     return PreparedData(scene=scene, raw_files=raw_paths, cache_files=cache_files, trials=trials, skipped=skipped,
-                        excluded_incomplete=incomplete, simulated=simulated,
-                        cache_built=[k for k, v in files.items() if Path(v) not in existing], trial_digests=digests)
+                        excluded_incomplete=incomplete, simulated=simulated, cache_built=built,
+                        trial_digests={k: v for k, v in digests.items() if k in scene.fields}, raw_dropped=dropped)
+
+
+def _scene_objects(scene: Scene) -> list:
+    """The objects a simulated scene simulates: its population's, its list, or all 32."""
+    if scene.is_population:
+        return [o for objs in scene.population_objects().values() for o in objs]
+    return list(scene.objects) if scene.objects is not None else list(range(C.N_OBJECTS))
+
+
+def _requested_trials(scene: Scene) -> set[str]:
+    """The raw trial names a simulated scene asks for (``sim.generate_dataset``'s)."""
+    from embodied_tactile.data.rawformat import trial_name
+    from embodied_tactile.sim.objects import as_object
+
+    actions = scene.actions if scene.actions is not None else range(C.N_ACTIONS)
+    return {trial_name({"object_id": as_object(o).object_id, "skin": scene.skin, "primitive": scene.primitive,
+                        "action_index": int(a), "repetition": r})
+            for o in _scene_objects(scene) for a in actions for r in range(scene.repetitions)}
+
+
+#: ``format`` of the record a deleted raw file leaves (:func:`dropped_record_path`)
+DROPPED_FORMAT = "embodied-tactile-dropped-raw"
+
+
+def dropped_record_path(raw: Path) -> Path:
+    """``<raw file>.dropped.json``: what a simulated raw file deleted by ``keep_raw=False`` left."""
+    return raw.with_name(raw.name + ".dropped.json")
+
+
+def _drop_raw(scene: Scene, files: Mapping[str, Path], digests: Mapping[str, Mapping[str, str]]) -> bool:
+    """Write the record of the scene's raw file (atomically), then delete the raw file; a file
+    holding any trial not marked ``source = "simulated"`` is kept (False), with a warning
+    (docs/reference/data_format.md, "What is never deleted")."""
+    from embodied_tactile.data.cache import cache_info
+    from embodied_tactile.sim.physics import PHYSICS_VERSION
+
+    raw = scene.raw_paths[0]
+    with h5py.File(raw, "r") as f:
+        names = sorted(f["trials"]) if "trials" in f else []
+        other = next((n for n in names if f["trials"][n].attrs.get("source") not in ("simulated", b"simulated")), None)
+    if other is not None:
+        log.warning("keep_raw=false: %s is kept, its trial %s is not marked source=simulated", raw, other)
+        return False
+    record = {
+        "format": DROPPED_FORMAT, "raw_file": raw.name, "skin": scene.skin, "primitive": scene.primitive,
+        "sim_seed": scene.sim_seed, "sim_physics_version": PHYSICS_VERSION, "raw_bytes": raw.stat().st_size,
+        "trials": names,
+        "fields": {fld: {"source_digest": cache_info(path)["source_digests"][0], "trial_digests": dict(digests[fld])}
+                   for fld, path in files.items()},
+    }
+    target = dropped_record_path(raw)
+    tmp = target.with_name(f"{target.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(record, sort_keys=True))
+    os.replace(tmp, target)
+    raw.unlink()
+    log.info("deleted %s (%.2f GB, %d trials; keep_raw=false): every field is cached, %s finds the caches",
+             raw, record["raw_bytes"] / 1e9, len(names), target.name)
+    return True
+
+
+def _from_dropped(scene: Scene) -> tuple[dict[str, str], dict[str, dict[str, str]]] | None:
+    """``(cache_files, trial_digests)`` of a simulated scene whose raw file was deleted
+    (``keep_raw=False``), found through its record: None when the raw file is there, there is
+    no record, or the record does not cover the scene (its trials, physics version or
+    fields), or a cache it names is missing or damaged (each said in a log line): then the
+    raw file is simulated again."""
+    from embodied_tactile.data.cache import _is_complete, cache_key, verify_cache
+    from embodied_tactile.sim.physics import PHYSICS_VERSION
+
+    if scene.source != "simulated":
+        return None
+    raw = scene.raw_paths[0]
+    path = dropped_record_path(raw)
+    if raw.exists() or not path.exists():
+        return None
+    try:
+        rec = json.loads(path.read_text())
+        ok = rec.get("format") == DROPPED_FORMAT
+    except (OSError, ValueError):
+        rec, ok = {}, False
+    if not ok:
+        log.warning("%s is not a record of a deleted raw file; simulating %s again", path, raw.name)
+        return None
+    why = None
+    if (rec.get("skin"), rec.get("primitive"), rec.get("sim_seed")) != (scene.skin, scene.primitive, scene.sim_seed):
+        why = f"it records skin={rec.get('skin')} primitive={rec.get('primitive')} sim_seed={rec.get('sim_seed')}"
+    elif rec.get("sim_physics_version") != PHYSICS_VERSION:
+        why = f"its trials were simulated by physics version {rec.get('sim_physics_version')}, not {PHYSICS_VERSION}"
+    elif missing := _requested_trials(scene) - set(rec.get("trials", [])):
+        why = f"the scene asks for {len(missing)} trial(s) it does not list (e.g. {sorted(missing)[0]})"
+    cfg = scene.preprocess_config()
+    files: dict[str, str] = {}
+    for fld in scene.fields if why is None else ():
+        entry = rec.get("fields", {}).get(fld)
+        target = None if entry is None else scene.cache_dir / f"{fld}-{cache_key(fld, cfg, [entry['source_digest']])}.h5"
+        if target is None or not _is_complete(target):
+            why = f"no cache of field {fld} at this preprocessing configuration"
+            break
+        if bad := verify_cache(target):
+            why = f"{target.name}: {len(bad)} cached array(s) fail their checksum"
+            break
+        files[fld] = str(target)
+    if why is not None:
+        log.warning("%s: %s; simulating %s again from seed %d", path.name, why, raw.name, scene.sim_seed)
+        return None
+    log.info("raw file %s was deleted (keep_raw=false); its caches, found by %s: %s", raw.name, path.name,
+             ", ".join(Path(f).name for f in files.values()))
+    return files, {fld: dict(rec["fields"][fld]["trial_digests"]) for fld in scene.fields}
 
 
 def _set_aside(path: Path) -> Path:

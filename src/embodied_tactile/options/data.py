@@ -43,6 +43,7 @@ class SceneOptions:
     strict: bool = False                  # true: a bad raw trial is fatal instead of skipped
     include_incomplete: bool = False      # true: also use interrupted recordings (complete=False)
     allow_large_population: bool = False  # true: prepare a population of more than 10,000 trials
+    keep_raw: bool = True                 # simulated: false deletes the raw file once every field is cached (a record beside it finds the caches; regenerated from the seed when needed)
 
 
 @dataclass
