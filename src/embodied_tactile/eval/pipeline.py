@@ -355,7 +355,8 @@ def _code_digest() -> str:
 
 def reuse_key(run: Run, opts: DictConfig, baselines: Sequence[str], code: str) -> str:
     """What decides a run's scored results: its folder, the checkpoint's bytes, its config,
-    split and metrics, the size and time of every data file it names, the evaluation's
+    split and metrics, the size and time of every data file it names (a deleted raw file's
+    record in its place, ``data.keep_raw=false``), the evaluation's
     options (but those of the report only), the baselines and the package's code."""
     import hashlib
 
@@ -370,7 +371,10 @@ def reuse_key(run: Run, opts: DictConfig, baselines: Sequence[str], code: str) -
         f = run.run_dir / name
         h.update(f.read_bytes() if f.exists() else b"-")
     data = (read_json(run.run_dir / "metrics.json").get("data") or {})
-    files = list(data.get("raw_files") or []) + list((data.get("cache_files") or {}).values())
+    from embodied_tactile.data.prepare import dropped_record_path
+
+    raw = [Path(f) for f in data.get("raw_files") or []]
+    files = raw + [dropped_record_path(f) for f in raw if not f.exists()] + list((data.get("cache_files") or {}).values())
     for f in map(Path, files):
         st = f.stat() if f.exists() else None
         h.update(f"{f}:{st.st_size if st else -1}:{st.st_mtime_ns if st else -1}".encode())
