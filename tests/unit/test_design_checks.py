@@ -108,7 +108,7 @@ def test_the_paper_design_scene_has_the_papers_trials_and_holds_out_a_quarter(tm
     with initialize_config_dir(config_dir=str(REPO / "configs"), version_base="1.3"):
         cfg = compose(config_name="train", overrides=["experiment=paper_design", f"paths.log_dir={tmp_path}"])
     d = cfg.data
-    assert d.actions is None and d.repetitions == 5 and d.test_fraction == 0.25
+    assert d.actions is None and d.repetitions == 5 and d.test_fraction == 0.25 and d.keep_raw is False
     assert (d.batch_size, d.train_window, d.windows_per_epoch, cfg.trainer.max_epochs) == (16, 50, 480, 32)
     trials = catalogue_trials(None, d.repetitions)
     train, val, test = split_trials(trials, test_fraction=d.test_fraction, val_fraction=d.val_fraction)
