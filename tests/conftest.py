@@ -103,15 +103,28 @@ def train_py_run(fast_data_dir, tmp_path_factory):
     started in a folder of its own in a fresh interpreter, as a user starts it (the session's
     one train.py subprocess of the default recipe; the other runs use train.py's entry point in
     this process): (run folder ``<folder>/run``, ``subprocess.CompletedProcess`` with its
-    output). Tests only read it."""
+    output). Tests only read it, so under pytest-xdist the workers share it: the first to need
+    it trains in the run's common temporary folder, the others wait for it and read its outcome."""
+    import fcntl
+    import json
     import subprocess
     import sys
 
-    folder = tmp_path_factory.mktemp("train_py")
-    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
-    res = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "trainer.max_epochs=2",
-                          f"paths.data_dir={fast_data_dir}", "hydra.run.dir=run"], cwd=folder, env=env,
-                         capture_output=True, text=True, timeout=300)
+    shared = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = shared.parent  # the session's folder, above each worker's own
+    folder, done = shared / "train_py", shared / "train_py.json"
+    with open(shared / "train_py.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            folder.mkdir(exist_ok=True)
+            env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
+            res = subprocess.run([sys.executable, str(REPO / "train.py"), "debug=fast", "trainer.max_epochs=2",
+                                  f"paths.data_dir={fast_data_dir}", "hydra.run.dir=run"], cwd=folder, env=env,
+                                 capture_output=True, text=True, timeout=300)
+            done.write_text(json.dumps({"args": res.args, "returncode": res.returncode, "stdout": res.stdout,
+                                        "stderr": res.stderr}))
+    res = subprocess.CompletedProcess(**json.loads(done.read_text()))
     assert res.returncode == 0, f"train.py failed ({res.returncode}):\n{res.stdout[-3000:]}\n{res.stderr[-5000:]}"
     return folder / "run", res
 
