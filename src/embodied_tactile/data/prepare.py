@@ -454,13 +454,10 @@ def _scene_objects(scene: Scene) -> list:
 
 def _requested_trials(scene: Scene) -> set[str]:
     """The raw trial names a simulated scene asks for (``sim.generate_dataset``'s)."""
-    from embodied_tactile.data.rawformat import trial_name
-    from embodied_tactile.sim.objects import as_object
+    from embodied_tactile.sim.dataset import requested_trials
 
-    actions = scene.actions if scene.actions is not None else range(C.N_ACTIONS)
-    return {trial_name({"object_id": as_object(o).object_id, "skin": scene.skin, "primitive": scene.primitive,
-                        "action_index": int(a), "repetition": r})
-            for o in _scene_objects(scene) for a in actions for r in range(scene.repetitions)}
+    return requested_trials(_scene_objects(scene), scene.skin, scene.primitive,
+                            scene.actions if scene.actions is not None else range(C.N_ACTIONS), scene.repetitions)
 
 
 #: ``format`` of the record a deleted raw file leaves (:func:`dropped_record_path`)

@@ -115,6 +115,14 @@ def _name(object_id: int, skin: str, primitive: str, action_index: int, repetiti
                            repetition=repetition))
 
 
+def requested_trials(objects: Iterable[int | C.WaveObject], skin: str, primitive: str, actions: Iterable[int],
+                     repetitions: int) -> set[str]:
+    """The raw trial names of objects x actions x repetitions (what :func:`generate_dataset` simulates)."""
+    acts = list(actions)
+    return {_name(O.as_object(o).object_id, skin, primitive, int(a), r)
+            for o in objects for a in acts for r in range(int(repetitions))}
+
+
 def _job(args: tuple) -> object:
     object_id, skin, primitive, action, rep, seed, duration, physics = args
     return simulate_trial(object_id, skin, primitive, action, rep, seed, duration=duration, physics=physics)
@@ -189,7 +197,7 @@ def generate_dataset(
     path = Path(path)
     complete, damaged, partial, stale = _inventory(path, seed)
     ids = {o: O.as_object(o).object_id for o in objects}
-    requested = {_name(ids[o], skin, primitive, a, r) for o in objects for a in actions for r in range(repetitions)}
+    requested = requested_trials(objects, skin, primitive, actions, repetitions)
     kept_stale = sorted(set(stale) - requested)
     if kept_stale:  # older trials this run would not redo: the file moves aside whole, unchanged
         aside = _aside_path(path, min(stale.values()))
