@@ -132,7 +132,7 @@ def train_py_run(fast_data_dir, tmp_path_factory):
 @contextlib.contextmanager
 def machine_share(alone: bool):
     """Under pytest-xdist, a readers-writer lock shared by the run's workers: ``alone`` waits
-    until no other worker holds a share and keeps them waiting, else it runs beside the others
+    until no other worker runs a test and keeps them waiting, else it runs beside the others
     (a turnstile keeps a waiting ``alone`` from being starved). Without xdist: nothing to do."""
     if os.environ.get("PYTEST_XDIST_TESTRUNUID") is None:
         yield
@@ -167,20 +167,15 @@ class _Share:
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     """A test marked ``realtime`` (the recorder polling an emulated board at 700 packets/s)
-    runs, with the set-up and tear-down of its fixtures, while no other worker runs a ``slow``
-    test (:func:`machine_share`): on 2 cores a training, a simulation or a subprocess CLI beside
+    runs, with the set-up and tear-down of its fixtures, while no other worker runs a test or
+    sets up a fixture (:func:`machine_share`): on 2 cores a training or a simulation beside
     the recorder drops over 10 % of its packets, and the trial is rightly stored incomplete.
-    A test that is neither (in-process, under 0.7 s: the ``slow`` marker's rule) takes no share
-    and runs beside a realtime one: the recorder and the emulated board use about 0.6 of a core
-    (docs/experiments/test_suite_time.md). The share is kept while the next test of this
-    worker is realtime too."""
+    The share is kept while the next test of this worker is realtime too."""
     alone = _realtime(item)
-    light = not alone and item.get_closest_marker("slow") is None
     if not (alone and _Share.alone):
         _Share.stack.close()
-        if not light:
-            _Share.stack.enter_context(machine_share(alone))
-        _Share.alone = None if light else alone
+        _Share.stack.enter_context(machine_share(alone))
+        _Share.alone = alone
     try:
         yield
     finally:
