@@ -6,7 +6,7 @@ test phases.
     python benchmarks/bench_suite_timeline.py /tmp/tl [--gap 1.0] [--long 15]
 
 Loaded as a pytest plugin (``-p bench_suite_timeline``), this module appends one row per test
-phase (set-up, call, tear-down) to ``$TIMELINE_DIR/<worker>.tsv``: worker, node id, phase,
+phase (set-up, call, tear-down) to ``$TIMELINE_DIR/<worker>.tsv``: node id, phase,
 start and end (seconds since the epoch). Run as a script, it prints a table per worker from
 those files. A gap is time between the end of one phase and the start of the next on the same
 worker: the scheduler's hand-over, or a test waiting in ``tests/conftest.py``'s
