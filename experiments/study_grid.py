@@ -5,7 +5,9 @@
     python experiments/study_grid.py status --study STUDY                  # finished seeds per part
     python experiments/study_grid.py train --study STUDY trainer=gpu &     # a lane on the GPU (start several)
     python evaluate.py STUDY baselines=[untrained,handcrafted,mean]        # merges the finished parts
+    python experiments/study_grid.py archive --study STUDY                 # into docs/generated/study_runs/
     embodied-tactile report page=results evaluation=STUDY/evaluation out=docs/generated/results.md
+    python experiments/study_grid.py restore --study STUDY                 # on the next machine, first
 
 A part is one of the paper's 24 cells (a ``configs/combo/`` x a primitive) with the sweep's
 seeds: ``python train.py -m sweep=study combo=C primitive=P threads=1 logger=none
@@ -17,6 +19,14 @@ however it stops). A part whose seeds all finished is skipped; one that has a jo
 (train.py leaves a finished job as it is and continues an interrupted one from its
 ``last.ckpt``). evaluate.py scores each run once: a later evaluation of the growing study
 reuses what the earlier ones scored.
+
+The grid takes longer than one machine lives, so its runs travel in git: ``archive`` copies
+every run the study's evaluation scored into :data:`ARCHIVE` (its small files and its scored
+record, no checkpoint: :mod:`embodied_tactile.eval.records`), and ``restore`` copies them into
+the next machine's study folder, where the lanes skip them as finished and evaluate.py merges
+their records with the new runs'. A record is merged only by the code and options that scored
+it: every machine trains and evaluates the study at the commit named in :data:`ARCHIVE`'s
+``README.md``.
 """
 
 from __future__ import annotations
@@ -34,6 +44,7 @@ sys.path.insert(0, str(REPO / "src"))
 
 from omegaconf import OmegaConf  # noqa: E402
 
+from embodied_tactile.eval.records import archive_runs, restore_runs  # noqa: E402
 from embodied_tactile.run.runfolder import training_holder, try_lock, write_holder  # noqa: E402
 
 COMBOS = ("acc_soft", "fsr_t_soft", "fsr_b_soft", "fsr_tb_soft", "multi_e_soft", "multi_l_soft", "fsr_tb_hard",
@@ -49,6 +60,10 @@ PARTS: tuple[tuple[str, str], ...] = (
     *((c, "pressing") for c in COMBOS if c != "multi_l_soft"),
     *((c, p) for p in PRIMITIVES[1:] for c in COMBOS if c != "multi_l_soft"),
 )
+
+
+#: the study's archived runs, committed: what every machine's study folder starts from
+ARCHIVE = REPO / "docs" / "generated" / "study_runs"
 
 
 def part_dir(study: Path, combo: str, primitive: str) -> Path:
@@ -110,15 +125,29 @@ def status(args) -> None:
     print(f"{done} of {len(PARTS) * len(SEEDS)} jobs finished")
 
 
+def archive(args) -> None:
+    study = Path(args.study).resolve()
+    written = archive_runs(study / "evaluation", study, Path(args.archive))
+    print(f"{len(written)} run(s) archived into {args.archive}")
+    for w in written:
+        print(" ", Path(w).relative_to(Path(args.archive)))
+
+
+def restore(args) -> None:
+    copied = restore_runs(Path(args.archive), Path(args.study))
+    print(f"{len(copied)} archived run(s) restored into {args.study}")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("command", choices=["train", "status"])
+    ap.add_argument("command", choices=["train", "status", "archive", "restore"])
     ap.add_argument("--study", required=True, help="the study folder (one sub-folder per part)")
+    ap.add_argument("--archive", default=str(ARCHIVE), help="the archived runs (default: %(default)s)")
     ap.add_argument("--data", default=None, help="paths.data_dir of the trainings (default: the config's)")
     ap.add_argument("overrides", nargs="*", help="train.py overrides of every part (e.g. trainer=gpu); a part "
                     "resumes only with the overrides it started with")
     args = ap.parse_args(argv)
-    {"train": train, "status": status}[args.command](args)
+    {"train": train, "status": status, "archive": archive, "restore": restore}[args.command](args)
 
 
 if __name__ == "__main__":

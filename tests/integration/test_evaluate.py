@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from omegaconf import OmegaConf
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
@@ -215,7 +216,7 @@ def test_a_study_evaluated_again_reuses_the_runs_scored_before_and_scores_the_re
     ev.evaluate(study, fast)
     assert json.loads((study / "evaluation" / "evaluation.json").read_text())["runs_reused"] == 1
     assert nmse()["acc"] == acc_first and set(nmse()) == {"acc", "fsr_t"}
-    assert len(list((study / "evaluation" / ev.PER_RUN).glob("*.pkl"))) == 2
+    assert len(list((study / "evaluation" / ev.PER_RUN).glob("*.npz"))) == 2
     ev.evaluate(study, [*fast, "alignment.cv=3"])
     assert json.loads((study / "evaluation" / "evaluation.json").read_text())["runs_reused"] == 0
     ckpt = study / "part0" / "modality=acc" / "checkpoints" / "last.ckpt"
@@ -227,6 +228,52 @@ def test_a_study_evaluated_again_reuses_the_runs_scored_before_and_scores_the_re
     ev.evaluate(study, [*fast, "alignment.cv=3"])
     assert json.loads((study / "evaluation" / "evaluation.json").read_text())["runs_reused"] == 1
     assert first["out"] == str(study / "evaluation")
+
+
+def test_archived_runs_travel_without_checkpoints_and_merge_with_new_ones(trained, tmp_path):
+    """A study's scored runs archived (small files + record, no checkpoint), restored into
+    another machine's study folder: the lanes take them as finished, the evaluation merges them
+    with a new run, each with the numbers of its first scoring; other options refuse them by
+    name (their checkpoint is not there to score again)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("study_grid", Path(__file__).parents[2] / "experiments" / "study_grid.py")
+    grid = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(grid)
+    from embodied_tactile.eval.records import IN_RUN, archive_runs, restore_runs
+    from embodied_tactile.run.runfolder import RunFinished, check_length
+
+    fast = [*FAST, "baselines=[mean]", "umap=false", "figures=false"]
+    first, archive = tmp_path / "first", tmp_path / "archive"
+    shutil.copytree(trained / "multi" / "modality=acc", first / "part0" / "modality=acc")
+    ev.evaluate(first, fast)
+    scored = json.loads((first / "evaluation" / "results.json").read_text())["runs"]
+    assert [p.relative_to(archive).as_posix() for p in archive_runs(first / "evaluation", first, archive)] == [
+        "part0/modality=acc"]
+    job = archive / "part0" / "modality=acc"
+    assert (job / IN_RUN).is_file() and not (job / "checkpoints").exists() and (job / ".hydra" / "overrides.yaml").is_file()
+    assert archive_runs(first / "evaluation", first, archive) == []  # archived once
+
+    study = tmp_path / "study"  # the next machine: the archive restored, a new run beside it
+    assert restore_runs(archive, study) == [study / "part0" / "modality=acc"]
+    assert restore_runs(archive, study) == []
+    restored = study / "part0" / "modality=acc"
+    with pytest.raises(RunFinished, match="archived"):
+        check_length(OmegaConf.load(restored / "config_resolved.yaml"), restored)
+    assert grid.finished_seeds(study / "part0") == [int(OmegaConf.load(restored / "config_resolved.yaml").seed)]
+    shutil.copytree(trained / "multi" / "modality=fsr_t", study / "part1" / "modality=fsr_t")
+    out = ev.evaluate(study, fast)
+    assert json.loads((study / "evaluation" / "evaluation.json").read_text())["runs_reused"] == 1
+    merged = json.loads((study / "evaluation" / "results.json").read_text())["runs"]
+    assert {r["modality"] for r in merged if r["method"] == "latent_filter"} == {"acc", "fsr_t"}
+    pick = lambda rows: [(r["method"], r["nmse_trajectory_overall"]) for r in rows if r["modality"] == "acc"]  # noqa: E731
+    assert pick(merged) == pick(scored)
+    assert {Path(i["run_dir"]) for i in out["runs"]} == {restored, study / "part1" / "modality=fsr_t"}
+
+    out = ev.evaluate(study, [*fast, "alignment.cv=3"])  # other scoring options: the archived run is named, not merged
+    assert [i["modality"] for i in out["runs"]] == ["fsr_t"]
+    assert len(out["skipped"]) == 1 and "scored with other options" in out["skipped"][0]["reason"]
+    assert IN_RUN in out["skipped"][0]["reason"] and "commit" in out["skipped"][0]["reason"]
 
 
 def test_a_study_with_a_run_in_training_scores_the_others_and_names_it(trained, tmp_path):

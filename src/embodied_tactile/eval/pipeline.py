@@ -337,8 +337,9 @@ def _written_by_evaluation(path: Path) -> bool:
             or (path.name.startswith("table_") and path.suffix in (".md", ".csv", ".tex")))
 
 
-#: the evaluation folder's store of each run's scored results (``<key>.pkl``), reused by the
-#: next evaluation into that folder when nothing that decides them changed (:func:`reuse_key`)
+#: the evaluation folder's store of each run's scored results (``<key>.npz``, :mod:`.records`),
+#: reused by the next evaluation into that folder when nothing that decides them changed
+#: (:func:`reuse_key`)
 PER_RUN = "per_run"
 
 
@@ -353,6 +354,41 @@ def _code_digest() -> str:
     return h.hexdigest()
 
 
+def scoring_options(opts: DictConfig) -> dict:
+    """The evaluation options that decide a run's scored results (every option but the
+    report's: figures, UMAP, tables, output folder)."""
+    report_only = {"figures", "umap", "print_tables", "out", "distance_mode"}
+    return {k: v for k, v in OmegaConf.to_container(opts, resolve=True).items() if k not in report_only}
+
+
+def fingerprint(opts: DictConfig, baselines: Sequence[str], code: str) -> dict:
+    """What scored a record (:mod:`.records`): the package's code digest and the commit it was
+    read from, the scoring options' digest and the baselines. An archived run is merged only
+    into an evaluation with the same (:func:`archived_mismatch`)."""
+    from embodied_tactile.eval.records import digest
+    from embodied_tactile.run.provenance import git_state
+
+    return {"code": code, "commit": git_state(Path(__file__).resolve().parents[3]).get("commit"),
+            "options": digest(scoring_options(opts)), "baselines": list(baselines)}
+
+
+def archived_mismatch(run: Run, current: dict) -> str | None:
+    """None when the archived ``run``'s record was scored as ``current`` would score it, else
+    what differs (one line: the commit and options to evaluate it with)."""
+    from embodied_tactile.eval.records import RecordError, read_fingerprint
+
+    try:
+        had = read_fingerprint(run.record)
+    except RecordError as err:
+        return str(err)
+    diff = [k for k in ("code", "options", "baselines") if had.get(k) != current.get(k)]
+    if not diff:
+        return None
+    return (f"{run.record}: scored with other {', '.join(diff)} (commit {str(had.get('commit'))[:12]}, baselines "
+            f"{had.get('baselines')}) and its checkpoint is not here to score again: evaluate the study with that "
+            "commit's code and options")
+
+
 def reuse_key(run: Run, opts: DictConfig, baselines: Sequence[str], code: str) -> str:
     """What decides a run's scored results: its folder, the checkpoint's bytes, its config,
     split and metrics, the size and time of every data file it names (a deleted raw file's
@@ -361,9 +397,8 @@ def reuse_key(run: Run, opts: DictConfig, baselines: Sequence[str], code: str) -
     import hashlib
 
     h = hashlib.sha256()
-    report_only = {"figures", "umap", "print_tables", "out", "distance_mode"}
-    options = {k: v for k, v in OmegaConf.to_container(opts, resolve=True).items() if k not in report_only}
-    h.update(json.dumps([str(run.run_dir), list(baselines), code, options], sort_keys=True, default=str).encode())
+    h.update(json.dumps([str(run.run_dir), list(baselines), code, scoring_options(opts)], sort_keys=True,
+                        default=str).encode())
     with open(run.ckpt, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
@@ -381,26 +416,30 @@ def reuse_key(run: Run, opts: DictConfig, baselines: Sequence[str], code: str) -
     return h.hexdigest()[:24]
 
 
-def _store(path: Path, scored: tuple) -> None:
-    import pickle
-
-    with open(path, "wb") as fh:
-        pickle.dump(scored, fh, protocol=pickle.HIGHEST_PROTOCOL)
-
-
 def _reused(out: Path, key: str):
     """(results, history, info) an earlier evaluation into ``out`` stored under ``key``, or None."""
-    import pickle
+    from embodied_tactile.eval.records import RecordError, read_record
 
-    f = out / PER_RUN / f"{key}.pkl"
+    f = out / PER_RUN / f"{key}.npz"
+    if not f.exists():
+        return None
     try:
-        with open(f, "rb") as fh:
-            return pickle.load(fh)
-    except FileNotFoundError:
+        return read_record(f)[0]
+    except RecordError as err:  # a damaged store is scored again, never trusted
+        log.warning("%s; the run is scored again", err)
         return None
-    except Exception as err:  # noqa: BLE001 -- a damaged store is scored again, never trusted
-        log.warning("%s: unreadable (%s); the run is scored again", f, type(err).__name__)
-        return None
+
+
+def archived(run: Run) -> tuple:
+    """An archived run's scored results from its record, its paths those of the folder it
+    now lies in."""
+    from embodied_tactile.eval.records import read_record
+
+    (results, history, info), _ = read_record(run.record)
+    for r in results:
+        r.params["run_dir"] = str(run.run_dir)
+    info.update(run_dir=str(run.run_dir), checkpoint=None, archived=str(run.record))
+    return results, history, info
 
 
 class OwnedOutput:
@@ -485,12 +524,15 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     # a run in training: refused alone, skipped (and named) in a folder of runs; so is a run that
     # did not finish there (interrupted, killed, failed): a folder's tables average finished runs
     states = {}
+    current = fingerprint(opts, baselines, _code_digest())
     for r in list(runs):
         try:
             states[str(r.run_dir)] = st = run_state(r, bool(opts.allow_running))
             if kind != "run" and st["status"] not in ("finished", "training"):
                 raise EvaluationError(f"{r.run_dir} is {st['status']} ({st['reason']}): not finished, so not "
                                       f"averaged with the others (python evaluate.py {r.run_dir} scores it alone)")
+            if r.ckpt is None and (why := archived_mismatch(r, current)):
+                raise EvaluationError(why)
         except EvaluationError as err:
             if kind == "run":
                 raise
@@ -508,7 +550,7 @@ def evaluate(target: str | os.PathLike, overrides: Sequence[str] = ()) -> dict:
     owned = OwnedOutput(out)
     try:
         with owned:
-            return _evaluate_runs(target, kind, runs, skipped, selection, opts, baselines, owned, states)
+            return _evaluate_runs(target, kind, runs, skipped, selection, opts, baselines, owned, states, current)
     except OSError as err:  # a full disk or a read-only folder while writing: nothing published
         if err.errno not in WRITE_ERRNOS:
             raise
@@ -534,9 +576,10 @@ def writable(out: Path) -> None:
 
 
 def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, selection: dict, opts: DictConfig,
-                   baselines: list[str], owned: OwnedOutput, states: dict[str, dict]) -> dict:
+                   baselines: list[str], owned: OwnedOutput, states: dict[str, dict], current: dict) -> dict:
     """:func:`evaluate` once its output folder is owned: writes into ``owned.tmp``, then
     publishes it as ``owned.out``."""
+    from embodied_tactile.eval.records import compact, write_record
     from embodied_tactile.eval.report import write_report
     from embodied_tactile.eval.results import config_axes
     from embodied_tactile.run.provenance import peak_rss_bytes
@@ -553,21 +596,27 @@ def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, sele
     data_keys = [DataCache.key(data_config(r, opts)) for r in runs]
     order = sorted(range(len(runs)), key=lambda i: (data_keys.index(data_keys[i]), i))
     per_run: dict[int, tuple] = {}
-    code, n_reused = _code_digest(), 0
+    n_reused = 0
     (tmp / PER_RUN).mkdir()
     for n, i in enumerate(order):
         run = runs[i]
-        log.info("[%d/%d] %s (%s)", n + 1, len(runs), run.run_dir, run.ckpt.name)
-        key = reuse_key(run, opts, baselines, code)
-        stored = _reused(out, key)
-        if stored is None:
-            stored = evaluate_run(run, opts, cache, baselines)
-        else:
+        log.info("[%d/%d] %s (%s)", n + 1, len(runs), run.run_dir, run.ckpt.name if run.ckpt else run.record.name)
+        if run.ckpt is None:
+            stored, key = archived(run), None
             n_reused += 1
-            log.info("    reused: scored by an earlier evaluation into %s with the same checkpoint, data, "
-                     "options and code", out)
-        _store(tmp / PER_RUN / f"{key}.pkl", stored)
+            log.info("    archived: its record, scored by the same code and options")
+        else:
+            key = reuse_key(run, opts, baselines, current["code"])
+            stored = _reused(out, key)
+            if stored is None:
+                stored = compact(evaluate_run(run, opts, cache, baselines))
+            else:
+                n_reused += 1
+                log.info("    reused: scored by an earlier evaluation into %s with the same checkpoint, data, "
+                         "options and code", out)
+            write_record(tmp / PER_RUN / f"{key}.npz", stored, current)
         results, history, info = stored
+        info["record"] = f"{PER_RUN}/{key}.npz" if key else info["archived"]
         info["run_state"] = states[str(run.run_dir)]
         seed = run.cfg.get("seed")
         for r in results:

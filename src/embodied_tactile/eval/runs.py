@@ -33,10 +33,19 @@ class EvaluationError(RuntimeError):
 
 @dataclass
 class Run:
+    """A training run to evaluate: its folder, the checkpoint to score (None for an archived
+    run, whose folder holds its scored record instead: :data:`~.records.IN_RUN`), its config."""
     run_dir: Path
-    ckpt: Path
+    ckpt: Path | None
     cfg: DictConfig = field(repr=False)
     name: str = ""
+
+    @property
+    def record(self) -> Path | None:
+        """The archived run's scored record (None for a run with its checkpoint)."""
+        from .records import IN_RUN
+
+        return self.run_dir / IN_RUN if self.ckpt is None else None
 
 
 def _readable(path: Path) -> str | None:
@@ -113,7 +122,7 @@ def run_state(run: Run, allow_running: bool = False) -> dict:
         epochs, step = checkpoint_progress(torch.load(str(run.ckpt), map_location="cpu", mmap=True, weights_only=False))
     except Exception:  # noqa: BLE001 -- find_checkpoint opened it already; say '?' rather than fail here
         epochs, step = None, None
-    ckpt = in_folder(run.run_dir, run.ckpt)
+    ckpt = in_folder(run.run_dir, run.ckpt) if run.ckpt is not None else f"{run.record.name} (archived: no checkpoint)"
     used = f"checkpoint {ckpt} (epoch(s) {epochs if epochs is not None else '?'}, step {step if step is not None else '?'})"
     holder = training_holder(run.run_dir)
     metrics = read_json(run.run_dir / "metrics.json")
@@ -190,6 +199,10 @@ def load_run(run_dir: Path, which: str, ckpt: Path | None = None) -> Run:
         raise EvaluationError(f"{run_dir} is not a training run folder: no config_resolved.yaml "
                               "(give a run folder made by train.py, one of its checkpoints, or a multirun folder)")
     cfg = OmegaConf.load(cpath)
+    from .records import IN_RUN
+
+    if ckpt is None and (run_dir / IN_RUN).is_file() and not (run_dir / "checkpoints").is_dir():
+        return Run(run_dir=run_dir, ckpt=None, cfg=cfg, name=run_dir.name)  # archived: its record stands in
     run = Run(run_dir=run_dir, ckpt=ckpt or find_checkpoint(run_dir, which), cfg=cfg, name=run_dir.name)
     check_fits(run)
     return run

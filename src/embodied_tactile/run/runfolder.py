@@ -39,6 +39,7 @@ from typing import Any, Mapping, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
+from embodied_tactile.jsonio import read_json
 from embodied_tactile.run.settings import SettingsError
 
 log = logging.getLogger(__name__)
@@ -434,6 +435,11 @@ def check_length(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
         return
     found = resume_candidate(run_dir)
     if found is None:
+        from embodied_tactile.eval.records import IN_RUN
+
+        if (run_dir / IN_RUN).is_file() and read_json(run_dir / "metrics.json").get("status") == "finished":
+            raise RunFinished(f"run folder {run_dir} is finished and archived (its scored record {IN_RUN}, no "
+                              "checkpoint): nothing to train and nothing rewritten")
         return
     path, ck = found
     epochs, step = checkpoint_progress(ck)

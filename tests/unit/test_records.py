@@ -1,0 +1,48 @@
+"""eval/records.py: a run's scored results as one portable file (no pickle)."""
+
+import numpy as np
+import pytest
+
+from embodied_tactile.eval.records import RecordError, compact, read_fingerprint, read_record, write_record
+from embodied_tactile.eval.results import Results
+
+
+def _scored():
+    rng = np.random.default_rng(0)
+    res = Results(pred=rng.normal(size=(3, 5, 4)), factors=rng.normal(size=(3, 4)), object_id=np.array([0, 1, 2]),
+                  action_index=np.array([4, 5, 6]), modality="acc", skin="soft", primitive="pressing",
+                  latents_last=rng.normal(size=(3, 2)).astype(np.float32), seq_id=np.array(["a", "b", "c"]),
+                  params={"train_time_s": float("nan"), "n": np.int64(3), "grid": np.array([0.1, 1.0])}, seed=2,
+                  axes={"annealing.name": "dvbf"})
+    history = [{"step": 0, "nmse": 0.9}, {"step": 10, "nmse": np.float32(0.5), "final": True}]
+    info = {"run_dir": "/x/run", "timings": {"total_s": 1.5}, "split": {"kind": "trial", "unseen_objects": False},
+            "data_changed": [], "n_test": 3}
+    return [res], history, info
+
+
+def test_a_record_reads_back_what_was_written_with_its_predictions_in_float32(tmp_path):
+    scored = _scored()
+    pred64 = scored[0][0].pred.copy()
+    path = write_record(tmp_path / "r.npz", scored, {"code": "abc", "options": "def", "baselines": ["mean"]})
+    (results, history, info), fp = read_record(path)
+    assert fp == {"code": "abc", "options": "def", "baselines": ["mean"]} == read_fingerprint(path)
+    r = results[0]
+    assert r.pred.dtype == np.float64 and np.array_equal(r.pred, pred64.astype(np.float32))
+    assert not np.array_equal(r.pred, pred64)  # rounded, and compact() rounds the scored tuple the same way
+    assert np.array_equal(compact(_scored())[0][0].pred, r.pred)
+    assert np.array_equal(r.factors, scored[0][0].factors) and r.factors.dtype == np.float64
+    assert r.latents_last.dtype == np.float32 and list(r.seq_id) == ["a", "b", "c"]
+    assert (r.modality, r.skin, r.seed, r.axes) == ("acc", "soft", 2, {"annealing.name": "dvbf"})
+    assert np.isnan(r.params["train_time_s"]) and r.params["n"] == 3 and np.array_equal(r.params["grid"], [0.1, 1.0])
+    assert history == [{"step": 0, "nmse": 0.9}, {"step": 10, "nmse": pytest.approx(0.5), "final": True}]
+    assert info == scored[2]
+
+
+def test_a_damaged_record_or_another_format_is_named(tmp_path):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(RecordError, match="bad.npz: not a scored record"):
+        read_record(bad)
+    np.savez(tmp_path / "other.npz", x=np.zeros(2))
+    with pytest.raises(RecordError, match="other.npz: not a scored record"):
+        read_fingerprint(tmp_path / "other.npz")
