@@ -29,11 +29,12 @@ from typing import Any
 import numpy as np
 
 from ..jsonio import to_jsonable
+from ..run.runfolder import ARCHIVED_RECORD
 
 #: the record format; a record of another format is scored again (or refused where it cannot be)
 FORMAT = 1
 #: the name of a record in a run folder: the run's scored results where its checkpoint is not kept
-IN_RUN = "scored.npz"
+IN_RUN = ARCHIVED_RECORD
 #: Results fields stored as float32 (the per-frame predictions: the bulk of a record)
 COMPACT = ("pred",)
 

@@ -380,6 +380,11 @@ def keep_split(run_dir: str | os.PathLike, datamodule: Any, resuming: bool) -> N
 
 
 # ----------------------------------------------------------------------------- length
+#: an archived run folder's scored record, which stands in for its checkpoints
+#: (embodied_tactile.eval.records): the folder is finished, and evaluate.py merges the record
+ARCHIVED_RECORD = "scored.npz"
+
+
 class RunFinished(Exception):
     """The folder holds a finished run that this start would not lengthen: nothing to do
     (train.py says so and exits 0, every file as it was)."""
@@ -435,10 +440,8 @@ def check_length(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
         return
     found = resume_candidate(run_dir)
     if found is None:
-        from embodied_tactile.eval.records import IN_RUN
-
-        if (run_dir / IN_RUN).is_file() and read_json(run_dir / "metrics.json").get("status") == "finished":
-            raise RunFinished(f"run folder {run_dir} is finished and archived (its scored record {IN_RUN}, no "
+        if (run_dir / ARCHIVED_RECORD).is_file() and read_json(run_dir / "metrics.json").get("status") == "finished":
+            raise RunFinished(f"run folder {run_dir} is finished and archived (its scored record {ARCHIVED_RECORD}, no "
                               "checkpoint): nothing to train and nothing rewritten")
         return
     path, ck = found
