@@ -15,11 +15,6 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from embodied_tactile.eval.pipeline import evaluate
-from embodied_tactile.eval.runs import EvaluationError, latest_target
-from embodied_tactile.run import quiet
-from embodied_tactile.run.runfolder import StopSignals
-
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
@@ -31,7 +26,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="run folder | checkpoint (.ckpt) | multirun folder; default: the most recent run or "
                          "multirun under <paths.log_dir>/train (paths.log_dir=... picks another log folder)")
     ap.add_argument("overrides", nargs="*", help="evaluation options, key=value (see configs/evaluate.yaml)")
-    args = ap.parse_args(argv)
+    args = ap.parse_args(argv)  # --help ends here, before torch and Lightning are imported
+    from embodied_tactile.eval.pipeline import evaluate
+    from embodied_tactile.eval.runs import EvaluationError, latest_target
+    from embodied_tactile.run import quiet
+    from embodied_tactile.run.runfolder import StopSignals
+
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s][%(levelname)s] - %(message)s")
     quiet.silence_third_party()
     overrides = list(args.overrides)
