@@ -20,16 +20,17 @@ def _scored():
     return [res], history, info
 
 
-def test_a_record_reads_back_what_was_written_with_its_predictions_in_float32(tmp_path):
+def test_a_record_reads_back_what_was_written_and_a_compact_one_its_predictions_in_float32(tmp_path):
     scored = _scored()
-    pred64 = scored[0][0].pred.copy()
     path = write_record(tmp_path / "r.npz", scored, {"code": "abc", "options": "def", "baselines": ["mean"]})
     (results, history, info), fp = read_record(path)
     assert fp == {"code": "abc", "options": "def", "baselines": ["mean"]} == read_fingerprint(path)
     r = results[0]
-    assert r.pred.dtype == np.float64 and np.array_equal(r.pred, pred64.astype(np.float32))
-    assert not np.array_equal(r.pred, pred64)  # rounded, and compact() rounds the scored tuple the same way
-    assert np.array_equal(compact(_scored())[0][0].pred, r.pred)
+    assert np.array_equal(r.pred, scored[0][0].pred)  # to the last digit
+    small = write_record(tmp_path / "small.npz", compact(_scored()), fp)
+    pred = read_record(small)[0][0][0].pred
+    assert np.array_equal(pred, scored[0][0].pred.astype(np.float32)) and not np.array_equal(pred, r.pred)
+    assert small.stat().st_size < path.stat().st_size
     assert np.array_equal(r.factors, scored[0][0].factors) and r.factors.dtype == np.float64
     assert r.latents_last.dtype == np.float32 and list(r.seq_id) == ["a", "b", "c"]
     assert (r.modality, r.skin, r.seed, r.axes) == ("acc", "soft", 2, {"annealing.name": "dvbf"})

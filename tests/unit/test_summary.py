@@ -15,7 +15,7 @@ from conftest import REPO, train_in_process
 
 sys.path.insert(0, str(REPO))
 import evaluate as ev  # noqa: E402
-from embodied_tactile.eval import command  # noqa: E402  (evaluate.py's main: what it calls is patched there)  (the script's main(); its logic is in embodied_tactile.eval)
+from embodied_tactile.eval import pipeline  # noqa: E402  (what evaluate.py's main calls, imported when it runs: patched there)
 
 from embodied_tactile.run.summary import (latest_run, multirun_summary_lines,  # noqa: E402
                                       run_summary_lines)
@@ -279,7 +279,7 @@ def test_evaluate_without_path_picks_latest_and_says_so(tmp_path, monkeypatch, c
     log_dir = tmp_path / "mylogs"
     run = fake_run(log_dir / "train" / "runs" / "r1")
     seen = {}
-    monkeypatch.setattr(command, "evaluate", lambda path, overrides: seen.update(path=path, overrides=overrides))
+    monkeypatch.setattr(pipeline, "evaluate", lambda path, overrides: seen.update(path=path, overrides=overrides))
     assert ev.main([f"paths.log_dir={log_dir}", "umap=false"]) == 0
     assert seen == {"path": str(run), "overrides": ["umap=false"]}
     assert f"evaluating the most recent run under {log_dir / 'train'}: {run}" in capsys.readouterr().out
@@ -290,7 +290,7 @@ def test_evaluate_without_path_default_log_dir_from_train_config(tmp_path, monke
     monkeypatch.chdir(tmp_path)
     run = fake_run(tmp_path / "logs" / "train" / "runs" / "r1")
     seen = {}
-    monkeypatch.setattr(command, "evaluate", lambda path, overrides: seen.update(path=path))
+    monkeypatch.setattr(pipeline, "evaluate", lambda path, overrides: seen.update(path=path))
     assert ev.main([]) == 0
     assert Path(seen["path"]).resolve() == run.resolve()
     assert "logs/train/runs/r1" in capsys.readouterr().out

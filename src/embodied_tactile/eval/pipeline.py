@@ -579,7 +579,7 @@ def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, sele
                    baselines: list[str], owned: OwnedOutput, states: dict[str, dict], current: dict) -> dict:
     """:func:`evaluate` once its output folder is owned: writes into ``owned.tmp``, then
     publishes it as ``owned.out``."""
-    from embodied_tactile.eval.records import compact, write_record
+    from embodied_tactile.eval.records import write_record
     from embodied_tactile.eval.report import write_report
     from embodied_tactile.eval.results import config_axes
     from embodied_tactile.run.provenance import peak_rss_bytes
@@ -609,7 +609,7 @@ def _evaluate_runs(target: Path, kind: str, runs: list[Run], skipped: list, sele
             key = reuse_key(run, opts, baselines, current["code"])
             stored = _reused(out, key)
             if stored is None:
-                stored = compact(evaluate_run(run, opts, cache, baselines))
+                stored = evaluate_run(run, opts, cache, baselines)
             else:
                 n_reused += 1
                 log.info("    reused: scored by an earlier evaluation into %s with the same checkpoint, data, "

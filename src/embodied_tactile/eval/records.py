@@ -8,10 +8,10 @@ run folder as ``scored.npz`` (``experiments/study_grid.py archive``) stands in f
 checkpoint: the folder's small files and its record travel in git from one machine to the
 next, and the study's report merges them with the runs trained there (``docs/generated/study_runs/``).
 
-Arrays keep their dtype, except the predictions (:data:`COMPACT`): an evaluation rounds them
-to float32 precision as soon as it has scored a run (:func:`compact`) and the record stores
-them as float32, so that a reused or archived record gives the numbers of its first scoring
-to the last digit. Everything else is JSON
+Arrays keep their dtype: a record reused by the evaluation folder that wrote it gives the
+numbers of its first scoring to the last digit. An archived record (:func:`archive_runs`, the
+one that travels in git) keeps the predictions (:data:`COMPACT`, the bulk of a record) in
+float32 (:func:`compact`): its NMSE differs from the first scoring's by about 1e-7. Everything else is JSON
 inside the archive (``meta``), NaN included.
 """
 
@@ -40,13 +40,12 @@ COMPACT = ("pred",)
 
 
 def compact(scored: tuple) -> tuple:
-    """``scored`` with its :data:`COMPACT` fields rounded to float32 precision (kept float64,
-    as :class:`~.results.Results` holds them), in place."""
+    """``scored`` with its :data:`COMPACT` fields in float32, in place."""
     for r in scored[0]:
         for name in COMPACT:
             value = getattr(r, name)
             if isinstance(value, np.ndarray) and value.dtype.kind == "f":
-                setattr(r, name, value.astype(np.float32).astype(value.dtype))
+                setattr(r, name, value.astype(np.float32))
     return scored
 
 
@@ -61,10 +60,7 @@ def _pack(obj: Any, arrays: dict[str, np.ndarray], where: str) -> Any:
     if isinstance(obj, Results):
         out = {}
         for f in dataclasses.fields(obj):
-            value = getattr(obj, f.name)
-            if f.name in COMPACT and isinstance(value, np.ndarray) and value.dtype.kind == "f":
-                value = value.astype(np.float32)  # exact: compact() rounded it
-            out[f.name] = _pack(value, arrays, f"{where}.{f.name}")
+            out[f.name] = _pack(getattr(obj, f.name), arrays, f"{where}.{f.name}")
         return {"__results__": out}
     if isinstance(obj, np.ndarray):
         arrays[where] = obj
@@ -97,7 +93,7 @@ def write_record(path: str | os.PathLike, scored: tuple, fingerprint: dict[str, 
     code digest, the evaluation options, the baselines) atomically to ``path``."""
     path = Path(path)
     arrays: dict[str, np.ndarray] = {}
-    results, history, info = compact(scored)
+    results, history, info = scored
     meta = {"format": FORMAT, "fingerprint": to_jsonable(fingerprint),
             "results": _pack(list(results), arrays, "results"), "history": _pack(list(history), arrays, "history"),
             "info": _pack(dict(info), arrays, "info")}
@@ -159,7 +155,8 @@ def archive_runs(evaluation: str | os.PathLike, study: str | os.PathLike, dest: 
     """Every run the evaluation folder ``evaluation`` scored, from the study folder ``study``
     into ``dest`` at the same relative path: its :data:`RUN_FILES` and its record as
     :data:`IN_RUN` (and each part's :data:`PART_FILES`). A run already in ``dest`` is left as
-    it is. Returns the run folders written."""
+    it is. The record's predictions are kept in float32 (:func:`compact`). Returns the run
+    folders written."""
     import shutil
 
     from ..jsonio import read_json
@@ -180,7 +177,8 @@ def archive_runs(evaluation: str | os.PathLike, study: str | os.PathLike, dest: 
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
         _copy_files(run, tmp, RUN_FILES)
-        shutil.copy2(evaluation / info["record"], tmp / IN_RUN)
+        scored, fp = read_record(evaluation / info["record"])
+        write_record(tmp / IN_RUN, compact(scored), fp)
         _copy_files(run.parent, target.parent, PART_FILES)
         os.replace(tmp, target)
         written.append(target)
