@@ -267,7 +267,7 @@ def test_archived_runs_travel_without_checkpoints_and_merge_with_new_ones(traine
     merged = json.loads((study / "evaluation" / "results.json").read_text())["runs"]
     assert {r["modality"] for r in merged if r["method"] == "latent_filter"} == {"acc", "fsr_t"}
     pick = lambda rows: {r["method"]: r["nmse_trajectory_overall"] for r in rows if r["modality"] == "acc"}  # noqa: E731
-    assert pick(merged) == pytest.approx(pick(scored), rel=1e-5)  # its predictions kept in float32
+    assert pick(merged) == pytest.approx(pick(scored), rel=1e-4)  # its predictions kept in float16
     assert {Path(i["run_dir"]) for i in out["runs"]} == {restored, study / "part1" / "modality=fsr_t"}
 
     out = ev.evaluate(study, [*fast, "alignment.cv=3"])  # other scoring options: the archived run is named, not merged

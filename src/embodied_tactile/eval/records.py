@@ -10,9 +10,11 @@ next, and the study's report merges them with the runs trained there (``docs/gen
 
 Arrays keep their dtype: a record reused by the evaluation folder that wrote it gives the
 numbers of its first scoring to the last digit. An archived record (:func:`archive_runs`, the
-one that travels in git) keeps the predictions (:data:`COMPACT`, the bulk of a record) in
-float32 (:func:`compact`): its NMSE differs from the first scoring's by about 1e-7. Everything else is JSON
-inside the archive (``meta``), NaN included.
+one that travels in git) is written ``compact``: the predictions (:data:`COMPACT`, the bulk of
+a record) standardised per factor and kept in float16 (measured on a study run of MULTI-L soft
+pressing, 128 test trials x 300 frames: 0.78 MB against 1.6 MB in float32 and 3.5 MB in
+float64; each method's NMSE per factor moved by at most 2.1e-5 of itself). Everything else is
+JSON inside the archive (``meta``), NaN included.
 """
 
 from __future__ import annotations
@@ -39,36 +41,46 @@ IN_RUN = ARCHIVED_RECORD
 COMPACT = ("pred",)
 
 
-def compact(scored: tuple) -> tuple:
-    """``scored`` with its :data:`COMPACT` fields in float32, in place."""
-    for r in scored[0]:
-        for name in COMPACT:
-            value = getattr(r, name)
-            if isinstance(value, np.ndarray) and value.dtype.kind == "f":
-                setattr(r, name, value.astype(np.float32))
-    return scored
-
-
 class RecordError(ValueError):
     """A record that cannot be read (message names the file and what is wrong)."""
 
 
-def _pack(obj: Any, arrays: dict[str, np.ndarray], where: str) -> Any:
+def _quantized(value: np.ndarray, arrays: dict[str, np.ndarray], where: str) -> dict:
+    """``value`` (..., factors) standardised per factor (last axis) into float16 (a standardised
+    value is at most sqrt(n) in size: float16 holds it for any n below 4e9), NaN kept; JSON
+    holding the offset and scale that read it back."""
+    flat = value.reshape(-1, value.shape[-1])
+    seen = np.isfinite(flat).any(axis=0)
+    offset = np.zeros(flat.shape[1])
+    scale = np.ones(flat.shape[1])
+    if seen.any():
+        offset[seen] = np.nanmean(flat[:, seen], axis=0)
+        spread = np.nanstd(flat[:, seen], axis=0)
+        scale[seen] = np.where(spread > 0, spread, 1.0)
+    arrays[where] = ((value - offset) / scale).astype(np.float16)
+    return {"__standardised__": where, "offset": offset.tolist(), "scale": scale.tolist()}
+
+
+def _pack(obj: Any, arrays: dict[str, np.ndarray], where: str, compact: bool = False) -> Any:
     """``obj`` as JSON types; each ndarray moved into ``arrays`` under ``where`` (its path)."""
     from .results import Results
 
     if isinstance(obj, Results):
         out = {}
         for f in dataclasses.fields(obj):
-            out[f.name] = _pack(getattr(obj, f.name), arrays, f"{where}.{f.name}")
+            value, key = getattr(obj, f.name), f"{where}.{f.name}"
+            if compact and f.name in COMPACT and isinstance(value, np.ndarray) and value.dtype.kind == "f":
+                out[f.name] = _quantized(value, arrays, key)
+            else:
+                out[f.name] = _pack(value, arrays, key)
         return {"__results__": out}
     if isinstance(obj, np.ndarray):
         arrays[where] = obj
         return {"__array__": where}
     if isinstance(obj, dict):
-        return {str(k): _pack(v, arrays, f"{where}.{k}") for k, v in obj.items()}
+        return {str(k): _pack(v, arrays, f"{where}.{k}", compact) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_pack(v, arrays, f"{where}.{i}") for i, v in enumerate(obj)]
+        return [_pack(v, arrays, f"{where}.{i}", compact) for i, v in enumerate(obj)]
     return to_jsonable(obj)
 
 
@@ -78,6 +90,8 @@ def _unpack(obj: Any, arrays) -> Any:
     if isinstance(obj, dict):
         if "__array__" in obj and len(obj) == 1:
             return arrays[obj["__array__"]]
+        if "__standardised__" in obj:
+            return arrays[obj["__standardised__"]].astype(np.float64) * np.asarray(obj["scale"]) + np.asarray(obj["offset"])
         if "__results__" in obj and len(obj) == 1:
             fields = {k: _unpack(v, arrays) for k, v in obj["__results__"].items()}
             known = {f.name for f in dataclasses.fields(Results)}
@@ -88,14 +102,15 @@ def _unpack(obj: Any, arrays) -> Any:
     return obj
 
 
-def write_record(path: str | os.PathLike, scored: tuple, fingerprint: dict[str, Any]) -> Path:
+def write_record(path: str | os.PathLike, scored: tuple, fingerprint: dict[str, Any], compact: bool = False) -> Path:
     """Write ``scored`` = (results, history, info) and its ``fingerprint`` (what scored it: the
-    code digest, the evaluation options, the baselines) atomically to ``path``."""
+    code digest, the evaluation options, the baselines) atomically to ``path``; ``compact``:
+    the predictions standardised in float16 (the archived copy)."""
     path = Path(path)
     arrays: dict[str, np.ndarray] = {}
     results, history, info = scored
     meta = {"format": FORMAT, "fingerprint": to_jsonable(fingerprint),
-            "results": _pack(list(results), arrays, "results"), "history": _pack(list(history), arrays, "history"),
+            "results": _pack(list(results), arrays, "results", compact), "history": _pack(list(history), arrays, "history"),
             "info": _pack(dict(info), arrays, "info")}
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     with open(tmp, "wb") as fh:
@@ -155,8 +170,8 @@ def archive_runs(evaluation: str | os.PathLike, study: str | os.PathLike, dest: 
     """Every run the evaluation folder ``evaluation`` scored, from the study folder ``study``
     into ``dest`` at the same relative path: its :data:`RUN_FILES` and its record as
     :data:`IN_RUN` (and each part's :data:`PART_FILES`). A run already in ``dest`` is left as
-    it is. The record's predictions are kept in float32 (:func:`compact`). Returns the run
-    folders written."""
+    it is. The record is written compact (its predictions in float16). Returns the run folders
+    written."""
     import shutil
 
     from ..jsonio import read_json
@@ -178,7 +193,7 @@ def archive_runs(evaluation: str | os.PathLike, study: str | os.PathLike, dest: 
         tmp.mkdir(parents=True)
         _copy_files(run, tmp, RUN_FILES)
         scored, fp = read_record(evaluation / info["record"])
-        write_record(tmp / IN_RUN, compact(scored), fp)
+        write_record(tmp / IN_RUN, scored, fp, compact=True)
         _copy_files(run.parent, target.parent, PART_FILES)
         os.replace(tmp, target)
         written.append(target)
@@ -209,5 +224,5 @@ def digest(payload: Any) -> str:
     return hashlib.sha256(json.dumps(to_jsonable(payload), sort_keys=True).encode()).hexdigest()[:24]
 
 
-__all__ = ["FORMAT", "IN_RUN", "PART_FILES", "RUN_FILES", "RecordError", "archive_runs", "compact", "digest",
+__all__ = ["FORMAT", "IN_RUN", "PART_FILES", "RUN_FILES", "RecordError", "archive_runs", "digest",
            "restore_runs", "read_fingerprint", "read_record", "write_record"]
