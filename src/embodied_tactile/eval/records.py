@@ -12,8 +12,8 @@ Arrays keep their dtype: a record reused by the evaluation folder that wrote it 
 numbers of its first scoring to the last digit. An archived record (:func:`archive_runs`, the
 one that travels in git) is written ``compact``: the predictions (:data:`COMPACT`, the bulk of
 a record) standardised per factor and kept in float16 (measured on a study run of MULTI-L soft
-pressing, 128 test trials x 300 frames: 0.78 MB against 1.6 MB in float32 and 3.5 MB in
-float64; each method's NMSE per factor moved by at most 2.1e-5 of itself). Everything else is
+pressing, 128 test trials x 300 frames, 4 methods: 0.82 MB against 1.6 MB in float32 and
+3.5 MB in float64; each method's NMSE per factor moved by at most 2.1e-5 of itself). Everything else is
 JSON inside the archive (``meta``), NaN included.
 """
 
@@ -37,7 +37,7 @@ from ..run.runfolder import ARCHIVED_RECORD
 FORMAT = 1
 #: the name of a record in a run folder: the run's scored results where its checkpoint is not kept
 IN_RUN = ARCHIVED_RECORD
-#: Results fields stored as float32 (the per-frame predictions: the bulk of a record)
+#: Results fields a compact record keeps standardised in float16 (the per-frame predictions: the bulk of a record)
 COMPACT = ("pred",)
 
 

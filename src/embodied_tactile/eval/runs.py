@@ -116,12 +116,15 @@ def run_state(run: Run, allow_running: bool = False) -> dict:
     run is not finished. EvaluationError for a run being trained unless ``allow_running``."""
     from embodied_tactile.run.runfolder import checkpoint_progress, in_folder, training_holder
 
-    try:
-        import torch
+    epochs, step = None, None
+    if run.ckpt is not None:  # an archived run has its record, no checkpoint to read progress from
+        try:
+            import torch
 
-        epochs, step = checkpoint_progress(torch.load(str(run.ckpt), map_location="cpu", mmap=True, weights_only=False))
-    except Exception:  # noqa: BLE001 -- find_checkpoint opened it already; say '?' rather than fail here
-        epochs, step = None, None
+            epochs, step = checkpoint_progress(torch.load(str(run.ckpt), map_location="cpu", mmap=True,
+                                                          weights_only=False))
+        except Exception:  # noqa: BLE001 -- find_checkpoint opened it already; say '?' rather than fail here
+            pass
     ckpt = in_folder(run.run_dir, run.ckpt) if run.ckpt is not None else f"{run.record.name} (archived: no checkpoint)"
     used = f"checkpoint {ckpt} (epoch(s) {epochs if epochs is not None else '?'}, step {step if step is not None else '?'})"
     holder = training_holder(run.run_dir)

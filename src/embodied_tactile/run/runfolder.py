@@ -39,7 +39,6 @@ from typing import Any, Mapping, Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
-from embodied_tactile.jsonio import read_json
 from embodied_tactile.run.settings import SettingsError
 
 log = logging.getLogger(__name__)
@@ -230,11 +229,15 @@ def holds_run(run_dir: str | os.PathLike) -> bool:
     run_dir = Path(run_dir)
     if any(p.is_file() for p in (run_dir / "checkpoints").glob("*.ckpt")):
         return True
+    return run_status(run_dir) in ("finished", "interrupted")
+
+
+def run_status(run_dir: str | os.PathLike) -> str | None:
+    """The ``status`` its ``metrics.json`` records, or None (no file, or not one that says)."""
     try:
-        status = json.loads((run_dir / "metrics.json").read_text()).get("status")
+        return json.loads((Path(run_dir) / "metrics.json").read_text()).get("status")
     except (OSError, ValueError, AttributeError):
-        return False
-    return status in ("finished", "interrupted")
+        return None
 
 
 def task_config(cfg: DictConfig) -> dict:
@@ -440,7 +443,7 @@ def check_length(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
         return
     found = resume_candidate(run_dir)
     if found is None:
-        if (run_dir / ARCHIVED_RECORD).is_file() and read_json(run_dir / "metrics.json").get("status") == "finished":
+        if (run_dir / ARCHIVED_RECORD).is_file() and run_status(run_dir) == "finished":
             raise RunFinished(f"run folder {run_dir} is finished and archived (its scored record {ARCHIVED_RECORD}, no "
                               "checkpoint): nothing to train and nothing rewritten")
         return
@@ -453,11 +456,7 @@ def check_length(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
                 f"run folder {run_dir} holds a run trained for {done} {unit} ({path.name}: epoch(s) {epochs}, step "
                 f"{step}); trainer.{key}={asked} asks for fewer and a run is never shortened: give trainer.{key} >= "
                 f"{done} to continue it, or another hydra.run.dir for a new run")
-    try:
-        status = json.loads((run_dir / "metrics.json").read_text()).get("status")
-    except (OSError, ValueError, AttributeError):
-        status = None
-    if status == "finished" and (max_epochs == epochs or (max_epochs is None and max_steps == step)):
+    if run_status(run_dir) == "finished" and (max_epochs == epochs or (max_epochs is None and max_steps == step)):
         raise RunFinished(
             f"run folder {run_dir} is finished ({epochs} epoch(s), step {step}): nothing to train and nothing "
             f"rewritten; give trainer.max_epochs > {epochs} to continue it, or evaluate it: "
