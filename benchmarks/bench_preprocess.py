@@ -5,7 +5,8 @@
 Prints two tables. Raw-format codecs: file size, write and read (decode) CPU time per
 trial for the candidates (gzip-1 + shuffle, the format's old default; lzf; Blosc-LZ4 with
 byte or bit shuffle, the current default; uncompressed). Stages: vectorised acc path vs
-the naive loop (a plain librosa call per channel), the same vectorised path with
+the naive loop (one mel spectrogram per channel: scipy's ShortTimeFFT and
+librosa's filterbank, tests/helpers.py; up to 2026-11-28 it called librosa's melspectrogram), the same vectorised path with
 librosa's melspectrogram instead of the package's STFT, in-memory throughput of the full
 pipeline (acc + fsr + actions) on ``workers`` processes, and the end-to-end cache build
 from a raw HDF5 file (read + decompress + preprocess + write).
@@ -194,7 +195,7 @@ def main() -> None:
     with _one_blas_thread():
         acc_logmel(acc[:1], cfg); acc_logmel_librosa(acc[:1], cfg); acc_logmel_naive(trials[0].acc, cfg)  # warm-up
         naive = _best(lambda: [acc_logmel_naive(tr.acc, cfg) for tr in trials[:k]], 2)
-        rows.append(("acc naive loop (librosa per channel), 1 proc", k, *naive, naive))
+        rows.append(("acc naive loop (one STFT per channel), 1 proc", k, *naive, naive))
         rows.append(("acc vectorised, librosa melspectrogram, 1 proc", k, *_best(lambda: acc_logmel_librosa(acc, cfg), 3), naive))
         rows.append(("acc vectorised, package STFT (f32), 1 proc", k, *_best(lambda: acc_logmel(acc, cfg), 3), naive))
         rows.append(("fsr only, 1 proc", k, *_best(lambda: preprocess_trials(trials[:k], cfg, ("fsr",))), None))

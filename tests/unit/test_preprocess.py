@@ -17,7 +17,7 @@ from embodied_tactile.data.cache import build_cache, cache_info, list_cached, lo
 from embodied_tactile.data.preprocess import PreprocessConfig, preprocess_trial, preprocess_trials
 from embodied_tactile.data import rawformat
 from embodied_tactile.data.rawformat import RawTrial, TrialFormatError, make_attrs, write_trial
-from helpers import acc_logmel_naive, fingerprint_file  # tests/helpers.py
+from helpers import acc_logmel_naive, fingerprint_file, melspectrogram, power_to_db  # tests/helpers.py
 
 
 T = 300
@@ -103,8 +103,6 @@ def test_batched_equals_single(trial, cfg, processed):
 def _direct_librosa(acc_ij: np.ndarray, combine: str = "axes") -> np.ndarray:
     """One sensor by hand with the default parameters: (T, 49) scaled log-mel of |a|
     (``magnitude``) or of the three axes' mel powers summed (``axes``)."""
-    import librosa
-
     a = acc_ij.astype(np.float64)
     sigs = [np.sqrt((a**2).sum(axis=-1))] if combine == "magnitude" else [a[:, k] for k in range(3)]
     s = 0.0
@@ -113,11 +111,10 @@ def _direct_librosa(acc_ij: np.ndarray, combine: str = "axes") -> np.ndarray:
         y = scipy.signal.resample_poly(sig, 6, 7)
         assert y.shape == (6000,)
         yp = np.pad(y, (54, 54))  # 54 = 128/2 - 20/2: frame k is centred on sample 20k + 10
-        s = s + librosa.feature.melspectrogram(y=yp, sr=600, n_fft=128, hop_length=20, win_length=128,
-                                               window="hann", center=False, power=2.0, n_mels=49, fmin=0.0,
-                                               fmax=300.0)
+        s = s + melspectrogram(yp, sr=600, n_fft=128, hop_length=20, win_length=128, window="hann", n_mels=49,
+                               fmin=0.0, fmax=300.0)
     assert s.shape == (49, T)
-    db = librosa.power_to_db(s, ref=1.0, amin=1e-10, top_db=None)
+    db = power_to_db(s, amin=1e-10)
     return ((db + 100.0) / 120.0).T
 
 
