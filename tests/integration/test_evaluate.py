@@ -68,7 +68,7 @@ def _finite_tree(obj, path="") -> list[str]:
 def test_run_cli_writes_everything_as_trained_modality(trained):
     run = trained / "run"
     env = dict(os.environ, WANDB_MODE="disabled")
-    p = subprocess.run([sys.executable, str(REPO / "evaluate.py"), str(run), "gru.epochs=2", "alignment.cv=2"],
+    p = subprocess.run([sys.executable, str(REPO / "evaluate.py"), str(run), "gru.epochs=2", "alignment.cv=2", "umap=false"],
                        cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
     assert p.returncode == 0, f"rc={p.returncode}\nSTDOUT:\n{p.stdout[-2000:]}\nSTDERR:\n{p.stderr[-6000:]}"
     out = run / "evaluation"
@@ -85,8 +85,9 @@ def test_run_cli_writes_everything_as_trained_modality(trained):
     figs = {f.name for f in (out / "figures").glob("*.png")}
     for f in ("nmse_time_by_modality.png", "nmse_time_by_skin.png", "nmse_time_by_method.png",
               "nmse_time_by_best_worst_action.png", "error_vs_runtime.png",
-              "umap_latent_filter_fsr_tb_soft_pressing.png", "distances_latent_filter_fsr_tb_soft_pressing.png"):
+              "distances_latent_filter_fsr_tb_soft_pressing.png"):
         assert f in figs, sorted(figs)
+    assert not [f for f in figs if f.startswith("umap_")], sorted(figs)  # umap=false (UMAP: tests/unit/test_eval.py)
     res = json.loads((out / "results.json").read_text())
     # the run's own modality, no argument given
     assert {r["modality"] for r in res["runs"]} == {"fsr_tb"}
