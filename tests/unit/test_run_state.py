@@ -434,3 +434,32 @@ def test_a_full_output_folder_is_refused_at_the_entry(tmp_path, monkeypatch):
     with pytest.raises(settings.SettingsError, match=r"^paths.log_dir=.*: cannot create or write this folder "
                                                      r"\(No space left on device\)$"):
         settings.check_writable_dir("paths.log_dir", tmp_path / "logs")
+
+
+def _progress(started: int, processed: int, is_last_batch: bool, step: int) -> dict:
+    """A checkpoint's header as Lightning writes it (only the fit loop's counters)."""
+    epochs = {"ready": started, "started": started, "processed": processed, "completed": processed}
+    return {"epoch": started - 1, "global_step": step,
+            "loops": {"fit_loop": {"epoch_progress": {"total": dict(epochs), "current": dict(epochs)},
+                                   "epoch_loop.batch_progress": {"is_last_batch": is_last_batch}}}}
+
+
+def test_a_checkpoint_saved_by_the_last_epochs_validation_counts_that_epoch(tmp_path):
+    """A study run's last.ckpt, saved by the validation that ends its 32nd and last epoch,
+    holds the epoch as started and not processed, its batch loop at the last batch (the
+    counters of a real one). It counts 32 epochs, so the same command on the finished run
+    trains and rewrites nothing; a checkpoint saved mid-epoch still counts the epochs before."""
+    from omegaconf import OmegaConf
+
+    from embodied_tactile.run.runfolder import RunFinished, check_length, checkpoint_progress
+
+    assert checkpoint_progress(_progress(32, 31, True, 960)) == (32, 960)
+    assert checkpoint_progress(_progress(32, 31, False, 950)) == (31, 950)  # stopped inside epoch 32
+    assert checkpoint_progress(_progress(32, 32, True, 960)) == (32, 960)  # saved after the epoch was counted
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    torch.save(_progress(32, 31, True, 960), run / "checkpoints" / "last.ckpt")
+    (run / "metrics.json").write_text(json.dumps({"status": "finished"}))
+    with pytest.raises(RunFinished, match=r"is finished \(32 epoch\(s\), step 960\)"):
+        check_length(OmegaConf.create({"trainer": {"max_epochs": 32}}), run)
+    check_length(OmegaConf.create({"trainer": {"max_epochs": 33}}), run)  # more epochs: it continues

@@ -406,9 +406,18 @@ def _checkpoint_header(path: Path) -> dict | None:
 
 def checkpoint_progress(ck: Mapping[str, Any]) -> tuple[int, int]:
     """(epochs trained, global step) of a Lightning checkpoint: the fit loop's processed
-    epochs (a checkpoint of the end of epoch e holds e + 1), else ``epoch + 1``."""
+    epochs (a checkpoint of the end of epoch e holds e + 1), else ``epoch + 1``. A checkpoint
+    saved after an epoch's last batch but before the loop counted the epoch (the validation
+    at the epoch's end saves ``last.ckpt`` there) holds that epoch as started and not processed,
+    with its batch loop at the last batch: Lightning resumes it as done, and so is it counted
+    here (before, a finished run whose last epoch ended in a validation read one epoch short,
+    and the same command resumed it into a second final read-out)."""
     try:
-        epochs = int(ck["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"])
+        loop = ck["loops"]["fit_loop"]
+        progress = loop["epoch_progress"]["current"]
+        epochs = int(progress["processed"])
+        if int(progress["started"]) == epochs + 1 and loop.get("epoch_loop.batch_progress", {}).get("is_last_batch"):
+            epochs += 1
     except (KeyError, TypeError, ValueError):
         epochs = int(ck.get("epoch", -1)) + 1
     return epochs, int(ck.get("global_step", 0))
