@@ -436,8 +436,9 @@ def test_report_writes_everything(tmp_path):
     assert not [w for w in seen if "n_jobs" in str(w.message)], [str(w.message) for w in seen]
     with warnings.catch_warnings(record=True) as unfiltered:  # the same fit warns without the filters
         warnings.simplefilter("always")
-        umap_embed(rs[0].latents_last)
+        tiny = umap_embed(rs[0].latents_last[:9])  # 9 latents: n_neighbors lowered to 8
     assert [w for w in unfiltered if "n_jobs" in str(w.message)], [str(w.message) for w in unfiltered]
+    assert tiny.shape == (9, 3) and np.isfinite(tiny).all()
     pngs = [Path(p) for p in written["figures"]]
     assert any("distances" in p.name for p in pngs)
     umaps = sorted(p.name.removeprefix("umap_") for p in pngs if p.name.startswith("umap_"))
