@@ -6,7 +6,7 @@ Prints two tables. Raw-format codecs: file size, write and read (decode) CPU tim
 trial for the candidates (gzip-1 + shuffle, the format's old default; lzf; Blosc-LZ4 with
 byte or bit shuffle, the current default; uncompressed). Stages: vectorised acc path vs
 the naive loop (one mel spectrogram per channel: scipy's ShortTimeFFT and
-librosa's filterbank, tests/helpers.py; up to 2026-11-28 it called librosa's melspectrogram), the same vectorised path with
+librosa's filterbank, tests/helpers.py; before 84d1ac1 it called librosa's melspectrogram), the same vectorised path with
 librosa's melspectrogram instead of the package's STFT, in-memory throughput of the full
 pipeline (acc + fsr + actions) on ``workers`` processes, and the end-to-end cache build
 from a raw HDF5 file (read + decompress + preprocess + write).
