@@ -69,16 +69,16 @@ def test_second_recorder_on_a_running_port_is_refused(tmp_path):
     """Fault: a second recorder started on the port of a running one. Before: the first trial
     was cut (stop_reason=unplugged, exit 3) and the second ran. Now: the second exits 2
     without touching the line; the first completes with every packet."""
-    trial = synthetic_trial(8.0, seed=1)  # the first records while the second starts, even on a loaded machine
+    trial = synthetic_trial(6.0, seed=1)  # the first records while the second starts (about 1.5 s on an idle core)
     emu = Emulator(trial)
     port = emu.start()
     first_dir, second_dir = tmp_path / "first", tmp_path / "second"
     first_dir.mkdir()
     second_dir.mkdir()
     try:
-        # 7.5 s of the 8 s trial: an 8 s recording takes 5,600 or 5,601 packets by the clock's phase, and
-        # the 5,601st is the looped trial's first frame, which the genuineness check reads as out of order
-        first = _cli(first_dir, port, "duration_s=7.5")
+        # 5.5 s of the 6 s trial: a 6 s recording takes 4,200 or 4,201 packets by the clock's phase, and
+        # the 4,201st is the looped trial's first frame, which the genuineness check reads as out of order
+        first = _cli(first_dir, port, "duration_s=5.5")
         _wait_line(first, "trial started")
         requests = emu.stats.requests
         second = _cli(second_dir, port, "duration_s=3")
