@@ -355,32 +355,6 @@ def test_cli_sigkill_leaves_readable_file(tmp_path, trial3s):
     _check_genuine(trial3s, rec)
 
 
-@pytest.mark.slow  # emulate CLI subprocess
-def test_emulate_cli_serves_packets(tmp_path):
-    import serial
-
-    proc = subprocess.Popen([sys.executable, "-m", "embodied_tactile", "emulate", "synthetic=1", "max_seconds=20", "rate=0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-    try:
-        port = proc.stdout.readline().strip()
-        assert port.startswith("/dev/")
-        trial = synthetic_trial(1.0)
-        with serial.serial_for_url(port, baudrate=500000, timeout=2) as ser:
-            for k in range(3):
-                ser.write(bytes([0xD0]))
-                acc, fsr, dt_acc, dt_fsr = P.decode_packet(ser.read(1128))
-                np.testing.assert_array_equal(fsr, trial.fsr[k])
-                assert np.abs(acc - trial.acc[k]).max() <= LSB and abs(dt_acc - 1e6 / 700) < 2
-            ser.write(b"\x00\x01")  # anything but 0xD0 is ignored
-            time.sleep(0.1)
-            assert ser.in_waiting == 0
-    finally:
-        proc.terminate()
-        _, err = proc.communicate(timeout=10)
-    assert proc.returncode == 0 and '"sent": 3' in err
-    assert not list(tmp_path.iterdir())  # Hydra made no output folder or log file
-
-
 # --------------------------------------------------------------------------- a full disk, a file-size limit, a failed write
 def _file_bytes(path):
     return Path(path).read_bytes()
@@ -439,14 +413,6 @@ def test_cli_full_disk_or_file_size_limit_stops_cleanly(tmp_path, trial3s, where
     from types import SimpleNamespace
 
     _check_genuine(trial3s, SimpleNamespace(t=rec.t[:1000], acc=rec.acc[:1000], fsr=rec.fsr[:1000]))  # before the 3 s loop wraps
-
-
-@pytest.mark.slow  # recorder CLI subprocess
-def test_cli_refuses_a_trial_that_has_no_room_to_start(tmp_path):
-    p = _cli(tmp_path, "loop://", "duration_s=5", preexec_fn=_limit_file_size(2**20))
-    _, err = p.communicate(timeout=60)
-    assert p.returncode == 2 and "the baseline and the first second need" in err and "reserve_mb=0.25" in err
-    assert not list(tmp_path.glob("cli*.h5"))
 
 
 class _FailingWriter(R.IncrementalTrialWriter):
@@ -592,3 +558,39 @@ def test_emulate_refuses_a_bad_option_with_one_line_naming_it(override, named, c
     assert _emulate("synthetic=1", override) == 2
     out, err = capsys.readouterr()
     assert out == "" and len(err.strip().splitlines()) == 1 and err.startswith(named), err
+
+
+# --------------------------------------------------------------------------- no pacing: beside other tests
+# (the realtime tests above run one after the other, so a worker takes the machine once for all of them)
+@pytest.mark.slow  # recorder CLI subprocess
+def test_cli_refuses_a_trial_that_has_no_room_to_start(tmp_path):
+    p = _cli(tmp_path, "loop://", "duration_s=5", preexec_fn=_limit_file_size(2**20))
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 2 and "the baseline and the first second need" in err and "reserve_mb=0.25" in err
+    assert not list(tmp_path.glob("cli*.h5"))
+
+
+@pytest.mark.slow  # emulate CLI subprocess
+def test_emulate_cli_serves_packets(tmp_path):
+    import serial
+
+    proc = subprocess.Popen([sys.executable, "-m", "embodied_tactile", "emulate", "synthetic=1", "max_seconds=20", "rate=0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        port = proc.stdout.readline().strip()
+        assert port.startswith("/dev/")
+        trial = synthetic_trial(1.0)
+        with serial.serial_for_url(port, baudrate=500000, timeout=2) as ser:
+            for k in range(3):
+                ser.write(bytes([0xD0]))
+                acc, fsr, dt_acc, dt_fsr = P.decode_packet(ser.read(1128))
+                np.testing.assert_array_equal(fsr, trial.fsr[k])
+                assert np.abs(acc - trial.acc[k]).max() <= LSB and abs(dt_acc - 1e6 / 700) < 2
+            ser.write(b"\x00\x01")  # anything but 0xD0 is ignored
+            time.sleep(0.1)
+            assert ser.in_waiting == 0
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0 and '"sent": 3' in err
+    assert not list(tmp_path.iterdir())  # Hydra made no output folder or log file
