@@ -561,7 +561,7 @@ def test_emulate_refuses_a_bad_option_with_one_line_naming_it(override, named, c
 
 
 # --------------------------------------------------------------------------- no pacing: beside other tests
-# (the realtime tests above run one after the other, so a worker takes the machine once for all of them)
+# (not marked realtime: nothing here keeps the board's pace, so these run beside other tests)
 @pytest.mark.slow  # recorder CLI subprocess
 def test_cli_refuses_a_trial_that_has_no_room_to_start(tmp_path):
     p = _cli(tmp_path, "loop://", "duration_s=5", preexec_fn=_limit_file_size(2**20))
