@@ -46,12 +46,9 @@ def _select(cfg, key):
 
 def population_default():
     """``configs/train.yaml`` composed with ``experiment=population``."""
-    from hydra import compose, initialize_config_dir
+    from embodied_tactile.run.config import compose
 
-    from embodied_tactile.run.config import config_dir
-
-    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-        return compose(config_name="train", overrides=["experiment=population"])
+    return compose(["experiment=population"])
 
 
 def rows(run_dir: Path, default) -> list[dict]:

@@ -467,12 +467,9 @@ def run_split(run: Run, split_file: str, objects: Mapping[str, int]) -> dict:
 
 def train_log_dir() -> str:
     """``paths.log_dir`` as train.py composes it (configs/train.yaml + configs/local/)."""
-    from hydra import compose, initialize_config_dir
+    from embodied_tactile.run.config import compose
 
-    from embodied_tactile.run.config import config_dir  # registers the typed configs
-
-    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-        return str(compose(config_name="train").paths.log_dir)
+    return str(compose().paths.log_dir)
 
 
 def latest_target(log_dir: str | None = None) -> Path:

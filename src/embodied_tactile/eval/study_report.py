@@ -124,13 +124,11 @@ def _scene(data: Mapping) -> dict:
 
 def _default_scene() -> dict:
     """The scene of ``python train.py`` with no overrides (configs/train.yaml composed)."""
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from ..run.config import config_dir
+    from ..run.config import compose
 
-    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-        cfg = compose(config_name="train")
+    cfg = compose()
     return _scene({k: OmegaConf.to_container(cfg.data, resolve=False).get(k)
                    for k in ("actions", "repetitions", "test_fraction")})
 

@@ -30,6 +30,7 @@ module first:
 """
 
 from dataclasses import dataclass, field, fields
+from collections.abc import Sequence
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
@@ -151,4 +152,24 @@ def register() -> None:
 
 register()
 
-__all__ = ["AlignmentCallbackNode", "DataNode", "PendulumNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]
+
+def compose(overrides: Sequence[str] = (), config_name: str = "train", return_hydra_config: bool = False) -> Any:
+    """``configs/<config_name>.yaml`` composed with ``overrides`` as its entry point composes
+    it, in this process whether or not a Hydra app runs in it (``embodied-tactile report``,
+    a test): Hydra's global state is set aside while composing and put back after."""
+    from hydra import compose as hydra_compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.singleton import Singleton
+
+    outer = Singleton._instances.pop(GlobalHydra, None)
+    try:
+        with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+            return hydra_compose(config_name=config_name, overrides=list(overrides),
+                                 return_hydra_config=return_hydra_config)
+    finally:
+        Singleton._instances.pop(GlobalHydra, None)
+        if outer is not None:
+            Singleton._instances[GlobalHydra] = outer
+
+
+__all__ = ["AlignmentCallbackNode", "compose", "DataNode", "PendulumNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]

@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from embodied_tactile.run.config import config_dir
+from embodied_tactile.run.config import compose, config_dir
 from embodied_tactile.run.settings import SettingsError, fail
 
 
@@ -34,10 +34,6 @@ def check_composes(args: Sequence[str], config_name: str = "train", prog: str = 
     hold (``trainer.max_epoch=3``) prints one line naming it and what exists, exit 2
     (Hydra's own report is several lines and exit 1). A sweep (``-m a=x,y``) is composed
     with each override's first value; every value of a swept group is checked to exist."""
-    import os
-
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException, MissingConfigException
     from omegaconf.errors import OmegaConfBaseException
 
@@ -62,11 +58,8 @@ def check_composes(args: Sequence[str], config_name: str = "train", prog: str = 
                 fail(SettingsError(f"{o.key_or_group}={v}: no such option (configs/{o.key_or_group}/ holds "
                                    f"{', '.join(names)})"), prog)
         first.append(f"{o.get_key_element()}={values[0]}")
-    if GlobalHydra.instance().is_initialized():
-        return  # inside another Hydra app (a test): the app's own composition reports
     try:
-        with initialize_config_dir(config_dir=os.path.abspath(config_dir()), version_base="1.3"):
-            compose(config_name=config_name, overrides=first, return_hydra_config=True)
+        compose(first, config_name, return_hydra_config=True)
     except MissingConfigException as err:
         missing = str(err).split("Could not find '", 1)[-1].split("'", 1)[0]
         group, _, value = missing.rpartition("/")
@@ -82,5 +75,3 @@ def check_composes(args: Sequence[str], config_name: str = "train", prog: str = 
             fail(SettingsError(f"{key}={value}: no such key in the config ({cause or lines[0]}); a new key is added "
                                f"with +{key}=..."), prog)
         fail(SettingsError("; ".join(lines + ([cause] if cause else []))), prog)
-    finally:
-        GlobalHydra.instance().clear()

@@ -24,18 +24,16 @@ import logging
 import sys
 import time
 
-from embodied_tactile.run.config import config_dir  # registers the typed configs
+from embodied_tactile.run.config import compose  # registers the typed configs
 
 
 def scene_from_train_config(overrides: list[str]):
     """The :class:`~embodied_tactile.data.prepare.Scene` of ``configs/train.yaml`` + overrides."""
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
     from embodied_tactile.data.prepare import Scene
 
-    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-        cfg = compose(config_name="train", overrides=overrides)
+    cfg = compose(overrides)
     keys = [k for k in Scene.__dataclass_fields__ if k in cfg.data]  # resolves only these keys
     values = {k: cfg.data[k] for k in keys}
     return Scene.from_config({k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v

@@ -65,17 +65,11 @@ def compose(overrides: list[str], run_dir: str) -> DictConfig:
     """configs/train.yaml composed with ``overrides`` as train.py would for a run in
     ``run_dir`` (``${hydra:runtime.output_dir}`` resolves to it: this process's Hydra state
     is set to the job's), without the ``hydra`` node: :func:`train`'s ``cfg``."""
-    from hydra import compose as hydra_compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
     from omegaconf import open_dict
 
-    import embodied_tactile.run.config  # noqa: F401  registers the typed configs
-    from embodied_tactile.paths import config_dir
+    from embodied_tactile.run.config import compose as compose_config
 
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
-        cfg = hydra_compose(config_name="train", return_hydra_config=True,
-                            overrides=[*overrides, f"hydra.run.dir={run_dir}"])
+    cfg = compose_config([*overrides, f"hydra.run.dir={run_dir}"], return_hydra_config=True)
     with open_dict(cfg):
         cfg.hydra.runtime.output_dir = str(run_dir)
     HydraConfig.instance().set_config(cfg)
