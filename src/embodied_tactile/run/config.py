@@ -27,10 +27,12 @@ module first:
   (:class:`~embodied_tactile.options.report.ReportOptions`); configs/emulate.yaml and
   configs/report.yaml compose them.
 * ``${prior_rows:objects,n_test,n_val,n_train}``: rows of the prior's object-code table.
+
+:func:`compose` is the one way the package composes ``configs/`` itself (outside an entry point).
 """
 
-from dataclasses import dataclass, field, fields
 from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
@@ -172,4 +174,4 @@ def compose(overrides: Sequence[str] = (), config_name: str = "train", return_hy
             Singleton._instances[GlobalHydra] = outer
 
 
-__all__ = ["AlignmentCallbackNode", "compose", "DataNode", "PendulumNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "config_dir", "folder_name", "prior_rows", "register"]
+__all__ = ["AlignmentCallbackNode", "DataNode", "PendulumNode", "LatentFilterNode", "ModelNode", "OptimizerNode", "compose", "config_dir", "folder_name", "prior_rows", "register"]
