@@ -11,9 +11,10 @@
 
 A part is one of the paper's 24 cells (a ``configs/combo/`` x a primitive) with the sweep's
 seeds: ``python train.py -m sweep=study combo=C primitive=P threads=1 logger=none
-hydra.sweep.dir=STUDY/C_P`` (the same command again resumes it). Lanes take the parts in
-:data:`PARTS` order (the Table 1 analogue's cells first, then the rest of pressing, then the
-rest), each holding a lock on ``STUDY/.C_P.lock`` while it runs (released when the lane stops,
+hydra.sweep.dir=STUDY/C_P`` (the same command again resumes it, also on another machine whose
+``paths.data_dir`` differs). Its output goes to ``STUDY/C_P.log``, whose last line a lane
+prints when the part fails. Lanes take the parts in :data:`PARTS` order (the Table 1
+analogue's cells first, then the rest of pressing, then the rest), each holding a lock on ``STUDY/.C_P.lock`` while it runs (released when the lane stops,
 however it stops). A part whose seeds all finished is skipped; one that has a job in training
 (its run folder's lock is held) is left to the process training it; an interrupted one resumes
 (train.py leaves a finished job as it is and continues an interrupted one from its
@@ -86,6 +87,14 @@ def finished_seeds(folder: Path) -> list[int]:
     return sorted(out)
 
 
+def last_line(log: Path) -> str:
+    """The last non-empty line of ``log`` (a failed part's reason: train.py ends on its one-line error)."""
+    with open(log, "rb") as f:
+        f.seek(max(f.seek(0, os.SEEK_END) - 4096, 0))
+        lines = [ln for ln in f.read().decode(errors="replace").splitlines() if ln.strip()]
+    return lines[-1] if lines else "(no output)"
+
+
 def in_training(folder: Path) -> bool:
     return any(training_holder(j) is not None for j in folder.iterdir() if j.is_dir()) if folder.is_dir() else False
 
@@ -106,10 +115,14 @@ def train(args) -> None:
                *([f"paths.data_dir={Path(args.data).resolve()}"] if args.data else []), *args.overrides]
         print(time.strftime("%H:%M:%S"), "part", folder.name, flush=True)
         t0 = time.perf_counter()
-        rc = subprocess.run(cmd, cwd=REPO, env=dict(os.environ, WANDB_MODE="disabled"), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL).returncode
+        log = study / f"{folder.name}.log"  # the part's own output, appended at every start
+        with open(log, "ab") as out:
+            rc = subprocess.run(cmd, cwd=REPO, env=dict(os.environ, WANDB_MODE="disabled"), stdout=out,
+                                stderr=subprocess.STDOUT).returncode
         print(time.strftime("%H:%M:%S"), f"part {folder.name}: rc {rc} in {time.perf_counter() - t0:.0f} s, "
               f"seeds finished {finished_seeds(folder)}", flush=True)
+        if rc:
+            print(f"  {last_line(log)}  (whole output: {log})", flush=True)
         os.close(fd)
 
 

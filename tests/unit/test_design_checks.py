@@ -86,6 +86,9 @@ def test_a_study_part_into_another_parts_sweep_folder_is_refused_and_a_resume_pa
     before = (folder / "multirun.yaml").read_bytes()
     same = OmegaConf.merge(part, {"hydra": {"sweep": {"dir": str(folder)}}})
     check_sweep_folder(same)  # the same multirun again: a resume
+    moved = OmegaConf.merge(_multirun(["primitive=pressing", "seed=0,1,2", "paths.data_dir=/elsewhere/data"],
+                                      {"combo": "acc_soft,multi_l_soft"}), {"hydra": {"sweep": {"dir": str(folder)}}})
+    check_sweep_folder(moved)  # a resume on another machine, whose data lie elsewhere
     other = OmegaConf.merge(_multirun(["primitive=sliding", "seed=0,1,2"], {"combo": "acc_soft,multi_l_soft"}),
                             {"hydra": {"sweep": {"dir": str(folder)}}})
     with pytest.raises(SettingsError, match=r"hydra.sweep.dir=.*study: holds another multirun \(primitive=pressing"):

@@ -29,3 +29,11 @@ def test_a_part_counts_the_seeds_whose_runs_finished(tmp_path):
         (job / "metrics.json").write_text(json.dumps({"status": status}))
     assert grid.finished_seeds(part) == [0, 2]
     assert not grid.in_training(part)
+
+
+def test_a_failed_part_reports_the_last_line_of_its_output(tmp_path):
+    log = tmp_path / "acc_soft_pressing.log"
+    log.write_text("INFO: starting\n" + "x" * 5000 + "\ntrain.py: error: hydra.sweep.dir=S: holds another multirun\n\n")
+    assert grid.last_line(log) == "train.py: error: hydra.sweep.dir=S: holds another multirun"
+    (tmp_path / "empty.log").write_text("")
+    assert grid.last_line(tmp_path / "empty.log") == "(no output)"

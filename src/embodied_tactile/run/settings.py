@@ -230,7 +230,9 @@ def check_sweep_folder(cfg: DictConfig) -> None:
     """A sweep folder holds one multirun: Hydra rewrites its ``multirun.yaml`` at every start,
     so a multirun whose overrides or sweep parameters differ from the ones recorded there would
     overwrite another part's record (and put its jobs beside that part's). SettingsError naming
-    ``hydra.sweep.dir`` then; the same multirun again (a resume) passes."""
+    ``hydra.sweep.dir`` then; the same multirun again (a resume) passes, also from another machine
+    whose ``paths.*`` differ (where the data and logs lie is not a setting of the runs; each job's
+    data is checked against its own record when it resumes)."""
     present, folder = config_value(cfg, "hydra.sweep.dir")
     if not present or not folder or not (Path(str(folder)) / "multirun.yaml").is_file():
         return
@@ -242,7 +244,8 @@ def check_sweep_folder(cfg: DictConfig) -> None:
     def what(c: DictConfig) -> tuple[list, Any]:
         task = OmegaConf.select(c, "hydra.overrides.task", default=[])
         params = OmegaConf.select(c, "hydra.sweeper.params", default=None)
-        return (sorted(OmegaConf.to_container(task)) if task is not None else [],
+        task = OmegaConf.to_container(task) if task is not None else []
+        return (sorted(t for t in task if not str(t).lstrip("+~").startswith("paths.")),
                 OmegaConf.to_container(params) if params is not None else None)
 
     (task0, params0), (task1, params1) = what(earlier), what(cfg)
