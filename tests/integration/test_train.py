@@ -68,6 +68,7 @@ def test_run_folder_contents(one_run):
     prov = json.loads((one_run / "provenance.json").read_text())
     assert prov["packages"]["torch"] and prov["packages"]["lightning"]
     assert "git_commit" in prov
+    assert prov["cpu"]["cores"] >= 1 and prov["cpu"]["torch_capability"]
     split = json.loads((one_run / "split.json").read_text())
     assert split["train"] and split["val"] and not set(split["train"]) & set(split["val"])
     history = [json.loads(line) for line in (one_run / "krr_history.jsonl").read_text().splitlines()]

@@ -1,5 +1,5 @@
 """What a run folder records about where its run came from: ``provenance.json`` (git
-commit, dirty flag and diff, package versions, command line, host), ``config_resolved.yaml``,
+commit, dirty flag and diff, package versions, command line, host and CPU), ``config_resolved.yaml``,
 the identity of the data it was trained on (per cache file and per trial, which a resume and
 evaluate.py compare with) and the process's peak memory."""
 
@@ -37,6 +37,24 @@ def package_versions() -> dict[str, str | None]:
     return out
 
 
+def cpu() -> dict[str, Any]:
+    """The CPU a run computed on: its model name (``/proc/cpuinfo``; ``platform.processor()``
+    elsewhere), the cores this process may use and torch's kernel level. At the same thread
+    count the same CPU model trains to the same last digit, another model does not
+    (docs/experiments/variance_components.md, "The main job on another CPU")."""
+    import torch
+
+    model = None
+    try:
+        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                      if line.startswith("model name")), None)
+    except OSError:
+        pass
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {"model": model or platform.processor() or None, "cores": cores,
+            "torch_capability": torch.backends.cpu.get_cpu_capability()}
+
+
 def git_state(repo: str | os.PathLike | None = None) -> dict[str, Any]:
     """Commit, dirty flag and diff of the source tree (None where git is unavailable)."""
     repo = Path(repo or Path(__file__).resolve().parents[3])
@@ -67,6 +85,7 @@ def save_provenance(cfg: DictConfig, run_dir: str | os.PathLike) -> None:
             "packages": package_versions(),
             "python": sys.version,
             "platform": platform.platform(),
+            "cpu": cpu(),
             "argv": sys.argv,
             "cwd": os.getcwd(),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
