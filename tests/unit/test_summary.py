@@ -51,7 +51,11 @@ def test_run_summary_lines(tmp_path):
     # the LAST alignment of the history, overall and per factor
     assert "overall 0.1223" in text and "step 12" in text and "8 held-out sequences" in text
     assert "spatial freq. 0.1  amplitude 0.2  stiffness 0.0892  heterogeneity 0.1" in text
-    assert "training time: 3 min 41 s (data preparation 12.0 s on top)" in text
+    assert "training time: 3 min 41 s (data preparation 12.0 s on top)\n" in text + "\n"  # no CPU recorded: none named
+    (run / "provenance.json").write_text(json.dumps({"cpu": {"model": "AMD EPYC", "cores": 2}}))
+    m = {**json.loads((run / "metrics.json").read_text()), "krr_final": {"torch_threads": 1}}
+    assert ("training time: 3 min 41 s (data preparation 12.0 s on top), on AMD EPYC, 1 torch thread"
+            in run_summary_lines(run, m, cwd=tmp_path))
     # the final weights (the read-out printed above, evaluate.py's default), the best named beside them
     assert f"checkpoint:    {rel}/checkpoints/last.ckpt (lowest validation loss: best-epoch011.ckpt)" in text
     assert f"{rel}/{{metrics.json,krr_history.jsonl}}" in text

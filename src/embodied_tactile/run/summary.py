@@ -267,6 +267,18 @@ def protocol_lines(run_dir: str | os.PathLike, cfg=None, rows: Sequence[Mapping]
     return lines
 
 
+def where_computed(run: Path, metrics: Mapping) -> str:
+    """", on <CPU model>, <n> torch thread(s)" (provenance.json, the final read-out's threads):
+    what a number's last digits depend on; "" where the run folder does not say."""
+    try:
+        model = (read_json(run / "provenance.json").get("cpu") or {}).get("model")
+    except (OSError, ValueError):
+        model = None
+    threads = (metrics.get("krr_final") or {}).get("torch_threads")
+    parts = [p for p in (model, f"{threads} torch thread{'s' if threads != 1 else ''}" if threads else None) if p]
+    return f", on {', '.join(parts)}" if parts else ""
+
+
 def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None, *,
                       cwd: str | os.PathLike | None = None) -> list[str]:
     """The closing block of one run (``metrics``: the dict train.py writes to metrics.json;
@@ -293,7 +305,7 @@ def run_summary_lines(run_dir: str | os.PathLike, metrics: Mapping | None = None
     t = f"training time: {duration(m.get('train_wall_s'))}"
     if m.get("data_prepare_s") is not None:
         t += f" (data preparation {duration(m.get('data_prepare_s'))} on top)"
-    lines.append(t)
+    lines.append(t + where_computed(run, m))
     # the final weights: the read-out above and evaluate.py's default (checkpoint=last)
     ckpt, best = m.get("last_checkpoint") or m.get("best_checkpoint"), m.get("best_checkpoint")
     ck_dir = run / "checkpoints"
