@@ -14,7 +14,8 @@ seeds: ``python train.py -m sweep=study combo=C primitive=P threads=1 logger=non
 hydra.sweep.dir=STUDY/C_P`` (the same command again resumes it, also on another machine whose
 ``paths.data_dir`` differs). Its output goes to ``STUDY/C_P.log``, whose last line a lane
 prints when the part fails. Lanes take the parts in :data:`PARTS` order (the Table 1
-analogue's cells first, then the rest of pressing, then the rest), each holding a lock on ``STUDY/.C_P.lock`` while it runs (released when the lane stops,
+analogue's cells first, then the rest of pressing, then the rest), each holding a lock on
+``STUDY/.C_P.lock`` while it runs (released when the lane stops,
 however it stops). A part whose seeds all finished is skipped; one that has a job in training
 (its run folder's lock is held) is left to the process training it; an interrupted one resumes
 (train.py leaves a finished job as it is and continues an interrupted one from its
