@@ -44,14 +44,15 @@ def cpu() -> dict[str, Any]:
     (docs/experiments/variance_components.md, "The main job on another CPU")."""
     import torch
 
+    from embodied_tactile.run.threads import available_cores
+
     model = None
     try:
         model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
                       if line.startswith("model name")), None)
     except OSError:
         pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return {"model": model or platform.processor() or None, "cores": cores,
+    return {"model": model or platform.processor() or None, "cores": available_cores(),
             "torch_capability": torch.backends.cpu.get_cpu_capability()}
 
 

@@ -275,7 +275,9 @@ def where_computed(run: Path, metrics: Mapping) -> str:
     except (OSError, ValueError):
         model = None
     threads = (metrics.get("krr_final") or {}).get("torch_threads")
-    parts = [p for p in (model, f"{threads} torch thread{'s' if threads != 1 else ''}" if threads else None) if p]
+    parts = [model] if model else []
+    if threads:
+        parts.append(f"{threads} torch thread{'' if threads == 1 else 's'}")
     return f", on {', '.join(parts)}" if parts else ""
 
 
