@@ -208,19 +208,21 @@ def _combined(split: dict, prior) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.stack(means), np.stack(facs), np.asarray(ids)
 
 
-def split_posteriors(run_dir: Path, checkpoint: str, held_out: str = "val"):
+def split_posteriors(run_dir: Path, checkpoint: str, held_out: str = "val", untrained: bool = False):
     """A run's network and :func:`_posteriors` of its training trials and of its validation
-    (or test) trials, factors encoded as the run's targets -> (run, net, train, held-out)."""
+    (or test) trials, factors encoded as the run's targets -> (run, net, train, held-out).
+    ``untrained``: the same network at its initialisation (``untrained_module``), the floor."""
     from embodied_tactile.data.datamodule import TactileDataModule
     from embodied_tactile.eval.pipeline import parse_options
-    from embodied_tactile.eval.runs import data_config, load_module, load_run, trial_names
+    from embodied_tactile.eval.runs import data_config, load_module, load_run, trial_names, untrained_module
     from embodied_tactile.eval.targets import encode_split
 
     run = load_run(run_dir, checkpoint)
     dm = TactileDataModule.from_config(data_config(run, parse_options([])))
     dm.prepare_data()
     dm.setup("fit")
-    net = load_module(run).model
+    module = load_module(run)
+    net = (untrained_module(run, module) if untrained else module).model
     targets = str(run.cfg.get("targets") or "design_rank")
     tr = encode_split(_posteriors(net, dm.train_eval_dataloader(), trial_names(dm, "train")), targets)
     loader = dm.val_eval_dataloader() if held_out == "val" else dm.test_dataloader()

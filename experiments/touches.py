@@ -10,13 +10,17 @@ q(y | touch k) of its first K trials are combined by
 ``LatentFilter.touch_prior``). The read-out is fitted at the same K on the training objects
 (one row per object; alpha and gamma cross-validated by object, the run's own alignment
 grids) and scores the held-out objects at that K: NMSE mean over factors, normalised by the
-held-out targets' variance. K larger than an object's number of trials is skipped.
+held-out targets' variance. K larger than an object's number of trials is skipped. Every run is
+read twice: its final weights, and the same network at its initialisation (``untrained``: the
+run's seed, its input statistics), the floor its numbers are compared with. ``--json OUT``
+writes the rows.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -45,19 +49,20 @@ def combined(split: dict, k: int, prior, rng: np.random.Generator) -> tuple[np.n
     return np.stack(means), np.stack(facs), np.asarray(ids)
 
 
-def score(run_dir: Path, held_out: str, ks, seed: int) -> dict:
+def score(run_dir: Path, held_out: str, ks, seed: int, untrained: bool = False) -> dict:
     from context_ladder import split_posteriors  # experiments/ is the script's folder
 
     from embodied_tactile.eval.krr import fit_alignment
     from embodied_tactile.eval.metrics import nmse, overall, reference_variance
     from embodied_tactile.eval.pipeline import parse_options, run_alignment
 
-    run, net, tr, te = split_posteriors(run_dir, "last", held_out)
+    run, net, tr, te = split_posteriors(run_dir, "last", held_out, untrained=untrained)
     opts = parse_options([])
     align = {k: v for k, v in dataclasses.asdict(run_alignment(run.cfg, opts)).items()
              if k in ("cv", "alphas", "gammas", "nystroem_threshold", "n_components", "seed", "n_threads")}
     prior = net.touch_prior()
-    out = {"run": run_dir.name, "seed": int(run.cfg.seed), "held_out": held_out}
+    out = {"run": run_dir.name, "seed": int(run.cfg.seed), "held_out": held_out,
+           "network": "untrained" if untrained else "trained"}
     for k in ks:
         x_tr, f_tr, o_tr = combined(tr, k, prior, np.random.default_rng(seed))
         x_te, f_te, _ = combined(te, k, prior, np.random.default_rng(seed + 1))
@@ -74,14 +79,20 @@ def main(argv=None) -> int:
     ap.add_argument("--held-out", default="val", choices=("val", "test"))
     ap.add_argument("--k", nargs="+", type=int, default=[1, 2, 4])
     ap.add_argument("--seed", type=int, default=0, help="the order in which each object's trials are taken")
+    ap.add_argument("--json", type=Path, default=None, help="write every row (run, seed, side, network, K=...) here")
     args = ap.parse_args(argv)
     set_threads(1)
-    print("| run | seed | side | " + " | ".join(f"K={k}" for k in args.k) + " |")
-    print("|---" * (3 + len(args.k)) + "|")
+    print("| run | seed | side | network | " + " | ".join(f"K={k}" for k in args.k) + " |")
+    print("|---" * (4 + len(args.k)) + "|")
+    rows = []
     for run in args.runs:
-        r = score(run, args.held_out, args.k, args.seed)
-        print(f"| {r['run']} | {r['seed']} | {r['held_out']} | "
-              + " | ".join(f"{r[f'K={k}']:.3f}" if f"K={k}" in r else "–" for k in args.k) + " |", flush=True)
+        for untrained in (False, True):
+            r = score(run, args.held_out, args.k, args.seed, untrained=untrained)
+            rows.append({"path": str(run), **r})
+            print(f"| {r['run']} | {r['seed']} | {r['held_out']} | {r['network']} | "
+                  + " | ".join(f"{r[f'K={k}']:.3f}" if f"K={k}" in r else "–" for k in args.k) + " |", flush=True)
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=1) + "\n")
     return 0
 
 
