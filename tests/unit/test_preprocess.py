@@ -430,19 +430,21 @@ def test_pool_workers_end_on_sigterm_whatever_handler_train_py_installed(monkeyp
     leave Ctrl-C to the parent."""
     import signal
 
+    from embodied_tactile import workers
     from embodied_tactile.run.runfolder import StopSignals
     from embodied_tactile.sim import dataset as sim_dataset
 
-    monkeypatch.setattr(cache_mod, "one_blas_thread", lambda: None)  # the worker's thread limit, not this process's
+    monkeypatch.setattr(workers, "one_blas_thread", lambda: None)  # the worker's thread limit, not this process's
+    monkeypatch.setattr(workers, "hold_freed_memory", lambda: None)  # the worker's allocator, not this process's
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         monkeypatch.setenv(var, os.environ.get(var, ""))  # restored after the test
     saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    assert cache_mod.init_worker is sim_dataset.init_worker is workers.init_worker  # both pools start alike
     try:
-        for init in (cache_mod._init_worker, sim_dataset._init_worker):
-            StopSignals().install()
-            init()
-            assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
-            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        StopSignals().install()
+        workers.init_worker()
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         for s, h in saved.items():
             signal.signal(s, h)

@@ -36,7 +36,6 @@ import hashlib
 import json
 import logging
 import mmap
-import signal
 import multiprocessing as mp
 import os
 import uuid
@@ -61,6 +60,7 @@ from embodied_tactile.jsonio import to_jsonable
 from embodied_tactile.data.rawformat import FIELDS as RAW_PATHS
 from embodied_tactile.data.rawformat import TrialFormatError
 from embodied_tactile.options.data import SceneOptions
+from embodied_tactile.workers import init_worker, one_blas_thread
 
 log = logging.getLogger(__name__)
 
@@ -298,25 +298,6 @@ def _process_chunk(task: tuple) -> tuple[list, list]:
     return ordered, errors
 
 
-def one_blas_thread():
-    """Parallelism comes from the process pool: keep BLAS single-threaded inside it
-    (oversubscribed OpenBLAS threads spin and were 3-5x slower on a loaded 2-core box)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
-
-
-def _init_worker() -> None:
-    one_blas_thread()  # applied on construction; holds for the worker's life (3 ms per call)
-    # a forked worker inherits train.py's stop handlers; Pool.terminate ends its workers with
-    # SIGTERM, which must end them (a handler that records the signal left a worker waiting on
-    # the task queue's lock and the pool's join hanging: seen in a sweep on 2026-11-26)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
-
-
 def _merge(a: rawformat.RawTrial, b: rawformat.RawTrial) -> rawformat.RawTrial:
     """Fields of one trial (same file, same group) read in two passes, as one RawTrial."""
     assert a.name == b.name, (a.name, b.name)
@@ -350,7 +331,7 @@ class _Workers:
             ctx = mp.get_context("fork")
         else:
             ctx = mp.get_context()
-        self.pool = self._stack.enter_context(ctx.Pool(self.n, initializer=_init_worker))
+        self.pool = self._stack.enter_context(ctx.Pool(self.n, initializer=init_worker))
         return self
 
     @staticmethod

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Iterable
@@ -25,6 +24,7 @@ from embodied_tactile.sim.physics import PHYSICS_VERSION, VERSION_ATTR, PhysicsO
 from embodied_tactile.sim.trial import simulate_trial
 from embodied_tactile.sim.validation import (SimParameterError, check_choice, check_duration, check_int, check_object,
                                              check_overrides)
+from embodied_tactile.workers import init_worker
 
 log = logging.getLogger(__name__)
 
@@ -126,16 +126,6 @@ def requested_trials(objects: Iterable[int | C.WaveObject], skin: str, primitive
 def _job(args: tuple) -> object:
     object_id, skin, primitive, action, rep, seed, duration, physics = args
     return simulate_trial(object_id, skin, primitive, action, rep, seed, duration=duration, physics=physics)
-
-
-def _init_worker() -> None:
-    # one BLAS/OpenMP thread per worker process: the pool provides the parallelism
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
-    # a forked worker inherits train.py's stop handlers; the pool ends its workers with
-    # SIGTERM, which must end them (a handler that records the signal left one waiting forever)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
 
 
 def _aside_path(path: Path, version: int) -> Path:
@@ -244,7 +234,7 @@ def generate_dataset(
             for trial in map(_job, jobs):
                 write(trial)
         else:
-            with ProcessPoolExecutor(max_workers=workers, initializer=_init_worker) as pool:
+            with ProcessPoolExecutor(max_workers=workers, initializer=init_worker) as pool:
                 for i, trial in enumerate(pool.map(_job, jobs, chunksize=4)):
                     write(trial)
                     if (i + 1) % 64 == 0:
