@@ -12,8 +12,8 @@ q(y | touch k) of its first K trials are combined by
 grids) and scores the held-out objects at that K: NMSE mean over factors, normalised by the
 held-out targets' variance. K larger than an object's number of trials is skipped. Every run is
 read twice: its final weights, and the same network at its initialisation (``untrained``: the
-run's seed, its input statistics), the floor its numbers are compared with. ``--json OUT``
-writes the rows.
+run's seed, its input statistics), the floor its numbers are compared with. Several runs (seeds)
+end with the mean over them and its 95 % t interval per K. ``--json OUT`` writes the rows.
 """
 
 from __future__ import annotations
@@ -91,9 +91,26 @@ def main(argv=None) -> int:
             rows.append({"path": str(run), **r})
             print(f"| {r['run']} | {r['seed']} | {r['held_out']} | {r['network']} | "
                   + " | ".join(f"{r[f'K={k}']:.3f}" if f"K={k}" in r else "–" for k in args.k) + " |", flush=True)
+    if len(args.runs) > 1:
+        print(summary(rows, args.k))
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")
     return 0
+
+
+def summary(rows: list[dict], ks) -> str:
+    """Per network (trained, untrained): mean over the runs [95 % t interval] at each K."""
+    from embodied_tactile.eval.generalisation import mean_interval
+
+    lines = ["", "| network | runs | " + " | ".join(f"K={k}" for k in ks) + " |", "|---" * (2 + len(ks)) + "|"]
+    for network in ("trained", "untrained"):
+        mine = [r for r in rows if r["network"] == network]
+        cells = []
+        for k in ks:
+            m, lo, hi = mean_interval([r[f"K={k}"] for r in mine if f"K={k}" in r])
+            cells.append(f"{m:.3f} [{lo:.3f}, {hi:.3f}]")
+        lines.append(f"| {network} | {len(mine)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -36,3 +36,10 @@ def test_k_touches_combine_k_of_each_objects_trials_and_skip_objects_with_fewer(
     np.testing.assert_allclose(m3[0], [2 * (1 + 3 + 5) / 4, 0.0])  # every trial: the order does not matter
     empty, _, ids4 = touches.combined(_split(), 4, prior, np.random.default_rng(0))
     assert empty.shape == (0, 0) and ids4.size == 0
+
+
+def test_the_summary_gives_each_network_its_mean_and_interval_over_runs():
+    rows = [{"network": "trained", "K=1": v} for v in (0.5, 0.6, 0.7)] + [{"network": "untrained", "K=1": 0.8}] * 3
+    text = touches.summary(rows, [1])
+    assert "| trained | 3 | 0.600 [0.352, 0.848] |" in text  # t(0.975, 2) = 4.303, sd 0.1
+    assert "| untrained | 3 | 0.800 [0.800, 0.800] |" in text
