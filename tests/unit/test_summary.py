@@ -56,6 +56,19 @@ def test_run_summary_lines(tmp_path):
     m = {**json.loads((run / "metrics.json").read_text()), "krr_final": {"torch_threads": 1}}
     assert ("training time: 3 min 41 s (data preparation 12.0 s on top), on AMD EPYC, 1 torch thread"
             in run_summary_lines(run, m, cwd=tmp_path))
+    # threads=auto re-counts the threads each epoch: every count the checks ran at, in order
+    rows = [{**_row(6, 0.5, (0.4, 0.5, 0.6, 0.5)), "torch_threads": 2}, {**_row(12, 0.2, (0.2,) * 4), "torch_threads": 2},
+            {**_row(18, 0.1223, (0.1, 0.2, 0.0892, 0.1)), "torch_threads": 1}]
+    (run / "krr_history.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert ("training time: 3 min 41 s (data preparation 12.0 s on top), on AMD EPYC, 2 then 1 torch threads "
+            "(1 from step 18)" in run_summary_lines(run, m, cwd=tmp_path))
+    m2 = {**m, "krr_final": {"torch_threads": 2}}
+    assert any(line.endswith("2 then 1 then 2 torch threads (1 from step 18, 2 in the final read-out)")
+               for line in run_summary_lines(run, m2, cwd=tmp_path))
+    (run / "krr_history.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows[:2]))
+    assert any(line.endswith("on AMD EPYC, 2 then 1 torch threads (1 in the final read-out)")
+               for line in run_summary_lines(run, m, cwd=tmp_path))
+    (run / "krr_history.jsonl").write_text("".join(json.dumps(_row(*r)) + "\n" for r in ((6, 0.5, (0.4, 0.5, 0.6, 0.5)), (12, 0.1223, (0.1, 0.2, 0.0892, 0.1)))))
     # the final weights (the read-out printed above, evaluate.py's default), the best named beside them
     assert f"checkpoint:    {rel}/checkpoints/last.ckpt (lowest validation loss: best-epoch011.ckpt)" in text
     assert f"{rel}/{{metrics.json,krr_history.jsonl}}" in text

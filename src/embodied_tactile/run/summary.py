@@ -268,16 +268,30 @@ def protocol_lines(run_dir: str | os.PathLike, cfg=None, rows: Sequence[Mapping]
 
 
 def where_computed(run: Path, metrics: Mapping) -> str:
-    """", on <CPU model>, <n> torch thread(s)" (provenance.json, the final read-out's threads):
-    what a number's last digits depend on; "" where the run folder does not say."""
+    """", on <CPU model>, <n> torch thread(s)" (provenance.json; the threads of every KRR check
+    in krr_history.jsonl and of the final read-out, in the order they held: ``threads=auto``
+    re-counts them each epoch, so "2 then 1 torch threads (from step 840)"): what a number's
+    last digits depend on; "" where the run folder does not say."""
     try:
         model = (read_json(run / "provenance.json").get("cpu") or {}).get("model")
     except (OSError, ValueError):
         model = None
-    threads = (metrics.get("krr_final") or {}).get("torch_threads")
+    seen = [(r.get("step"), r["torch_threads"]) for r in krr_history(run) if r.get("torch_threads")]
+    final = (metrics.get("krr_final") or {}).get("torch_threads")
+    if final and (not seen or seen[-1][1] != final):
+        seen.append((None, final))
+    runs = [seen[0]] if seen else []  # (first step, threads) of each stretch of one thread count
+    for step, n in seen[1:]:
+        if n != runs[-1][1]:
+            runs.append((step, n))
     parts = [model] if model else []
-    if threads:
-        parts.append(f"{threads} torch thread{'' if threads == 1 else 's'}")
+    if len(runs) == 1:
+        n = runs[0][1]
+        parts.append(f"{n} torch thread{'' if n == 1 else 's'}")
+    elif runs:
+        steps = ", ".join(f"{n} from step {step}" if step is not None else f"{n} in the final read-out"
+                          for step, n in runs[1:])
+        parts.append(f"{' then '.join(str(n) for _, n in runs)} torch threads ({steps})")
     return f", on {', '.join(parts)}" if parts else ""
 
 
