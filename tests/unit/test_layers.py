@@ -20,8 +20,8 @@ PACKAGE = REPO / "src" / "embodied_tactile"
 #: bottom up; a module may import modules of its own layer or below. A prefix names a module
 #: or a folder; the longest prefix that names a module decides its layer.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    # facts and typed options, and the run's light helpers (JSON, paths, warnings, threads)
-    ("constants", "options", "model.options", "jsonio", "paths", "run.quiet", "run.threadenv"),
+    # facts and typed options, and the run's light helpers (JSON, paths, warnings, threads, pool workers)
+    ("constants", "options", "model.options", "jsonio", "paths", "run.quiet", "run.threadenv", "run.workers"),
     # file formats and what the configs register: numpy and h5py, no torch
     ("data.rawformat", "data.modality", "data.statistics", "data.pendulum", "run.config"),
     ("sim",),  # the simulator writes the raw format

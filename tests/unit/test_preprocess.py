@@ -430,7 +430,7 @@ def test_pool_workers_end_on_sigterm_whatever_handler_train_py_installed(monkeyp
     leave Ctrl-C to the parent."""
     import signal
 
-    from embodied_tactile import workers
+    from embodied_tactile.run import workers
     from embodied_tactile.run.runfolder import StopSignals
     from embodied_tactile.sim import dataset as sim_dataset
 

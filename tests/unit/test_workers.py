@@ -1,4 +1,4 @@
-"""embodied_tactile.workers: a pool worker keeps the memory it frees (no page faults per trial)."""
+"""embodied_tactile.run.workers: a pool worker keeps the memory it frees (no page faults per trial)."""
 
 import subprocess
 import sys
@@ -7,7 +7,7 @@ import pytest
 
 _FAULTS = """
 import resource, sys
-from embodied_tactile import workers
+from embodied_tactile.run import workers
 from embodied_tactile.sim.trial import simulate_trial
 held = workers.hold_freed_memory() if sys.argv[1] == "held" else None
 simulate_trial(4, "soft", "pressing", 6)  # the first trial: surfaces cached, the heap grows once

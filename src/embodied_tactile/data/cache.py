@@ -60,7 +60,7 @@ from embodied_tactile.jsonio import to_jsonable
 from embodied_tactile.data.rawformat import FIELDS as RAW_PATHS
 from embodied_tactile.data.rawformat import TrialFormatError
 from embodied_tactile.options.data import SceneOptions
-from embodied_tactile.workers import init_worker, one_blas_thread
+from embodied_tactile.run.workers import init_worker, one_blas_thread
 
 log = logging.getLogger(__name__)
 

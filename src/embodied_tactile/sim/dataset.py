@@ -24,7 +24,7 @@ from embodied_tactile.sim.physics import PHYSICS_VERSION, VERSION_ATTR, PhysicsO
 from embodied_tactile.sim.trial import simulate_trial
 from embodied_tactile.sim.validation import (SimParameterError, check_choice, check_duration, check_int, check_object,
                                              check_overrides)
-from embodied_tactile.workers import init_worker
+from embodied_tactile.run.workers import init_worker
 
 log = logging.getLogger(__name__)
 
