@@ -270,7 +270,7 @@ def protocol_lines(run_dir: str | os.PathLike, cfg=None, rows: Sequence[Mapping]
 def where_computed(run: Path, metrics: Mapping) -> str:
     """", on <CPU model>, <n> torch thread(s)" (provenance.json; the threads of every KRR check
     in krr_history.jsonl and of the final read-out, in the order they held: ``threads=auto``
-    re-counts them each epoch, so "2 then 1 torch threads (from step 840)"): what a number's
+    re-counts them each epoch, so "2 then 1 torch threads (1 from step 840)"): what a number's
     last digits depend on; "" where the run folder does not say."""
     try:
         model = (read_json(run / "provenance.json").get("cpu") or {}).get("model")

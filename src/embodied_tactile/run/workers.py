@@ -4,7 +4,7 @@ kept in the process.
 
 Memory: a simulated trial allocates and frees arrays of up to 24 MB (the contact front's
 1.0 M sub-grid points). glibc serves each from fresh pages of its own mapping and returns them
-when freed, so every trial faulted about 7,000-9,000 pages in again: 16-28 ms of system time
+when freed, so every trial faulted 6,500-13,000 pages in again: 16-28 ms of system time
 against 104-124 ms of user time per soft-pressing trial (AMD EPYC, loaded machine,
 2026-12-08; docs/experiments/simulator_speed.md). With the mmap threshold at 32 MB (glibc's
 ceiling) and the heap trimmed only above 256 MB those arrays come from the heap and stay
